@@ -1,0 +1,135 @@
+//! The one clock every wait goes through.
+//!
+//! It reads tokio's clock. On a runtime started with paused time (the
+//! simulated rig) tokio advances time by itself whenever every task waits, so
+//! physical durations are reproduced exactly in a fraction of the wall time.
+//! A speed factor lets a real-time demo run faster than physics while still
+//! reporting physical time.
+
+use std::future::Future;
+use std::time::Duration;
+
+use tokio::time::Instant;
+
+/// A deadline passed before the operation finished.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("deadline of {0:?} (physical) passed")]
+pub struct DeadlineElapsed(pub Duration);
+
+/// Physical time since the clock started, and waits measured in physical time.
+#[derive(Debug, Clone)]
+pub struct Clock {
+    origin: Instant,
+    speed: f64,
+    virtual_time: bool,
+}
+
+impl Clock {
+    /// Wall-clock time, for real hardware.
+    pub fn real() -> Clock {
+        Clock::build(1.0, false)
+    }
+
+    /// Virtual time. The caller promises the runtime was started with paused
+    /// time (`Builder::start_paused(true)`), so sleeps cost no wall time.
+    pub fn virtual_time() -> Clock {
+        Clock::build(1.0, true)
+    }
+
+    /// Physical time running `speed` times faster than the wall clock, for
+    /// demos of the simulated rig. Non-finite or non-positive speeds mean 1.
+    pub fn scaled(speed: f64) -> Clock {
+        Clock::build(speed, false)
+    }
+
+    fn build(speed: f64, virtual_time: bool) -> Clock {
+        let speed = if speed.is_finite() && speed > 0.0 {
+            speed
+        } else {
+            1.0
+        };
+        Clock {
+            origin: Instant::now(),
+            speed,
+            virtual_time,
+        }
+    }
+
+    /// Physical time elapsed since the clock was made.
+    pub fn now(&self) -> Duration {
+        self.origin.elapsed().mul_f64(self.speed)
+    }
+
+    /// Physical seconds since the clock was made.
+    pub fn now_s(&self) -> f64 {
+        self.now().as_secs_f64()
+    }
+
+    /// True when time is virtual (the runtime was started paused).
+    pub fn is_virtual(&self) -> bool {
+        self.virtual_time
+    }
+
+    /// Waits for a physical duration.
+    pub async fn sleep(&self, physical: Duration) {
+        tokio::time::sleep(physical.div_f64(self.speed)).await;
+    }
+
+    /// Waits for `physical` seconds; negative or NaN waits return at once.
+    pub async fn sleep_s(&self, physical_s: f64) {
+        if physical_s > 0.0 && physical_s.is_finite() {
+            self.sleep(Duration::from_secs_f64(physical_s)).await;
+        }
+    }
+
+    /// Runs `fut` with a physical deadline.
+    pub async fn deadline<F: Future>(
+        &self,
+        physical: Duration,
+        fut: F,
+    ) -> Result<F::Output, DeadlineElapsed> {
+        tokio::time::timeout(physical.div_f64(self.speed), fut)
+            .await
+            .map_err(|_| DeadlineElapsed(physical))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test(start_paused = true)]
+    async fn virtual_hour_passes_instantly() {
+        let clock = Clock::virtual_time();
+        assert!(clock.is_virtual());
+        let wall = std::time::Instant::now();
+        clock.sleep(Duration::from_secs(3600)).await;
+        assert!(clock.now() >= Duration::from_secs(3600));
+        assert!(wall.elapsed() < Duration::from_secs(5));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn deadline_fires_in_physical_time() {
+        let clock = Clock::scaled(10.0);
+        let r = clock
+            .deadline(Duration::from_secs(2), clock.sleep(Duration::from_secs(5)))
+            .await;
+        assert_eq!(r, Err(DeadlineElapsed(Duration::from_secs(2))));
+        let s = clock.now_s();
+        assert!((2.0..2.1).contains(&s), "{s}");
+    }
+
+    #[test]
+    fn bad_speed_falls_back_to_one() {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_time()
+            .build()
+            .map_err(|e| e.to_string());
+        let Ok(rt) = rt else { panic!("runtime") };
+        rt.block_on(async {
+            assert_eq!(Clock::scaled(f64::NAN).speed, 1.0);
+            assert_eq!(Clock::scaled(-3.0).speed, 1.0);
+            assert!(!Clock::real().is_virtual());
+        });
+    }
+}

@@ -1,0 +1,15 @@
+//! The simulated BTF rig behind rigd: one clock that can run in virtual
+//! time, the physics of axes, lamps and cameras (motion, warm-up, exposure,
+//! readout, transfer), a flat-sample scene renderer, and fault injection.
+//!
+//! The crate depends on nothing of the daemon, so the daemon can embed it as
+//! its default backend and tests can drive it directly.
+
+pub mod clock;
+pub mod devices;
+pub mod faults;
+pub mod motion;
+pub mod scene;
+
+pub use clock::Clock;
+pub use faults::{FaultInjector, FaultKind, FaultRule};

@@ -1,0 +1,879 @@
+//! The run engine: drives a [`Schedule`] on a [`Rig`] and writes the run.
+//!
+//! Per trigger: all axes, the arm and the lamp change move in parallel, and
+//! together overlap the transfer and writing of the previous trigger's
+//! frames; then every camera of the trigger exposes while nothing moves and
+//! no lamp switches. Every device call has a deadline. A fault pauses the run
+//! with its reason; idempotent calls (absolute moves, transfers of a frame
+//! that can be retaken) are retried first. A frame counts as taken once its
+//! journal line is fsynced, so a resumed run repeats and loses nothing.
+
+pub mod state;
+
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::future::Future;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use futures::future::join_all;
+use rigd_sim::Clock;
+use serde::{Deserialize, Serialize};
+use tokio::sync::{broadcast, mpsc};
+
+pub use state::{check_command, Command, Refused, RunState};
+
+use crate::hal::{Arm, Axis, Camera, DeviceError, ErrorKind, Frame, Lamp, Rig};
+use crate::kinematics::Setpoints;
+use crate::profile::Profile;
+use crate::schedule::{Schedule, Timing};
+use crate::store::{
+    now_rfc3339, FrameEntry, InfeasibleEntry, Manifest, RunDir, RunMeta, StateRecord, StoreError,
+    RUN_FORMAT,
+};
+
+/// Slack added to every deadline on top of the physical time a call should
+/// take: serial round trips, USB latency, a slow controller.
+const DEADLINE_SLACK_S: f64 = 10.0;
+/// Deadline of a homing cycle.
+const HOMING_DEADLINE_S: f64 = 300.0;
+
+/// What the engine does when a run pauses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PausePolicy {
+    /// Wait for Resume, Abort or Detach on the command channel (the daemon).
+    Wait,
+    /// Return at once, leaving the run resumable from its directory (the
+    /// command line, which has no operator to wait for).
+    Return,
+}
+
+/// Retries of calls that are safe to repeat.
+#[derive(Debug, Clone, Copy)]
+pub struct RetryPolicy {
+    pub max_attempts: u32,
+    /// Physical back-off before attempt n is n × this.
+    pub backoff_s: f64,
+}
+
+impl Default for RetryPolicy {
+    fn default() -> Self {
+        RetryPolicy {
+            max_attempts: 3,
+            backoff_s: 1.0,
+        }
+    }
+}
+
+/// Something the engine did, for progress bars, logs and the event stream.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunEvent {
+    pub seq: u64,
+    /// Physical seconds since the run started.
+    pub t_s: f64,
+    #[serde(flatten)]
+    pub kind: EventKind,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum EventKind {
+    State {
+        from: RunState,
+        to: RunState,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        reason: Option<String>,
+    },
+    /// A trigger's frames are written and journaled.
+    Step {
+        trigger: usize,
+        images: Vec<usize>,
+        frames_done: usize,
+        frames_total: usize,
+    },
+    /// A failed call is being retried.
+    Retry {
+        device: String,
+        reason: String,
+        attempt: u32,
+    },
+    /// A command was refused in the current state.
+    Refused { command: Command, state: RunState },
+}
+
+/// How a call of [`Engine::run`] ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Outcome {
+    pub state: RunState,
+    pub reason: Option<String>,
+    pub physical_s: f64,
+    pub frames_written: usize,
+    pub frames_total: usize,
+}
+
+/// The caller's end of a running engine.
+#[derive(Debug, Clone)]
+pub struct EngineHandle {
+    pub commands: mpsc::Sender<Command>,
+    pub events: broadcast::Sender<RunEvent>,
+}
+
+/// Errors that end the engine rather than pause it.
+#[derive(Debug, thiserror::Error)]
+pub enum EngineError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+/// Everything one run needs.
+pub struct Engine {
+    profile: Profile,
+    schedule: Schedule,
+    meta: RunMeta,
+    rig: Rig,
+    clock: Clock,
+    store: Arc<Mutex<RunDir>>,
+    events: broadcast::Sender<RunEvent>,
+    commands: mpsc::Receiver<Command>,
+    done: BTreeMap<usize, FrameEntry>,
+    t_offset: f64,
+    state: RunState,
+    seq: u64,
+    policy: PausePolicy,
+    retry: RetryPolicy,
+    reason: Option<String>,
+    /// Where the rig stands (or was last sent).
+    pos: Setpoints,
+    /// Physical time the last frame was taken, once the plan is through.
+    finished_at_s: Option<f64>,
+}
+
+/// A trigger exposed but not yet transferred.
+#[derive(Debug, Clone)]
+struct Pending {
+    trigger: usize,
+    t_s: f64,
+    reached: Setpoints,
+}
+
+enum Flow {
+    Continue,
+    Stop,
+}
+
+/// A failed step: the device error and whether it is safe to retry.
+struct StepFault {
+    error: DeviceError,
+    retryable: bool,
+}
+
+impl From<DeviceError> for StepFault {
+    fn from(error: DeviceError) -> Self {
+        let retryable = matches!(error.kind, ErrorKind::Timeout | ErrorKind::BadFrame);
+        StepFault { error, retryable }
+    }
+}
+
+impl Engine {
+    /// Builds an engine for a run directory. `done` holds the frames a
+    /// resumed run already has; `t_offset` the physical time already spent.
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        profile: Profile,
+        schedule: Schedule,
+        meta: RunMeta,
+        rig: Rig,
+        clock: Clock,
+        store: RunDir,
+        done: BTreeMap<usize, FrameEntry>,
+        t_offset: f64,
+        policy: PausePolicy,
+    ) -> (Engine, EngineHandle) {
+        let (cmd_tx, cmd_rx) = mpsc::channel(16);
+        let (ev_tx, _) = broadcast::channel(1024);
+        let engine = Engine {
+            profile,
+            schedule,
+            meta,
+            rig,
+            clock,
+            store: Arc::new(Mutex::new(store)),
+            events: ev_tx.clone(),
+            commands: cmd_rx,
+            done,
+            t_offset,
+            state: RunState::Idle,
+            seq: 0,
+            policy,
+            retry: RetryPolicy::default(),
+            reason: None,
+            pos: Setpoints {
+                axes: BTreeMap::new(),
+                arm: None,
+                lamp: String::new(),
+            },
+            finished_at_s: None,
+        };
+        (
+            engine,
+            EngineHandle {
+                commands: cmd_tx,
+                events: ev_tx,
+            },
+        )
+    }
+
+    pub fn set_retry_policy(&mut self, retry: RetryPolicy) {
+        self.retry = retry;
+    }
+
+    /// Physical seconds since the run started, over all sessions.
+    fn t(&self) -> f64 {
+        self.t_offset + self.clock.now_s()
+    }
+
+    fn emit(&mut self, kind: EventKind) {
+        self.seq += 1;
+        let ev = RunEvent {
+            seq: self.seq,
+            t_s: self.t(),
+            kind,
+        };
+        // No subscriber is fine: events are for whoever watches.
+        let _ = self.events.send(ev);
+    }
+
+    fn go(&mut self, to: RunState, reason: Option<String>) -> Result<(), EngineError> {
+        debug_assert!(self.state.can_go_to(to), "{} -> {}", self.state, to);
+        let from = self.state;
+        self.state = to;
+        self.reason = reason.clone();
+        let record = StateRecord {
+            state: to.as_str().into(),
+            reason: reason.clone(),
+            physical_s: self.t(),
+            updated_at: now_rfc3339(),
+        };
+        lock_store(&self.store).write_state(&record)?;
+        match &reason {
+            Some(r) => tracing::info!(from = %from, to = %to, reason = %r, "run state"),
+            None => tracing::info!(from = %from, to = %to, "run state"),
+        }
+        self.emit(EventKind::State { from, to, reason });
+        Ok(())
+    }
+
+    fn outcome(&self) -> Outcome {
+        Outcome {
+            state: self.state,
+            reason: self.reason.clone(),
+            physical_s: self.finished_at_s.unwrap_or_else(|| self.t()),
+            frames_written: self.done.len(),
+            frames_total: self.schedule.images.len(),
+        }
+    }
+
+    /// Triggers that still have an image without a valid frame, in order.
+    fn todo(&self) -> VecDeque<usize> {
+        self.schedule
+            .triggers
+            .iter()
+            .filter(|t| t.images.iter().any(|i| !self.done.contains_key(i)))
+            .map(|t| t.index)
+            .collect()
+    }
+
+    /// Runs until the run completes, is aborted, or pauses under
+    /// [`PausePolicy::Return`] (or is detached).
+    pub async fn run(mut self) -> Result<Outcome, EngineError> {
+        let mut queue = self.todo();
+        self.go(RunState::Preparing, None)?;
+        match self.prepare(queue.front().copied()).await {
+            Ok(at) => self.pos = at,
+            Err(e) => {
+                if let Flow::Stop = self.fault_pause(e.error.to_string()).await? {
+                    return Ok(self.outcome());
+                }
+            }
+        }
+        let mut pending: Option<Pending> = None;
+        let mut attempts: HashMap<usize, u32> = HashMap::new();
+        loop {
+            // Operator commands act between triggers.
+            while let Ok(cmd) = self.commands.try_recv() {
+                if let Some(Flow::Stop) = self.command(cmd, &mut pending, &mut queue).await? {
+                    return Ok(self.outcome());
+                }
+            }
+            if self.state != RunState::Running {
+                // A resume from a fault re-prepared the rig.
+                self.go(RunState::Running, None)?;
+            }
+            let next = queue.front().copied();
+            if next.is_none() && pending.is_none() {
+                break;
+            }
+            let target = next.map(|i| self.schedule.triggers[i].setpoints.clone());
+            let finishing = pending.take();
+            let (moved, finished) = {
+                let timing = Timing::new(&self.profile, self.meta.exposure_s);
+                let Rig {
+                    axes,
+                    arms,
+                    lamps,
+                    cameras,
+                    ..
+                } = &mut self.rig;
+                let go = async {
+                    match &target {
+                        Some(to) => goto(&self.clock, &timing, axes, arms, lamps, &self.pos, to)
+                            .await
+                            .map(Some),
+                        None => Ok(None),
+                    }
+                };
+                let fin = async {
+                    match &finishing {
+                        Some(p) => finish(
+                            &self.clock,
+                            &timing,
+                            &self.schedule,
+                            &self.store,
+                            cameras,
+                            p,
+                            self.meta.exposure_s,
+                        )
+                        .await
+                        .map(Some),
+                        None => Ok(None),
+                    }
+                };
+                tokio::join!(go, fin)
+            };
+            match finished {
+                Ok(Some(entries)) => {
+                    let trig = finishing.as_ref().map_or(0, |p| p.trigger);
+                    let images = entries.iter().map(|e| e.index).collect();
+                    for e in entries {
+                        self.done.insert(e.index, e);
+                    }
+                    let (done, total) = (self.done.len(), self.schedule.images.len());
+                    self.emit(EventKind::Step {
+                        trigger: trig,
+                        images,
+                        frames_done: done,
+                        frames_total: total,
+                    });
+                }
+                Ok(None) => {}
+                Err(fault) => {
+                    // Retake the whole trigger: back to its pose first.
+                    let p = finishing.as_ref().map_or(0, |p| p.trigger);
+                    if queue.front() != Some(&p) {
+                        queue.push_front(p);
+                    }
+                    if let Ok(Some(r)) = &moved {
+                        self.pos = r.clone();
+                    }
+                    match self.handle_fault(fault, p, &mut attempts).await? {
+                        Flow::Continue => continue,
+                        Flow::Stop => return Ok(self.outcome()),
+                    }
+                }
+            }
+            let reached = match moved {
+                Ok(Some(r)) => r,
+                Ok(None) => continue, // nothing left to move to: the last transfer is done
+                Err(fault) => {
+                    let i = next.unwrap_or(0);
+                    match self.handle_fault(fault, i, &mut attempts).await? {
+                        Flow::Continue => continue,
+                        Flow::Stop => return Ok(self.outcome()),
+                    }
+                }
+            };
+            self.pos = reached.clone();
+            let Some(i) = next else { continue };
+            let t_s = self.t();
+            let cams = self.cameras_of(i);
+            let exposed = {
+                let timing = Timing::new(&self.profile, self.meta.exposure_s);
+                expose(&self.clock, &timing, &mut self.rig.cameras, &cams).await
+            };
+            match exposed {
+                Ok(()) => {
+                    queue.pop_front();
+                    pending = Some(Pending {
+                        trigger: i,
+                        t_s,
+                        reached,
+                    });
+                }
+                Err(fault) => match self.handle_fault(fault, i, &mut attempts).await? {
+                    Flow::Continue => continue,
+                    Flow::Stop => return Ok(self.outcome()),
+                },
+            }
+        }
+        self.complete().await
+    }
+
+    fn cameras_of(&self, trigger: usize) -> Vec<String> {
+        self.schedule.triggers[trigger]
+            .images
+            .iter()
+            .map(|&i| self.schedule.images[i].camera.clone())
+            .collect()
+    }
+
+    /// Homes every axis and arm, sets exposures, and switches on and warms
+    /// up the first trigger's lamp. Returns where the rig stands.
+    async fn prepare(&mut self, first: Option<usize>) -> Result<Setpoints, StepFault> {
+        let clock = &self.clock;
+        let Rig {
+            axes,
+            arms,
+            lamps,
+            cameras,
+            ..
+        } = &mut self.rig;
+        let homing = join_all(
+            axes.iter_mut()
+                .map(|(name, a)| deadline(clock, name, HOMING_DEADLINE_S, a.home())),
+        );
+        let arm_homing = join_all(
+            arms.iter_mut()
+                .map(|(name, a)| deadline(clock, name, HOMING_DEADLINE_S, a.home())),
+        );
+        let (h, ah) = tokio::join!(homing, arm_homing);
+        for r in h {
+            r?;
+        }
+        for r in ah {
+            r?;
+        }
+        if let Some(exposure) = self.meta.exposure_s {
+            for (name, c) in cameras.iter_mut() {
+                deadline(clock, name, DEADLINE_SLACK_S, c.set_exposure(exposure)).await?;
+            }
+        }
+        let timing = Timing::new(&self.profile, self.meta.exposure_s);
+        let mut at = timing.home_setpoints();
+        // Every lamp off but the first one needed: a known state after a crash.
+        let lamp = first
+            .map(|t| self.schedule.triggers[t].setpoints.lamp.clone())
+            .unwrap_or_default();
+        for (name, l) in lamps.iter_mut() {
+            if *name != lamp {
+                deadline(clock, name, DEADLINE_SLACK_S, l.set(false)).await?;
+            }
+        }
+        switch_lamp(clock, &timing, lamps, "", &lamp).await?;
+        at.lamp = lamp;
+        Ok(at)
+    }
+
+    /// Decides between retry and pause.
+    async fn handle_fault(
+        &mut self,
+        fault: StepFault,
+        trigger: usize,
+        attempts: &mut HashMap<usize, u32>,
+    ) -> Result<Flow, EngineError> {
+        let n = attempts.entry(trigger).or_insert(0);
+        *n += 1;
+        let attempt = *n;
+        if fault.retryable && attempt < self.retry.max_attempts {
+            tracing::warn!(device = %fault.error.device, attempt, "retrying: {}", fault.error);
+            self.emit(EventKind::Retry {
+                device: fault.error.device.clone(),
+                reason: fault.error.to_string(),
+                attempt,
+            });
+            self.clock
+                .sleep_s(self.retry.backoff_s * attempt as f64)
+                .await;
+            return Ok(Flow::Continue);
+        }
+        attempts.remove(&trigger);
+        self.fault_pause(fault.error.to_string()).await
+    }
+
+    /// Pauses for a fault; after the operator resumes, the rig is prepared
+    /// again (re-homed, lamp warmed) before the run goes on.
+    async fn fault_pause(&mut self, reason: String) -> Result<Flow, EngineError> {
+        let mut reason = reason;
+        loop {
+            self.go(RunState::Paused, Some(reason.clone()))?;
+            if !self.wait_in_pause().await? {
+                return Ok(Flow::Stop);
+            }
+            self.go(RunState::Preparing, None)?;
+            let first = self.todo().front().copied();
+            match self.prepare(first).await {
+                Ok(at) => {
+                    self.pos = at;
+                    return Ok(Flow::Continue);
+                }
+                Err(e) => reason = e.error.to_string(),
+            }
+        }
+    }
+
+    /// In Paused: true when resumed, false when the run stops here
+    /// (aborted, detached, or the caller does not wait).
+    async fn wait_in_pause(&mut self) -> Result<bool, EngineError> {
+        if self.policy == PausePolicy::Return {
+            return Ok(false);
+        }
+        loop {
+            match self.commands.recv().await {
+                Some(Command::Resume) => return Ok(true),
+                Some(Command::Abort) => {
+                    self.abort().await?;
+                    return Ok(false);
+                }
+                Some(Command::Detach) | None => return Ok(false),
+                Some(Command::Pause) => self.emit(EventKind::Refused {
+                    command: Command::Pause,
+                    state: self.state,
+                }),
+            }
+        }
+    }
+
+    /// Handles an operator command between triggers.
+    async fn command(
+        &mut self,
+        cmd: Command,
+        pending: &mut Option<Pending>,
+        queue: &mut VecDeque<usize>,
+    ) -> Result<Option<Flow>, EngineError> {
+        if let Err(refused) = check_command(self.state, cmd) {
+            self.emit(EventKind::Refused {
+                command: refused.command,
+                state: refused.state,
+            });
+            return Ok(None);
+        }
+        // Whatever happens next, frames already exposed are kept.
+        if let Some(p) = pending.take() {
+            let timing = Timing::new(&self.profile, self.meta.exposure_s);
+            let r = finish(
+                &self.clock,
+                &timing,
+                &self.schedule,
+                &self.store,
+                &mut self.rig.cameras,
+                &p,
+                self.meta.exposure_s,
+            )
+            .await;
+            match r {
+                Ok(entries) => {
+                    for e in entries {
+                        self.done.insert(e.index, e);
+                    }
+                }
+                Err(_) => queue.push_front(p.trigger),
+            }
+        }
+        match cmd {
+            Command::Pause => {
+                self.go(RunState::Paused, Some("paused by operator".into()))?;
+                if self.wait_in_pause().await? {
+                    self.go(RunState::Running, None)?;
+                    Ok(Some(Flow::Continue))
+                } else {
+                    Ok(Some(Flow::Stop))
+                }
+            }
+            Command::Abort => {
+                self.abort().await?;
+                Ok(Some(Flow::Stop))
+            }
+            Command::Detach => {
+                self.go(
+                    RunState::Paused,
+                    Some("detached; resume from the run directory".into()),
+                )?;
+                Ok(Some(Flow::Stop))
+            }
+            Command::Resume => Ok(None),
+        }
+    }
+
+    async fn abort(&mut self) -> Result<(), EngineError> {
+        self.lamps_off().await;
+        self.go(RunState::Aborted, Some("aborted by operator".into()))?;
+        self.write_manifest()?;
+        Ok(())
+    }
+
+    async fn complete(mut self) -> Result<Outcome, EngineError> {
+        let missing = self.schedule.images.len() - self.done.len();
+        // The capture ends with its last frame; switching off is not part of it.
+        self.finished_at_s = Some(self.t());
+        self.lamps_off().await;
+        if missing > 0 {
+            self.go(
+                RunState::Failed,
+                Some(format!("{missing} frames missing at the end of the plan")),
+            )?;
+        } else {
+            self.go(RunState::Completed, None)?;
+        }
+        self.write_manifest()?;
+        Ok(self.outcome())
+    }
+
+    /// Leaves the lamps dark at the end; a failure here is logged, not fatal.
+    async fn lamps_off(&mut self) {
+        for (name, l) in self.rig.lamps.iter_mut() {
+            if let Err(e) = deadline(&self.clock, name, DEADLINE_SLACK_S, l.set(false)).await {
+                tracing::warn!("could not switch {name} off: {e}");
+            }
+        }
+    }
+
+    fn write_manifest(&self) -> Result<(), EngineError> {
+        let infeasible = self
+            .schedule
+            .infeasible()
+            .map(|i| InfeasibleEntry {
+                index: i.index,
+                light: i.light,
+                view: i.view,
+                achieved_light: i.achieved_light,
+                achieved_view: i.achieved_view,
+                reason: i.reason.clone().unwrap_or_default(),
+            })
+            .collect();
+        let manifest = Manifest {
+            format: RUN_FORMAT.into(),
+            software_version: env!("CARGO_PKG_VERSION").into(),
+            profile: self.profile.name.clone(),
+            plan: self.schedule.plan.clone(),
+            sample: self.meta.sample.clone(),
+            state: self.state.as_str().into(),
+            reason: self.reason.clone(),
+            steps_total: self.schedule.images.len(),
+            triggers_total: self.schedule.triggers.len(),
+            frames_written: self.done.len(),
+            physical_duration_s: self.finished_at_s.unwrap_or_else(|| self.t()),
+            started_at: self.meta.started_at.clone(),
+            finished_at: now_rfc3339(),
+            infeasible,
+            frames: self.done.values().cloned().collect(),
+        };
+        lock_store(&self.store).write_manifest(&manifest)?;
+        Ok(())
+    }
+}
+
+fn lock_store(store: &Mutex<RunDir>) -> std::sync::MutexGuard<'_, RunDir> {
+    // A panic inside a write leaves at worst a torn journal tail, which the
+    // reader repairs; the directory handle itself stays valid.
+    store.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Runs a device call under a physical deadline.
+async fn deadline<T>(
+    clock: &Clock,
+    device: &str,
+    seconds: f64,
+    fut: impl Future<Output = Result<T, DeviceError>>,
+) -> Result<T, DeviceError> {
+    match clock
+        .deadline(Duration::from_secs_f64(seconds.max(0.001)), fut)
+        .await
+    {
+        Ok(r) => r,
+        Err(_) => Err(DeviceError::new(
+            device,
+            ErrorKind::Timeout,
+            format!("no answer within {seconds:.1} s"),
+        )),
+    }
+}
+
+/// Switches from lamp `from` to lamp `to` and waits for it to be stable.
+async fn switch_lamp(
+    clock: &Clock,
+    timing: &Timing<'_>,
+    lamps: &mut BTreeMap<String, Box<dyn Lamp>>,
+    from: &str,
+    to: &str,
+) -> Result<(), DeviceError> {
+    if from == to {
+        return Ok(());
+    }
+    let budget = timing.lamp_change_s(from, to) + DEADLINE_SLACK_S;
+    if let Some(l) = lamps.get_mut(from) {
+        deadline(clock, from, budget, l.set(false)).await?;
+    }
+    if let Some(l) = lamps.get_mut(to) {
+        deadline(clock, to, budget, l.set(true)).await?;
+        deadline(clock, to, budget, l.wait_ready()).await?;
+    }
+    Ok(())
+}
+
+/// Moves every axis and the arm to `to` and changes the lamp, all in
+/// parallel; returns where the devices report they stand.
+async fn goto(
+    clock: &Clock,
+    timing: &Timing<'_>,
+    axes: &mut BTreeMap<String, Box<dyn Axis>>,
+    arms: &mut BTreeMap<String, Box<dyn Arm>>,
+    lamps: &mut BTreeMap<String, Box<dyn Lamp>>,
+    from: &Setpoints,
+    to: &Setpoints,
+) -> Result<Setpoints, StepFault> {
+    let budget = timing.motion_s(from, to) * 2.0 + DEADLINE_SLACK_S;
+    let axis_moves = join_all(
+        axes.iter_mut()
+            .filter_map(|(name, a)| to.axes.get(name).map(|&x| (name, a, x)))
+            .map(|(name, a, x)| async move {
+                deadline(clock, name, budget, a.move_to(x))
+                    .await
+                    .map(|p| (name.clone(), p))
+            }),
+    );
+    let arm_move = async {
+        match (&to.arm, arms.iter_mut().next()) {
+            (Some(q), Some((name, arm))) => deadline(clock, name, budget, arm.move_joints(q))
+                .await
+                .map(Some),
+            _ => Ok(None),
+        }
+    };
+    let lamp = switch_lamp(clock, timing, lamps, &from.lamp, &to.lamp);
+    let (moved, arm, lamp) = tokio::join!(axis_moves, arm_move, lamp);
+    let mut reached = Setpoints {
+        axes: BTreeMap::new(),
+        arm: None,
+        lamp: to.lamp.clone(),
+    };
+    for r in moved {
+        let (name, p) = r?;
+        reached.axes.insert(name, p);
+    }
+    reached.arm = arm?;
+    lamp?;
+    // Axes the plan does not mention keep their place.
+    for (name, p) in &from.axes {
+        reached.axes.entry(name.clone()).or_insert(*p);
+    }
+    Ok(reached)
+}
+
+/// Exposes the given cameras together; returns when every sensor is free.
+async fn expose(
+    clock: &Clock,
+    timing: &Timing<'_>,
+    cameras: &mut BTreeMap<String, Box<dyn Camera>>,
+    which: &[String],
+) -> Result<(), StepFault> {
+    let names: Vec<&str> = which.iter().map(String::as_str).collect();
+    let budget = timing.expose_s(&names) + DEADLINE_SLACK_S;
+    let calls = cameras
+        .iter_mut()
+        .filter(|(n, _)| which.contains(n))
+        .map(|(n, c)| deadline(clock, n, budget, c.expose()));
+    for r in join_all(calls).await {
+        r?;
+    }
+    Ok(())
+}
+
+/// Transfers a trigger's frames, checks them, writes them and journals them.
+async fn finish(
+    clock: &Clock,
+    timing: &Timing<'_>,
+    schedule: &Schedule,
+    store: &Arc<Mutex<RunDir>>,
+    cameras: &mut BTreeMap<String, Box<dyn Camera>>,
+    p: &Pending,
+    exposure_override: Option<f64>,
+) -> Result<Vec<FrameEntry>, StepFault> {
+    let trig = &schedule.triggers[p.trigger];
+    let which: Vec<&str> = trig
+        .images
+        .iter()
+        .map(|&i| schedule.images[i].camera.as_str())
+        .collect();
+    let budget = timing.transfer_s(&which) * 2.0 + DEADLINE_SLACK_S;
+    let calls = cameras
+        .iter_mut()
+        .filter(|(n, _)| which.contains(&n.as_str()))
+        .map(|(n, c)| async move {
+            deadline(clock, n, budget, c.transfer())
+                .await
+                .map(|f| (n.clone(), f))
+        });
+    let mut frames: HashMap<String, Frame> = HashMap::new();
+    for r in join_all(calls).await {
+        let (name, frame) = r?;
+        frame.validate(&name)?;
+        frames.insert(name, frame);
+    }
+    let mut work = Vec::new();
+    for &i in &trig.images {
+        let img = &schedule.images[i];
+        let Some(frame) = frames.remove(&img.camera) else {
+            return Err(DeviceError::new(
+                &img.camera,
+                ErrorKind::BadFrame,
+                "camera delivered no frame",
+            )
+            .into());
+        };
+        let entry = FrameEntry {
+            index: img.index,
+            trigger: img.trigger,
+            file: String::new(),
+            sha256: String::new(),
+            light: img.light,
+            view: img.view,
+            achieved_light: img.achieved_light,
+            achieved_view: img.achieved_view,
+            camera: img.camera.clone(),
+            exposure_s: exposure_override.unwrap_or_else(|| timing.exposure_s(&img.camera)),
+            t_s: p.t_s,
+            positions: p.reached.clone(),
+            width: 0,
+            height: 0,
+            bit_depth: 0,
+        };
+        work.push((entry, frame));
+    }
+    let store = store.clone();
+    // Encoding and fsync are blocking work; on a paused runtime, tokio does
+    // not advance virtual time while it runs.
+    let written = tokio::task::spawn_blocking(move || -> Result<Vec<FrameEntry>, StoreError> {
+        let mut dir = lock_store(&store);
+        let root = dir.root().to_path_buf();
+        let mut entries = Vec::with_capacity(work.len());
+        for (entry, frame) in work {
+            entries.push(RunDir::write_frame(&root, entry, &frame)?);
+        }
+        dir.append_journal(&entries)?;
+        Ok(entries)
+    })
+    .await;
+    match written {
+        Ok(Ok(entries)) => Ok(entries),
+        Ok(Err(e)) => Err(StepFault {
+            error: DeviceError::new("storage", ErrorKind::DeviceFault, e.to_string()),
+            retryable: false,
+        }),
+        Err(e) => Err(StepFault {
+            error: DeviceError::new(
+                "storage",
+                ErrorKind::DeviceFault,
+                format!("writer task failed: {e}"),
+            ),
+            retryable: false,
+        }),
+    }
+}

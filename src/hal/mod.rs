@@ -1,0 +1,200 @@
+//! The hardware-abstraction layer: small capability traits, one per thing a
+//! device can do, and the [`Rig`] that holds a profile's devices behind them.
+//!
+//! Drivers keep their own rich errors and map them to a common
+//! [`ErrorKind`], so the run engine can decide between retry and pause
+//! without knowing the driver (the embedded-hal pattern).
+
+pub mod sim;
+
+use std::collections::BTreeMap;
+use std::fmt;
+
+use async_trait::async_trait;
+use serde::{Deserialize, Serialize};
+
+/// What went wrong, as far as the run engine cares.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorKind {
+    /// A call did not finish before its deadline.
+    Timeout,
+    /// The link to the device is gone.
+    Disconnected,
+    /// The device reported a fault (alarm, exception, not ready).
+    DeviceFault,
+    /// A set-point outside the soft limits (refused before sending).
+    OutOfLimits,
+    /// A frame arrived truncated or with the wrong size.
+    BadFrame,
+    /// The device was used out of order (not homed, nothing exposed).
+    NotReady,
+}
+
+impl fmt::Display for ErrorKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s = match self {
+            ErrorKind::Timeout => "timeout",
+            ErrorKind::Disconnected => "disconnected",
+            ErrorKind::DeviceFault => "device fault",
+            ErrorKind::OutOfLimits => "out of limits",
+            ErrorKind::BadFrame => "bad frame",
+            ErrorKind::NotReady => "not ready",
+        };
+        f.write_str(s)
+    }
+}
+
+/// A failed device call: which device, what kind of failure, in the device's words.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{device}: {kind}: {message}")]
+pub struct DeviceError {
+    pub device: String,
+    pub kind: ErrorKind,
+    pub message: String,
+}
+
+impl DeviceError {
+    pub fn new(device: &str, kind: ErrorKind, message: impl Into<String>) -> DeviceError {
+        DeviceError {
+            device: device.to_string(),
+            kind,
+            message: message.into(),
+        }
+    }
+}
+
+/// A frame as delivered by a camera: row-major, one `u16` per pixel holding
+/// `bit_depth` significant bits.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Frame {
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+    pub pixels: Vec<u16>,
+}
+
+impl Frame {
+    /// Checks that the pixel count matches the size and every value fits the depth.
+    pub fn validate(&self, camera: &str) -> Result<(), DeviceError> {
+        let expected = self.width as usize * self.height as usize;
+        if self.pixels.len() != expected {
+            return Err(DeviceError::new(
+                camera,
+                ErrorKind::BadFrame,
+                format!(
+                    "frame has {} pixels, expected {} ({}x{})",
+                    self.pixels.len(),
+                    expected,
+                    self.width,
+                    self.height
+                ),
+            ));
+        }
+        let max = if self.bit_depth >= 16 {
+            u16::MAX
+        } else {
+            (1u16 << self.bit_depth) - 1
+        };
+        if let Some(v) = self.pixels.iter().find(|&&v| v > max) {
+            return Err(DeviceError::new(
+                camera,
+                ErrorKind::BadFrame,
+                format!("pixel value {v} exceeds {}-bit range", self.bit_depth),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// A motor that moves to absolute positions (degrees) and reports where it is.
+#[async_trait]
+pub trait Axis: Send {
+    /// Runs the homing cycle; returns the position afterwards.
+    async fn home(&mut self) -> Result<f64, DeviceError>;
+    /// Moves to an absolute position and settles; returns the position reached.
+    async fn move_to(&mut self, target: f64) -> Result<f64, DeviceError>;
+    /// Asks the device where it stands.
+    async fn position(&mut self) -> Result<f64, DeviceError>;
+}
+
+/// A multi-joint manipulator that moves all joints to a joint-space pose.
+#[async_trait]
+pub trait Arm: Send {
+    async fn home(&mut self) -> Result<Vec<f64>, DeviceError>;
+    /// Moves to joint values (degrees, in profile order); returns the pose reached.
+    async fn move_joints(&mut self, joints: &[f64]) -> Result<Vec<f64>, DeviceError>;
+    async fn joints(&mut self) -> Result<Vec<f64>, DeviceError>;
+}
+
+/// A lamp behind a relay.
+#[async_trait]
+pub trait Lamp: Send {
+    async fn set(&mut self, on: bool) -> Result<(), DeviceError>;
+    /// Waits until the light output is stable (warm-up).
+    async fn wait_ready(&mut self) -> Result<(), DeviceError>;
+}
+
+/// A laser line emitter (its tilt is an [`Axis`]).
+#[async_trait]
+pub trait LaserLine: Send {
+    async fn set(&mut self, on: bool) -> Result<(), DeviceError>;
+}
+
+/// A camera: expose (the sensor is busy and nothing may move), then transfer.
+#[async_trait]
+pub trait Camera: Send {
+    async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError>;
+    /// Exposes and reads out the sensor; returns when the sensor is free.
+    async fn expose(&mut self) -> Result<(), DeviceError>;
+    /// Delivers the last exposed frame.
+    async fn transfer(&mut self) -> Result<Frame, DeviceError>;
+}
+
+/// A profile's devices, by name, behind their capability traits.
+#[derive(Default)]
+pub struct Rig {
+    pub axes: BTreeMap<String, Box<dyn Axis>>,
+    pub arms: BTreeMap<String, Box<dyn Arm>>,
+    pub lamps: BTreeMap<String, Box<dyn Lamp>>,
+    pub lasers: BTreeMap<String, Box<dyn LaserLine>>,
+    pub cameras: BTreeMap<String, Box<dyn Camera>>,
+}
+
+impl fmt::Debug for Rig {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Rig")
+            .field("axes", &self.axes.keys().collect::<Vec<_>>())
+            .field("arms", &self.arms.keys().collect::<Vec<_>>())
+            .field("lamps", &self.lamps.keys().collect::<Vec<_>>())
+            .field("lasers", &self.lasers.keys().collect::<Vec<_>>())
+            .field("cameras", &self.cameras.keys().collect::<Vec<_>>())
+            .finish()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frame_validation_catches_truncation_and_overflow() {
+        let mut f = Frame {
+            width: 2,
+            height: 2,
+            bit_depth: 12,
+            pixels: vec![0, 1, 4095, 7],
+        };
+        assert!(f.validate("cam").is_ok());
+        f.pixels[1] = 4096;
+        assert_eq!(
+            f.validate("cam").map_err(|e| e.kind),
+            Err(ErrorKind::BadFrame)
+        );
+        f.pixels.pop();
+        assert_eq!(
+            f.validate("cam").map_err(|e| e.kind),
+            Err(ErrorKind::BadFrame)
+        );
+    }
+}

@@ -1,0 +1,19 @@
+//! rigd: control daemon for BTF (bidirectional texture function) measurement
+//! rigs. See the README for the commands and `../DESIGN.md`-style notes in
+//! `docs/` for the architecture.
+//!
+//! Data flows: [`profile`] → [`kinematics`] (poses) and [`plan`] (pairs) →
+//! [`schedule`] (ordered triggers) → [`engine`] (drives the [`hal`] rig) →
+//! [`store`] (the dataset on disk).
+
+pub mod engine;
+pub mod geometry;
+pub mod hal;
+pub mod kinematics;
+pub mod plan;
+pub mod profile;
+pub mod runner;
+pub mod schedule;
+pub mod store;
+
+pub use rigd_sim as sim;

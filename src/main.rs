@@ -1,0 +1,530 @@
+//! The `rigd` command line.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context};
+use clap::{Args, Parser, Subcommand};
+use rigd::engine::{Command, EventKind, Outcome, PausePolicy, RunState};
+use rigd::profile::{Profile, DEFAULT_PROFILE};
+use rigd::runner::{self, NewRun};
+use rigd::schedule::Timing;
+use rigd::sim::{Clock, FaultRule};
+
+/// Exit codes, so scripts can tell what happened.
+const EXIT_PAUSED: u8 = 3;
+const EXIT_ENDED_BADLY: u8 = 4;
+const EXIT_INTERRUPTED: u8 = 130;
+const EXIT_BAD_INPUT: u8 = 2;
+
+#[derive(Parser)]
+#[command(
+    name = "rigd",
+    version,
+    about = "Control daemon for BTF measurement rigs",
+    long_about = "Control daemon for BTF (bidirectional texture function) measurement rigs: \
+plans captures over the hemisphere, drives the rig (or its simulation), and writes datasets that lose nothing.",
+    after_help = "Exit codes: 0 done, 2 bad input, 3 run paused (resume it with `rigd run --resume DIR`), \
+4 run aborted or failed, 130 interrupted (resumable)."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand)]
+enum Cmd {
+    /// Show sampling plans.
+    Plan {
+        #[command(subcommand)]
+        command: PlanCmd,
+    },
+    /// Check rig profiles.
+    Profile {
+        #[command(subcommand)]
+        command: ProfileCmd,
+    },
+    /// Capture a BTF: run a plan on a rig into a run directory, or resume one.
+    Run(RunArgs),
+}
+
+#[derive(Subcommand)]
+enum PlanCmd {
+    /// List every image of a plan with its directions, feasibility and set-points,
+    /// and the totals: image count and estimated physical capture time.
+    Show {
+        /// h1, h2, grid12x8, lamps, or a plan file (.json/.toml)
+        plan: String,
+        /// Rig profile: a TOML file or an embedded profile name.
+        #[arg(long, default_value = DEFAULT_PROFILE)]
+        profile: String,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Exposure time for every camera, seconds (default: the profile's).
+        #[arg(long, allow_negative_numbers = true)]
+        exposure: Option<f64>,
+    },
+}
+
+#[derive(Subcommand)]
+enum ProfileCmd {
+    /// Parse and validate a profile; print a one-line summary.
+    Check {
+        /// A TOML file or an embedded profile name.
+        profile: String,
+    },
+    /// List the embedded profiles.
+    List,
+}
+
+#[derive(Args)]
+struct RunArgs {
+    /// Rig profile: a TOML file or an embedded profile name
+    /// [default: the simulated bonn-gonioreflectometer]
+    #[arg(long)]
+    profile: Option<String>,
+    /// Drive the simulated rig (virtual time) instead of hardware.
+    #[arg(long)]
+    sim: bool,
+    /// h1, h2, grid12x8, lamps, or a plan file [default: the profile's default plan]
+    #[arg(long)]
+    plan: Option<String>,
+    /// Sample name, recorded in the dataset.
+    #[arg(long, default_value = "sample")]
+    sample: String,
+    /// Run directory to create (must not exist or be empty)
+    /// [default: runs/SAMPLE-PLAN-TIMESTAMP]
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Simulated frame size, WIDTHxHEIGHT [default: the profile's [sim] frame_size]
+    #[arg(long, value_parser = parse_frame_size)]
+    frame_size: Option<[u32; 2]>,
+    /// Operator name, recorded in the dataset.
+    #[arg(long)]
+    operator: Option<String>,
+    /// Free-text notes, recorded in the dataset.
+    #[arg(long)]
+    notes: Option<String>,
+    /// Exposure time for every camera, seconds (default: the profile's).
+    #[arg(long, allow_negative_numbers = true)]
+    exposure: Option<f64>,
+    /// Resume the run in this directory (all other run options come from it).
+    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "operator", "notes", "exposure"])]
+    resume: Option<PathBuf>,
+    /// Inject a fault into the simulated rig: DEVICE:OP:N:KIND[:sticky] (arm joints are
+    /// ARM.JOINT, e.g. arm.pitch), OP one of
+    /// move, home, position, set, ready, expose, transfer or *, KIND one of timeout,
+    /// disconnect, bad-frame, alarm=TEXT. Repeatable.
+    #[arg(long = "sim-fault", value_name = "SPEC")]
+    sim_faults: Vec<FaultRule>,
+    /// Progress display: a bar on a terminal, log lines otherwise.
+    #[arg(long, value_enum, default_value = "auto")]
+    progress: Progress,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Progress {
+    Auto,
+    Bar,
+    Log,
+    None,
+}
+
+fn parse_frame_size(s: &str) -> Result<[u32; 2], String> {
+    let bad = || format!("`{s}`: expected WIDTHxHEIGHT with each between 1 and 8192, e.g. 64x64");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let w: u32 = w.trim().parse().map_err(|_| bad())?;
+    let h: u32 = h.trim().parse().map_err(|_| bad())?;
+    if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
+        return Err(bad());
+    }
+    Ok([w, h])
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Cmd::Plan {
+            command:
+                PlanCmd::Show {
+                    plan,
+                    profile,
+                    json,
+                    exposure,
+                },
+        } => plan_show(&plan, &profile, json, exposure).map(|_| ExitCode::SUCCESS),
+        Cmd::Profile { command } => profile_cmd(command).map(|_| ExitCode::SUCCESS),
+        Cmd::Run(args) => run(args),
+    };
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::from(EXIT_BAD_INPUT)
+        }
+    }
+}
+
+fn profile_cmd(cmd: ProfileCmd) -> anyhow::Result<()> {
+    match cmd {
+        ProfileCmd::Check { profile } => {
+            let p = Profile::load(&profile)?;
+            println!(
+                "{}: ok: profile `{}`, {} devices, default plan {}",
+                profile,
+                p.name,
+                p.devices.len(),
+                p.default_plan
+            );
+        }
+        ProfileCmd::List => {
+            for (name, _) in rigd::profile::EMBEDDED {
+                let p = Profile::load(name)?;
+                println!("{name}\t{}", p.description);
+            }
+        }
+    }
+    Ok(())
+}
+
+fn plan_show(plan: &str, profile: &str, json: bool, exposure: Option<f64>) -> anyhow::Result<()> {
+    if let Some(e) = exposure {
+        if !(e.is_finite() && e > 0.0) {
+            bail!("--exposure {e}: expected a positive number of seconds");
+        }
+    }
+    let profile = Profile::load(profile)?;
+    let (_, _, schedule) = runner::solve_plan(&profile, plan)?;
+    let estimate = Timing::new(&profile, exposure).estimate_s(&schedule, |_| false);
+    let infeasible = schedule.infeasible().count();
+    if json {
+        let steps: Vec<serde_json::Value> = schedule
+            .images
+            .iter()
+            .map(|img| {
+                let mut v = serde_json::to_value(img).unwrap_or_default();
+                if let Some(obj) = v.as_object_mut() {
+                    obj.insert(
+                        "setpoints".into(),
+                        serde_json::to_value(&schedule.triggers[img.trigger].setpoints)
+                            .unwrap_or_default(),
+                    );
+                }
+                v
+            })
+            .collect();
+        let out = serde_json::json!({
+            "plan": schedule.plan,
+            "profile": schedule.profile,
+            "steps_total": schedule.images.len(),
+            "triggers_total": schedule.triggers.len(),
+            "infeasible_total": infeasible,
+            "estimated_physical_s": estimate,
+            "steps": steps,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!(
+        "{:>6} {:>6} {:<8} {:>14} {:>14} {:<8} set-points",
+        "image", "trig", "camera", "light θ/φ", "view θ/φ", "feasible"
+    );
+    for img in &schedule.images {
+        let sp = &schedule.triggers[img.trigger].setpoints;
+        let mut points: Vec<String> = sp.axes.iter().map(|(k, v)| format!("{k}={v:.3}")).collect();
+        if let Some(arm) = &sp.arm {
+            points.push(format!(
+                "arm=[{}]",
+                arm.iter()
+                    .map(|q| format!("{q:.3}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        points.push(format!("lamp={}", sp.lamp));
+        println!(
+            "{:>6} {:>6} {:<8} {:>6.2}/{:>6.2} {:>6.2}/{:>6.2} {:<8} {}{}",
+            img.index,
+            img.trigger,
+            img.camera,
+            img.light.theta_deg,
+            img.light.phi_deg,
+            img.view.theta_deg,
+            img.view.phi_deg,
+            if img.feasible { "yes" } else { "NO" },
+            points.join(" "),
+            img.reason
+                .as_ref()
+                .map(|r| format!("  ({r})"))
+                .unwrap_or_default()
+        );
+    }
+    println!(
+        "plan {} on {}: {} images in {} triggers, {} infeasible (substituted), estimated physical capture time {}",
+        schedule.plan,
+        schedule.profile,
+        schedule.images.len(),
+        schedule.triggers.len(),
+        infeasible,
+        hms(estimate)
+    );
+    Ok(())
+}
+
+/// Seconds as `1h02m03s`.
+fn hms(s: f64) -> String {
+    let s = s.max(0.0).round() as u64;
+    if s >= 3600 {
+        format!("{}h{:02}m{:02}s", s / 3600, (s % 3600) / 60, s % 60)
+    } else if s >= 60 {
+        format!("{}m{:02}s", s / 60, s % 60)
+    } else {
+        format!("{s}s")
+    }
+}
+
+fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
+    // The embedded default is the simulated rig; a profile file names real
+    // hardware unless --sim says otherwise.
+    let simulated = args.sim || (args.profile.is_none() && args.resume.is_none());
+    if !simulated && args.resume.is_none() {
+        bail!(
+            "drivers for real hardware are not built yet; add --sim to run this profile on the simulated rig"
+        );
+    }
+    if let Some(e) = args.exposure {
+        if !(e.is_finite() && e > 0.0) {
+            bail!("--exposure {e}: expected a positive number of seconds");
+        }
+    }
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(true)
+        .build()
+        .context("cannot start the runtime")?;
+    runtime.block_on(async move {
+        let clock = Clock::virtual_time();
+        let prepared = match &args.resume {
+            Some(dir) => {
+                runner::prepare_resume(dir, args.sim_faults.clone(), clock, PausePolicy::Return)
+                    .with_context(|| format!("cannot resume {}", dir.display()))?
+            }
+            None => {
+                let source = args
+                    .profile
+                    .clone()
+                    .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
+                let profile = Profile::load(&source)?;
+                let plan = args
+                    .plan
+                    .clone()
+                    .unwrap_or_else(|| profile.default_plan.clone());
+                let out = args.out.clone().unwrap_or_else(|| {
+                    let stamp = humantime::format_rfc3339_seconds(std::time::SystemTime::now())
+                        .to_string()
+                        .replace(':', "");
+                    PathBuf::from("runs").join(format!(
+                        "{}-{}-{}",
+                        args.sample,
+                        plan_stem(&plan),
+                        stamp
+                    ))
+                });
+                let req = NewRun {
+                    profile_source: if std::path::Path::new(&source).exists() {
+                        source.clone()
+                    } else {
+                        format!("<embedded {source}>")
+                    },
+                    profile,
+                    plan,
+                    sample: args.sample.clone(),
+                    operator: args.operator.clone(),
+                    notes: args.notes.clone(),
+                    exposure_s: args.exposure,
+                    frame_size: args.frame_size,
+                    out,
+                };
+                runner::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)?
+            }
+        };
+        drive(prepared, args.progress).await
+    })
+}
+
+fn plan_stem(plan: &str) -> String {
+    std::path::Path::new(plan)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "plan".into())
+}
+
+/// Runs the engine with a progress display and signal handling; prints the summary.
+async fn drive(p: runner::Prepared, progress: Progress) -> anyhow::Result<ExitCode> {
+    let wall = Instant::now();
+    let root = p.root.clone();
+    let mut events = p.handle.events.subscribe();
+    let commands = p.handle.commands.clone();
+    // The reporter ends when the engine drops the last event sender.
+    drop(p.handle);
+    let mode = match progress {
+        Progress::Auto if std::io::stderr().is_terminal() => Progress::Bar,
+        Progress::Auto => Progress::Log,
+        m => m,
+    };
+    eprintln!(
+        "run {}: {} images, {} already taken; estimated physical time {}",
+        root.display(),
+        p.frames_total,
+        p.frames_done,
+        hms(p.estimate_s)
+    );
+    if !p.retake.is_empty() {
+        eprintln!(
+            "retaking {} frames found missing or damaged",
+            p.retake.len()
+        );
+    }
+    let total = p.frames_total as u64;
+    let end_estimate = p.t_offset_s + p.estimate_s;
+    let bar = (mode == Progress::Bar).then(|| {
+        let bar = indicatif::ProgressBar::new(total);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:40.cyan/blue} {pos}/{len} frames  {msg}  wall {elapsed_precise} eta {eta}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        bar.set_position(p.frames_done as u64);
+        bar
+    });
+    let reporter = tokio::spawn(async move {
+        let mut last_log = Instant::now();
+        let mut last_pct = u64::MAX;
+        loop {
+            let ev = match events.recv().await {
+                Ok(ev) => ev,
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
+                Err(_) => break,
+            };
+            match &ev.kind {
+                EventKind::Step {
+                    frames_done,
+                    frames_total,
+                    ..
+                } => {
+                    let eta = hms(end_estimate - ev.t_s);
+                    let msg = format!("physical {} (eta {eta})", hms(ev.t_s));
+                    if let Some(bar) = &bar {
+                        bar.set_position(*frames_done as u64);
+                        bar.set_message(msg);
+                    } else if mode == Progress::Log {
+                        let pct = *frames_done as u64 * 100 / (*frames_total as u64).max(1);
+                        if pct / 5 != last_pct / 5 || last_log.elapsed() > Duration::from_secs(30) {
+                            eprintln!(
+                                "progress: {frames_done}/{frames_total} frames ({pct}%), {msg}"
+                            );
+                            last_pct = pct;
+                            last_log = Instant::now();
+                        }
+                    }
+                }
+                EventKind::State { to, reason, .. } => {
+                    let line = match reason {
+                        Some(r) => format!("state: {to} ({r})"),
+                        None => format!("state: {to}"),
+                    };
+                    match &bar {
+                        Some(bar) => bar.println(line),
+                        None if mode != Progress::None => eprintln!("{line}"),
+                        None => {}
+                    }
+                }
+                EventKind::Retry {
+                    device,
+                    reason,
+                    attempt,
+                } => {
+                    let line = format!("retry {attempt} on {device}: {reason}");
+                    match &bar {
+                        Some(bar) => bar.println(line),
+                        None if mode != Progress::None => eprintln!("{line}"),
+                        None => {}
+                    }
+                }
+                EventKind::Refused { .. } => {}
+            }
+        }
+        if let Some(bar) = bar {
+            bar.finish_and_clear();
+        }
+    });
+    let engine = tokio::spawn(p.engine.run());
+    let interrupted = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flag = interrupted.clone();
+    let signals = tokio::spawn(async move {
+        wait_for_signal().await;
+        flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        eprintln!("interrupted: finishing the frame in flight, then stopping (resumable)");
+        let _ = commands.send(Command::Detach).await;
+    });
+    let outcome: Outcome = engine.await.context("engine task failed")??;
+    signals.abort();
+    let _ = reporter.await;
+    let wall_s = wall.elapsed().as_secs_f64();
+    eprintln!(
+        "{}: {} of {} frames; physical duration {} ({:.1} s); wall time {:.1} s",
+        outcome.state,
+        outcome.frames_written,
+        outcome.frames_total,
+        hms(outcome.physical_s),
+        outcome.physical_s,
+        wall_s
+    );
+    Ok(match outcome.state {
+        RunState::Completed => {
+            println!("{}", root.display());
+            ExitCode::SUCCESS
+        }
+        RunState::Paused if interrupted.load(std::sync::atomic::Ordering::SeqCst) => {
+            ExitCode::from(EXIT_INTERRUPTED)
+        }
+        RunState::Paused => {
+            eprintln!(
+                "paused: {}; fix the cause, then `rigd run --resume {}`",
+                outcome.reason.unwrap_or_default(),
+                root.display()
+            );
+            ExitCode::from(EXIT_PAUSED)
+        }
+        _ => {
+            eprintln!("{}", outcome.reason.unwrap_or_default());
+            ExitCode::from(EXIT_ENDED_BADLY)
+        }
+    })
+}
+
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        if let Ok(mut term) = signal(SignalKind::terminate()) {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+            return;
+        }
+    }
+    let _ = tokio::signal::ctrl_c().await;
+}

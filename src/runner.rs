@@ -1,0 +1,214 @@
+//! Wiring one run together: profile, plan, schedule, rig, run directory and
+//! engine, for a new run or a resumed one. The command line and the tests
+//! both start runs through here.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use rigd_sim::{Clock, FaultRule};
+
+use crate::engine::{Engine, EngineHandle, PausePolicy};
+use crate::hal::sim::{self, SimHandle, SimOptions};
+use crate::kinematics::{KinematicsError, Solver};
+use crate::plan::{self, Plan, PlanError};
+use crate::profile::{Profile, ProfileError};
+use crate::schedule::{self, Schedule, Timing};
+use crate::store::{now_rfc3339, RunDir, RunMeta, StoreError, RUN_FORMAT};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Profile(#[from] ProfileError),
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    #[error("pose solver: {0}")]
+    Kinematics(#[from] KinematicsError),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// A new run as asked for on the command line or over the API.
+#[derive(Debug, Clone)]
+pub struct NewRun {
+    pub profile: Profile,
+    pub profile_source: String,
+    pub plan: String,
+    pub sample: String,
+    pub operator: Option<String>,
+    pub notes: Option<String>,
+    pub exposure_s: Option<f64>,
+    pub frame_size: Option<[u32; 2]>,
+    pub out: PathBuf,
+}
+
+/// An engine ready to run, and what a progress display needs to know.
+pub struct Prepared {
+    pub engine: Engine,
+    pub handle: EngineHandle,
+    pub sim: SimHandle,
+    pub root: PathBuf,
+    pub frames_total: usize,
+    pub frames_done: usize,
+    /// Physical time already spent (resumed runs).
+    pub t_offset_s: f64,
+    /// Estimated physical time of what is left.
+    pub estimate_s: f64,
+    /// Frames found damaged or missing on resume, to be retaken.
+    pub retake: Vec<usize>,
+}
+
+/// Resolves a plan for a profile and solves every pose.
+pub fn solve_plan(
+    profile: &Profile,
+    plan_spec: &str,
+) -> Result<(Solver, Plan, Schedule), RunError> {
+    let solver = Solver::new(profile)?;
+    let offer = schedule::rig_offer(profile, &solver);
+    let plan = plan::resolve(plan_spec, &offer)?;
+    let schedule = schedule::build(profile, &solver, &plan);
+    Ok((solver, plan, schedule))
+}
+
+fn check_exposure(exposure_s: Option<f64>) -> Result<(), RunError> {
+    match exposure_s {
+        Some(e) if !(e.is_finite() && e > 0.0 && e <= 3600.0) => Err(RunError::Invalid(format!(
+            "exposure {e} s: expected a positive number of seconds up to 3600"
+        ))),
+        _ => Ok(()),
+    }
+}
+
+/// Creates the run directory and an engine on the simulated rig.
+pub fn prepare_new(
+    req: NewRun,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    check_exposure(req.exposure_s)?;
+    if req.sample.trim().is_empty() {
+        return Err(RunError::Invalid("the sample name is empty".into()));
+    }
+    let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan)?;
+    let meta = RunMeta {
+        format: RUN_FORMAT.into(),
+        software_version: env!("CARGO_PKG_VERSION").into(),
+        profile: req.profile.clone(),
+        profile_source: req.profile_source,
+        plan,
+        sample: req.sample,
+        operator: req.operator,
+        notes: req.notes,
+        exposure_s: req.exposure_s,
+        frame_size: Some(req.frame_size.unwrap_or(req.profile.sim.frame_size)),
+        simulated: true,
+        started_at: now_rfc3339(),
+    };
+    let dir = RunDir::create(&req.out, &meta)?;
+    Ok(assemble(
+        meta,
+        schedule,
+        solver,
+        dir,
+        Default::default(),
+        0.0,
+        Vec::new(),
+        faults,
+        clock,
+        policy,
+    ))
+}
+
+/// Opens a run directory and prepares an engine for what is left.
+pub fn prepare_resume(
+    root: &Path,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    let (dir, meta, recovery) = RunDir::open(root)?;
+    let solver = Solver::new(&meta.profile)?;
+    let schedule = schedule::build(&meta.profile, &solver, &meta.plan);
+    if let Some(bad) = recovery.done.keys().find(|&&i| i >= schedule.images.len()) {
+        return Err(RunError::Invalid(format!(
+            "{}: the journal names image {bad}, but the plan has only {} images",
+            root.display(),
+            schedule.images.len()
+        )));
+    }
+    if recovery.torn_bytes > 0 {
+        tracing::warn!(
+            bytes = recovery.torn_bytes,
+            "cut a torn line off the end of the journal (the previous session died mid-write)"
+        );
+    }
+    if !recovery.retake.is_empty() {
+        tracing::warn!(frames = ?recovery.retake, "frames missing or damaged on disk; they will be retaken");
+    }
+    Ok(assemble(
+        meta,
+        schedule,
+        solver,
+        dir,
+        recovery.done,
+        recovery.physical_s,
+        recovery.retake,
+        faults,
+        clock,
+        policy,
+    ))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn assemble(
+    meta: RunMeta,
+    schedule: Schedule,
+    solver: Solver,
+    dir: RunDir,
+    done: std::collections::BTreeMap<usize, crate::store::FrameEntry>,
+    t_offset_s: f64,
+    retake: Vec<usize>,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Prepared {
+    let profile = meta.profile.clone();
+    let (rig, sim) = sim::build(
+        &profile,
+        Arc::new(solver),
+        SimOptions {
+            frame_size: meta.frame_size,
+            faults,
+        },
+        clock.clone(),
+    );
+    let estimate_s = {
+        let timing = Timing::new(&profile, meta.exposure_s);
+        let trigger_done = |t: usize| {
+            schedule.triggers[t]
+                .images
+                .iter()
+                .all(|i| done.contains_key(i))
+        };
+        timing.estimate_s(&schedule, trigger_done)
+    };
+    let frames_total = schedule.images.len();
+    let frames_done = done.len();
+    let root = dir.root().to_path_buf();
+    let (engine, handle) = Engine::new(
+        profile, schedule, meta, rig, clock, dir, done, t_offset_s, policy,
+    );
+    Prepared {
+        engine,
+        handle,
+        sim,
+        root,
+        frames_total,
+        frames_done,
+        t_offset_s,
+        estimate_s,
+        retake,
+    }
+}
