@@ -73,7 +73,10 @@ fn assert_estimate_matches(plan: &str, profile: &str, physical_s: f64) {
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
     let estimate = v["estimated_physical_s"].as_f64().expect("estimate");
     let rel = (physical_s - estimate).abs() / estimate;
-    assert!(rel < 1e-4, "estimate {estimate} s, simulated {physical_s} s");
+    assert!(
+        rel < 1e-4,
+        "estimate {estimate} s, simulated {physical_s} s"
+    );
 }
 
 #[test]
