@@ -7,10 +7,12 @@ mod common;
 use std::time::Duration;
 
 use common::{assert_complete_run, rigd};
-use rigd::engine::{Command, EventKind, PausePolicy, RunState};
+use rigd::engine::{Command, EventKind, PausePolicy, RunEvent, RunState};
 use rigd::profile::Profile;
 use rigd::runner::{prepare_new, NewRun};
 use rigd::sim::{Clock, FaultRule};
+use tokio::sync::broadcast::error::RecvError;
+use tokio::sync::broadcast::Receiver;
 
 fn new_run(out: &std::path::Path, plan: &str) -> NewRun {
     NewRun {
@@ -23,6 +25,46 @@ fn new_run(out: &std::path::Path, plan: &str) -> NewRun {
         exposure_s: None,
         frame_size: Some([16, 16]),
         out: out.to_path_buf(),
+    }
+}
+
+/// The next event, skipping over any the test was too slow to see.
+async fn next_event(events: &mut Receiver<RunEvent>) -> EventKind {
+    loop {
+        match events.recv().await {
+            Ok(ev) => return ev.kind,
+            Err(RecvError::Lagged(_)) => continue,
+            Err(RecvError::Closed) => panic!("the engine stopped sending events"),
+        }
+    }
+}
+
+/// Waits until at least `n` frames are written.
+async fn wait_frames(events: &mut Receiver<RunEvent>, n: usize) -> usize {
+    loop {
+        if let EventKind::Step { frames_done, .. } = next_event(events).await {
+            if frames_done >= n {
+                return frames_done;
+            }
+        }
+    }
+}
+
+/// Waits for the run to pause; returns the reason.
+async fn wait_paused(events: &mut Receiver<RunEvent>) -> String {
+    loop {
+        match next_event(events).await {
+            EventKind::State {
+                to: RunState::Paused,
+                reason,
+                ..
+            } => return reason.unwrap_or_default(),
+            EventKind::State {
+                to: RunState::Completed,
+                ..
+            } => panic!("completed without pausing"),
+            _ => {}
+        }
     }
 }
 
@@ -45,11 +87,10 @@ async fn alarm_pauses_with_reason_and_resume_completes_after_clearing() {
     let commands = p.handle.commands.clone();
     let faults = p.sim.faults.clone();
     let engine = tokio::spawn(p.engine.run());
-    // Wait for the pause.
+    // Wait for the pause, counting the frames written before it.
     let mut frames_at_pause = 0;
     let reason = loop {
-        let ev = events.recv().await.expect("event");
-        match ev.kind {
+        match next_event(&mut events).await {
             EventKind::Step { frames_done, .. } => frames_at_pause = frames_done,
             EventKind::State {
                 to: RunState::Paused,
@@ -77,17 +118,7 @@ async fn alarm_pauses_with_reason_and_resume_completes_after_clearing() {
     assert_eq!(state.state, "paused");
     // Resuming before the fault is cleared pauses again with the same reason.
     commands.send(Command::Resume).await.expect("send");
-    let again = loop {
-        let ev = events.recv().await.expect("event");
-        if let EventKind::State {
-            to: RunState::Paused,
-            reason,
-            ..
-        } = ev.kind
-        {
-            break reason.unwrap_or_default();
-        }
-    };
+    let again = wait_paused(&mut events).await;
     assert!(again.contains("ALARM 1"), "{again}");
     // The operator clears the alarm and resumes.
     faults.clear("rail");
@@ -155,23 +186,9 @@ async fn operator_pause_and_resume_lose_nothing() {
     let mut events = p.handle.events.subscribe();
     let commands = p.handle.commands.clone();
     let engine = tokio::spawn(p.engine.run());
-    loop {
-        if let EventKind::Step { frames_done, .. } = events.recv().await.expect("event").kind {
-            if frames_done >= 1000 {
-                break;
-            }
-        }
-    }
+    wait_frames(&mut events, 1000).await;
     commands.send(Command::Pause).await.expect("send");
-    loop {
-        if let EventKind::State {
-            to: RunState::Paused,
-            ..
-        } = events.recv().await.expect("event").kind
-        {
-            break;
-        }
-    }
+    wait_paused(&mut events).await;
     // While paused, virtual hours pass and nothing is captured.
     let before = rigd::store::read_journal(&out.join("journal.ndjson"))
         .expect("journal")
@@ -205,13 +222,7 @@ async fn abort_ends_the_run_with_a_manifest_of_what_was_taken() {
     let mut events = p.handle.events.subscribe();
     let commands = p.handle.commands.clone();
     let engine = tokio::spawn(p.engine.run());
-    loop {
-        if let EventKind::Step { frames_done, .. } = events.recv().await.expect("event").kind {
-            if frames_done >= 100 {
-                break;
-            }
-        }
-    }
+    wait_frames(&mut events, 100).await;
     commands.send(Command::Abort).await.expect("send");
     let outcome = engine.await.expect("join").expect("engine");
     assert_eq!(outcome.state, RunState::Aborted);
