@@ -8,6 +8,7 @@
 pub mod clock;
 pub mod devices;
 pub mod faults;
+pub mod firmware;
 pub mod motion;
 pub mod scene;
 

@@ -1,0 +1,5 @@
+//! Simulated device firmware: the same physics as [`crate::devices`], but
+//! spoken byte for byte over a stream, so the daemon's real protocol
+//! drivers can be tested against it without hardware.
+
+pub mod grbl;

@@ -1,0 +1,5 @@
+//! Drivers for real device protocols. Each speaks its wire protocol (codecs
+//! in `rigd-proto`) over a stream it is handed, never opening ports itself,
+//! so tests can connect it to the simulated firmware in `rigd-sim`.
+
+pub mod grbl;
