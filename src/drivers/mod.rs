@@ -3,3 +3,5 @@
 //! so tests can connect it to the simulated firmware in `rigd-sim`.
 
 pub mod grbl;
+pub mod ptp;
+pub mod usb;

@@ -3,3 +3,4 @@
 //! drivers can be tested against it without hardware.
 
 pub mod grbl;
+pub mod ptp;
