@@ -4,5 +4,6 @@
 //! firmware in `rigd-sim` share one definition of each protocol (and neither
 //! crate has to depend on the other).
 
+pub mod acl;
 pub mod grbl;
 pub mod ptp;
