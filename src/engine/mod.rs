@@ -8,6 +8,7 @@
 //! that can be retaken) are retried first. A frame counts as taken once its
 //! journal line is fsynced, so a resumed run repeats and loses nothing.
 
+pub mod estop;
 pub mod state;
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
@@ -20,6 +21,7 @@ use rigd_sim::Clock;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
+pub use estop::{EStop, StopAck, StopReport};
 pub use state::{check_command, Command, Refused, RunState};
 
 use crate::hal::{Arm, Axis, Camera, DeviceError, ErrorKind, Frame, Lamp, Rig};
@@ -110,11 +112,29 @@ pub struct Outcome {
     pub frames_total: usize,
 }
 
+/// Why a run paused after an emergency stop.
+pub const ESTOP_REASON: &str = "emergency stop: every device stopped; resume re-homes the rig";
+
 /// The caller's end of a running engine.
 #[derive(Debug, Clone)]
 pub struct EngineHandle {
     pub commands: mpsc::Sender<Command>,
     pub events: broadcast::Sender<RunEvent>,
+    /// The rig's stop button (works while a device call is in flight).
+    pub estop: EStop,
+}
+
+impl EngineHandle {
+    /// Stops every device at once, then has the run pause until the
+    /// operator resumes it (which re-homes the rig first).
+    pub async fn emergency_stop(&self) -> StopReport {
+        let report = self.estop.trigger().await;
+        // Calls in flight fail and pause the run; between steps nothing
+        // fails, so the engine is told as well. A finished engine has
+        // nothing left to pause.
+        let _ = self.commands.try_send(Command::EmergencyStop);
+        report
+    }
 }
 
 /// Errors that end the engine rather than pause it.
@@ -131,6 +151,7 @@ pub struct Engine {
     meta: RunMeta,
     rig: Rig,
     clock: Clock,
+    estop: EStop,
     store: Arc<Mutex<RunDir>>,
     events: broadcast::Sender<RunEvent>,
     commands: mpsc::Receiver<Command>,
@@ -181,7 +202,7 @@ impl Engine {
         profile: Profile,
         schedule: Schedule,
         meta: RunMeta,
-        rig: Rig,
+        mut rig: Rig,
         clock: Clock,
         store: RunDir,
         done: BTreeMap<usize, FrameEntry>,
@@ -190,12 +211,14 @@ impl Engine {
     ) -> (Engine, EngineHandle) {
         let (cmd_tx, cmd_rx) = mpsc::channel(16);
         let (ev_tx, _) = broadcast::channel(1024);
+        let estop = EStop::new(std::mem::take(&mut rig.stops), clock.clone());
         let engine = Engine {
             profile,
             schedule,
             meta,
             rig,
             clock,
+            estop: estop.clone(),
             store: Arc::new(Mutex::new(store)),
             events: ev_tx.clone(),
             commands: cmd_rx,
@@ -218,6 +241,7 @@ impl Engine {
             EngineHandle {
                 commands: cmd_tx,
                 events: ev_tx,
+                estop,
             },
         )
     }
@@ -288,7 +312,10 @@ impl Engine {
         let mut queue = self.todo();
         self.go(RunState::Preparing, None)?;
         match self.prepare(queue.front().copied()).await {
-            Ok(at) => self.pos = at,
+            Ok(at) => {
+                self.pos = at;
+                self.estop.rearm();
+            }
             Err(e) => {
                 if let Flow::Stop = self.fault_pause(e.error.to_string()).await? {
                     return Ok(self.outcome());
@@ -482,6 +509,12 @@ impl Engine {
         let n = attempts.entry(trigger).or_insert(0);
         *n += 1;
         let attempt = *n;
+        if self.estop.is_tripped() {
+            // A call cut short by the stop is no device fault: never retry.
+            attempts.remove(&trigger);
+            tracing::info!("call ended by the emergency stop: {}", fault.error);
+            return self.fault_pause(ESTOP_REASON.into()).await;
+        }
         if fault.retryable && attempt < self.retry.max_attempts {
             tracing::warn!(device = %fault.error.device, attempt, "retrying: {}", fault.error);
             self.emit(EventKind::Retry {
@@ -501,20 +534,36 @@ impl Engine {
     /// Pauses for a fault; after the operator resumes, the rig is prepared
     /// again (re-homed, lamp warmed) before the run goes on.
     async fn fault_pause(&mut self, reason: String) -> Result<Flow, EngineError> {
-        let mut reason = reason;
+        self.go(RunState::Paused, Some(reason))?;
+        if !self.wait_in_pause().await? {
+            return Ok(Flow::Stop);
+        }
+        self.prepare_after_pause().await
+    }
+
+    /// From Paused, after a resume: prepares the rig again; pauses anew
+    /// (and waits) for as long as preparing fails.
+    async fn prepare_after_pause(&mut self) -> Result<Flow, EngineError> {
         loop {
-            self.go(RunState::Paused, Some(reason.clone()))?;
-            if !self.wait_in_pause().await? {
-                return Ok(Flow::Stop);
-            }
             self.go(RunState::Preparing, None)?;
             let first = self.todo().front().copied();
             match self.prepare(first).await {
                 Ok(at) => {
                     self.pos = at;
+                    self.estop.rearm();
                     return Ok(Flow::Continue);
                 }
-                Err(e) => reason = e.error.to_string(),
+                Err(e) => {
+                    let reason = if self.estop.is_tripped() {
+                        ESTOP_REASON.to_string()
+                    } else {
+                        e.error.to_string()
+                    };
+                    self.go(RunState::Paused, Some(reason))?;
+                    if !self.wait_in_pause().await? {
+                        return Ok(Flow::Stop);
+                    }
+                }
             }
         }
     }
@@ -537,6 +586,8 @@ impl Engine {
                     command: Command::Pause,
                     state: self.state,
                 }),
+                // Already paused; the tripped stop makes the resume re-home.
+                Some(Command::EmergencyStop) => {}
             }
         }
     }
@@ -580,13 +631,17 @@ impl Engine {
         match cmd {
             Command::Pause => {
                 self.go(RunState::Paused, Some("paused by operator".into()))?;
-                if self.wait_in_pause().await? {
-                    self.go(RunState::Running, None)?;
-                    Ok(Some(Flow::Continue))
-                } else {
-                    Ok(Some(Flow::Stop))
+                if !self.wait_in_pause().await? {
+                    return Ok(Some(Flow::Stop));
                 }
+                if self.estop.is_tripped() {
+                    // Stopped while paused: the rig must re-home first.
+                    return self.prepare_after_pause().await.map(Some);
+                }
+                self.go(RunState::Running, None)?;
+                Ok(Some(Flow::Continue))
             }
+            Command::EmergencyStop => self.fault_pause(ESTOP_REASON.into()).await.map(Some),
             Command::Abort => {
                 self.abort().await?;
                 Ok(Some(Flow::Stop))

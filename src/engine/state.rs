@@ -79,6 +79,9 @@ pub enum Command {
     Abort,
     /// Stop driving the run but leave it resumable (daemon shutdown, CLI interrupt).
     Detach,
+    /// The devices were stopped out of band ([`super::EngineHandle::emergency_stop`]):
+    /// pause, and re-home before going on.
+    EmergencyStop,
 }
 
 /// A command that makes no sense in the current state.
@@ -96,7 +99,7 @@ pub fn check_command(state: RunState, command: Command) -> Result<(), Refused> {
         Command::Pause => matches!(state, Preparing | Running),
         Command::Resume => state == Paused,
         Command::Abort => matches!(state, Idle | Preparing | Running | Paused),
-        Command::Detach => !state.is_final(),
+        Command::Detach | Command::EmergencyStop => !state.is_final(),
     };
     if ok {
         Ok(())

@@ -9,6 +9,7 @@ pub mod sim;
 
 use std::collections::BTreeMap;
 use std::fmt;
+use std::sync::Arc;
 
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
@@ -151,6 +152,15 @@ pub trait Camera: Send {
     async fn transfer(&mut self) -> Result<Frame, DeviceError>;
 }
 
+/// The emergency stop of one device (or one shared bus). It works from
+/// outside any call in flight: GRBL's realtime bytes, the arm's abort, the
+/// relay module's coils, so it never waits for a move to finish.
+#[async_trait]
+pub trait EmergencyStop: Send + Sync {
+    /// Stops the device; returns once the device acknowledged.
+    async fn emergency_stop(&self) -> Result<(), DeviceError>;
+}
+
 /// A profile's devices, by name, behind their capability traits.
 #[derive(Default)]
 pub struct Rig {
@@ -159,6 +169,8 @@ pub struct Rig {
     pub lamps: BTreeMap<String, Box<dyn Lamp>>,
     pub lasers: BTreeMap<String, Box<dyn LaserLine>>,
     pub cameras: BTreeMap<String, Box<dyn Camera>>,
+    /// Out-of-band stops, by device (or bus) name.
+    pub stops: BTreeMap<String, Arc<dyn EmergencyStop>>,
 }
 
 impl fmt::Debug for Rig {
@@ -169,6 +181,7 @@ impl fmt::Debug for Rig {
             .field("lamps", &self.lamps.keys().collect::<Vec<_>>())
             .field("lasers", &self.lasers.keys().collect::<Vec<_>>())
             .field("cameras", &self.cameras.keys().collect::<Vec<_>>())
+            .field("stops", &self.stops.keys().collect::<Vec<_>>())
             .finish()
     }
 }
