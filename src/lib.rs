@@ -6,6 +6,7 @@
 //! [`schedule`] (ordered triggers) → [`engine`] (drives the [`hal`] rig) →
 //! [`store`] (the dataset on disk).
 
+pub mod connect;
 pub mod drivers;
 pub mod engine;
 pub mod geometry;

@@ -114,10 +114,13 @@ struct RunArgs {
     /// Resume the run in this directory (all other run options come from it).
     #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "operator", "notes", "exposure"])]
     resume: Option<PathBuf>,
-    /// Inject a fault into the simulated rig: DEVICE:OP:N:KIND[:sticky] (arm joints are
-    /// ARM.JOINT, e.g. arm.pitch), OP one of
-    /// move, home, position, set, ready, expose, transfer or *, KIND one of timeout,
-    /// disconnect, bad-frame, alarm=TEXT. Repeatable.
+    /// Inject a fault into the simulated firmware: DEVICE:OP:N:KIND[:sticky], fired on
+    /// the Nth OP command the device receives. OP: GRBL axes home, move, info;
+    /// ACL arm home, move, define, query; Modbus lamps set, ready; PTP cameras
+    /// expose, transfer, set_exposure; or * for any. KIND: timeout (no answer),
+    /// disconnect, bad-frame (garbled reply or frame), alarm=TEXT (the device's
+    /// own fault: GRBL ALARM, Modbus exception, PTP GeneralError). Repeatable.
+    /// See firmware-protocols/README.md.
     #[arg(long = "sim-fault", value_name = "SPEC")]
     sim_faults: Vec<FaultRule>,
     /// Progress display: a bar on a terminal, log lines otherwise.
@@ -296,27 +299,39 @@ fn hms(s: f64) -> String {
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     // The embedded default is the simulated rig; a profile file names real
     // hardware unless --sim says otherwise.
-    let simulated = args.sim || (args.profile.is_none() && args.resume.is_none());
-    if !simulated && args.resume.is_none() {
-        bail!(
-            "drivers for real hardware are not built yet; add --sim to run this profile on the simulated rig"
-        );
+    let simulated = match &args.resume {
+        Some(dir) => {
+            rigd::store::read_meta(dir)
+                .with_context(|| format!("cannot resume {}", dir.display()))?
+                .simulated
+        }
+        None => args.sim || args.profile.is_none(),
+    };
+    if !simulated && !args.sim_faults.is_empty() {
+        bail!("--sim-fault needs the simulated rig (--sim)");
     }
     if let Some(e) = args.exposure {
         if !(e.is_finite() && e > 0.0) {
             bail!("--exposure {e}: expected a positive number of seconds");
         }
     }
+    // The simulated rig runs in virtual time: a paused runtime whose clock
+    // jumps whenever every task waits. Hardware runs on the wall clock.
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
-        .start_paused(true)
+        .start_paused(simulated)
         .build()
         .context("cannot start the runtime")?;
     runtime.block_on(async move {
-        let clock = Clock::virtual_time();
+        let clock = if simulated {
+            Clock::virtual_time()
+        } else {
+            Clock::real()
+        };
         let prepared = match &args.resume {
             Some(dir) => {
                 runner::prepare_resume(dir, args.sim_faults.clone(), clock, PausePolicy::Return)
+                    .await
                     .with_context(|| format!("cannot resume {}", dir.display()))?
             }
             None => {
@@ -354,8 +369,10 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
                     exposure_s: args.exposure,
                     frame_size: args.frame_size,
                     out,
+                    simulated,
                 };
-                runner::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)?
+                runner::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)
+                    .await?
             }
         };
         drive(prepared, args.progress).await

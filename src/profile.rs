@@ -231,6 +231,13 @@ pub struct Joint {
     pub motion: Motion,
     #[serde(default)]
     pub home_deg: f64,
+    /// Encoder counts per degree, as the arm's controller counts.
+    #[serde(default = "default_counts_per_deg")]
+    pub counts_per_deg: f64,
+}
+
+fn default_counts_per_deg() -> f64 {
+    100.0
 }
 
 /// Camera intrinsics.
@@ -579,6 +586,12 @@ impl Device {
                 for (i, j) in joints.iter().enumerate() {
                     check_limits(&format!("{key}.joints[{i}].limits"), j.limits)?;
                     check_motion(&format!("{key}.joints[{i}].motion"), j.motion)?;
+                    if !(j.counts_per_deg.is_finite() && j.counts_per_deg > 0.0) {
+                        return Err((
+                            format!("{key}.joints[{i}].counts_per_deg"),
+                            format!("expected a positive number, got {}", j.counts_per_deg),
+                        ));
+                    }
                     if !j.limits.contains(j.home_deg) {
                         return Err((
                             format!("{key}.joints[{i}].home_deg"),

@@ -7,8 +7,9 @@ use std::sync::Arc;
 
 use rigd_sim::{Clock, FaultRule};
 
+use crate::connect::{self, sim::SimHandle, sim::SimOptions};
 use crate::engine::{Engine, EngineHandle, PausePolicy};
-use crate::hal::sim::{self, SimHandle, SimOptions};
+use crate::hal::{DeviceError, Rig};
 use crate::kinematics::{KinematicsError, Solver};
 use crate::plan::{self, Plan, PlanError};
 use crate::profile::{Profile, ProfileError};
@@ -25,6 +26,10 @@ pub enum RunError {
     Kinematics(#[from] KinematicsError),
     #[error(transparent)]
     Store(#[from] StoreError),
+    #[error("connecting the simulated rig: {0}")]
+    Simulator(DeviceError),
+    #[error("connecting the rig's hardware: {0} (add --sim to use the simulated rig)")]
+    Hardware(DeviceError),
     #[error("{0}")]
     Invalid(String),
 }
@@ -41,13 +46,16 @@ pub struct NewRun {
     pub exposure_s: Option<f64>,
     pub frame_size: Option<[u32; 2]>,
     pub out: PathBuf,
+    /// Drive the simulated rig instead of the profile's hardware.
+    pub simulated: bool,
 }
 
 /// An engine ready to run, and what a progress display needs to know.
 pub struct Prepared {
     pub engine: Engine,
     pub handle: EngineHandle,
-    pub sim: SimHandle,
+    /// The simulated rig's faults and world (None on hardware).
+    pub sim: Option<SimHandle>,
     pub root: PathBuf,
     pub frames_total: usize,
     pub frames_done: usize,
@@ -80,8 +88,8 @@ fn check_exposure(exposure_s: Option<f64>) -> Result<(), RunError> {
     }
 }
 
-/// Creates the run directory and an engine on the simulated rig.
-pub fn prepare_new(
+/// Connects the rig and creates the run directory and an engine.
+pub async fn prepare_new(
     req: NewRun,
     faults: Vec<FaultRule>,
     clock: Clock,
@@ -102,27 +110,61 @@ pub fn prepare_new(
         operator: req.operator,
         notes: req.notes,
         exposure_s: req.exposure_s,
-        frame_size: Some(req.frame_size.unwrap_or(req.profile.sim.frame_size)),
-        simulated: true,
+        frame_size: req
+            .simulated
+            .then(|| req.frame_size.unwrap_or(req.profile.sim.frame_size)),
+        simulated: req.simulated,
         started_at: now_rfc3339(),
     };
+    // The rig first: a rig that does not answer leaves no run directory.
+    let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
     let dir = RunDir::create(&req.out, &meta)?;
     Ok(assemble(
         meta,
         schedule,
-        solver,
         dir,
         Default::default(),
         0.0,
         Vec::new(),
-        faults,
+        (rig, sim),
         clock,
         policy,
     ))
 }
 
-/// Opens a run directory and prepares an engine for what is left.
-pub fn prepare_resume(
+/// Connects the simulated rig or the profile's hardware, as the run says.
+async fn connect_rig(
+    meta: &RunMeta,
+    solver: &Solver,
+    faults: Vec<FaultRule>,
+    clock: &Clock,
+) -> Result<(Rig, Option<SimHandle>), RunError> {
+    if meta.simulated {
+        let opts = SimOptions {
+            frame_size: meta.frame_size,
+            faults,
+        };
+        let (rig, sim) =
+            connect::sim::connect(&meta.profile, Arc::new(solver.clone()), opts, clock)
+                .await
+                .map_err(RunError::Simulator)?;
+        Ok((rig, Some(sim)))
+    } else {
+        if !faults.is_empty() {
+            return Err(RunError::Invalid(
+                "faults can only be injected into the simulated rig".into(),
+            ));
+        }
+        let rig = connect::hardware::connect(&meta.profile, clock)
+            .await
+            .map_err(RunError::Hardware)?;
+        Ok((rig, None))
+    }
+}
+
+/// Opens a run directory, connects the rig, and prepares an engine for
+/// what is left.
+pub async fn prepare_resume(
     root: &Path,
     faults: Vec<FaultRule>,
     clock: Clock,
@@ -147,15 +189,15 @@ pub fn prepare_resume(
     if !recovery.retake.is_empty() {
         tracing::warn!(frames = ?recovery.retake, "frames missing or damaged on disk; they will be retaken");
     }
+    let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
     Ok(assemble(
         meta,
         schedule,
-        solver,
         dir,
         recovery.done,
         recovery.physical_s,
         recovery.retake,
-        faults,
+        (rig, sim),
         clock,
         policy,
     ))
@@ -165,25 +207,15 @@ pub fn prepare_resume(
 fn assemble(
     meta: RunMeta,
     schedule: Schedule,
-    solver: Solver,
     dir: RunDir,
     done: std::collections::BTreeMap<usize, crate::store::FrameEntry>,
     t_offset_s: f64,
     retake: Vec<usize>,
-    faults: Vec<FaultRule>,
+    (rig, sim): (Rig, Option<SimHandle>),
     clock: Clock,
     policy: PausePolicy,
 ) -> Prepared {
     let profile = meta.profile.clone();
-    let (rig, sim) = sim::build(
-        &profile,
-        Arc::new(solver),
-        SimOptions {
-            frame_size: meta.frame_size,
-            faults,
-        },
-        clock.clone(),
-    );
     let estimate_s = {
         let timing = Timing::new(&profile, meta.exposure_s);
         let trigger_done = |t: usize| {

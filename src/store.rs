@@ -293,15 +293,7 @@ impl RunDir {
     /// torn journal tail, and checks every journaled frame.
     pub fn open(root: &Path) -> Result<(RunDir, RunMeta, Recovery), StoreError> {
         let shown = root.display().to_string();
-        let run_path = root.join(RUN_FILE);
-        if !run_path.exists() {
-            return Err(StoreError::NoRun(shown));
-        }
-        let bytes = fs::read(&run_path).map_err(io(&run_path, "read"))?;
-        let meta: RunMeta = serde_json::from_slice(&bytes).map_err(|e| StoreError::Corrupt {
-            path: run_path.clone(),
-            why: e.to_string(),
-        })?;
+        let meta = read_meta(root)?;
         let state = read_state(root)?;
         if let Some(s) = &state {
             if s.state == "completed" || s.state == "aborted" {
@@ -422,6 +414,19 @@ fn open_journal(root: &Path) -> Result<File, StoreError> {
         .append(true)
         .open(&path)
         .map_err(io(&path, "open"))
+}
+
+/// Reads a run's metadata (`run.json`).
+pub fn read_meta(root: &Path) -> Result<RunMeta, StoreError> {
+    let run_path = root.join(RUN_FILE);
+    if !run_path.exists() {
+        return Err(StoreError::NoRun(root.display().to_string()));
+    }
+    let bytes = fs::read(&run_path).map_err(io(&run_path, "read"))?;
+    serde_json::from_slice(&bytes).map_err(|e| StoreError::Corrupt {
+        path: run_path,
+        why: e.to_string(),
+    })
 }
 
 /// Reads the state record, if any.

@@ -25,6 +25,7 @@ fn new_run(out: &std::path::Path, plan: &str) -> NewRun {
         exposure_s: None,
         frame_size: Some([16, 16]),
         out: out.to_path_buf(),
+        simulated: true,
     }
 }
 
@@ -82,10 +83,11 @@ async fn alarm_pauses_with_reason_and_resume_completes_after_clearing() {
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
+    .await
     .expect("prepare");
     let mut events = p.handle.events.subscribe();
     let commands = p.handle.commands.clone();
-    let faults = p.sim.faults.clone();
+    let faults = p.sim.as_ref().expect("simulated rig").faults.clone();
     let engine = tokio::spawn(p.engine.run());
     // Wait for the pause, counting the frames written before it.
     let mut frames_at_pause = 0;
@@ -136,12 +138,13 @@ async fn one_timeout_and_one_bad_frame_are_retried_without_a_pause() {
     let p = prepare_new(
         new_run(&out, "h1"),
         vec![
-            rule("arm.pitch:move:40:timeout"),
+            rule("arm:move:40:timeout"),
             rule("camera:transfer:70:bad-frame"),
         ],
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
+    .await
     .expect("prepare");
     let mut events = p.handle.events.subscribe();
     let collector = tokio::spawn(async move {
@@ -182,6 +185,7 @@ async fn operator_pause_and_resume_lose_nothing() {
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
+    .await
     .expect("prepare");
     let mut events = p.handle.events.subscribe();
     let commands = p.handle.commands.clone();
@@ -218,6 +222,7 @@ async fn abort_ends_the_run_with_a_manifest_of_what_was_taken() {
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
+    .await
     .expect("prepare");
     let mut events = p.handle.events.subscribe();
     let commands = p.handle.commands.clone();

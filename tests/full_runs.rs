@@ -66,15 +66,19 @@ fn bonn_h2_full_run() {
     assert_estimate_matches("h2", "bonn-gonioreflectometer", m.physical_duration_s);
 }
 
-/// The estimate of `plan show` and the simulated run follow one timing model:
-/// they must agree (to rounding), or one of them is wrong.
+/// The estimate of `plan show` follows the same timing model as the
+/// simulated firmware. The run through the real drivers takes a little
+/// longer: the drivers learn that a move ended or a lamp warmed up by
+/// polling (GRBL at its recommended 5 Hz, the relay module at 4 Hz), and
+/// the run starts with homing. That overhead must stay within 3 %, and the
+/// run can never be faster than the physics.
 fn assert_estimate_matches(plan: &str, profile: &str, physical_s: f64) {
     let o = run_ok(&["plan", "show", plan, "--profile", profile, "--json"]);
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
     let estimate = v["estimated_physical_s"].as_f64().expect("estimate");
-    let rel = (physical_s - estimate).abs() / estimate;
+    let overhead = (physical_s - estimate) / estimate;
     assert!(
-        rel < 1e-4,
+        (0.0..0.03).contains(&overhead),
         "estimate {estimate} s, simulated {physical_s} s"
     );
 }

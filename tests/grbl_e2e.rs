@@ -28,6 +28,7 @@ fn params() -> GrblParams {
         home_position: 0.0,
         physical_start: 25.0,
         start_homed: false,
+        world: None,
     }
 }
 

@@ -6,4 +6,5 @@
 
 pub mod acl;
 pub mod grbl;
+pub mod modbus;
 pub mod ptp;

@@ -11,6 +11,8 @@ pub mod faults;
 pub mod firmware;
 pub mod motion;
 pub mod scene;
+pub mod world;
 
 pub use clock::Clock;
 pub use faults::{FaultInjector, FaultKind, FaultRule};
+pub use world::{SharedWorld, World};

@@ -19,13 +19,16 @@
 //!   taken from the last set-point: the arm may have moved meanwhile.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
 use rigd_proto::acl::{parse_reply, Command, LineSplitter, Reply, Status, CURRENT};
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, ReadHalf, WriteHalf};
+use tokio::sync::Mutex;
 
-use crate::hal::{Arm, DeviceError, ErrorKind};
+use super::{stop_failed, write_locked};
+use crate::hal::{Arm, DeviceError, EmergencyStop, ErrorKind};
 use crate::profile::{Limits, Motion};
 use crate::sim::Clock;
 
@@ -145,7 +148,9 @@ impl AclError {
 pub struct AclArm<S> {
     cfg: AclConfig,
     clock: Clock,
-    stream: S,
+    reader: ReadHalf<S>,
+    /// Shared with [`AclStop`], which sends the abort mid-call.
+    writer: Arc<Mutex<WriteHalf<S>>>,
     split: LineSplitter,
     lines: VecDeque<String>,
     /// Prompts owed by the controller for lines already sent.
@@ -168,14 +173,16 @@ impl<S> std::fmt::Debug for AclArm<S> {
 
 impl<S> AclArm<S>
 where
-    S: AsyncRead + AsyncWrite + Unpin + Send,
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
 {
     /// Takes over a freshly opened link: reads status and pose.
     pub async fn connect(stream: S, cfg: AclConfig, clock: Clock) -> Result<Self, DeviceError> {
+        let (reader, writer) = tokio::io::split(stream);
         let mut arm = AclArm {
             cfg,
             clock,
-            stream,
+            reader,
+            writer: Arc::new(Mutex::new(writer)),
             split: LineSplitter::new(256),
             lines: VecDeque::new(),
             pending: 0,
@@ -190,7 +197,9 @@ where
 
     /// Replaces a lost link and re-reads status and pose from the controller.
     pub async fn reconnect(&mut self, stream: S) -> Result<Vec<f64>, DeviceError> {
-        self.stream = stream;
+        let (reader, writer) = tokio::io::split(stream);
+        self.reader = reader;
+        *self.writer.lock().await = writer;
         self.split = LineSplitter::new(256);
         self.lines.clear();
         self.pending = 0;
@@ -211,6 +220,14 @@ where
         }
         .await;
         self.map(r)
+    }
+
+    /// The out-of-band emergency stop of this arm (it survives reconnects).
+    pub fn stopper(&self) -> AclStop<S> {
+        AclStop {
+            name: self.cfg.name.clone(),
+            writer: self.writer.clone(),
+        }
     }
 
     /// The last status the controller reported.
@@ -240,7 +257,7 @@ where
             }
             let mut buf = [0u8; 256];
             // `read` is cancel-safe: a deadline firing here loses no bytes.
-            let n = self.stream.read(&mut buf).await?;
+            let n = self.reader.read(&mut buf).await?;
             if n == 0 {
                 return Err(AclError::Disconnected);
             }
@@ -285,8 +302,7 @@ where
     async fn exchange(&mut self, cmd: &Command) -> Result<Vec<Reply>, AclError> {
         let line = cmd.line();
         self.pending += 1;
-        self.stream.write_all(&cmd.encode()).await?;
-        self.stream.flush().await?;
+        write_locked(&self.writer, &cmd.encode()).await?;
         // Skip to the echo of our own line.
         loop {
             let l = self.next_line().await?;
@@ -481,10 +497,30 @@ where
     }
 }
 
+/// The controller's abort (`A`), written while any call may be in flight:
+/// the controller stops all joints when it reads the line, and never
+/// refuses it. The call in flight sees the arm stop short and fails.
+pub struct AclStop<S> {
+    name: String,
+    writer: Arc<Mutex<WriteHalf<S>>>,
+}
+
+#[async_trait]
+impl<S> EmergencyStop for AclStop<S>
+where
+    S: AsyncWrite + Send + 'static,
+{
+    async fn emergency_stop(&self) -> Result<(), DeviceError> {
+        write_locked(&self.writer, &Command::Abort.encode())
+            .await
+            .map_err(|e| stop_failed(&self.name, e))
+    }
+}
+
 #[async_trait]
 impl<S> Arm for AclArm<S>
 where
-    S: AsyncRead + AsyncWrite + Unpin + Send,
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
 {
     async fn home(&mut self) -> Result<Vec<f64>, DeviceError> {
         let r = self.home_inner().await;

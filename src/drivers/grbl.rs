@@ -18,6 +18,7 @@
 //!   last set-point.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
@@ -25,9 +26,11 @@ use rigd_proto::grbl::{
     parse_reply, AlarmCode, Command, ErrorCode, LineSplitter, MachineState, Realtime, Reply,
     Status, RX_BUFFER_SIZE,
 };
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, ReadHalf, WriteHalf};
+use tokio::sync::Mutex;
 
-use crate::hal::{Axis, DeviceError, ErrorKind};
+use super::{stop_failed, write_locked};
+use crate::hal::{Axis, DeviceError, EmergencyStop, ErrorKind};
 use crate::profile::{Limits, Motion};
 use crate::sim::Clock;
 
@@ -128,7 +131,9 @@ impl GrblError {
 pub struct GrblAxis<S> {
     cfg: GrblConfig,
     clock: Clock,
-    stream: S,
+    reader: ReadHalf<S>,
+    /// Shared with [`GrblStop`], which writes realtime bytes mid-call.
+    writer: Arc<Mutex<WriteHalf<S>>>,
     split: LineSplitter,
     lines: VecDeque<String>,
     /// Byte counts of sent lines not yet answered, oldest first.
@@ -152,16 +157,18 @@ impl<S> std::fmt::Debug for GrblAxis<S> {
 
 impl<S> GrblAxis<S>
 where
-    S: AsyncRead + AsyncWrite + Unpin + Send,
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
 {
     /// Takes over a freshly opened link: waits for the welcome banner (sending
     /// a soft reset if the board did not reset on open), identifies the
     /// firmware with `$I`, and reads the position from a status report.
     pub async fn connect(stream: S, cfg: GrblConfig, clock: Clock) -> Result<Self, DeviceError> {
+        let (reader, writer) = tokio::io::split(stream);
         let mut axis = GrblAxis {
             cfg,
             clock,
-            stream,
+            reader,
+            writer: Arc::new(Mutex::new(writer)),
             split: LineSplitter::new(256),
             lines: VecDeque::new(),
             in_flight: VecDeque::new(),
@@ -178,7 +185,9 @@ where
     /// Replaces a lost link with a new one and re-synchronises: the
     /// controller has reset, so the position comes from its status report.
     pub async fn reconnect(&mut self, stream: S) -> Result<(), DeviceError> {
-        self.stream = stream;
+        let (reader, writer) = tokio::io::split(stream);
+        self.reader = reader;
+        *self.writer.lock().await = writer;
         self.split = LineSplitter::new(256);
         self.lines.clear();
         self.in_flight.clear();
@@ -186,6 +195,14 @@ where
         self.last_status = None;
         let r = self.handshake().await;
         self.map(r)
+    }
+
+    /// The out-of-band emergency stop of this axis (it survives reconnects).
+    pub fn stopper(&self) -> GrblStop<S> {
+        GrblStop {
+            name: self.cfg.name.clone(),
+            writer: self.writer.clone(),
+        }
     }
 
     /// The firmware version from `[VER:…]`, e.g. `1.1h.20190830:`.
@@ -304,7 +321,7 @@ where
             }
             let mut buf = [0u8; 256];
             // `read` is cancel-safe: a deadline firing here loses no bytes.
-            let n = self.stream.read(&mut buf).await?;
+            let n = self.reader.read(&mut buf).await?;
             if n == 0 {
                 return Err(GrblError::Disconnected);
             }
@@ -329,9 +346,7 @@ where
     }
 
     async fn send_realtime(&mut self, r: Realtime) -> Result<(), GrblError> {
-        self.stream.write_all(&[r.byte()]).await?;
-        self.stream.flush().await?;
-        Ok(())
+        Ok(write_locked(&self.writer, &[r.byte()]).await?)
     }
 
     /// Sends a line once it fits in GRBL's receive buffer (character
@@ -348,8 +363,7 @@ where
             let r = self.next_reply().await?;
             self.absorb(r).await?;
         }
-        self.stream.write_all(&bytes).await?;
-        self.stream.flush().await?;
+        write_locked(&self.writer, &bytes).await?;
         self.in_flight.push_back(bytes.len());
         Ok(())
     }
@@ -497,13 +511,36 @@ where
         Ok(())
     }
 
+    /// Before homing: reads away whatever a reset or an alarm left on the
+    /// link (banner, `ALARM:N`, messages, stale answers) up to a fresh
+    /// status report. Homing is the cure for both, so here neither is an
+    /// error (after an emergency stop the banner is always there).
+    async fn settle_link(&mut self) -> Result<(), GrblError> {
+        let clock = self.clock.clone();
+        let timeout = self.cfg.command_timeout;
+        let drain = async {
+            self.send_realtime(Realtime::StatusQuery).await?;
+            loop {
+                if let Reply::Status(s) = self.next_reply().await? {
+                    self.last_status = Some(s);
+                    return Ok(());
+                }
+            }
+        };
+        let r = clock.deadline(timeout, drain).await;
+        self.deadline_result(r, "status query before homing", timeout)?;
+        self.in_flight.clear();
+        self.desync = false;
+        Ok(())
+    }
+
     fn x_of(s: &Status) -> Result<f64, GrblError> {
         s.x()
             .ok_or_else(|| GrblError::Protocol(format!("status report without MPos: {s}")))
     }
 
     async fn home_inner(&mut self) -> Result<f64, GrblError> {
-        self.resync().await?;
+        self.settle_link().await?;
         self.command(&Command::Home, self.cfg.home_timeout).await?;
         let s = self.query_status().await?;
         Self::x_of(&s)
@@ -549,10 +586,32 @@ where
     }
 }
 
+/// Feed hold then soft reset, written while any call may be in flight:
+/// GRBL acts on realtime bytes the moment its serial interrupt sees them,
+/// so the stop is done once they are on the wire. The call in flight then
+/// reads the reset banner and fails; the axis must re-home.
+pub struct GrblStop<S> {
+    name: String,
+    writer: Arc<Mutex<WriteHalf<S>>>,
+}
+
+#[async_trait]
+impl<S> EmergencyStop for GrblStop<S>
+where
+    S: AsyncWrite + Send + 'static,
+{
+    async fn emergency_stop(&self) -> Result<(), DeviceError> {
+        let bytes = [Realtime::FeedHold.byte(), Realtime::SoftReset.byte()];
+        write_locked(&self.writer, &bytes)
+            .await
+            .map_err(|e| stop_failed(&self.name, e))
+    }
+}
+
 #[async_trait]
 impl<S> Axis for GrblAxis<S>
 where
-    S: AsyncRead + AsyncWrite + Unpin + Send,
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
 {
     async fn home(&mut self) -> Result<f64, DeviceError> {
         let r = self.home_inner().await;
@@ -578,9 +637,10 @@ where
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tokio::io::DuplexStream;
+    use tokio::io::{AsyncWriteExt, DuplexStream};
 
     fn raw(stream: DuplexStream) -> GrblAxis<DuplexStream> {
+        let (reader, writer) = tokio::io::split(stream);
         GrblAxis {
             cfg: GrblConfig::new(
                 "t",
@@ -595,7 +655,8 @@ mod tests {
                 },
             ),
             clock: Clock::virtual_time(),
-            stream,
+            reader,
+            writer: Arc::new(Mutex::new(writer)),
             split: LineSplitter::new(256),
             lines: VecDeque::new(),
             in_flight: VecDeque::new(),

@@ -126,7 +126,7 @@ impl ModbusError {
         }
     }
 
-    fn into_device(self, name: &str) -> DeviceError {
+    pub fn into_device(self, name: &str) -> DeviceError {
         DeviceError::new(name, self.kind(), self.to_string())
     }
 }

@@ -43,6 +43,21 @@ pub trait UsbPipe: Send {
 }
 
 #[async_trait]
+impl<P: UsbPipe + ?Sized> UsbPipe for Box<P> {
+    async fn bulk_out(&mut self, bytes: Vec<u8>) -> Result<(), UsbError> {
+        (**self).bulk_out(bytes).await
+    }
+
+    async fn bulk_in(&mut self, max: usize) -> Result<Vec<u8>, UsbError> {
+        (**self).bulk_in(max).await
+    }
+
+    async fn interrupt_in(&mut self) -> Result<Vec<u8>, UsbError> {
+        (**self).interrupt_in().await
+    }
+}
+
+#[async_trait]
 impl UsbPipe for MemoryPipe {
     async fn bulk_out(&mut self, bytes: Vec<u8>) -> Result<(), UsbError> {
         MemoryPipe::bulk_out(self, bytes).map_err(|_| UsbError::Disconnected)
@@ -113,10 +128,24 @@ impl NusbPipe {
     /// Opens the first device with this vendor/product id and claims its
     /// Still Image interface's bulk-in, bulk-out and interrupt-in endpoints.
     pub fn open(vendor_id: u16, product_id: u16) -> Result<NusbPipe, UsbError> {
+        NusbPipe::open_serial(vendor_id, product_id, None)
+    }
+
+    /// Like [`NusbPipe::open`], picking among identical cameras by serial
+    /// number.
+    pub fn open_serial(
+        vendor_id: u16,
+        product_id: u16,
+        serial: Option<&str>,
+    ) -> Result<NusbPipe, UsbError> {
         let io = |e: std::io::Error| UsbError::Io(e.to_string());
         let info = nusb::list_devices()
             .map_err(io)?
-            .find(|d| d.vendor_id() == vendor_id && d.product_id() == product_id)
+            .find(|d| {
+                d.vendor_id() == vendor_id
+                    && d.product_id() == product_id
+                    && serial.is_none_or(|s| d.serial_number() == Some(s))
+            })
             .ok_or(UsbError::NotFound {
                 vendor_id,
                 product_id,

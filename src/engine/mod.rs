@@ -420,6 +420,14 @@ impl Engine {
             };
             self.pos = reached.clone();
             let Some(i) = next else { continue };
+            if self.estop.is_tripped() {
+                // The stop cut the move short (or lands now): the rig is
+                // not where this trigger needs it, so nothing is exposed.
+                match self.fault_pause(ESTOP_REASON.into()).await? {
+                    Flow::Continue => continue,
+                    Flow::Stop => return Ok(self.outcome()),
+                }
+            }
             let t_s = self.t();
             let cams = self.cameras_of(i);
             let exposed = {
@@ -554,12 +562,7 @@ impl Engine {
                     return Ok(Flow::Continue);
                 }
                 Err(e) => {
-                    let reason = if self.estop.is_tripped() {
-                        ESTOP_REASON.to_string()
-                    } else {
-                        e.error.to_string()
-                    };
-                    self.go(RunState::Paused, Some(reason))?;
+                    self.go(RunState::Paused, Some(e.error.to_string()))?;
                     if !self.wait_in_pause().await? {
                         return Ok(Flow::Stop);
                     }

@@ -5,8 +5,6 @@
 //! [`ErrorKind`], so the run engine can decide between retry and pause
 //! without knowing the driver (the embedded-hal pattern).
 
-pub mod sim;
-
 use std::collections::BTreeMap;
 use std::fmt;
 use std::sync::Arc;

@@ -17,6 +17,7 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use crate::clock::Clock;
 use crate::faults::{FaultInjector, FaultKind};
 use crate::motion::Trapezoid;
+use crate::world::SharedWorld;
 
 /// One joint of the simulated arm.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -43,6 +44,8 @@ pub struct AclParams {
     pub power_up_counts: Vec<i64>,
     /// Start homed (a controller that kept its position across a reconnect).
     pub start_homed: bool,
+    /// Where to publish the joint angles for the simulated cameras.
+    pub world: Option<SharedWorld>,
 }
 
 impl Default for AclParams {
@@ -68,6 +71,7 @@ impl Default for AclParams {
             home_s: 12.0,
             power_up_counts: vec![0, 0, 0],
             start_homed: false,
+            world: None,
         }
     }
 }
@@ -174,6 +178,7 @@ where
         for &b in &buf[..k] {
             if let Some(line) = split.push(b) {
                 m.line(&line.text, line.too_long).await;
+                m.publish();
                 if !m.out.is_empty() {
                     stream.write_all(&m.out).await?;
                     stream.flush().await?;
@@ -203,6 +208,19 @@ impl Machine {
             }
         }
         self.pos.clone()
+    }
+
+    /// Tells the world the joint angles, after every command line.
+    fn publish(&mut self) {
+        if let Some(world) = self.params.world.clone() {
+            let counts = self.now_counts();
+            let deg = counts
+                .iter()
+                .zip(&self.params.joints)
+                .map(|(&c, j)| c as f64 / j.counts_per_deg)
+                .collect();
+            world.set_arm(deg);
+        }
     }
 
     /// Stops all motion where the joints are now.

@@ -25,6 +25,7 @@ use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use crate::clock::Clock;
 use crate::faults::{FaultInjector, FaultKind};
 use crate::motion::Trapezoid;
+use crate::world::SharedWorld;
 
 /// The banner's version and the `$I` answers of the simulated build.
 pub const VERSION: &str = "1.1h";
@@ -47,6 +48,9 @@ pub struct GrblParams {
     /// Start homed and Idle at `physical_start` (a controller that kept its
     /// position), instead of GRBL's usual Alarm with MPos 0.
     pub start_homed: bool,
+    /// Where to publish the physical position (under `name`) for the
+    /// simulated cameras.
+    pub world: Option<SharedWorld>,
 }
 
 impl Default for GrblParams {
@@ -62,6 +66,7 @@ impl Default for GrblParams {
             home_position: 0.0,
             physical_start: 10.0,
             start_homed: false,
+            world: None,
         }
     }
 }
@@ -199,6 +204,7 @@ where
             None => m.finish_homing(),
         }
         m.execute_lines();
+        m.publish();
         if !m.out.is_empty() {
             stream.write_all(&std::mem::take(&mut m.out)).await?;
             stream.flush().await?;
@@ -226,6 +232,15 @@ impl Machine {
 
     fn now(&self) -> f64 {
         self.clock.now_s()
+    }
+
+    /// Tells the world where the axis physically stands. Called after every
+    /// exchange, so the report a driver saw last matches the world.
+    fn publish(&mut self) {
+        if let Some(world) = self.params.world.clone() {
+            let physical = self.position() + self.offset;
+            world.set_axis(&self.params.name, physical);
+        }
     }
 
     /// Retires finished segments and returns the active one, if any.

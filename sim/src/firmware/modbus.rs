@@ -2,34 +2,43 @@
 //! (protocol: `firmware-protocols/modbus-lamps.md`).
 //!
 //! Why it is built this way:
-//! - The wire codec is tokio-modbus's own server skeleton, so the bytes the
-//!   daemon's driver sees are those of a real stack, not of a second
-//!   hand-written codec that could share the driver's misunderstandings.
+//! - It serves any byte stream ([`ModbusModule::serve_stream`]), in both
+//!   framings, through the frame codec of `rigd_proto::modbus`: the
+//!   simulated rig runs under paused time, where real sockets are unsafe
+//!   (tokio advances the clock while bytes sit in the kernel), so the rig
+//!   wires driver and module over an in-memory `tokio::io::duplex` pair.
+//!   [`ModbusModule::serve_tcp`] and [`ModbusModule::serve_rtu_over_tcp`] are
+//!   an accept loop around the same path, for stock clients and tools. The
+//!   driver keeps tokio-modbus's client codec, so the two sides do not share
+//!   a codec (and cannot share its misunderstandings); the spec's
+//!   transcripts pin both to the same bytes.
 //! - Lamp physics follow [`crate::devices::SimLamp`]: the FC05/FC0F reply
 //!   comes after the relay switch time, and the ready bit is set `warm_up_s`
 //!   after switch-on (measured through the [`Clock`], so paused-time tests
 //!   cost no wall time) and cleared at switch-off.
 //! - Faults come from the shared [`FaultInjector`] under the lamp's (or the
 //!   laser's) device name: op `set` on FC05, op `ready` on every FC04 read.
-//!   `Disconnect` must close the socket, which a `Service` cannot do, so each
-//!   connection's stream is wrapped in a [`KillSwitch`] the service trips.
+//!   `Timeout` leaves that one request unanswered (later ones are served),
+//!   `Disconnect` closes the stream, `Alarm` is exception 0x04 on a write
+//!   (and the lamp's fault bit).
+//! - Requests on one stream are served one at a time, in order, as a
+//!   Modbus server does (one outstanding request per master).
 
-use std::future::Future;
 use std::io;
 use std::net::SocketAddr;
-use std::pin::Pin;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
-use std::task::{Context, Poll};
 
-use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
-use tokio::net::{TcpListener, TcpStream};
+use rigd_proto::modbus::{
+    decode_request, encode_exception, encode_response, Exception, Header, RequestPdu, ResponsePdu,
+};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::TcpListener;
 use tokio::task::JoinHandle;
-use tokio_modbus::server::Service;
-use tokio_modbus::{ExceptionCode, Request, Response, SlaveRequest};
 
 use crate::clock::Clock;
 use crate::faults::{FaultInjector, FaultKind};
+
+pub use rigd_proto::modbus::Framing;
 
 /// Input register holding the ready bitmask (bit k = lamp on coil k).
 pub const IR_READY: u16 = 0;
@@ -91,7 +100,30 @@ pub struct ModbusModule {
     shared: Arc<Shared>,
 }
 
-type Reply = Result<Option<Response>, ExceptionCode>;
+/// Why a request gets no normal reply.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Refusal {
+    /// Answer with this exception.
+    Exception(Exception),
+    /// Never answer this request (injected `Timeout`).
+    Silent,
+    /// Close the stream without answering (injected `Disconnect`).
+    Close,
+}
+
+impl From<Exception> for Refusal {
+    fn from(e: Exception) -> Refusal {
+        Refusal::Exception(e)
+    }
+}
+
+/// What serving one request leaves to do on the stream.
+#[derive(Debug)]
+enum Answer {
+    Send(Vec<u8>),
+    Nothing,
+    Close,
+}
 
 impl ModbusModule {
     pub fn new(cfg: ModuleConfig, clock: Clock, faults: Arc<FaultInjector>) -> ModbusModule {
@@ -190,24 +222,29 @@ impl ModbusModule {
         count >= 1 && u32::from(addr) + u32::from(count) <= u32::from(len)
     }
 
-    async fn handle(self, req: SlaveRequest<'static>, kill: Arc<AtomicBool>) -> Reply {
+    /// Runs one decoded request and frames the answer, if any.
+    async fn handle(&self, framing: Framing, hdr: Header, req: RequestPdu) -> Answer {
         // On RS-485 every module hears every frame: only our unit answers.
-        // Unit 0 is broadcast (writes only, never answered); TCP gateways
+        // Unit 0 is broadcast (executed, never answered); TCP gateways
         // often send 0xFF, which a directly addressed module accepts.
-        let unit = req.slave;
-        let broadcast = unit == 0;
-        if !(broadcast || unit == self.shared.cfg.unit || unit == 0xFF) {
-            return Ok(None);
+        let broadcast = hdr.unit == 0;
+        if !(broadcast || hdr.unit == self.shared.cfg.unit || hdr.unit == 0xFF) {
+            return Answer::Nothing;
         }
-        let reply = self.dispatch(req.request, &kill).await;
-        if broadcast {
-            return Ok(None);
+        let function = req.function();
+        match self.dispatch(req).await {
+            Err(Refusal::Close) => Answer::Close,
+            _ if broadcast => Answer::Nothing,
+            Err(Refusal::Silent) => Answer::Nothing,
+            Ok(resp) => Answer::Send(encode_response(framing, &hdr, &resp)),
+            Err(Refusal::Exception(e)) => {
+                Answer::Send(encode_exception(framing, &hdr, function, e))
+            }
         }
-        reply.map(Some)
     }
 
     /// Consults the fault injector; `Ok(())` means "behave normally".
-    async fn fault(&self, device: &str, op: &str, kill: &AtomicBool) -> Result<(), ExceptionCode> {
+    fn fault(&self, device: &str, op: &str) -> Result<(), Refusal> {
         match self.shared.faults.check(device, op) {
             None | Some(FaultKind::BadFrame) => Ok(()),
             Some(FaultKind::Alarm(_)) => {
@@ -216,45 +253,39 @@ impl ModbusModule {
                         l.fault = true;
                     }
                 }
-                Err(ExceptionCode::ServerDeviceFailure)
+                Err(Exception::ServerDeviceFailure.into())
             }
-            Some(FaultKind::Timeout) => std::future::pending().await,
-            Some(FaultKind::Disconnect) => {
-                kill.store(true, Ordering::SeqCst);
-                Err(ExceptionCode::ServerDeviceFailure)
-            }
+            Some(FaultKind::Timeout) => Err(Refusal::Silent),
+            Some(FaultKind::Disconnect) => Err(Refusal::Close),
         }
     }
 
-    async fn dispatch(
-        &self,
-        req: Request<'static>,
-        kill: &AtomicBool,
-    ) -> Result<Response, ExceptionCode> {
+    async fn dispatch(&self, req: RequestPdu) -> Result<ResponsePdu, Refusal> {
         let n = self.coil_count();
         match req {
-            Request::ReadCoils(addr, count) => {
+            RequestPdu::ReadCoils { addr, count } => {
                 if !self.in_range(addr, count, n) {
-                    return Err(ExceptionCode::IllegalDataAddress);
+                    return Err(Exception::IllegalDataAddress.into());
                 }
                 let c = self.coils();
-                Ok(Response::ReadCoils(
-                    c[usize::from(addr)..usize::from(addr) + usize::from(count)].to_vec(),
+                let (a, b) = (usize::from(addr), usize::from(addr) + usize::from(count));
+                Ok(ResponsePdu::ReadCoils(
+                    c.get(a..b).unwrap_or_default().to_vec(),
                 ))
             }
-            Request::WriteSingleCoil(addr, on) => {
+            RequestPdu::WriteSingleCoil { addr, on } => {
                 let Some(name) = self.device_name(addr).map(str::to_string) else {
-                    return Err(ExceptionCode::IllegalDataAddress);
+                    return Err(Exception::IllegalDataAddress.into());
                 };
-                self.fault(&name, "set", kill).await?;
+                self.fault(&name, "set")?;
                 self.shared.clock.sleep_s(self.switch_s(addr)).await;
                 self.set_coil(addr, on, self.shared.clock.now_s());
-                Ok(Response::WriteSingleCoil(addr, on))
+                Ok(ResponsePdu::WriteSingleCoil { addr, on })
             }
-            Request::WriteMultipleCoils(addr, values) => {
+            RequestPdu::WriteMultipleCoils { addr, values } => {
                 let count = u16::try_from(values.len()).unwrap_or(u16::MAX);
                 if !self.in_range(addr, count, n) {
-                    return Err(ExceptionCode::IllegalDataAddress);
+                    return Err(Exception::IllegalDataAddress.into());
                 }
                 // The emergency-stop path: no fault injection, all relays
                 // switch together, so the reply waits for the slowest one.
@@ -263,15 +294,15 @@ impl ModbusModule {
                     .fold(0.0, f64::max);
                 self.shared.clock.sleep_s(slowest).await;
                 let now = self.shared.clock.now_s();
-                for (i, on) in values.iter().enumerate() {
-                    self.set_coil(addr + i as u16, *on, now);
+                for (a, on) in (addr..=u16::MAX).zip(&values) {
+                    self.set_coil(a, *on, now);
                 }
-                Ok(Response::WriteMultipleCoils(addr, count))
+                Ok(ResponsePdu::WriteMultipleCoils { addr, count })
             }
-            Request::ReadInputRegisters(addr, count) => {
+            RequestPdu::ReadInputRegisters { addr, count } => {
                 let regs_len = IR_HOURS + u16::try_from(self.shared.cfg.lamps.len()).unwrap_or(0);
                 if !self.in_range(addr, count, regs_len) {
-                    return Err(ExceptionCode::IllegalDataAddress);
+                    return Err(Exception::IllegalDataAddress.into());
                 }
                 let names: Vec<String> = self
                     .shared
@@ -281,154 +312,104 @@ impl ModbusModule {
                     .map(|l| l.name.clone())
                     .collect();
                 for name in &names {
-                    self.fault(name, "ready", kill).await.or_else(|e| {
+                    match self.fault(name, "ready") {
                         // An alarm on a poll shows up as the fault bit, not
                         // as an exception: the module itself is healthy.
-                        if kill.load(Ordering::SeqCst) {
-                            Err(e)
-                        } else {
-                            Ok(())
-                        }
-                    })?;
+                        Ok(()) | Err(Refusal::Exception(_)) => {}
+                        Err(other) => return Err(other),
+                    }
                 }
                 let regs = self.input_registers();
-                Ok(Response::ReadInputRegisters(
-                    regs[usize::from(addr)..usize::from(addr) + usize::from(count)].to_vec(),
+                let (a, b) = (usize::from(addr), usize::from(addr) + usize::from(count));
+                Ok(ResponsePdu::ReadInputRegisters(
+                    regs.get(a..b).unwrap_or_default().to_vec(),
                 ))
             }
-            _ => Err(ExceptionCode::IllegalFunction),
+            RequestPdu::Rejected { exception, .. } => Err(exception.into()),
+            _ => Err(Exception::IllegalFunction.into()),
         }
     }
 
-    /// A `Service` for one connection; `kill` closes that connection.
-    fn service(&self, kill: Arc<AtomicBool>) -> ConnService {
-        ConnService {
-            module: self.clone(),
-            kill,
+    /// Serves the module on one byte stream until the peer closes it.
+    ///
+    /// Requests are decoded with `framing`, run one at a time in order, and
+    /// answered on the same stream (no answer to broadcasts, to other
+    /// units, or to a request hit by an injected `Timeout`). An injected
+    /// `Disconnect` ends the call with `Ok(())`, dropping (closing) the
+    /// stream. Bytes that are not a frame: on RTU the first byte is dropped
+    /// and decoding retried (resync); on TCP the call returns an
+    /// `InvalidData` error, dropping (closing) the stream, as real servers
+    /// do. Read and write errors are returned.
+    pub async fn serve_stream<S>(&self, mut stream: S, framing: Framing) -> io::Result<()>
+    where
+        S: AsyncRead + AsyncWrite + Unpin + Send,
+    {
+        let mut buf: Vec<u8> = Vec::with_capacity(512);
+        let mut chunk = [0u8; 512];
+        loop {
+            loop {
+                match decode_request(framing, &mut buf) {
+                    Ok(Some((hdr, req))) => match self.handle(framing, hdr, req).await {
+                        Answer::Send(bytes) => {
+                            stream.write_all(&bytes).await?;
+                            stream.flush().await?;
+                        }
+                        Answer::Nothing => {}
+                        Answer::Close => return Ok(()),
+                    },
+                    Ok(None) => break,
+                    Err(_) if framing == Framing::Rtu && !buf.is_empty() => {
+                        buf.remove(0);
+                    }
+                    Err(e) => return Err(io::Error::new(io::ErrorKind::InvalidData, e)),
+                }
+            }
+            let n = stream.read(&mut chunk).await?;
+            if n == 0 {
+                return Ok(());
+            }
+            buf.extend_from_slice(&chunk[..n]);
         }
     }
 
-    /// Serves Modbus TCP on 127.0.0.1 (ephemeral port).
+    /// Accepts connections on `listener`, serving each with
+    /// [`ModbusModule::serve_stream`] in its own task. A broken connection
+    /// only ends that connection.
+    fn accept_loop(&self, listener: TcpListener, framing: Framing) -> JoinHandle<()> {
+        let module = self.clone();
+        tokio::spawn(async move {
+            while let Ok((stream, _peer)) = listener.accept().await {
+                let m = module.clone();
+                tokio::spawn(async move {
+                    let _ = m.serve_stream(stream, framing).await;
+                });
+            }
+        })
+    }
+
+    /// Serves Modbus TCP on 127.0.0.1 (ephemeral port), for stock clients
+    /// and tools. Real sockets: not for paused-time tests (use
+    /// [`ModbusModule::serve_stream`] over `tokio::io::duplex`).
     pub async fn serve_tcp(&self) -> io::Result<(SocketAddr, JoinHandle<()>)> {
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
-        let module = self.clone();
-        let task = tokio::spawn(async move {
-            let server = tokio_modbus::server::tcp::Server::new(listener);
-            let on_connected = |stream: TcpStream, _peer: SocketAddr| {
-                let m = module.clone();
-                async move {
-                    let kill = Arc::new(AtomicBool::new(false));
-                    Ok(Some((
-                        m.service(kill.clone()),
-                        KillSwitch::new(stream, kill),
-                    )))
-                }
-            };
-            // A broken connection only ends that connection.
-            let _ = server.serve(&on_connected, |_err| {}).await;
-        });
-        Ok((addr, task))
+        Ok((addr, self.accept_loop(listener, Framing::Tcp)))
     }
 
     /// Serves Modbus RTU framing (CRC, unit id first) over TCP on
     /// 127.0.0.1, as an RS-485-to-Ethernet gateway in transparent mode does.
-    /// tokio-modbus's RTU server only takes a real serial port, so this is
-    /// how tests reach the RTU codec without hardware.
     pub async fn serve_rtu_over_tcp(&self) -> io::Result<(SocketAddr, JoinHandle<()>)> {
         let listener = TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
-        let module = self.clone();
-        let task = tokio::spawn(async move {
-            let server = tokio_modbus::server::rtu_over_tcp::Server::new(listener);
-            let on_connected = |stream: TcpStream, _peer: SocketAddr| {
-                let m = module.clone();
-                async move {
-                    let kill = Arc::new(AtomicBool::new(false));
-                    Ok(Some((
-                        m.service(kill.clone()),
-                        KillSwitch::new(stream, kill),
-                    )))
-                }
-            };
-            let _ = server.serve(&on_connected, |_err| {}).await;
-        });
-        Ok((addr, task))
-    }
-}
-
-/// The module as seen by one connection.
-pub struct ConnService {
-    module: ModbusModule,
-    kill: Arc<AtomicBool>,
-}
-
-impl Service for ConnService {
-    type Request = SlaveRequest<'static>;
-    type Response = Option<Response>;
-    type Exception = ExceptionCode;
-    type Future = Pin<Box<dyn Future<Output = Reply> + Send>>;
-
-    fn call(&self, req: Self::Request) -> Self::Future {
-        Box::pin(self.module.clone().handle(req, self.kill.clone()))
-    }
-}
-
-/// A stream that reads EOF and fails writes once tripped, so the server
-/// skeleton ends the connection and drops (closes) the socket.
-#[derive(Debug)]
-pub struct KillSwitch<T> {
-    inner: T,
-    killed: Arc<AtomicBool>,
-}
-
-impl<T> KillSwitch<T> {
-    pub fn new(inner: T, killed: Arc<AtomicBool>) -> KillSwitch<T> {
-        KillSwitch { inner, killed }
-    }
-}
-
-impl<T: AsyncRead + Unpin> AsyncRead for KillSwitch<T> {
-    fn poll_read(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<io::Result<()>> {
-        if self.killed.load(Ordering::SeqCst) {
-            return Poll::Ready(Ok(()));
-        }
-        Pin::new(&mut self.inner).poll_read(cx, buf)
-    }
-}
-
-impl<T: AsyncWrite + Unpin> AsyncWrite for KillSwitch<T> {
-    fn poll_write(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &[u8],
-    ) -> Poll<io::Result<usize>> {
-        if self.killed.load(Ordering::SeqCst) {
-            return Poll::Ready(Err(io::ErrorKind::BrokenPipe.into()));
-        }
-        Pin::new(&mut self.inner).poll_write(cx, buf)
-    }
-
-    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        if self.killed.load(Ordering::SeqCst) {
-            return Poll::Ready(Err(io::ErrorKind::BrokenPipe.into()));
-        }
-        Pin::new(&mut self.inner).poll_flush(cx)
-    }
-
-    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.inner).poll_shutdown(cx)
+        Ok((addr, self.accept_loop(listener, Framing::Rtu)))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    use std::time::Duration;
+    use tokio::io::DuplexStream;
 
     fn module(faults: Vec<&str>) -> ModbusModule {
         let rules = faults
@@ -458,7 +439,15 @@ mod tests {
         )
     }
 
-    async fn exchange(s: &mut TcpStream, req: &[u8], reply_len: usize) -> Vec<u8> {
+    /// The host end of an in-memory link to `m`, and the server task.
+    fn connect(m: &ModbusModule, framing: Framing) -> (DuplexStream, JoinHandle<io::Result<()>>) {
+        let (host, dev) = tokio::io::duplex(1024);
+        let m = m.clone();
+        let task = tokio::spawn(async move { m.serve_stream(dev, framing).await });
+        (host, task)
+    }
+
+    async fn exchange(s: &mut DuplexStream, req: &[u8], reply_len: usize) -> Vec<u8> {
         s.write_all(req).await.unwrap_or_else(|e| panic!("{e}"));
         let mut buf = vec![0u8; reply_len];
         s.read_exact(&mut buf)
@@ -467,13 +456,20 @@ mod tests {
         buf
     }
 
+    /// Reads what arrives within 10 s of virtual time: `None` on EOF.
+    async fn next_bytes(s: &mut DuplexStream) -> Option<Vec<u8>> {
+        let mut buf = [0u8; 64];
+        match tokio::time::timeout(Duration::from_secs(10), s.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => None,
+            Ok(Ok(n)) => Some(buf[..n].to_vec()),
+            Err(_) => Some(Vec::new()),
+        }
+    }
+
     #[tokio::test(start_paused = true)]
     async fn tcp_frames_byte_for_byte() {
         let m = module(vec![]);
-        let (addr, _task) = m.serve_tcp().await.unwrap_or_else(|e| panic!("{e}"));
-        let mut s = TcpStream::connect(addr)
-            .await
-            .unwrap_or_else(|e| panic!("{e}"));
+        let (mut s, _task) = connect(&m, Framing::Tcp);
         // FC05 coil 0 on: echoed.
         let req = [0, 1, 0, 0, 0, 6, 1, 0x05, 0, 0, 0xFF, 0];
         assert_eq!(exchange(&mut s, &req, 12).await, req.to_vec());
@@ -484,7 +480,7 @@ mod tests {
             exchange(&mut s, &req, 13).await,
             vec![0, 2, 0, 0, 0, 7, 1, 4, 4, 0, 0, 0, 0]
         );
-        tokio::time::sleep(std::time::Duration::from_secs(1)).await;
+        tokio::time::sleep(Duration::from_secs(1)).await;
         assert_eq!(
             exchange(&mut s, &req, 13).await,
             vec![0, 2, 0, 0, 0, 7, 1, 4, 4, 0, 1, 0, 0]
@@ -495,15 +491,24 @@ mod tests {
             exchange(&mut s, &req, 9).await,
             vec![0, 3, 0, 0, 0, 3, 1, 0x85, 0x02]
         );
+        // FC03 is not implemented: exception 0x01.
+        let req = [0, 4, 0, 0, 0, 6, 1, 0x03, 0, 0, 0, 1];
+        assert_eq!(
+            exchange(&mut s, &req, 9).await,
+            vec![0, 4, 0, 0, 0, 3, 1, 0x83, 0x01]
+        );
+        // FC05 with a value other than FF00/0000: exception 0x03.
+        let req = [0, 5, 0, 0, 0, 6, 1, 0x05, 0, 0, 0x12, 0x34];
+        assert_eq!(
+            exchange(&mut s, &req, 9).await,
+            vec![0, 5, 0, 0, 0, 3, 1, 0x85, 0x03]
+        );
     }
 
     #[tokio::test(start_paused = true)]
     async fn alarm_on_set_is_exception_4_and_fault_bit() {
         let m = module(vec!["lamp1:set:1:alarm=ballast"]);
-        let (addr, _task) = m.serve_tcp().await.unwrap_or_else(|e| panic!("{e}"));
-        let mut s = TcpStream::connect(addr)
-            .await
-            .unwrap_or_else(|e| panic!("{e}"));
+        let (mut s, _task) = connect(&m, Framing::Tcp);
         let req = [0, 1, 0, 0, 0, 6, 1, 0x05, 0, 1, 0xFF, 0];
         assert_eq!(
             exchange(&mut s, &req, 9).await,
@@ -513,16 +518,85 @@ mod tests {
     }
 
     #[tokio::test(start_paused = true)]
-    async fn disconnect_closes_the_socket() {
+    async fn disconnect_closes_the_stream() {
         let m = module(vec!["lamp0:set:1:disconnect"]);
-        let (addr, _task) = m.serve_tcp().await.unwrap_or_else(|e| panic!("{e}"));
-        let mut s = TcpStream::connect(addr)
-            .await
-            .unwrap_or_else(|e| panic!("{e}"));
+        let (mut s, task) = connect(&m, Framing::Tcp);
         let req = [0, 1, 0, 0, 0, 6, 1, 0x05, 0, 0, 0xFF, 0];
         s.write_all(&req).await.unwrap_or_else(|e| panic!("{e}"));
-        let mut buf = [0u8; 16];
-        let n = s.read(&mut buf).await.unwrap_or(0);
-        assert_eq!(n, 0, "expected EOF, got {:?}", &buf[..n]);
+        assert_eq!(next_bytes(&mut s).await, None);
+        assert!(task.await.unwrap_or_else(|e| panic!("{e}")).is_ok());
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn timeout_fault_drops_one_request_and_serves_the_next() {
+        let m = module(vec!["lamp0:set:1:timeout"]);
+        let (mut s, _task) = connect(&m, Framing::Tcp);
+        let req = [0, 1, 0, 0, 0, 6, 1, 0x05, 0, 0, 0xFF, 0];
+        s.write_all(&req).await.unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(next_bytes(&mut s).await, Some(vec![]), "answered");
+        assert_eq!(m.coils(), vec![false, false, false]);
+        let req = [0, 2, 0, 0, 0, 6, 1, 0x05, 0, 0, 0xFF, 0];
+        assert_eq!(exchange(&mut s, &req, 12).await, req.to_vec());
+        assert_eq!(m.coils(), vec![true, false, false]);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn other_units_are_ignored_and_broadcasts_run_unanswered() {
+        let m = module(vec![]);
+        let (mut s, _task) = connect(&m, Framing::Rtu);
+        // Unit 2, FC05 coil 0 on: not ours.
+        let mut req = vec![0x02, 0x05, 0x00, 0x00, 0xFF, 0x00];
+        req.extend(rigd_proto::modbus::crc16(&req).to_le_bytes());
+        s.write_all(&req).await.unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(next_bytes(&mut s).await, Some(vec![]));
+        assert_eq!(m.coils(), vec![false, false, false]);
+        // Broadcast FC0F: all three on, no answer.
+        let mut req = vec![0x00, 0x0F, 0x00, 0x00, 0x00, 0x03, 0x01, 0x07];
+        req.extend(rigd_proto::modbus::crc16(&req).to_le_bytes());
+        s.write_all(&req).await.unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(next_bytes(&mut s).await, Some(vec![]));
+        assert_eq!(m.coils(), vec![true, true, true]);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn rtu_resyncs_after_garbage() {
+        let m = module(vec![]);
+        let (mut s, _task) = connect(&m, Framing::Rtu);
+        // Noise (including a bad-CRC FC01 frame), then FC01 coils 0..3.
+        let mut bytes = vec![0xFF, 0x01, 0x01, 0x00, 0x00, 0x00, 0x03, 0x00, 0x00, 0x13];
+        bytes.extend([0x01, 0x01, 0x00, 0x00, 0x00, 0x03, 0x7C, 0x0B]);
+        assert_eq!(
+            rigd_proto::modbus::crc16(&[0x01, 0x01, 0x00, 0x00, 0x00, 0x03]),
+            0x0B7C
+        );
+        s.write_all(&bytes).await.unwrap_or_else(|e| panic!("{e}"));
+        let mut reply = vec![0x01, 0x01, 0x01, 0x00];
+        reply.extend(rigd_proto::modbus::crc16(&reply).to_le_bytes());
+        let mut got = vec![0u8; reply.len()];
+        s.read_exact(&mut got)
+            .await
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(got, reply);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn tcp_garbage_closes_the_connection() {
+        let m = module(vec![]);
+        let (mut s, task) = connect(&m, Framing::Tcp);
+        // Protocol id 0x0102 is not Modbus.
+        s.write_all(&[0, 1, 1, 2, 0, 6, 1, 1, 0, 0, 0, 1])
+            .await
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(next_bytes(&mut s).await, None);
+        let r = task.await.unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(r.map_err(|e| e.kind()), Err(io::ErrorKind::InvalidData));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn serve_stream_ends_when_the_peer_closes() {
+        let m = module(vec![]);
+        let (s, task) = connect(&m, Framing::Rtu);
+        drop(s);
+        assert!(task.await.unwrap_or_else(|e| panic!("{e}")).is_ok());
     }
 }

@@ -1,0 +1,49 @@
+//! Where the simulated devices physically are, shared by every simulated
+//! firmware of one rig, so a camera renders what the axes, the arm and the
+//! lamps really did (not what a driver asked for).
+
+use std::collections::BTreeMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+/// A snapshot of the simulated world.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct World {
+    /// Axis positions in degrees, by device name.
+    pub axes: BTreeMap<String, f64>,
+    /// Arm joint values in degrees, in profile order.
+    pub arm: Option<Vec<f64>>,
+    /// Lamp relays, by device name.
+    pub lamps_on: BTreeMap<String, bool>,
+}
+
+/// The world, written by the firmware simulators and read by the cameras
+/// and status displays.
+#[derive(Debug, Clone, Default)]
+pub struct SharedWorld(Arc<Mutex<World>>);
+
+impl SharedWorld {
+    pub fn new() -> SharedWorld {
+        SharedWorld::default()
+    }
+
+    fn lock(&self) -> MutexGuard<'_, World> {
+        // Plain numbers: a panic elsewhere cannot leave them inconsistent.
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    pub fn snapshot(&self) -> World {
+        self.lock().clone()
+    }
+
+    pub fn set_axis(&self, name: &str, position: f64) {
+        self.lock().axes.insert(name.to_string(), position);
+    }
+
+    pub fn set_arm(&self, joints: Vec<f64>) {
+        self.lock().arm = Some(joints);
+    }
+
+    pub fn set_lamp(&self, name: &str, on: bool) {
+        self.lock().lamps_on.insert(name.to_string(), on);
+    }
+}
