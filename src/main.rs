@@ -48,6 +48,35 @@ enum Cmd {
     },
     /// Capture a BTF: run a plan on a rig into a run directory, or resume one.
     Run(RunArgs),
+    /// The simulated rig's firmware, for tools outside rigd.
+    Sim {
+        #[command(subcommand)]
+        command: SimCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum SimCmd {
+    /// Serve a profile's simulated firmware in real time, as hardware would be
+    /// reached: serial devices (GRBL, ACL) on pseudo-terminals, relay modules on
+    /// Modbus TCP on 127.0.0.1 (RTU modules also on a pty), cameras as PTP over
+    /// a loopback socket. Prints the endpoints and a profile that points at them
+    /// (`rigd run --profile THAT_FILE` drives the served rig), then runs until
+    /// interrupted.
+    Serve {
+        /// Rig profile: a TOML file or an embedded profile name.
+        #[arg(long, default_value = DEFAULT_PROFILE)]
+        profile: String,
+        /// Physical seconds per wall second (1 = real time).
+        #[arg(long, default_value_t = 1.0)]
+        speed: f64,
+        /// Also write the served profile to this file.
+        #[arg(long, value_name = "FILE")]
+        write_profile: Option<PathBuf>,
+        /// Inject a fault, as `rigd run --sim-fault`. Repeatable.
+        #[arg(long = "sim-fault", value_name = "SPEC")]
+        sim_faults: Vec<FaultRule>,
+    },
 }
 
 #[derive(Subcommand)]
@@ -168,6 +197,15 @@ fn main() -> ExitCode {
         } => plan_show(&plan, &profile, json, exposure).map(|_| ExitCode::SUCCESS),
         Cmd::Profile { command } => profile_cmd(command).map(|_| ExitCode::SUCCESS),
         Cmd::Run(args) => run(args),
+        Cmd::Sim {
+            command:
+                SimCmd::Serve {
+                    profile,
+                    speed,
+                    write_profile,
+                    sim_faults,
+                },
+        } => sim_serve(&profile, speed, write_profile, sim_faults),
     };
     match result {
         Ok(code) => code,
@@ -528,6 +566,45 @@ async fn drive(p: runner::Prepared, progress: Progress) -> anyhow::Result<ExitCo
             eprintln!("{}", outcome.reason.unwrap_or_default());
             ExitCode::from(EXIT_ENDED_BADLY)
         }
+    })
+}
+
+fn sim_serve(
+    source: &str,
+    speed: f64,
+    write_profile: Option<PathBuf>,
+    faults: Vec<FaultRule>,
+) -> anyhow::Result<ExitCode> {
+    if !(speed.is_finite() && speed > 0.0) {
+        bail!("--speed {speed}: expected a positive factor");
+    }
+    let profile = Profile::load(source)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("cannot start the runtime")?;
+    runtime.block_on(async move {
+        let clock = Clock::scaled(speed);
+        let served = rigd::connect::serve::serve(&profile, faults, &clock)
+            .await
+            .context("cannot serve the simulated rig")?;
+        let toml = toml::to_string(&served.profile).context("cannot write the served profile")?;
+        println!("# rigd sim serve: {} at {speed}x real time", profile.name);
+        for e in &served.endpoints {
+            println!("#   {:<28} {:<14} {}", e.device, e.protocol, e.address);
+        }
+        if let Some(path) = &write_profile {
+            rigd::store::write_atomic(path, toml.as_bytes())
+                .with_context(|| format!("cannot write {}", path.display()))?;
+            println!("# profile written to {}", path.display());
+        }
+        println!("{toml}");
+        println!("# ready; Ctrl-C stops");
+        use std::io::Write;
+        let _ = std::io::stdout().flush();
+        wait_for_signal().await;
+        anyhow::Ok(ExitCode::SUCCESS)
     })
 }
 

@@ -285,6 +285,12 @@ pub enum Transport {
         #[serde(default)]
         serial: Option<String>,
     },
+    /// A PTP camera's USB transfers carried over TCP, one frame per
+    /// transfer (how `rigd sim serve` offers its simulated cameras).
+    PtpTcp {
+        host: String,
+        port: u16,
+    },
 }
 
 fn default_unit() -> u8 {

@@ -75,6 +75,29 @@ impl PipeOpener for UsbOpener {
     }
 }
 
+/// A camera's USB transfers over TCP (see `ptp-camera.md`).
+pub struct PtpTcpOpener {
+    pub host: String,
+    pub port: u16,
+}
+
+#[async_trait]
+impl PipeOpener for PtpTcpOpener {
+    fn describe(&self) -> String {
+        format!("PTP camera link at TCP {}:{}", self.host, self.port)
+    }
+
+    async fn open(&self) -> Result<BoxPipe, UsbError> {
+        let stream = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
+            .await
+            .map_err(|e| UsbError::Io(e.to_string()))?;
+        stream
+            .set_nodelay(true)
+            .map_err(|e| UsbError::Io(e.to_string()))?;
+        Ok(Box::new(rigd_proto::ptp::link::host_over(stream)))
+    }
+}
+
 /// The link of every device, from its transport.
 pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
     profile
@@ -124,6 +147,10 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                         unit: 1,
                     }
                 }
+                (Transport::PtpTcp { host, port }, _) => Link::Usb(Arc::new(PtpTcpOpener {
+                    host: host.clone(),
+                    port: *port,
+                })),
                 (Transport::Serial { port, baud }, _) => Link::Line(Arc::new(SerialOpener {
                     port: port.clone(),
                     baud: *baud,

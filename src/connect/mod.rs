@@ -9,6 +9,7 @@
 //! fixed the cable.
 
 pub mod hardware;
+pub mod serve;
 pub mod sim;
 
 use std::collections::BTreeMap;

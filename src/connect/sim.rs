@@ -26,7 +26,7 @@ use rigd_sim::scene::Shot;
 use rigd_sim::{Clock, FaultInjector, FaultRule, SharedWorld, World};
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
-use crate::drivers::usb::{memory_pair, UsbError};
+use crate::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::hal::{DeviceError, ErrorKind, Rig};
 use crate::kinematics::{Setpoints, Solver};
 use crate::profile::{DeviceKind, Motion, Profile, Transport};
@@ -68,11 +68,11 @@ impl SimHandle {
 
 /// One simulated relay module and how its bus is framed.
 #[derive(Clone)]
-struct SimModule {
-    module: ModbusModule,
+pub(crate) struct SimModule {
+    pub module: ModbusModule,
     /// The lamp on each coil (None: a coil no lamp of the profile uses).
     lamp_names: Vec<Option<String>>,
-    framing: Framing,
+    pub framing: Framing,
     unit: u8,
 }
 
@@ -114,12 +114,12 @@ fn trapezoid(m: Motion) -> Trapezoid {
 }
 
 /// A bus key for devices that share one Modbus module.
-fn bus_key(t: &Transport) -> String {
+pub(crate) fn bus_key(t: &Transport) -> String {
     match t {
         Transport::ModbusRtu { port, unit, .. } => format!("modbus-rtu:{port}#{unit}"),
         Transport::ModbusTcp { host, port, unit } => format!("modbus-tcp:{host}:{port}#{unit}"),
         Transport::Serial { port, .. } => format!("serial:{port}"),
-        Transport::Usb { .. } => "usb".into(),
+        Transport::Usb { .. } | Transport::PtpTcp { .. } => "usb".into(),
     }
 }
 
@@ -132,20 +132,39 @@ pub async fn connect(
     clock: &Clock,
 ) -> Result<(Rig, SimHandle), DeviceError> {
     let faults = Arc::new(FaultInjector::new(opts.faults));
-    let (links, world) = firmware(profile, solver, opts.frame_size, clock, &faults)?;
-    let rig = build_rig(profile, &links, clock).await?;
-    Ok((rig, SimHandle { faults, world }))
+    let parts = firmware(profile, solver, opts.frame_size, clock, &faults)?;
+    let rig = build_rig(profile, &parts.links, clock).await?;
+    Ok((
+        rig,
+        SimHandle {
+            faults,
+            world: parts.world,
+        },
+    ))
+}
+
+/// The simulated firmware of a profile, ready to be connected: a link per
+/// device, and what `rigd sim serve` needs to offer the same firmware on
+/// ptys and sockets.
+pub(crate) struct SimParts {
+    pub links: BTreeMap<String, Link>,
+    world: SimWorld,
+    /// The relay modules, by bus key.
+    pub modules: BTreeMap<String, SimModule>,
+    /// The cameras' firmware starters, by device name.
+    pub cameras: BTreeMap<String, Arc<PtpOpener>>,
 }
 
 /// Starts nothing yet: returns an opener per device that starts the
 /// device's firmware on a fresh pipe each time the driver opens its link.
-fn firmware(
+pub(crate) fn firmware(
     profile: &Profile,
     solver: Arc<Solver>,
     frame_size: Option<[u32; 2]>,
     clock: &Clock,
     faults: &Arc<FaultInjector>,
-) -> Result<(BTreeMap<String, Link>, SimWorld), DeviceError> {
+) -> Result<SimParts, DeviceError> {
+    let mut cameras = BTreeMap::new();
     let shared = SharedWorld::new();
     let mut links = BTreeMap::new();
     let mut modules: BTreeMap<String, SimModule> = BTreeMap::new();
@@ -308,7 +327,7 @@ fn firmware(
                         "a camera needs timing and intrinsics",
                     ));
                 };
-                Link::Usb(Arc::new(PtpOpener {
+                let opener = Arc::new(PtpOpener {
                     spec: PtpCameraSpec {
                         name: name.clone(),
                         manufacturer: "rigd".into(),
@@ -329,12 +348,19 @@ fn firmware(
                         size,
                         bit_depth: i.bit_depth,
                     },
-                }))
+                });
+                cameras.insert(name.clone(), opener.clone());
+                Link::Usb(opener)
             }
         };
         links.insert(name.clone(), link);
     }
-    Ok((links, world))
+    Ok(SimParts {
+        links,
+        world,
+        modules,
+        cameras,
+    })
 }
 
 /// Starts a GRBL controller per open. A re-opened link meets a controller
@@ -483,10 +509,23 @@ impl Scene {
 }
 
 /// Starts the camera's PTP firmware on a fresh in-memory USB link per open.
-struct PtpOpener {
+pub(crate) struct PtpOpener {
     spec: PtpCameraSpec,
     ctx: SimContext,
     scene: Scene,
+}
+
+impl PtpOpener {
+    /// Starts the camera's firmware on the device end of a link.
+    pub(crate) fn start(&self, dev: MemoryDevice) {
+        let scene = self.scene.clone();
+        let fw = PtpFirmware::new(
+            self.spec.clone(),
+            self.ctx.clone(),
+            Box::new(move || scene.shot()),
+        );
+        fw.spawn(dev);
+    }
 }
 
 #[async_trait]
@@ -497,13 +536,7 @@ impl PipeOpener for PtpOpener {
 
     async fn open(&self) -> Result<BoxPipe, UsbError> {
         let (host, dev) = memory_pair();
-        let scene = self.scene.clone();
-        let fw = PtpFirmware::new(
-            self.spec.clone(),
-            self.ctx.clone(),
-            Box::new(move || scene.shot()),
-        );
-        fw.spawn(dev);
+        self.start(dev);
         Ok(Box::new(host))
     }
 }

@@ -14,6 +14,9 @@
 //! Dropping either end closes the link; the other end then sees
 //! [`LinkClosed`] once the transfers already queued are read.
 
+use std::io;
+
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::sync::mpsc;
 
 /// The other end of the link is gone (unplugged, or the firmware stopped).
@@ -108,9 +111,158 @@ impl DeviceEnd {
     }
 }
 
+/// Frame kinds of a link carried over a byte stream.
+const WIRE_OUT: u8 = 1;
+const WIRE_IN: u8 = 2;
+const WIRE_INTERRUPT: u8 = 3;
+/// Largest transfer a stream frame may carry (a 16-bit frame of a large
+/// sensor is tens of megabytes).
+pub const WIRE_MAX_TRANSFER: usize = 256 * 1024 * 1024;
+
+async fn write_frame<W: AsyncWrite + Unpin>(w: &mut W, kind: u8, bytes: &[u8]) -> io::Result<()> {
+    let len = u32::try_from(bytes.len())
+        .map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "transfer too large"))?;
+    let mut head = [0u8; 5];
+    head[0] = kind;
+    head[1..].copy_from_slice(&len.to_le_bytes());
+    w.write_all(&head).await?;
+    w.write_all(bytes).await?;
+    w.flush().await
+}
+
+async fn read_frame<R: AsyncRead + Unpin>(r: &mut R) -> io::Result<(u8, Vec<u8>)> {
+    let mut head = [0u8; 5];
+    r.read_exact(&mut head).await?;
+    let len = u32::from_le_bytes([head[1], head[2], head[3], head[4]]) as usize;
+    if len > WIRE_MAX_TRANSFER || !(WIRE_OUT..=WIRE_INTERRUPT).contains(&head[0]) {
+        return Err(io::Error::new(
+            io::ErrorKind::InvalidData,
+            format!("bad link frame: kind {}, {len} bytes", head[0]),
+        ));
+    }
+    let mut bytes = vec![0u8; len];
+    r.read_exact(&mut bytes).await?;
+    Ok((head[0], bytes))
+}
+
+/// The host end of a link carried over a byte stream (a loopback socket to
+/// `rigd sim serve`): each transfer travels as one frame, a kind byte
+/// (1 bulk-out, 2 bulk-in, 3 interrupt), a little-endian `u32` length and
+/// the bytes, so transfer boundaries survive the stream. Spawns the pump on
+/// the current tokio runtime; the link closes when the stream does.
+pub fn host_over<S>(stream: S) -> HostEnd
+where
+    S: AsyncRead + AsyncWrite + Send + 'static,
+{
+    let (host, dev) = pair();
+    let DeviceEnd {
+        mut out_rx,
+        in_tx,
+        int_tx,
+    } = dev;
+    let (mut rd, mut wr) = tokio::io::split(stream);
+    tokio::spawn(async move {
+        let to_device = async {
+            while let Some(bytes) = out_rx.recv().await {
+                if write_frame(&mut wr, WIRE_OUT, &bytes).await.is_err() {
+                    break;
+                }
+            }
+        };
+        let from_device = async {
+            while let Ok((kind, bytes)) = read_frame(&mut rd).await {
+                let sent = match kind {
+                    WIRE_IN => in_tx.send(bytes).is_ok(),
+                    WIRE_INTERRUPT => int_tx.send(bytes).is_ok(),
+                    _ => false,
+                };
+                if !sent {
+                    break;
+                }
+            }
+        };
+        // Either direction ending ends the link (dropping the senders
+        // closes it).
+        tokio::select! {
+            _ = to_device => {}
+            _ = from_device => {}
+        }
+    });
+    host
+}
+
+/// The device end of a link carried over a byte stream; see [`host_over`].
+pub fn device_over<S>(stream: S) -> DeviceEnd
+where
+    S: AsyncRead + AsyncWrite + Send + 'static,
+{
+    let (host, dev) = pair();
+    let HostEnd {
+        out_tx,
+        mut in_rx,
+        mut int_rx,
+        ..
+    } = host;
+    let (mut rd, mut wr) = tokio::io::split(stream);
+    tokio::spawn(async move {
+        let to_host = async {
+            loop {
+                let (kind, bytes) = tokio::select! {
+                    Some(b) = in_rx.recv() => (WIRE_IN, b),
+                    Some(b) = int_rx.recv() => (WIRE_INTERRUPT, b),
+                    else => break,
+                };
+                if write_frame(&mut wr, kind, &bytes).await.is_err() {
+                    break;
+                }
+            }
+        };
+        let from_host = async {
+            while let Ok((kind, bytes)) = read_frame(&mut rd).await {
+                if kind != WIRE_OUT || out_tx.send(bytes).is_err() {
+                    break;
+                }
+            }
+        };
+        tokio::select! {
+            _ = to_host => {}
+            _ = from_host => {}
+        }
+    });
+    dev
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[tokio::test]
+    async fn a_link_over_a_stream_keeps_transfer_boundaries() {
+        let (a, b) = tokio::io::duplex(64);
+        let mut h = host_over(a);
+        let mut d = device_over(b);
+        h.bulk_out(vec![1, 2, 3]).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(d.read_out().await, Ok(vec![1, 2, 3]));
+        d.write_in(vec![5; 300]).unwrap_or_else(|e| panic!("{e}"));
+        d.write_in(vec![6]).unwrap_or_else(|e| panic!("{e}"));
+        d.write_interrupt(vec![7, 7])
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(h.bulk_in(512).await, Ok(vec![5; 300]));
+        assert_eq!(h.bulk_in(512).await, Ok(vec![6]));
+        assert_eq!(h.interrupt_in().await, Ok(vec![7, 7]));
+        drop(d);
+        assert_eq!(h.bulk_in(8).await, Err(LinkClosed));
+    }
+
+    #[tokio::test]
+    async fn garbage_on_the_stream_closes_the_link() {
+        let (a, mut b) = tokio::io::duplex(64);
+        let mut h = host_over(a);
+        b.write_all(&[9, 0, 0, 0, 0])
+            .await
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(h.bulk_in(8).await, Err(LinkClosed));
+    }
 
     #[tokio::test]
     async fn reads_split_transfers_and_end_with_short_reads() {
