@@ -1,6 +1,7 @@
 //! The simulated BTF rig behind rigd: one clock that can run in virtual
-//! time, the physics of axes, lamps and cameras (motion, warm-up, exposure,
-//! readout, transfer), a flat-sample scene renderer, and fault injection.
+//! time, simulated firmware that speaks each device's real wire protocol
+//! with its physics (motion, warm-up, exposure, readout, transfer), the
+//! world they share, a flat-sample scene renderer, and fault injection.
 //!
 //! The crate depends on nothing of the daemon, so the daemon can embed it as
 //! its default backend and tests can drive it directly.

@@ -12,7 +12,7 @@
 //!   driver keeps tokio-modbus's client codec, so the two sides do not share
 //!   a codec (and cannot share its misunderstandings); the spec's
 //!   transcripts pin both to the same bytes.
-//! - Lamp physics follow [`crate::devices::SimLamp`]: the FC05/FC0F reply
+//! - Lamp physics: the FC05/FC0F reply
 //!   comes after the relay switch time, and the ready bit is set `warm_up_s`
 //!   after switch-on (measured through the [`Clock`], so paused-time tests
 //!   cost no wall time) and cleared at switch-off.
