@@ -5,8 +5,22 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# System packages: none yet. The dashboard's browser test will add Debian's
-# chromium and chromium-driver here (apt-get install -y chromium chromium-driver).
+# System packages: the dashboard's browser test (tests/browser.rs) drives
+# Debian's headless Chromium through chromedriver.
+if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+    echo "== installing chromium and chromium-driver (for tests/browser.rs)"
+    if [ "$(id -u)" -eq 0 ]; then
+        SUDO=""
+    elif command -v sudo >/dev/null; then
+        SUDO="sudo"
+    else
+        echo "error: chromium and chromedriver are missing and this is not root (no sudo):" >&2
+        echo "       install the Debian packages chromium and chromium-driver" >&2
+        exit 1
+    fi
+    $SUDO apt-get update
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver
+fi
 
 if ! command -v cargo >/dev/null; then
     echo "error: cargo not found; install Rust from https://rustup.rs" >&2

@@ -16,6 +16,7 @@ pub mod plan;
 pub mod profile;
 pub mod runner;
 pub mod schedule;
+pub mod server;
 pub mod store;
 
 pub use rigd_sim as sim;

@@ -48,6 +48,10 @@ enum Cmd {
     },
     /// Capture a BTF: run a plan on a rig into a run directory, or resume one.
     Run(RunArgs),
+    /// Run the daemon: the HTTP API (/api/v1, docs at /api/docs) driving one
+    /// run at a time, with a queue. SIGINT/SIGTERM pause the active run
+    /// (resumable after restart) and stop.
+    Serve(ServeArgs),
     /// The simulated rig's firmware, for tools outside rigd.
     Sim {
         #[command(subcommand)]
@@ -77,6 +81,37 @@ enum SimCmd {
         #[arg(long = "sim-fault", value_name = "SPEC")]
         sim_faults: Vec<FaultRule>,
     },
+}
+
+#[derive(Args)]
+struct ServeArgs {
+    /// Rig profile: a TOML file or an embedded profile name; a file means
+    /// its hardware unless --sim [default: the simulated bonn-gonioreflectometer]
+    #[arg(long)]
+    profile: Option<String>,
+    /// Drive the simulated rig (implied without --profile).
+    #[arg(long)]
+    sim: bool,
+    /// Address to listen on. Reads are open to loopback clients; every
+    /// mutating route needs the bearer token.
+    #[arg(long, default_value = rigd::server::DEFAULT_LISTEN)]
+    listen: std::net::SocketAddr,
+    /// Data directory: runs/<id>/ (run directories), queue.json, token.
+    #[arg(long = "data", default_value = rigd::server::DEFAULT_DATA)]
+    data: PathBuf,
+    /// Simulated physical seconds per wall second. The default 200 runs a
+    /// demo H1 capture on the simulated Bonn rig (6561 images, about 10 h
+    /// physical) in about 3 minutes.
+    #[arg(long, default_value_t = rigd::server::DEFAULT_SIM_SPEED, allow_negative_numbers = true)]
+    sim_speed: f64,
+    /// File holding the API token [default: DATA/token, generated at first
+    /// start with mode 0600].
+    #[arg(long)]
+    token_file: Option<PathBuf>,
+    /// Inject a fault into the simulated rig of every new run (same SPEC as
+    /// `rigd run --sim-fault`, e.g. camera:transfer:3:disconnect). Repeatable.
+    #[arg(long = "sim-fault", value_name = "SPEC")]
+    sim_faults: Vec<FaultRule>,
 }
 
 #[derive(Subcommand)]
@@ -206,6 +241,7 @@ fn main() -> ExitCode {
                     sim_faults,
                 },
         } => sim_serve(&profile, speed, write_profile, sim_faults),
+        Cmd::Serve(args) => serve(args),
     };
     match result {
         Ok(code) => code,
@@ -214,6 +250,24 @@ fn main() -> ExitCode {
             ExitCode::from(EXIT_BAD_INPUT)
         }
     }
+}
+
+fn serve(args: ServeArgs) -> anyhow::Result<ExitCode> {
+    let config = rigd::server::ServerConfig {
+        sim: args.sim || args.profile.is_none(),
+        profile: args.profile,
+        listen: args.listen,
+        data_dir: args.data,
+        sim_speed: args.sim_speed,
+        token_file: args.token_file,
+        sim_faults: args.sim_faults,
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the runtime")?;
+    runtime.block_on(rigd::server::serve(config))?;
+    Ok(ExitCode::SUCCESS)
 }
 
 fn profile_cmd(cmd: ProfileCmd) -> anyhow::Result<()> {

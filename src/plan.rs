@@ -177,6 +177,33 @@ pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
     } else {
         serde_json::from_str(&text).map_err(|e| err(e.to_string()))?
     };
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| file.clone());
+    from_parsed(parsed, &file, stem)
+}
+
+/// A plan given inline as JSON (the API's `plan` object): the same shapes
+/// as a plan file. `what` names it in messages; `default_name` is used when
+/// the plan has no `name`.
+pub fn from_json_value(
+    value: serde_json::Value,
+    what: &str,
+    default_name: &str,
+) -> Result<Plan, PlanError> {
+    let parsed: PlanFile = serde_json::from_value(value).map_err(|e| PlanError::File {
+        file: what.to_string(),
+        why: e.to_string(),
+    })?;
+    from_parsed(parsed, what, default_name.to_string())
+}
+
+fn from_parsed(parsed: PlanFile, file: &str, default_name: String) -> Result<Plan, PlanError> {
+    let err = |why: String| PlanError::File {
+        file: file.to_string(),
+        why,
+    };
     let pairs = match (parsed.directions, parsed.lights, parsed.views, parsed.pairs) {
         (Some(d), None, None, None) => btf(&d, &d),
         (None, Some(l), Some(v), None) => btf(&l, &v),
@@ -207,11 +234,7 @@ pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
             }
         }
     }
-    let name = parsed.name.unwrap_or_else(|| {
-        path.file_stem()
-            .map(|s| s.to_string_lossy().into_owned())
-            .unwrap_or_else(|| file.clone())
-    });
+    let name = parsed.name.unwrap_or(default_name);
     Ok(Plan { name, pairs })
 }
 

@@ -100,6 +100,45 @@ pub async fn prepare_new(
         return Err(RunError::Invalid("the sample name is empty".into()));
     }
     let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan)?;
+    create(req, solver, plan, schedule, faults, clock, policy).await
+}
+
+/// Solves an already resolved plan (e.g. one given inline over the API).
+pub fn solve_given_plan(
+    profile: &Profile,
+    plan: Plan,
+) -> Result<(Solver, Plan, Schedule), RunError> {
+    let solver = Solver::new(profile)?;
+    let schedule = schedule::build(profile, &solver, &plan);
+    Ok((solver, plan, schedule))
+}
+
+/// Like [`prepare_new`], with the plan already solved (`req.plan` is then
+/// only a label).
+pub async fn prepare_new_solved(
+    req: NewRun,
+    solved: (Solver, Plan, Schedule),
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    check_exposure(req.exposure_s)?;
+    if req.sample.trim().is_empty() {
+        return Err(RunError::Invalid("the sample name is empty".into()));
+    }
+    let (solver, plan, schedule) = solved;
+    create(req, solver, plan, schedule, faults, clock, policy).await
+}
+
+async fn create(
+    req: NewRun,
+    solver: Solver,
+    plan: Plan,
+    schedule: Schedule,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
     let meta = RunMeta {
         format: RUN_FORMAT.into(),
         software_version: env!("CARGO_PKG_VERSION").into(),

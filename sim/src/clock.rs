@@ -11,6 +11,9 @@ use std::time::Duration;
 
 use tokio::time::Instant;
 
+/// The shortest wall time a deadline of a sped-up clock allows.
+pub const MIN_WALL_DEADLINE: Duration = Duration::from_millis(100);
+
 /// A deadline passed before the operation finished.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("deadline of {0:?} (physical) passed")]
@@ -82,13 +85,21 @@ impl Clock {
         }
     }
 
-    /// Runs `fut` with a physical deadline.
+    /// Runs `fut` with a physical deadline. On a sped-up clock the
+    /// deadline never ends sooner than [`MIN_WALL_DEADLINE`] of wall time:
+    /// the software's own latency (scheduling, a pipe's round trip) does not
+    /// speed up with the simulation, and must not be mistaken for a device
+    /// that stopped answering.
     pub async fn deadline<F: Future>(
         &self,
         physical: Duration,
         fut: F,
     ) -> Result<F::Output, DeadlineElapsed> {
-        tokio::time::timeout(physical.div_f64(self.speed), fut)
+        let mut wall = physical.div_f64(self.speed);
+        if self.speed > 1.0 && !self.virtual_time {
+            wall = wall.max(MIN_WALL_DEADLINE);
+        }
+        tokio::time::timeout(wall, fut)
             .await
             .map_err(|_| DeadlineElapsed(physical))
     }

@@ -60,3 +60,5 @@ pub fn assert_complete_run(dir: &Path, expected_frames: usize) -> Manifest {
     assert_eq!(seen.len(), expected_frames);
     m
 }
+
+pub mod http;

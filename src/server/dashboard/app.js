@@ -1,0 +1,758 @@
+// rigd operator dashboard. Plain ES module, no build step, no network
+// beyond the daemon that serves it.
+import { drawPlot } from "/hemisphere.js";
+
+const API = "/api/v1";
+const TOKEN_KEY = "rigd-token";
+const $ = (id) => document.getElementById(id);
+
+const state = {
+  rig: null,
+  plans: [],
+  runs: [],
+  activeId: null,
+  shownId: null, // the run shown in the "Active run" card
+  steps: [], // its steps
+  stepsRun: null,
+  done: new Set(),
+  current: null, // last captured step
+  queue: [],
+};
+
+// ---------------------------------------------------------------- API
+
+class ApiError extends Error {
+  constructor(status, error, detail) {
+    super(`${error}: ${detail}`);
+    this.status = status;
+    this.error = error;
+    this.detail = detail;
+  }
+}
+
+function token() {
+  return localStorage.getItem(TOKEN_KEY) || "";
+}
+
+async function api(method, path, body, retried = false) {
+  const mutating = method !== "GET";
+  if (mutating && !token() && !retried) {
+    await askToken("Enter the API token to continue.");
+    if (!token()) throw new ApiError(401, "unauthorized", "no API token entered");
+    retried = true;
+  }
+  const headers = {};
+  if (token()) headers.Authorization = `Bearer ${token()}`;
+  if (body !== undefined) headers["Content-Type"] = "application/json";
+  let res;
+  try {
+    res = await fetch(API + path, {
+      method,
+      headers,
+      body: body === undefined ? undefined : JSON.stringify(body),
+    });
+  } catch (e) {
+    throw new ApiError(0, "network", `cannot reach the daemon (${e.message})`);
+  }
+  if (res.status === 401 && !retried) {
+    const saved = await askToken("The daemon refused the token (401). Enter the API token.");
+    if (saved) return api(method, path, body, true);
+  }
+  if (!res.ok) {
+    let err = { error: `http_${res.status}`, detail: res.statusText };
+    try {
+      err = await res.json();
+    } catch (_) {
+      /* not JSON */
+    }
+    throw new ApiError(res.status, err.error, err.detail);
+  }
+  if (res.status === 204) return null;
+  const text = await res.text();
+  return text ? JSON.parse(text) : null;
+}
+
+// ------------------------------------------------------- token dialog
+
+let tokenWaiters = [];
+
+function askToken(why) {
+  const dlg = $("token-dialog");
+  $("token-why").textContent = why || "";
+  $("token-input").value = token();
+  if (!dlg.open) dlg.showModal();
+  $("token-input").focus();
+  return new Promise((resolve) => tokenWaiters.push(resolve));
+}
+
+function setupTokenDialog() {
+  const dlg = $("token-dialog");
+  dlg.addEventListener("close", () => {
+    let saved = false;
+    if (dlg.returnValue === "save") {
+      const t = $("token-input").value.trim();
+      if (t) {
+        localStorage.setItem(TOKEN_KEY, t);
+        saved = true;
+        log("info", "API token saved in this browser");
+      }
+    }
+    const waiters = tokenWaiters;
+    tokenWaiters = [];
+    for (const w of waiters) w(saved);
+  });
+  $("token-open").addEventListener("click", () => askToken());
+}
+
+// ------------------------------------------------------------ helpers
+
+function fmtDuration(s) {
+  if (s == null || !isFinite(s)) return "—";
+  s = Math.max(0, Math.round(s));
+  const h = Math.floor(s / 3600);
+  const m = Math.floor((s % 3600) / 60);
+  const sec = s % 60;
+  if (h > 0) return `${h} h ${m} min`;
+  if (m > 0) return `${m} min ${sec} s`;
+  return `${sec} s`;
+}
+
+function fmtTime(iso) {
+  if (!iso) return "—";
+  const d = new Date(iso);
+  return isNaN(d) ? iso : d.toLocaleString();
+}
+
+function text(tag, content, attrs = {}) {
+  const e = document.createElement(tag);
+  if (content != null) e.textContent = content;
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  return e;
+}
+
+function showMessage(msg, kind = "error") {
+  const m = $("message");
+  m.textContent = msg;
+  m.dataset.kind = kind;
+  m.hidden = false;
+  clearTimeout(showMessage.t);
+  showMessage.t = setTimeout(() => (m.hidden = true), kind === "error" ? 12000 : 4000);
+}
+
+function errText(e) {
+  return e instanceof ApiError ? `${e.error}: ${e.detail}` : String(e);
+}
+
+/** Runs `fn` at most once per `ms`, trailing call guaranteed. */
+function throttle(fn, ms) {
+  let last = 0;
+  let timer = null;
+  return () => {
+    const now = Date.now();
+    const wait = last + ms - now;
+    if (wait <= 0) {
+      last = now;
+      fn();
+    } else if (!timer) {
+      timer = setTimeout(() => {
+        timer = null;
+        last = Date.now();
+        fn();
+      }, wait);
+    }
+  };
+}
+
+// ----------------------------------------------------------- loaders
+
+let rigSeq = 0;
+async function loadRig() {
+  const seq = ++rigSeq;
+  try {
+    const rig = await api("GET", "/rig");
+    if (seq !== rigSeq) return; // a later request is on its way
+    state.rig = rig;
+    state.activeId = state.rig.active_run;
+    renderRig();
+  } catch (e) {
+    showMessage(`rig: ${errText(e)}`);
+  }
+}
+
+async function loadPlans() {
+  try {
+    const list = await api("GET", "/plans");
+    state.plans = list.plans;
+    renderPlans();
+  } catch (e) {
+    showMessage(`plans: ${errText(e)}`);
+  }
+}
+
+async function loadRuns() {
+  try {
+    const list = await api("GET", "/runs");
+    state.runs = list.runs;
+    state.activeId = list.active;
+    const shown = list.active || state.shownId || (list.runs[0] && list.runs[0].id) || null;
+    if (shown !== state.shownId) {
+      state.shownId = shown;
+      state.steps = [];
+      state.stepsRun = null;
+    }
+    renderHistory();
+    renderRun();
+    if (state.shownId && state.stepsRun !== state.shownId) await loadSteps();
+  } catch (e) {
+    showMessage(`runs: ${errText(e)}`);
+  }
+}
+
+async function loadRun(id) {
+  try {
+    const run = await api("GET", `/runs/${encodeURIComponent(id)}`);
+    upsertRun(run);
+  } catch (e) {
+    if (!(e instanceof ApiError && e.status === 404)) showMessage(`run: ${errText(e)}`);
+  }
+}
+
+async function loadSteps() {
+  const id = state.shownId;
+  if (!id) return;
+  try {
+    const s = await api("GET", `/runs/${encodeURIComponent(id)}/steps`);
+    if (id !== state.shownId) return;
+    state.steps = s.steps;
+    state.stepsRun = id;
+    state.done = new Set(s.steps.filter((x) => x.done).map((x) => x.index));
+    // The current step: the highest index done (steps are captured in order).
+    let cur = null;
+    for (const x of s.steps) if (x.done && (!cur || x.index > cur.index)) cur = x;
+    state.current = cur;
+    drawHemisphere();
+    refreshPreview();
+  } catch (e) {
+    showMessage(`steps: ${errText(e)}`);
+  }
+}
+
+async function loadQueue() {
+  try {
+    const q = await api("GET", "/queue");
+    state.queue = q.items;
+    renderQueue();
+  } catch (e) {
+    showMessage(`queue: ${errText(e)}`);
+  }
+}
+
+async function loadAll() {
+  await Promise.all([loadRig(), loadRuns(), loadQueue(), state.plans.length ? null : loadPlans()]);
+}
+
+function upsertRun(run) {
+  const i = state.runs.findIndex((r) => r.id === run.id);
+  if (i >= 0) state.runs[i] = run;
+  else state.runs.unshift(run);
+  if (run.active) state.activeId = run.id;
+  else if (state.activeId === run.id) state.activeId = null;
+  renderHistory();
+  if (run.id === state.shownId) renderRun();
+}
+
+const refreshRig = throttle(loadRig, 1000);
+const refreshShownRun = throttle(() => state.shownId && loadRun(state.shownId), 1000);
+const drawHemisphereSoon = throttle(() => drawHemisphere(), 250);
+const renderHistorySoon = throttle(() => renderHistory(), 1000);
+const refreshPreview = throttle(() => {
+  const img = $("preview");
+  const cur = state.current;
+  if (!cur || !state.shownId) {
+    img.removeAttribute("src");
+    img.alt = "No frame captured yet";
+    $("preview-caption").textContent = "latest frame";
+    return;
+  }
+  const src = `${API}/runs/${encodeURIComponent(state.shownId)}/frames/${cur.index}/preview`;
+  if (img.getAttribute("src") !== src) {
+    img.src = src;
+    img.alt = `Preview of frame ${cur.index}`;
+    $("preview-caption").textContent = `frame ${cur.index}: light θ ${cur.light.theta_deg.toFixed(1)}° φ ${cur.light.phi_deg.toFixed(1)}°, view θ ${cur.view.theta_deg.toFixed(1)}° φ ${cur.view.phi_deg.toFixed(1)}°`;
+  }
+}, 1000);
+
+// ---------------------------------------------------------- renderers
+
+function renderRig() {
+  const rig = state.rig;
+  if (!rig) return;
+  $("profile").textContent = rig.profile + (rig.sim ? ` (simulated, ${rig.sim_speed}×)` : "");
+  $("rig-desc").textContent = rig.description;
+  const badge = $("rig-state");
+  badge.textContent = `rig ${rig.state}`;
+  badge.dataset.state = rig.state;
+  const tbody = $("rig").tBodies[0];
+  tbody.replaceChildren();
+  for (const d of rig.devices) {
+    const tr = document.createElement("tr");
+    tr.dataset.device = d.name;
+    if (d.fault) tr.className = "fault";
+    tr.append(text("td", d.name), text("td", `${d.kind} (${d.protocol})`));
+    const flags = [];
+    flags.push(d.connected ? "connected" : "disconnected");
+    if (d.homed != null) flags.push(d.homed ? "homed" : "not homed");
+    if (d.busy) flags.push("busy");
+    const st = text("td", flags.join(", "));
+    if (d.fault) {
+      const f = text("div", `FAULT: ${d.fault}`, { class: "fault-text", "data-testid": "fault" });
+      st.append(f);
+    }
+    tr.append(st);
+    let pos = "—";
+    if (d.position_deg != null) pos = `${d.position_deg.toFixed(2)}°`;
+    else if (d.joints) pos = Object.entries(d.joints).map(([j, v]) => `${j} ${Number(v).toFixed(1)}°`).join(", ");
+    else if (d.on != null) pos = d.on ? "lamp ON" : "lamp off";
+    else if (d.camera) {
+      const c = d.camera;
+      pos = `exposure ${c.exposure_s} s, ${c.bit_depth}-bit, ${c.resolution ? c.resolution.join("×") : "?"} (sim ${c.sim_frame_size ? c.sim_frame_size.join("×") : "?"})`;
+    }
+    const td = text("td", pos);
+    if (d.on === true) td.className = "lamp-on";
+    tr.append(td);
+    tbody.append(tr);
+  }
+}
+
+function renderPlans() {
+  const sel = $("plan");
+  const prev = sel.value;
+  sel.replaceChildren();
+  for (const p of state.plans) {
+    const o = text("option", p.fits ? `${p.name} (${p.steps_total} images)` : `${p.name} — does not fit`, { value: p.name });
+    if (!p.fits) {
+      o.disabled = true;
+      o.title = p.error || "";
+    }
+    sel.append(o);
+  }
+  sel.append(text("option", "custom directions…", { value: "__custom" }));
+  const firstFit = state.plans.find((p) => p.fits);
+  sel.value = prev || (firstFit ? firstFit.name : "__custom");
+  planChanged();
+}
+
+function planChanged() {
+  const v = $("plan").value;
+  $("custom-field").hidden = v !== "__custom";
+  const p = state.plans.find((x) => x.name === v);
+  $("plan-info").textContent = p
+    ? `${p.steps_total} images, ${p.infeasible_total} infeasible; about ${fmtDuration(p.estimated_physical_s)} physical (${fmtDuration(p.estimated_wall_s)} at this simulation speed)`
+    : v === "__custom"
+      ? "Every direction is used as light and as view."
+      : "";
+}
+
+function shownRun() {
+  return state.runs.find((r) => r.id === state.shownId) || null;
+}
+
+function renderRun() {
+  const run = shownRun();
+  const badge = $("run-state");
+  if (!run) {
+    $("run-id").textContent = "no run yet";
+    badge.textContent = "—";
+    delete badge.dataset.state;
+    $("progress").max = 1;
+    $("progress").value = 0;
+    $("progress-text").textContent = "—";
+    for (const b of ["pause", "resume", "abort"]) $(b).disabled = true;
+    $("run-reason").hidden = true;
+    return;
+  }
+  $("run-h").textContent = run.active ? "Active run" : "Last run";
+  $("run-id").textContent = `${run.id} — ${run.sample}, plan ${run.plan}`;
+  badge.textContent = run.state;
+  badge.dataset.state = run.state;
+  const total = run.steps_total || 0;
+  const done = Math.max(run.steps_done || 0, run.id === state.stepsRun ? state.done.size : 0);
+  const prog = $("progress");
+  prog.max = Math.max(total, 1);
+  prog.value = done;
+  prog.dataset.done = String(done);
+  prog.dataset.total = String(total);
+  const pct = total ? ((100 * done) / total).toFixed(1) : "0";
+  let eta = "";
+  if (run.eta_physical_s != null && run.active) {
+    eta = ` · ETA ${fmtDuration(run.eta_physical_s)} physical`;
+    if (run.eta_wall_s != null) eta += ` (≈ ${fmtDuration(run.eta_wall_s)} wall)`;
+  }
+  $("progress-text").textContent = `${done} / ${total} frames (${pct} %)${eta} · ${fmtDuration(run.physical_s)} captured`;
+  const reason = $("run-reason");
+  reason.hidden = !run.reason;
+  reason.textContent = run.reason ? `Reason: ${run.reason}` : "";
+  reason.classList.toggle("bad", ["failed", "aborted", "interrupted"].includes(run.state) || /fault|estop|stop/i.test(run.reason || ""));
+  const live = run.active;
+  $("pause").disabled = !(live && ["running", "preparing"].includes(run.state));
+  // A live paused run, or one with no engine that can be continued
+  // (paused after a restart, interrupted, failed but resumable).
+  $("resume").disabled = !((live && run.state === "paused") || (!live && run.resumable));
+  $("abort").disabled = !(live || run.resumable);
+}
+
+function drawHemisphere() {
+  const steps = state.stepsRun === state.shownId ? state.steps : [];
+  drawPlot($("hemi-lights"), "lights", steps, state.done, state.current);
+  drawPlot($("hemi-views"), "views", steps, state.done, state.current);
+}
+
+function renderQueue() {
+  const tbody = $("queue").tBodies[0];
+  tbody.replaceChildren();
+  state.queue.forEach((item, i) => {
+    const tr = document.createElement("tr");
+    tr.dataset.item = item.id;
+    const plan = typeof item.request.plan === "string" ? item.request.plan : item.request.plan.name || "custom";
+    tr.append(text("td", String(i + 1)), text("td", item.request.sample), text("td", plan), text("td", fmtTime(item.created_at)));
+    const td = document.createElement("td");
+    const b = text("button", "Remove", { type: "button", class: "small", "data-testid": "queue-delete", "aria-label": `Remove ${item.request.sample} from the queue` });
+    b.addEventListener("click", async () => {
+      b.disabled = true;
+      try {
+        await api("DELETE", `/queue/${encodeURIComponent(item.id)}`);
+        await loadQueue();
+      } catch (e) {
+        showMessage(`remove from queue: ${errText(e)}`);
+        b.disabled = false;
+      }
+    });
+    td.append(b);
+    tr.append(td);
+    tbody.append(tr);
+  });
+  $("queue-empty").hidden = state.queue.length > 0;
+}
+
+function renderHistory() {
+  const tbody = $("history").tBodies[0];
+  tbody.replaceChildren();
+  for (const r of state.runs) {
+    const tr = document.createElement("tr");
+    tr.dataset.runId = r.id;
+    tr.dataset.state = r.state;
+    if (r.id === state.shownId) tr.className = "shown";
+    const idCell = document.createElement("td");
+    const show = text("button", r.id, { type: "button", class: "link mono", title: "Show this run above" });
+    show.addEventListener("click", () => {
+      state.shownId = r.id;
+      state.stepsRun = null;
+      state.steps = [];
+      state.current = null;
+      renderRun();
+      renderHistory();
+      loadSteps();
+    });
+    idCell.append(show);
+    const st = text("td", r.state, { class: `state state-${r.state}` });
+    if (r.reason) st.title = r.reason;
+    tr.append(idCell, text("td", r.sample), text("td", r.plan), st, text("td", `${r.steps_done} / ${r.steps_total}`), text("td", fmtTime(r.started_at)), text("td", fmtTime(r.finished_at)));
+    const links = document.createElement("td");
+    const base = `${API}/runs/${encodeURIComponent(r.id)}`;
+    if (["completed", "aborted"].includes(r.state)) {
+      links.append(text("a", "manifest", { href: `${base}/manifest`, target: "_blank", rel: "noopener" }), " ");
+    }
+    links.append(text("a", "steps", { href: `${base}/steps`, target: "_blank", rel: "noopener" }));
+    if (r.steps_done > 0) {
+      links.append(" ", text("a", "first frame", { href: `${base}/frames/0`, target: "_blank", rel: "noopener" }));
+    }
+    tr.append(links);
+    tbody.append(tr);
+  }
+}
+
+// --------------------------------------------------------------- log
+
+function log(kind, msg, id) {
+  const ol = $("log");
+  const li = text("li", null, { "data-kind": kind });
+  li.append(text("time", new Date().toLocaleTimeString()), text("span", kind, { class: "kind" }), text("span", msg));
+  if (id != null) li.title = `event ${id}`;
+  ol.prepend(li);
+  while (ol.children.length > 200) ol.lastChild.remove();
+}
+
+function describe(ev) {
+  const e = ev.event || {};
+  switch (ev.kind) {
+    case "engine":
+      switch (e.type) {
+        case "state":
+          return `${ev.run}: ${e.from} → ${e.to}${e.reason ? ` (${e.reason})` : ""}`;
+        case "step":
+          return `${ev.run}: frame ${e.frames_done}/${e.frames_total} (images ${(e.images || []).join(", ")})`;
+        case "retry":
+          return `${ev.run}: retry ${e.device} (attempt ${e.attempt}): ${e.reason}`;
+        case "refused":
+          return `${ev.run}: refused ${e.command} in state ${e.state}`;
+        default:
+          return `${ev.run}: ${e.type}`;
+      }
+    case "run_created":
+    case "run_resumed":
+    case "run_ended":
+      return `${ev.run}: ${e.state}${e.reason ? ` (${e.reason})` : ""}`;
+    case "queue_changed":
+      return `${(e.items || []).length} queued`;
+    case "estop":
+      return `EMERGENCY STOP: ${e.all_stopped ? "all devices stopped" : "NOT all devices stopped"}${e.latency_s != null ? ` in ${e.latency_s.toFixed(3)} s` : ""}`;
+    default:
+      return JSON.stringify(e).slice(0, 200);
+  }
+}
+
+// ---------------------------------------------------------------- SSE
+
+function onEvent(ev) {
+  const e = ev.event || {};
+  const logKind = ev.kind === "engine" ? e.type : ev.kind;
+  log(logKind, describe(ev), ev.id);
+  switch (ev.kind) {
+    case "engine":
+      if (e.type === "step") onStep(ev.run, e);
+      else if (e.type === "state") {
+        const r = state.runs.find((x) => x.id === ev.run);
+        if (r) {
+          r.state = e.to;
+          if (e.reason) r.reason = e.reason;
+          if (r.id === state.shownId) renderRun();
+          renderHistory();
+        }
+        loadRun(ev.run);
+        refreshRig();
+      }
+      break;
+    case "run_created":
+    case "run_resumed":
+      state.activeId = ev.run;
+      if (state.shownId !== ev.run) {
+        state.shownId = ev.run;
+        state.stepsRun = null;
+        state.steps = [];
+        state.current = null;
+        state.done = new Set();
+      }
+      upsertRun(e);
+      loadSteps();
+      refreshRig();
+      break;
+    case "run_ended":
+      upsertRun(e);
+      if (ev.run === state.shownId) loadSteps();
+      loadRig();
+      loadRuns();
+      break;
+    case "queue_changed":
+      state.queue = e.items || [];
+      renderQueue();
+      break;
+    case "estop":
+      showMessage(describe(ev), e.all_stopped ? "info" : "error");
+      refreshRig();
+      refreshShownRun();
+      break;
+    default:
+      break;
+  }
+}
+
+function onStep(runId, e) {
+  if (runId !== state.shownId) {
+    state.shownId = runId;
+    state.stepsRun = null;
+    loadRuns();
+    return;
+  }
+  const r = shownRun();
+  if (r) {
+    r.steps_done = e.frames_done;
+    r.steps_total = e.frames_total;
+  }
+  if (state.stepsRun === runId) {
+    for (const i of e.images || []) state.done.add(i);
+    const last = (e.images || [])[e.images.length - 1];
+    const at = state.steps[last];
+    const cur = at && at.index === last ? at : state.steps.find((s) => s.index === last);
+    if (cur) state.current = cur;
+    drawHemisphereSoon();
+    refreshPreview();
+  }
+  renderRun();
+  renderHistorySoon();
+  refreshShownRun();
+  refreshRig();
+}
+
+// The stream is reopened by hand rather than by EventSource's own retry:
+// that retry sends Last-Event-ID, and after a daemon restart (ids start
+// again from 1) the daemon would hold back every new event up to that id.
+// A fresh stream plus a refetch of the whole state loses nothing but the
+// missed events' log lines.
+let stream = null;
+let everOpen = false;
+let retryMs = 500;
+
+function setConn(st, label) {
+  const conn = $("conn");
+  conn.dataset.state = st;
+  conn.textContent = label;
+}
+
+function connect() {
+  const es = new EventSource(`${API}/events`);
+  stream = es;
+  es.onopen = () => {
+    retryMs = 500;
+    setConn("live", "live");
+    log("info", everOpen ? "event stream reconnected; state refetched" : "event stream connected");
+    everOpen = true;
+    loadAll();
+  };
+  es.onerror = () => {
+    if (stream !== es) return;
+    es.close();
+    stream = null;
+    if (retryMs >= 4000) setConn("offline", "offline, retrying…");
+    else setConn("reconnecting", "reconnecting…");
+    setTimeout(connect, retryMs);
+    retryMs = Math.min(retryMs * 2, 5000);
+  };
+  es.onmessage = (m) => {
+    let ev;
+    try {
+      ev = JSON.parse(m.data);
+    } catch (_) {
+      return;
+    }
+    onEvent(ev);
+  };
+  es.addEventListener("lagged", () => {
+    log("lagged", "missed events; refetching state");
+    loadAll();
+  });
+}
+
+window.addEventListener("offline", () => setConn("offline", "offline"));
+
+// ------------------------------------------------------------ actions
+
+function runRequest() {
+  const sample = $("sample").value.trim();
+  if (!sample) throw new Error("Enter a sample name.");
+  const planSel = $("plan").value;
+  let plan = planSel;
+  if (planSel === "__custom") {
+    const dirs = [];
+    const lines = $("custom-dirs").value.split(/\n/).map((l) => l.trim()).filter(Boolean);
+    for (const l of lines) {
+      const parts = l.split(/[\s,;]+/).map(Number);
+      if (parts.length !== 2 || parts.some((x) => !isFinite(x))) throw new Error(`Directions: “${l}” is not “θ φ”.`);
+      dirs.push({ theta_deg: parts[0], phi_deg: parts[1] });
+    }
+    if (!dirs.length) throw new Error("Directions: enter at least one “θ φ” line.");
+    plan = { directions: dirs };
+  }
+  const req = { sample, plan };
+  const op = $("operator").value.trim();
+  if (op) req.operator = op;
+  const notes = $("notes").value.trim();
+  if (notes) req.notes = notes;
+  const exp = $("exposure").value.trim();
+  if (exp) req.exposure_s = Number(exp);
+  const w = $("frame-w").value.trim();
+  const h = $("frame-h").value.trim();
+  if (w || h) {
+    if (!w || !h) throw new Error("Give both frame width and height, or neither.");
+    req.frame_size = [Number(w), Number(h)];
+  }
+  return req;
+}
+
+async function submitRun(queue) {
+  const errBox = $("form-error");
+  errBox.hidden = true;
+  let req;
+  try {
+    req = runRequest();
+  } catch (e) {
+    errBox.textContent = e.message;
+    errBox.hidden = false;
+    return;
+  }
+  const btn = queue ? $("queue-add") : $("start");
+  btn.disabled = true;
+  try {
+    if (queue) {
+      const r = await api("POST", "/queue", req);
+      showMessage(r.started_run ? `Queued and started ${r.started_run.id}` : `Queued ${req.sample}`, "info");
+      await loadQueue();
+    } else {
+      const run = await api("POST", "/runs", req);
+      showMessage(`Started ${run.id}`, "info");
+    }
+    await loadRuns();
+  } catch (e) {
+    errBox.textContent = errText(e);
+    errBox.hidden = false;
+  } finally {
+    btn.disabled = false;
+  }
+}
+
+async function command(cmd) {
+  const id = state.shownId;
+  if (!id) return;
+  if (cmd === "abort" && !confirm(`Abort run ${id}? Its frames so far are kept; it cannot be resumed.`)) return;
+  try {
+    await api("POST", `/runs/${encodeURIComponent(id)}/${cmd}`);
+    log("info", `${cmd} sent to ${id}`);
+    await loadRun(id);
+  } catch (e) {
+    showMessage(`${cmd}: ${errText(e)}`);
+  }
+}
+
+async function estop() {
+  try {
+    const r = await api("POST", "/estop");
+    showMessage(
+      r.run ? `EMERGENCY STOP: run ${r.run} paused; ${r.all_stopped ? "all devices stopped" : "NOT all devices stopped"}` : "EMERGENCY STOP sent (no active run)",
+      r.all_stopped || !r.run ? "info" : "error",
+    );
+    loadAll();
+  } catch (e) {
+    showMessage(`EMERGENCY STOP FAILED: ${errText(e)}`);
+  }
+}
+
+// -------------------------------------------------------------- setup
+
+function setup() {
+  setupTokenDialog();
+  $("run-form").addEventListener("submit", (e) => {
+    e.preventDefault();
+    submitRun(false);
+  });
+  $("queue-add").addEventListener("click", () => submitRun(true));
+  $("plan").addEventListener("change", planChanged);
+  $("pause").addEventListener("click", () => command("pause"));
+  $("resume").addEventListener("click", () => command("resume"));
+  $("abort").addEventListener("click", () => command("abort"));
+  $("estop").addEventListener("click", estop);
+  drawHemisphere();
+  connect();
+  if (!token()) askToken("No API token is stored in this browser yet.");
+  document.body.dataset.ready = "true";
+}
+
+setup();

@@ -1,0 +1,276 @@
+//! The daemon: `rigd serve`. An HTTP API under `/api/v1` (axum), its
+//! OpenAPI spec and Swagger UI, the event stream, and a supervisor that
+//! drives one run at a time on the rig and starts queued runs.
+//!
+//! - [`state`]: the daemon's state and run supervisor
+//! - [`api`]: the handlers and the OpenAPI description
+//! - [`auth`]: the bearer token
+//! - [`events`]: Server-Sent Events with replay
+//! - [`persist`]: the queue file and the run history on disk
+//! - [`frames`]: frame and preview routes
+//! - [`error`]: `{error, detail}` errors
+
+pub mod api;
+pub mod auth;
+pub mod error;
+pub mod events;
+pub mod frames;
+pub mod model;
+pub mod persist;
+pub mod state;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::extract::DefaultBodyLimit;
+use axum::http::header;
+use axum::response::IntoResponse;
+use axum::routing::{delete, get, post};
+use axum::Router;
+use tokio::task::JoinHandle;
+use utoipa::OpenApi;
+use utoipa_swagger_ui::SwaggerUi;
+
+use crate::profile::{Profile, DEFAULT_PROFILE};
+
+/// Largest request body accepted.
+pub const BODY_LIMIT: usize = 64 * 1024;
+/// Default listen address.
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:8080";
+/// Default data directory.
+pub const DEFAULT_DATA: &str = "rigd-data";
+/// Default simulation speed: physical seconds per wall second. A demo H1
+/// run on the simulated Bonn rig (6561 images, about 10 h 12 min physical)
+/// takes about 3 minutes.
+pub const DEFAULT_SIM_SPEED: f64 = 200.0;
+
+/// How the daemon is started.
+#[derive(Debug, Clone)]
+pub struct ServerConfig {
+    /// A profile file or embedded name; None is the embedded default.
+    pub profile: Option<String>,
+    /// Drive the simulated rig.
+    pub sim: bool,
+    pub listen: SocketAddr,
+    pub data_dir: PathBuf,
+    /// Physical seconds per wall second of the simulated rig.
+    pub sim_speed: f64,
+    /// Where the token is; None: `DATA/token`, generated at first start.
+    pub token_file: Option<PathBuf>,
+    /// Faults injected into the simulated rig of every new run (demos and
+    /// tests of fault handling).
+    pub sim_faults: Vec<crate::sim::FaultRule>,
+}
+
+impl ServerConfig {
+    /// The defaults, with a data directory.
+    pub fn new(data_dir: impl Into<PathBuf>) -> Self {
+        ServerConfig {
+            profile: None,
+            sim: true,
+            listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: data_dir.into(),
+            sim_speed: DEFAULT_SIM_SPEED,
+            token_file: None,
+            sim_faults: Vec::new(),
+        }
+    }
+}
+
+/// Why the daemon cannot start.
+#[derive(Debug, thiserror::Error)]
+pub enum ServerError {
+    #[error(transparent)]
+    Profile(#[from] crate::profile::ProfileError),
+    #[error("--sim-speed {0}: expected a positive number")]
+    Speed(f64),
+    #[error("data directory {path}: {why}")]
+    DataDir { path: PathBuf, why: String },
+    #[error("token file {path}: {why}")]
+    Token { path: PathBuf, why: String },
+    #[error("cannot listen on {addr}: {why}")]
+    Listen { addr: SocketAddr, why: String },
+}
+
+/// A running daemon.
+pub struct ServerHandle {
+    pub daemon: Arc<state::Daemon>,
+    pub token: auth::Token,
+    server: JoinHandle<()>,
+}
+
+impl ServerHandle {
+    /// Graceful shutdown: the active run is detached (paused, resumable),
+    /// its engine ends, event streams close, then the server stops.
+    pub async fn shutdown(self) {
+        self.daemon.shutdown().await;
+        let mut server = self.server;
+        if tokio::time::timeout(Duration::from_secs(10), &mut server)
+            .await
+            .is_err()
+        {
+            tracing::warn!("connections still open after 10 s; closing them");
+            server.abort();
+        }
+    }
+}
+
+const INDEX_HTML: &str = include_str!("dashboard/index.html");
+const APP_JS: &str = include_str!("dashboard/app.js");
+const HEMISPHERE_JS: &str = include_str!("dashboard/hemisphere.js");
+const STYLE_CSS: &str = include_str!("dashboard/style.css");
+
+/// The router of a daemon (the token is needed for the auth layer).
+pub fn router(daemon: Arc<state::Daemon>, token: auth::Token) -> Router {
+    let v1 = Router::new()
+        .route("/rig", get(api::rig))
+        .route("/plans", get(api::plans))
+        .route("/plans/{name}", get(api::plan_detail))
+        .route("/runs", get(api::list_runs).post(api::create_run))
+        .route("/runs/{id}", get(api::get_run))
+        .route("/runs/{id}/steps", get(api::run_steps))
+        .route("/runs/{id}/manifest", get(api::run_manifest))
+        .route("/runs/{id}/pause", post(api::pause_run))
+        .route("/runs/{id}/resume", post(api::resume_run))
+        .route("/runs/{id}/abort", post(api::abort_run))
+        .route("/runs/{id}/frames/{index}", get(api::frame_raw))
+        .route("/runs/{id}/frames/{index}/preview", get(api::frame_preview))
+        .route("/estop", post(api::estop))
+        .route("/events", get(api::events_sse))
+        .route("/queue", get(api::get_queue).post(api::post_queue))
+        .route("/queue/{item}", delete(api::delete_queue))
+        .route_layer(axum::middleware::from_fn_with_state(
+            token,
+            auth::require_token,
+        ))
+        .route("/health", get(api::health))
+        .method_not_allowed_fallback(error::method_not_allowed)
+        .with_state(daemon);
+    Router::new()
+        .nest("/api/v1", v1)
+        .merge(SwaggerUi::new("/api/docs").url("/api/v1/openapi.json", api::ApiDoc::openapi()))
+        .route(
+            "/",
+            get(|| async { static_file("text/html; charset=utf-8", INDEX_HTML) }),
+        )
+        .route(
+            "/app.js",
+            get(|| async { static_file("text/javascript; charset=utf-8", APP_JS) }),
+        )
+        .route(
+            "/hemisphere.js",
+            get(|| async { static_file("text/javascript; charset=utf-8", HEMISPHERE_JS) }),
+        )
+        .route(
+            "/style.css",
+            get(|| async { static_file("text/css; charset=utf-8", STYLE_CSS) }),
+        )
+        .fallback(error::not_found)
+        .method_not_allowed_fallback(error::method_not_allowed)
+        .layer(DefaultBodyLimit::max(BODY_LIMIT))
+}
+
+fn static_file(content_type: &'static str, body: &'static str) -> axum::response::Response {
+    ([(header::CONTENT_TYPE, content_type)], body).into_response()
+}
+
+/// Loads the profile, opens the data directory (marking runs that were
+/// active when the daemon died as interrupted), binds and serves.
+pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), ServerError> {
+    if !(config.sim_speed.is_finite() && config.sim_speed > 0.0) {
+        return Err(ServerError::Speed(config.sim_speed));
+    }
+    let source = config
+        .profile
+        .clone()
+        .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
+    let profile = Profile::load(&source)?;
+    let profile_source = if std::path::Path::new(&source).exists() {
+        source.clone()
+    } else {
+        format!("<embedded {source}>")
+    };
+    std::fs::create_dir_all(&config.data_dir).map_err(|e| ServerError::DataDir {
+        path: config.data_dir.clone(),
+        why: e.to_string(),
+    })?;
+    let token = auth::load_or_create(config.token_file.as_deref(), &config.data_dir)?;
+    tracing::info!(path = %token.path.display(), "API token");
+    let listener = tokio::net::TcpListener::bind(config.listen)
+        .await
+        .map_err(|e| ServerError::Listen {
+            addr: config.listen,
+            why: e.to_string(),
+        })?;
+    let addr = listener.local_addr().map_err(|e| ServerError::Listen {
+        addr: config.listen,
+        why: e.to_string(),
+    })?;
+    let daemon = state::Daemon::new(config, profile, profile_source)?;
+    let app = router(daemon.clone(), token.clone());
+    let mut stop = daemon.shutdown_tx.subscribe();
+    let server = tokio::spawn(async move {
+        let served = axum::serve(
+            listener,
+            app.into_make_service_with_connect_info::<SocketAddr>(),
+        )
+        .with_graceful_shutdown(async move {
+            let _ = stop.wait_for(|s| *s).await;
+        })
+        .await;
+        if let Err(e) = served {
+            tracing::error!("server: {e}");
+        }
+    });
+    // The queue goes on by itself unless a run was cut short: then the
+    // operator decides (resume or abort it) first.
+    let interrupted = daemon
+        .inner()
+        .runs
+        .values()
+        .any(|v| v.state == "interrupted" || v.state == "paused");
+    if !interrupted {
+        daemon.pump_queue();
+    }
+    Ok((
+        addr,
+        ServerHandle {
+            daemon,
+            token,
+            server,
+        },
+    ))
+}
+
+/// `rigd serve`: runs until SIGINT/SIGTERM, then shuts down gracefully.
+pub async fn serve(config: ServerConfig) -> Result<(), ServerError> {
+    let sim_speed = config.sim_speed;
+    let (addr, handle) = start(config).await?;
+    eprintln!(
+        "rigd serving profile `{}` on http://{addr}/ (API http://{addr}/api/v1, docs http://{addr}/api/docs); simulation speed {sim_speed}x; token in {}",
+        handle.daemon.profile.name,
+        handle.token.path.display()
+    );
+    wait_for_signal().await;
+    eprintln!("shutting down: pausing the active run (resumable)");
+    handle.shutdown().await;
+    eprintln!("stopped");
+    Ok(())
+}
+
+async fn wait_for_signal() {
+    #[cfg(unix)]
+    {
+        use tokio::signal::unix::{signal, SignalKind};
+        if let Ok(mut term) = signal(SignalKind::terminate()) {
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+            return;
+        }
+    }
+    let _ = tokio::signal::ctrl_c().await;
+}

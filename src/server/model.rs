@@ -1,0 +1,308 @@
+//! The JSON shapes of the API (and of `queue.json`), with their OpenAPI schemas.
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use crate::geometry::Direction;
+
+/// A direction in the sample frame, degrees.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Dir {
+    /// Polar angle from the sample normal, 0..=90.
+    pub theta_deg: f64,
+    /// Azimuth.
+    pub phi_deg: f64,
+}
+
+impl From<Direction> for Dir {
+    fn from(d: Direction) -> Self {
+        Dir {
+            theta_deg: d.theta_deg,
+            phi_deg: d.phi_deg,
+        }
+    }
+}
+
+/// One light/view pair of an inline plan.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PairDto {
+    pub light: Dir,
+    pub view: Dir,
+}
+
+/// A plan given inline: exactly one of `directions` (all paired with all),
+/// `lights` with `views` (all paired with all), or `pairs`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct InlinePlan {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub directions: Option<Vec<Dir>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lights: Option<Vec<Dir>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<Vec<Dir>>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pairs: Option<Vec<PairDto>>,
+}
+
+/// A built-in plan name (`h1`, `h2`, `grid12x8`, `lamps`; see
+/// `GET /api/v1/plans`) or an inline plan. Plan files are not read over the API.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(untagged)]
+pub enum PlanSpec {
+    Name(String),
+    Inline(InlinePlan),
+}
+
+impl PlanSpec {
+    pub fn label(&self) -> String {
+        match self {
+            PlanSpec::Name(n) => n.clone(),
+            PlanSpec::Inline(p) => p.name.clone().unwrap_or_else(|| "custom".into()),
+        }
+    }
+}
+
+/// A run to start (`POST /api/v1/runs`) or to queue (`POST /api/v1/queue`).
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RunRequest {
+    /// Sample name, recorded in the dataset (1..=128 characters).
+    pub sample: String,
+    pub plan: PlanSpec,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub notes: Option<String>,
+    /// Exposure for every camera, seconds (default: the profile's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exposure_s: Option<f64>,
+    /// Simulated frame size `[width, height]`, each 1..=4096 (default: the profile's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_size: Option<[u32; 2]>,
+}
+
+/// A run as the API shows it.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct RunView {
+    /// Server-made id: `YYYYMMDDTHHMMSSZ-SAMPLE-PLAN[-N]`.
+    pub id: String,
+    pub sample: String,
+    pub plan: String,
+    pub profile: String,
+    pub operator: Option<String>,
+    pub notes: Option<String>,
+    /// preparing, running, paused, completed, aborted, failed, or
+    /// interrupted (the daemon died while it was active).
+    pub state: String,
+    /// Why it is in its current state (pause reason, failure), if any.
+    pub reason: Option<String>,
+    /// The last device error or fault seen (kept after a resume clears
+    /// `reason`): a fault pause, a retry, a failure.
+    pub last_error: Option<String>,
+    /// True while an engine drives it (at most one run).
+    pub active: bool,
+    /// `POST /runs/{id}/resume` would continue it.
+    pub resumable: bool,
+    pub steps_done: usize,
+    pub steps_total: usize,
+    /// Physical seconds of capture so far.
+    pub physical_s: f64,
+    /// Estimated physical seconds left (active runs).
+    pub eta_physical_s: Option<f64>,
+    /// The same in wall seconds at the daemon's simulation speed.
+    pub eta_wall_s: Option<f64>,
+    pub exposure_s: Option<f64>,
+    pub frame_size: Option<[u32; 2]>,
+    pub started_at: String,
+    pub updated_at: Option<String>,
+    pub finished_at: Option<String>,
+}
+
+/// `GET /api/v1/runs`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct RunList {
+    /// Newest first.
+    pub runs: Vec<RunView>,
+    /// The active run's id.
+    pub active: Option<String>,
+}
+
+/// Answer to pause/resume/abort.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct CommandAck {
+    /// pause, resume or abort.
+    pub command: String,
+    /// True when handed to the live engine (its state changes arrive as
+    /// events); false when done on disk (a run with no live engine).
+    pub sent_to_engine: bool,
+    pub run: RunView,
+}
+
+/// One queued run.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct QueueItem {
+    pub id: String,
+    pub request: RunRequest,
+    pub created_at: String,
+}
+
+/// `GET /api/v1/queue`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct QueueView {
+    /// In the order they will run.
+    pub items: Vec<QueueItem>,
+}
+
+/// Answer to `POST /api/v1/queue`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct Enqueued {
+    pub item: QueueItem,
+    /// Set when the rig was free and the item started at once (it is then
+    /// no longer in the queue).
+    pub started_run: Option<RunView>,
+}
+
+/// `GET /api/v1/health`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct Health {
+    pub ok: bool,
+    pub version: String,
+    pub profile: String,
+    pub sim: bool,
+    /// Physical seconds per wall second of the simulated rig.
+    pub sim_speed: f64,
+}
+
+/// A device and its live state.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct DeviceView {
+    pub name: String,
+    /// axis, arm, lamp, camera or laser.
+    pub kind: String,
+    pub protocol: String,
+    pub connected: bool,
+    /// Null for devices that do not home (lamps, cameras).
+    pub homed: Option<bool>,
+    pub busy: bool,
+    /// The fault that paused the run, if it names this device.
+    pub fault: Option<String>,
+    /// Axis position, degrees (null until known).
+    pub position_deg: Option<f64>,
+    /// Arm joints: name → degrees.
+    #[schema(value_type = Option<Object>)]
+    pub joints: Option<serde_json::Value>,
+    /// Lamps: switched on.
+    pub on: Option<bool>,
+    /// Cameras: resolution, bit depth, exposure, readout, transfer, and the
+    /// simulated frame size.
+    #[schema(value_type = Option<Object>)]
+    pub camera: Option<serde_json::Value>,
+}
+
+/// `GET /api/v1/rig`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct RigView {
+    pub profile: String,
+    pub description: String,
+    pub sim: bool,
+    pub sim_speed: f64,
+    pub active_run: Option<String>,
+    /// idle, preparing, running or paused.
+    pub state: String,
+    pub devices: Vec<DeviceView>,
+    /// Lamp name → on.
+    #[schema(value_type = Object)]
+    pub lamps: serde_json::Value,
+}
+
+/// A plan on this rig, in short.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PlanSummary {
+    pub name: String,
+    /// The plan fits this rig.
+    pub fits: bool,
+    /// Why not, when it does not fit.
+    pub error: Option<String>,
+    pub steps_total: usize,
+    pub triggers_total: usize,
+    pub infeasible_total: usize,
+    /// Estimated physical capture time, seconds.
+    pub estimated_physical_s: f64,
+    /// The same in wall seconds at the daemon's simulation speed.
+    pub estimated_wall_s: f64,
+}
+
+/// `GET /api/v1/plans`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PlanList {
+    pub profile: String,
+    pub plans: Vec<PlanSummary>,
+}
+
+/// One image of a plan.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PlanStep {
+    pub index: usize,
+    pub trigger: usize,
+    pub camera: String,
+    pub light: Dir,
+    pub view: Dir,
+    pub achieved_light: Dir,
+    pub achieved_view: Dir,
+    pub feasible: bool,
+    pub reason: Option<String>,
+    /// Axes, arm joints and lamp for this image's trigger.
+    #[schema(value_type = Object)]
+    pub setpoints: serde_json::Value,
+}
+
+/// `GET /api/v1/plans/{name}`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PlanDetail {
+    #[serde(flatten)]
+    pub summary: PlanSummary,
+    pub steps: Vec<PlanStep>,
+}
+
+/// One image of a run, planned and captured.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct RunStep {
+    pub index: usize,
+    pub trigger: usize,
+    pub camera: String,
+    pub light: Dir,
+    pub view: Dir,
+    pub achieved_light: Dir,
+    pub achieved_view: Dir,
+    pub feasible: bool,
+    pub reason: Option<String>,
+    /// Its frame is written and journaled.
+    pub done: bool,
+}
+
+/// `GET /api/v1/runs/{id}/steps`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct RunSteps {
+    pub run: String,
+    pub steps_total: usize,
+    pub steps_done: usize,
+    pub steps: Vec<RunStep>,
+}
+
+/// Answer to `POST /api/v1/estop`.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct EstopAnswer {
+    /// The run that was active, if any (it is now paused; resume re-homes).
+    pub run: Option<String>,
+    /// Physical seconds to the last device's acknowledgement.
+    pub latency_s: Option<f64>,
+    /// Every device's acknowledgement: `{device, after_s, error?}`.
+    #[schema(value_type = Vec<Object>)]
+    pub devices: Vec<serde_json::Value>,
+    pub all_stopped: bool,
+}

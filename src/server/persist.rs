@@ -1,0 +1,313 @@
+//! What the daemon keeps in its data directory besides the run directories:
+//! the queue (`queue.json`, written atomically), and the run history, which
+//! is read back from `runs/*/` at startup.
+
+use std::collections::BTreeSet;
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+use super::model::{QueueItem, RunView};
+use crate::store::{
+    now_rfc3339, read_state, write_atomic, FrameEntry, RunMeta, StateRecord, StoreError,
+    JOURNAL_FILE, MANIFEST_FILE, RUN_FILE,
+};
+
+pub const QUEUE_FILE: &str = "queue.json";
+pub const RUNS_DIR: &str = "runs";
+const QUEUE_FORMAT: &str = "rigd-queue/1";
+
+/// Why a run was marked interrupted at startup.
+pub const INTERRUPTED_REASON: &str =
+    "the daemon stopped while this run was active; POST /api/v1/runs/{id}/resume continues it";
+
+#[derive(Debug, Serialize, Deserialize)]
+struct QueueFile {
+    format: String,
+    items: Vec<QueueItem>,
+}
+
+/// Loads the queue; a missing file is an empty queue, an unreadable one is
+/// moved aside (`queue.json.bad`) with a warning.
+pub fn load_queue(data: &Path) -> Vec<QueueItem> {
+    let path = data.join(QUEUE_FILE);
+    let bytes = match std::fs::read(&path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Vec::new(),
+        Err(e) => {
+            tracing::warn!(
+                "cannot read {}: {e}; starting with an empty queue",
+                path.display()
+            );
+            return Vec::new();
+        }
+    };
+    match serde_json::from_slice::<QueueFile>(&bytes) {
+        Ok(q) => q.items,
+        Err(e) => {
+            let aside = data.join("queue.json.bad");
+            tracing::warn!(
+                "{} is not a queue ({e}); moved to {}, starting with an empty queue",
+                path.display(),
+                aside.display()
+            );
+            let _ = std::fs::rename(&path, aside);
+            Vec::new()
+        }
+    }
+}
+
+/// Writes the queue atomically (temporary file, fsync, rename).
+pub fn save_queue(data: &Path, items: &[QueueItem]) -> Result<(), StoreError> {
+    let file = QueueFile {
+        format: QUEUE_FORMAT.into(),
+        items: items.to_vec(),
+    };
+    let json = serde_json::to_vec_pretty(&file).map_err(|e| StoreError::Corrupt {
+        path: data.join(QUEUE_FILE),
+        why: e.to_string(),
+    })?;
+    write_atomic(&data.join(QUEUE_FILE), &json)
+}
+
+/// Keeps letters, digits, `-` and `_`; everything else becomes `_`; at most
+/// `max` characters; never empty.
+pub fn sanitize(s: &str, max: usize) -> String {
+    let out: String = s
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .take(max)
+        .collect();
+    if out.is_empty() {
+        "x".into()
+    } else {
+        out
+    }
+}
+
+/// A run id is only ever made here, and only these characters pass.
+pub fn is_valid_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= 128
+        && !id.starts_with('.')
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+}
+
+/// A new run id: `YYYYMMDDTHHMMSSZ-SAMPLE-PLAN`, with `-N` added when taken.
+pub fn new_run_id(
+    runs_dir: &Path,
+    sample: &str,
+    plan: &str,
+    taken: &dyn Fn(&str) -> bool,
+) -> String {
+    let stamp = humantime::format_rfc3339_seconds(std::time::SystemTime::now())
+        .to_string()
+        .replace(['-', ':'], "");
+    let base = format!("{stamp}-{}-{}", sanitize(sample, 40), sanitize(plan, 24));
+    let mut id = base.clone();
+    let mut n = 2;
+    while taken(&id) || runs_dir.join(&id).exists() {
+        id = format!("{base}-{n}");
+        n += 1;
+    }
+    id
+}
+
+/// Frame indices journaled in a run directory (read only: a torn last line
+/// is skipped here and cut off on resume).
+pub fn journaled(root: &Path) -> BTreeSet<usize> {
+    let mut done = BTreeSet::new();
+    let Ok(f) = std::fs::File::open(root.join(JOURNAL_FILE)) else {
+        return done;
+    };
+    let mut reader = std::io::BufReader::new(f);
+    let mut line = Vec::new();
+    loop {
+        line.clear();
+        match reader.read_until(b'\n', &mut line) {
+            Ok(0) | Err(_) => break,
+            Ok(_) if line.last() == Some(&b'\n') => {
+                if let Ok(e) = serde_json::from_slice::<FrameEntry>(&line) {
+                    done.insert(e.index);
+                }
+            }
+            Ok(_) => break,
+        }
+    }
+    done
+}
+
+/// The parts of `manifest.json` the run list needs.
+#[derive(Debug, Deserialize)]
+struct ManifestHead {
+    finished_at: String,
+    #[serde(default)]
+    physical_duration_s: f64,
+}
+
+/// Reads one run directory into a view (not active). A run that was
+/// preparing or running (the daemon died) is marked `interrupted` in its
+/// `state.json`.
+pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError> {
+    let run_path = root.join(RUN_FILE);
+    let bytes = std::fs::read(&run_path).map_err(|e| StoreError::Corrupt {
+        path: run_path.clone(),
+        why: e.to_string(),
+    })?;
+    let meta: RunMeta = serde_json::from_slice(&bytes).map_err(|e| StoreError::Corrupt {
+        path: run_path.clone(),
+        why: e.to_string(),
+    })?;
+    let mut state = read_state(root)?;
+    let done = journaled(root);
+    let stale = match &state {
+        None => true,
+        Some(s) => matches!(s.state.as_str(), "idle" | "preparing" | "running"),
+    };
+    if stale {
+        let record = StateRecord {
+            state: "interrupted".into(),
+            reason: Some(INTERRUPTED_REASON.replace("{id}", id)),
+            physical_s: state.as_ref().map_or(0.0, |s| s.physical_s),
+            updated_at: now_rfc3339(),
+        };
+        write_atomic(
+            &root.join(crate::store::STATE_FILE),
+            &serde_json::to_vec_pretty(&record).unwrap_or_default(),
+        )?;
+        state = Some(record);
+    }
+    let manifest: Option<ManifestHead> = std::fs::read(root.join(MANIFEST_FILE))
+        .ok()
+        .and_then(|b| serde_json::from_slice(&b).ok());
+    let state_name = state
+        .as_ref()
+        .map_or("interrupted".to_string(), |s| s.state.clone());
+    let resumable = matches!(state_name.as_str(), "paused" | "interrupted" | "failed");
+    let view = RunView {
+        id: id.to_string(),
+        sample: meta.sample.clone(),
+        plan: meta.plan.name.clone(),
+        profile: meta.profile.name.clone(),
+        operator: meta.operator.clone(),
+        notes: meta.notes.clone(),
+        state: state_name,
+        reason: state.as_ref().and_then(|s| s.reason.clone()),
+        last_error: state
+            .as_ref()
+            .filter(|s| s.state == "failed" || s.state == "paused")
+            .and_then(|s| s.reason.clone())
+            .filter(|r| is_error_reason(r)),
+        active: false,
+        resumable,
+        steps_done: done.len(),
+        steps_total: meta.plan.pairs.len(),
+        physical_s: manifest
+            .as_ref()
+            .map(|m| m.physical_duration_s)
+            .or(state.as_ref().map(|s| s.physical_s))
+            .unwrap_or(0.0),
+        eta_physical_s: None,
+        eta_wall_s: None,
+        exposure_s: meta.exposure_s,
+        frame_size: meta.frame_size,
+        started_at: meta.started_at.clone(),
+        updated_at: state.as_ref().map(|s| s.updated_at.clone()),
+        finished_at: manifest.map(|m| m.finished_at),
+    };
+    Ok((view, meta))
+}
+
+/// Whether a pause or end reason is an error (not the operator's doing).
+pub fn is_error_reason(reason: &str) -> bool {
+    !(reason.starts_with("paused by operator")
+        || reason.starts_with("detached")
+        || reason.starts_with("aborted by operator"))
+}
+
+/// Every run directory under `DATA/runs/`, with problems logged and skipped.
+pub fn scan_runs(runs_dir: &Path) -> Vec<(RunView, PathBuf)> {
+    let mut out = Vec::new();
+    let Ok(entries) = std::fs::read_dir(runs_dir) else {
+        return out;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let path = entry.path();
+        if !is_valid_id(&name) || !path.join(RUN_FILE).is_file() {
+            continue;
+        }
+        match load_run(&path, &name) {
+            Ok((view, _)) => {
+                if view.state == "interrupted" {
+                    tracing::warn!(run = %name, "run was active when the daemon stopped: marked interrupted (resumable)");
+                }
+                out.push((view, path));
+            }
+            Err(e) => tracing::warn!("skipping {}: {e}", path.display()),
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::server::model::{PlanSpec, RunRequest};
+
+    #[test]
+    fn ids_are_filesystem_safe() {
+        assert_eq!(sanitize("Felt #3 / blue", 40), "Felt__3___blue");
+        assert_eq!(sanitize("../../etc", 40), "______etc");
+        assert_eq!(sanitize("", 40), "x");
+        assert_eq!(sanitize("ü", 40), "_");
+        assert_eq!(sanitize(&"a".repeat(100), 40).len(), 40);
+        for bad in [
+            "", ".", "..", "../x", "a/b", "a\\b", ".hidden", "a b", "a\0",
+        ] {
+            assert!(!is_valid_id(bad), "{bad:?}");
+        }
+        assert!(is_valid_id("20260101T000000Z-felt-h1-2"));
+        let dir = tempfile::tempdir().expect("tempdir");
+        let a = new_run_id(dir.path(), "../x y", "h1", &|_| false);
+        assert!(is_valid_id(&a), "{a}");
+        assert!(a.ends_with("-___x_y-h1"), "{a}");
+        let b = new_run_id(dir.path(), "../x y", "h1", &|id| id == a);
+        assert_eq!(b, format!("{a}-2"));
+    }
+
+    #[test]
+    fn the_queue_round_trips_and_a_bad_file_is_moved_aside() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        assert!(load_queue(dir.path()).is_empty());
+        let item = QueueItem {
+            id: "q1".into(),
+            request: RunRequest {
+                sample: "s".into(),
+                plan: PlanSpec::Name("h1".into()),
+                operator: None,
+                notes: Some("n".into()),
+                exposure_s: Some(0.5),
+                frame_size: Some([8, 8]),
+            },
+            created_at: "2026-01-01T00:00:00Z".into(),
+        };
+        save_queue(dir.path(), std::slice::from_ref(&item)).expect("save");
+        let back = load_queue(dir.path());
+        assert_eq!(back.len(), 1);
+        assert_eq!(back[0].id, "q1");
+        assert_eq!(back[0].request.exposure_s, Some(0.5));
+        std::fs::write(dir.path().join(QUEUE_FILE), b"{torn").expect("write");
+        assert!(load_queue(dir.path()).is_empty());
+        assert!(dir.path().join("queue.json.bad").exists());
+    }
+}

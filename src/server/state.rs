@@ -1,0 +1,785 @@
+//! The daemon's state and run supervisor: the run history, the one active
+//! run (its engine handle and simulated rig), and the queue.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::Duration;
+
+use axum::http::StatusCode;
+use tokio::sync::{broadcast, watch};
+use tokio::task::JoinHandle;
+
+use super::error::ApiError;
+use super::events::EventHub;
+use super::model::{PlanSpec, QueueItem, RunRequest, RunView};
+use super::persist::{self, RUNS_DIR};
+use super::ServerConfig;
+use crate::connect::sim::SimHandle;
+use crate::engine::{
+    check_command, Command, EngineError, EngineHandle, EventKind, Outcome, PausePolicy, RunEvent,
+    RunState,
+};
+use crate::plan::{self, BUILTIN_PLANS};
+use crate::profile::Profile;
+use crate::runner::{self, NewRun, Prepared, RunError};
+use crate::schedule::Schedule;
+use crate::sim::Clock;
+
+/// The run an engine drives.
+pub struct Active {
+    pub id: String,
+    pub handle: EngineHandle,
+    /// The simulated rig's world and faults (None on hardware).
+    pub sim: Option<SimHandle>,
+    pub state: RunState,
+    /// Physical time at which the run should end (t_offset + estimate).
+    pub end_estimate_s: f64,
+}
+
+#[derive(Default)]
+pub struct Inner {
+    pub runs: BTreeMap<String, RunView>,
+    pub active: Option<Active>,
+    pub queue: Vec<QueueItem>,
+    pub shutting_down: bool,
+    /// The rig of the last run, for positions after it ended.
+    pub last_sim: Option<SimHandle>,
+    queue_seq: u64,
+}
+
+/// Everything the handlers share.
+pub struct Daemon {
+    pub config: ServerConfig,
+    pub profile: Profile,
+    pub profile_source: String,
+    pub hub: EventHub,
+    pub data_dir: PathBuf,
+    pub runs_dir: PathBuf,
+    inner: Mutex<Inner>,
+    /// Serialises starting runs (prepare happens outside `inner`'s lock).
+    start_gate: tokio::sync::Mutex<()>,
+    supervisor: Mutex<Option<JoinHandle<()>>>,
+    pub shutdown_tx: watch::Sender<bool>,
+    schedules: Mutex<HashMap<String, Arc<Schedule>>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Most characters a sample, operator name or plan name may have.
+const MAX_NAME: usize = 128;
+const MAX_NOTES: usize = 8192;
+
+fn run_error(e: RunError) -> ApiError {
+    match e {
+        RunError::Store(s) => ApiError::internal(s.to_string()),
+        other => ApiError::invalid(other.to_string()),
+    }
+}
+
+impl Daemon {
+    pub fn new(
+        config: ServerConfig,
+        profile: Profile,
+        profile_source: String,
+    ) -> Result<Arc<Daemon>, super::ServerError> {
+        let data_dir = config.data_dir.clone();
+        let runs_dir = data_dir.join(RUNS_DIR);
+        std::fs::create_dir_all(&runs_dir).map_err(|e| super::ServerError::DataDir {
+            path: runs_dir.clone(),
+            why: e.to_string(),
+        })?;
+        let mut inner = Inner::default();
+        for (view, _) in persist::scan_runs(&runs_dir) {
+            inner.runs.insert(view.id.clone(), view);
+        }
+        inner.queue = persist::load_queue(&data_dir);
+        let (shutdown_tx, _) = watch::channel(false);
+        Ok(Arc::new(Daemon {
+            config,
+            profile,
+            profile_source,
+            hub: EventHub::new(),
+            data_dir,
+            runs_dir,
+            inner: Mutex::new(inner),
+            start_gate: tokio::sync::Mutex::new(()),
+            supervisor: Mutex::new(None),
+            shutdown_tx,
+            schedules: Mutex::new(HashMap::new()),
+        }))
+    }
+
+    pub fn inner(&self) -> MutexGuard<'_, Inner> {
+        lock(&self.inner)
+    }
+
+    /// Physical seconds per wall second: the simulation's speed, or 1 on
+    /// hardware.
+    pub fn speed(&self) -> f64 {
+        if self.config.sim {
+            self.config.sim_speed
+        } else {
+            1.0
+        }
+    }
+
+    fn clock(&self) -> Clock {
+        if self.config.sim {
+            Clock::scaled(self.config.sim_speed)
+        } else {
+            Clock::real()
+        }
+    }
+
+    /// A run's view with live ETA.
+    pub fn view(&self, id: &str) -> Option<RunView> {
+        self.inner().runs.get(id).cloned()
+    }
+
+    pub fn run_root(&self, id: &str) -> Option<PathBuf> {
+        if !persist::is_valid_id(id) || !self.inner().runs.contains_key(id) {
+            return None;
+        }
+        Some(self.runs_dir.join(id))
+    }
+
+    /// Checks a request and resolves its plan (built-in names or inline only).
+    pub fn validate(&self, req: &RunRequest) -> Result<plan::Plan, ApiError> {
+        let sample = req.sample.trim();
+        if sample.is_empty() || req.sample.chars().count() > MAX_NAME {
+            return Err(ApiError::invalid(format!(
+                "`sample` must have 1 to {MAX_NAME} characters"
+            )));
+        }
+        if req.sample.chars().any(char::is_control) {
+            return Err(ApiError::invalid("`sample` holds control characters"));
+        }
+        if let Some(op) = &req.operator {
+            if op.chars().count() > MAX_NAME || op.chars().any(char::is_control) {
+                return Err(ApiError::invalid(format!(
+                    "`operator`: at most {MAX_NAME} characters, no control characters"
+                )));
+            }
+        }
+        if let Some(n) = &req.notes {
+            if n.chars().count() > MAX_NOTES {
+                return Err(ApiError::invalid(format!(
+                    "`notes`: at most {MAX_NOTES} characters"
+                )));
+            }
+        }
+        if let Some(e) = req.exposure_s {
+            if !(e.is_finite() && e > 0.0 && e <= 3600.0) {
+                return Err(ApiError::invalid(format!(
+                    "`exposure_s` {e}: expected a positive number of seconds up to 3600"
+                )));
+            }
+        }
+        if let Some([w, h]) = req.frame_size {
+            if !(1..=4096).contains(&w) || !(1..=4096).contains(&h) {
+                return Err(ApiError::invalid(
+                    "`frame_size`: [width, height], each between 1 and 4096",
+                ));
+            }
+        }
+        match &req.plan {
+            PlanSpec::Name(name) => {
+                if !BUILTIN_PLANS.contains(&name.as_str()) {
+                    return Err(ApiError::invalid(format!(
+                        "unknown plan `{}` (expected one of {}, or an inline plan object)",
+                        name.chars().take(64).collect::<String>(),
+                        BUILTIN_PLANS.join(", ")
+                    )));
+                }
+                let (_, plan, _) = runner::solve_plan(&self.profile, name).map_err(run_error)?;
+                Ok(plan)
+            }
+            PlanSpec::Inline(p) => {
+                if let Some(n) = &p.name {
+                    if n.is_empty() || n.chars().count() > MAX_NAME {
+                        return Err(ApiError::invalid(format!(
+                            "plan `name` must have 1 to {MAX_NAME} characters"
+                        )));
+                    }
+                }
+                let value =
+                    serde_json::to_value(p).map_err(|e| ApiError::internal(e.to_string()))?;
+                plan::from_json_value(value, "inline plan", "custom")
+                    .map_err(|e| ApiError::invalid(e.to_string()))
+            }
+        }
+    }
+
+    fn conflict_active(inner: &Inner) -> Option<ApiError> {
+        inner.active.as_ref().map(|a| {
+            ApiError::conflict(format!(
+                "run {} is active ({}); pause/abort it or queue this run with POST /api/v1/queue",
+                a.id, a.state
+            ))
+        })
+    }
+
+    /// Starts a new run now; 409 if one is active.
+    pub async fn start_run(self: &Arc<Self>, req: RunRequest) -> Result<RunView, ApiError> {
+        let plan = self.validate(&req)?;
+        let _gate = self.start_gate.lock().await;
+        {
+            let inner = self.inner();
+            if inner.shutting_down {
+                return Err(ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    "the daemon is shutting down",
+                ));
+            }
+            if let Some(e) = Self::conflict_active(&inner) {
+                return Err(e);
+            }
+        }
+        let id = {
+            let inner = self.inner();
+            persist::new_run_id(&self.runs_dir, &req.sample, &plan.name, &|id| {
+                inner.runs.contains_key(id)
+            })
+        };
+        let root = self.runs_dir.join(&id);
+        let new = NewRun {
+            profile: self.profile.clone(),
+            profile_source: self.profile_source.clone(),
+            plan: plan.name.clone(),
+            sample: req.sample.clone(),
+            operator: req.operator.clone(),
+            notes: req.notes.clone(),
+            exposure_s: req.exposure_s,
+            frame_size: req.frame_size,
+            out: root.clone(),
+            simulated: self.config.sim,
+        };
+        let profile = self.profile.clone();
+        let clock = self.clock();
+        let faults = self.config.sim_faults.clone();
+        // Solving poses and creating the directory block; the rig's
+        // firmware tasks are spawned onto this runtime from there.
+        let rt = tokio::runtime::Handle::current();
+        let prepared = tokio::task::spawn_blocking(move || {
+            let solved = runner::solve_given_plan(&profile, plan)?;
+            rt.block_on(runner::prepare_new_solved(
+                new,
+                solved,
+                faults,
+                clock,
+                PausePolicy::Wait,
+            ))
+        })
+        .await
+        .map_err(|e| ApiError::internal(format!("preparing the run failed: {e}")))?
+        .map_err(run_error)?;
+        let (view, _) =
+            persist::load_run(&root, &id).map_err(|e| ApiError::internal(e.to_string()))?;
+        let view = self.install(view, prepared, "run_created");
+        Ok(view)
+    }
+
+    /// Makes a prepared engine the active run and spawns its supervisor.
+    fn install(self: &Arc<Self>, mut view: RunView, p: Prepared, kind: &str) -> RunView {
+        let rx = p.handle.events.subscribe();
+        view.state = RunState::Preparing.as_str().into();
+        view.reason = None;
+        view.active = true;
+        view.resumable = false;
+        view.steps_done = p.frames_done;
+        view.steps_total = p.frames_total;
+        view.physical_s = p.t_offset_s;
+        view.eta_physical_s = Some(p.estimate_s);
+        view.eta_wall_s = Some(p.estimate_s / self.speed());
+        let id = view.id.clone();
+        {
+            let mut inner = self.inner();
+            inner.active = Some(Active {
+                id: id.clone(),
+                handle: p.handle,
+                sim: p.sim.clone(),
+                state: RunState::Preparing,
+                end_estimate_s: p.t_offset_s + p.estimate_s,
+            });
+            inner.last_sim = p.sim;
+            inner.runs.insert(id.clone(), view.clone());
+        }
+        self.hub.publish(
+            Some(&id),
+            kind,
+            serde_json::to_value(&view).unwrap_or_default(),
+        );
+        let daemon = self.clone();
+        let task = tokio::spawn(supervise(daemon, id, p.engine, rx));
+        *lock(&self.supervisor) = Some(task);
+        // Prepared while the daemon began shutting down: leave it resumable.
+        let inner = self.inner();
+        if inner.shutting_down {
+            if let Some(a) = &inner.active {
+                let _ = a.handle.commands.try_send(Command::Detach);
+            }
+        }
+        drop(inner);
+        view
+    }
+
+    fn on_engine_event(&self, id: &str, ev: RunEvent) {
+        {
+            let mut inner = self.inner();
+            let speed = self.speed();
+            let end_estimate = inner
+                .active
+                .as_ref()
+                .filter(|a| a.id == id)
+                .map(|a| a.end_estimate_s);
+            if let EventKind::State { to, .. } = &ev.kind {
+                if let Some(a) = inner.active.as_mut().filter(|a| a.id == id) {
+                    a.state = *to;
+                }
+            }
+            if let Some(v) = inner.runs.get_mut(id) {
+                v.physical_s = ev.t_s;
+                v.updated_at = Some(crate::store::now_rfc3339());
+                match &ev.kind {
+                    EventKind::State { to, reason, .. } => {
+                        v.state = to.as_str().into();
+                        v.reason = reason.clone();
+                        if let Some(r) = reason.as_ref().filter(|r| persist::is_error_reason(r)) {
+                            v.last_error = Some(r.clone());
+                        }
+                    }
+                    EventKind::Retry { reason, .. } => {
+                        v.last_error = Some(reason.clone());
+                    }
+                    EventKind::Step {
+                        frames_done,
+                        frames_total,
+                        ..
+                    } => {
+                        v.steps_done = *frames_done;
+                        v.steps_total = *frames_total;
+                    }
+                    _ => {}
+                }
+                if let Some(end) = end_estimate {
+                    let left = (end - ev.t_s).max(0.0);
+                    v.eta_physical_s = Some(left);
+                    v.eta_wall_s = Some(left / speed);
+                }
+            }
+        }
+        self.hub.publish(
+            Some(id),
+            "engine",
+            serde_json::to_value(&ev).unwrap_or_default(),
+        );
+    }
+
+    fn on_run_ended(
+        self: &Arc<Self>,
+        id: &str,
+        result: Result<Result<Outcome, EngineError>, String>,
+    ) {
+        let root = self.runs_dir.join(id);
+        let reloaded = persist::load_run(&root, id).ok().map(|(v, _)| v);
+        let (shutting_down, view) = {
+            let mut inner = self.inner();
+            if inner.active.as_ref().is_some_and(|a| a.id == id) {
+                inner.active = None;
+            }
+            let before = inner.runs.get(id).cloned();
+            let mut view = reloaded.or_else(|| before.clone());
+            if let Some(v) = view.as_mut() {
+                v.active = false;
+                if v.last_error.is_none() {
+                    v.last_error = before.and_then(|b| b.last_error);
+                }
+                let err = match &result {
+                    Err(e) => Some(e.clone()),
+                    Ok(Err(e)) => Some(e.to_string()),
+                    Ok(Ok(_)) => None,
+                };
+                if let Some(e) = err {
+                    v.reason = Some(format!("engine error: {e}"));
+                    v.last_error = v.reason.clone();
+                    if !matches!(v.state.as_str(), "completed" | "aborted") {
+                        v.state = "failed".into();
+                        v.resumable = true;
+                    }
+                }
+                inner.runs.insert(id.to_string(), v.clone());
+            }
+            (inner.shutting_down, view)
+        };
+        if let Some(v) = &view {
+            tracing::info!(run = %id, state = %v.state, "run ended");
+        }
+        self.hub.publish(
+            Some(id),
+            "run_ended",
+            serde_json::to_value(&view).unwrap_or_default(),
+        );
+        if !shutting_down {
+            self.pump_queue();
+        }
+    }
+
+    /// Starts the next queued run if the rig is free.
+    pub fn pump_queue(self: &Arc<Self>) {
+        let daemon = self.clone();
+        tokio::spawn(async move {
+            let _ = daemon.start_next_queued().await;
+        });
+    }
+
+    async fn start_next_queued(self: &Arc<Self>) -> Option<RunView> {
+        loop {
+            let item = {
+                let mut inner = self.inner();
+                if inner.shutting_down || inner.active.is_some() || inner.queue.is_empty() {
+                    return None;
+                }
+                let item = inner.queue.remove(0);
+                self.save_queue_locked(&inner);
+                item
+            };
+            self.publish_queue();
+            match self.start_run(item.request.clone()).await {
+                Ok(v) => {
+                    tracing::info!(item = %item.id, run = %v.id, "queued run started");
+                    return Some(v);
+                }
+                Err(e)
+                    if e.status == StatusCode::CONFLICT
+                        || e.status == StatusCode::SERVICE_UNAVAILABLE =>
+                {
+                    // Someone else took the rig meanwhile, or the daemon is
+                    // stopping: put it back.
+                    let mut inner = self.inner();
+                    inner.queue.insert(0, item);
+                    self.save_queue_locked(&inner);
+                    return None;
+                }
+                Err(e) => {
+                    tracing::warn!(item = %item.id, "queued run could not start: {}", e.detail);
+                    self.hub.publish(
+                        None,
+                        "queue_item_failed",
+                        serde_json::json!({"item": item, "error": e.detail}),
+                    );
+                }
+            }
+        }
+    }
+
+    fn save_queue_locked(&self, inner: &Inner) {
+        if let Err(e) = persist::save_queue(&self.data_dir, &inner.queue) {
+            tracing::error!("cannot save the queue: {e}");
+        }
+    }
+
+    fn publish_queue(&self) {
+        let items = self.inner().queue.clone();
+        self.hub
+            .publish(None, "queue_changed", serde_json::json!({ "items": items }));
+    }
+
+    /// Adds a run to the queue; starts it at once if the rig is free.
+    pub async fn enqueue(
+        self: &Arc<Self>,
+        req: RunRequest,
+    ) -> Result<(QueueItem, Option<RunView>), ApiError> {
+        self.validate(&req)?;
+        let item = {
+            let mut inner = self.inner();
+            if inner.shutting_down {
+                return Err(ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    "the daemon is shutting down",
+                ));
+            }
+            if inner.queue.len() >= 1000 {
+                return Err(ApiError::conflict("the queue is full (1000 items)"));
+            }
+            inner.queue_seq += 1;
+            let ms = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_millis())
+                .unwrap_or(0);
+            let item = QueueItem {
+                id: format!("q{ms}-{}", inner.queue_seq),
+                request: req,
+                created_at: crate::store::now_rfc3339(),
+            };
+            inner.queue.push(item.clone());
+            persist::save_queue(&self.data_dir, &inner.queue)
+                .map_err(|e| ApiError::internal(format!("cannot save the queue: {e}")))?;
+            item
+        };
+        self.publish_queue();
+        let started = self.start_next_queued().await;
+        let started = started.filter(|_| !self.inner().queue.iter().any(|q| q.id == item.id));
+        Ok((item, started))
+    }
+
+    pub fn dequeue(&self, item: &str) -> Result<(), ApiError> {
+        {
+            let mut inner = self.inner();
+            let Some(pos) = inner.queue.iter().position(|q| q.id == item) else {
+                return Err(ApiError::not_found("no such queue item"));
+            };
+            inner.queue.remove(pos);
+            persist::save_queue(&self.data_dir, &inner.queue)
+                .map_err(|e| ApiError::internal(format!("cannot save the queue: {e}")))?;
+        }
+        self.publish_queue();
+        Ok(())
+    }
+
+    /// Pause, resume or abort. Returns whether the live engine got it.
+    pub async fn command(
+        self: &Arc<Self>,
+        id: &str,
+        cmd: Command,
+    ) -> Result<(bool, RunView), ApiError> {
+        let view = self
+            .view(id)
+            .ok_or_else(|| ApiError::not_found(format!("no run `{}`", short(id))))?;
+        let live = {
+            let inner = self.inner();
+            inner
+                .active
+                .as_ref()
+                .filter(|a| a.id == id)
+                .map(|a| (a.state, a.handle.commands.clone()))
+        };
+        if let Some((state, tx)) = live {
+            check_command(state, cmd).map_err(|r| ApiError::conflict(r.to_string()))?;
+            tx.try_send(cmd).map_err(|e| {
+                ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    format!("the engine is busy: {e}"),
+                )
+            })?;
+            return Ok((true, self.view(id).unwrap_or(view)));
+        }
+        // No live engine.
+        match cmd {
+            Command::Resume if view.resumable => {
+                let v = self.resume_from_disk(id).await?;
+                Ok((false, v))
+            }
+            Command::Abort if view.resumable => {
+                let root = self.runs_dir.join(id);
+                let physical_s = view.physical_s;
+                let record = crate::store::StateRecord {
+                    state: "aborted".into(),
+                    reason: Some("aborted by operator (no live engine)".into()),
+                    physical_s,
+                    updated_at: crate::store::now_rfc3339(),
+                };
+                let json = serde_json::to_vec_pretty(&record).unwrap_or_default();
+                crate::store::write_atomic(&root.join(crate::store::STATE_FILE), &json)
+                    .map_err(|e| ApiError::internal(e.to_string()))?;
+                let v = {
+                    let mut inner = self.inner();
+                    let v = inner.runs.get_mut(id).map(|v| {
+                        v.state = "aborted".into();
+                        v.reason = record.reason.clone();
+                        v.resumable = false;
+                        v.updated_at = Some(record.updated_at.clone());
+                        v.clone()
+                    });
+                    v.unwrap_or(view)
+                };
+                self.hub.publish(
+                    Some(id),
+                    "run_ended",
+                    serde_json::to_value(&v).unwrap_or_default(),
+                );
+                self.pump_queue();
+                Ok((false, v))
+            }
+            _ => Err(ApiError::conflict(format!(
+                "cannot {} run {} in state {}{}",
+                format!("{cmd:?}").to_lowercase(),
+                id,
+                view.state,
+                if view.state == "paused" || view.state == "interrupted" {
+                    ""
+                } else {
+                    " (no live engine)"
+                }
+            ))),
+        }
+    }
+
+    async fn resume_from_disk(self: &Arc<Self>, id: &str) -> Result<RunView, ApiError> {
+        let _gate = self.start_gate.lock().await;
+        {
+            let inner = self.inner();
+            if inner.shutting_down {
+                return Err(ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    "the daemon is shutting down",
+                ));
+            }
+            if let Some(e) = Self::conflict_active(&inner) {
+                return Err(e);
+            }
+        }
+        let root = self.runs_dir.join(id);
+        let clock = self.clock();
+        let r = root.clone();
+        // Resuming re-checks every frame's checksum: blocking work.
+        let rt = tokio::runtime::Handle::current();
+        let prepared = tokio::task::spawn_blocking(move || {
+            rt.block_on(runner::prepare_resume(
+                &r,
+                Vec::new(),
+                clock,
+                PausePolicy::Wait,
+            ))
+        })
+        .await
+        .map_err(|e| ApiError::internal(format!("resuming failed: {e}")))?
+        .map_err(|e| match e {
+            RunError::Store(crate::store::StoreError::Finished(..)) => {
+                ApiError::conflict(e.to_string())
+            }
+            other => run_error(other),
+        })?;
+        let view = self
+            .view(id)
+            .ok_or_else(|| ApiError::not_found("no such run"))?;
+        Ok(self.install(view, prepared, "run_resumed"))
+    }
+
+    /// Emergency stop of the active run's rig.
+    pub async fn estop(&self) -> (Option<String>, Option<crate::engine::StopReport>) {
+        let active = {
+            let inner = self.inner();
+            inner
+                .active
+                .as_ref()
+                .map(|a| (a.id.clone(), a.handle.clone()))
+        };
+        let Some((id, handle)) = active else {
+            self.hub.publish(
+                None,
+                "estop",
+                serde_json::json!({"run": null, "note": "no run active: nothing moving"}),
+            );
+            return (None, None);
+        };
+        let report = handle.emergency_stop().await;
+        tracing::warn!(run = %id, latency_s = report.latency_s, "emergency stop");
+        self.hub.publish(
+            Some(&id),
+            "estop",
+            serde_json::to_value(&report).unwrap_or_default(),
+        );
+        (Some(id), Some(report))
+    }
+
+    /// The schedule of a run (solved from its run.json, cached).
+    pub fn run_schedule(&self, id: &str) -> Result<Arc<Schedule>, ApiError> {
+        if let Some(s) = lock(&self.schedules).get(id) {
+            return Ok(s.clone());
+        }
+        let root = self
+            .run_root(id)
+            .ok_or_else(|| ApiError::not_found(format!("no run `{}`", short(id))))?;
+        let bytes = std::fs::read(root.join(crate::store::RUN_FILE))
+            .map_err(|e| ApiError::internal(e.to_string()))?;
+        let meta: crate::store::RunMeta =
+            serde_json::from_slice(&bytes).map_err(|e| ApiError::internal(e.to_string()))?;
+        let (_, _, schedule) =
+            runner::solve_given_plan(&meta.profile, meta.plan).map_err(run_error)?;
+        let schedule = Arc::new(schedule);
+        let mut cache = lock(&self.schedules);
+        if cache.len() >= 16 {
+            cache.clear();
+        }
+        cache.insert(id.to_string(), schedule.clone());
+        Ok(schedule)
+    }
+
+    pub fn cached_schedule(&self, key: &str) -> Option<Arc<Schedule>> {
+        lock(&self.schedules).get(key).cloned()
+    }
+
+    pub fn cache_schedule(&self, key: &str, s: Arc<Schedule>) {
+        let mut cache = lock(&self.schedules);
+        if cache.len() >= 32 {
+            cache.clear();
+        }
+        cache.insert(key.to_string(), s);
+    }
+
+    /// Stops taking work, detaches the active run (it is left paused and
+    /// resumable), waits for its engine to end, then ends the event streams.
+    pub async fn shutdown(&self) {
+        let commands = {
+            let mut inner = self.inner();
+            inner.shutting_down = true;
+            inner
+                .active
+                .as_ref()
+                .map(|a| (a.id.clone(), a.handle.commands.clone()))
+        };
+        if let Some((id, tx)) = commands {
+            tracing::info!(run = %id, "shutting down: detaching the active run (resumable)");
+            let _ = tx.send(Command::Detach).await;
+        }
+        // A run being prepared right now is installed (and detached, see
+        // `install`) before this gate opens; then its engine is awaited.
+        let _gate = self.start_gate.lock().await;
+        let task = lock(&self.supervisor).take();
+        if let Some(task) = task {
+            if tokio::time::timeout(Duration::from_secs(60), task)
+                .await
+                .is_err()
+            {
+                tracing::error!("the engine did not stop within 60 s; exiting anyway (the journal is fsynced per frame)");
+            }
+        }
+        let _ = self.shutdown_tx.send(true);
+    }
+}
+
+fn short(id: &str) -> String {
+    id.chars().take(64).collect()
+}
+
+async fn supervise(
+    daemon: Arc<Daemon>,
+    id: String,
+    engine: crate::engine::Engine,
+    mut rx: broadcast::Receiver<RunEvent>,
+) {
+    let mut run = tokio::spawn(engine.run());
+    let result = loop {
+        tokio::select! {
+            ev = rx.recv() => match ev {
+                Ok(ev) => daemon.on_engine_event(&id, ev),
+                Err(broadcast::error::RecvError::Lagged(n)) => {
+                    tracing::warn!(run = %id, missed = n, "event forwarder lagged");
+                }
+                Err(broadcast::error::RecvError::Closed) => break (&mut run).await,
+            },
+            res = &mut run => break res,
+        }
+    };
+    while let Ok(ev) = rx.try_recv() {
+        daemon.on_engine_event(&id, ev);
+    }
+    let result = result.map_err(|e| e.to_string());
+    if let Ok(Err(e)) = &result {
+        tracing::error!(run = %id, "engine error: {e}");
+    }
+    daemon.on_run_ended(&id, result);
+}

@@ -1,0 +1,758 @@
+//! The dashboard in a real browser: the built `rigd` binary serves a
+//! simulated rig, Debian's chromedriver drives headless Chromium over
+//! WebDriver (fantoccini), and the test works the dashboard like an operator:
+//! token dialog, start a small run, watch progress and the hemisphere plot
+//! fill, pause, resume, and see the run completed in the history. It saves a
+//! screenshot to `target/browser-test/dashboard.png`.
+//!
+//! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver`; `scripts/test.sh`
+//! installs them (Debian packages `chromium` and `chromium-driver`). Without
+//! them this test fails: it never skips.
+
+mod common;
+
+use std::fs::File;
+use std::net::TcpListener;
+use std::os::unix::process::CommandExt;
+use std::panic::AssertUnwindSafe;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use fantoccini::{Client, ClientBuilder, Locator};
+use futures::FutureExt;
+use serde_json::{json, Value};
+
+const CHROMIUM: &str = "/usr/bin/chromium";
+const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
+/// Physical seconds per wall second: the run below (64 images, about 940 s
+/// physical with homing) takes about 16 s.
+const SIM_SPEED: &str = "60";
+/// 8 directions, all paired with all: 64 images, 8 of them infeasible on
+/// the Bonn rig (lamp and camera too close).
+const DIRECTIONS: &str = "0 0\n30 0\n30 120\n30 240\n60 60\n60 180\n60 300\n80 0";
+const IMAGES: u64 = 64;
+
+/// Kills what the test started, also when an assertion fails: each child
+/// runs in its own process group and the whole group is killed (so
+/// Chromium's processes go with chromedriver).
+struct Procs {
+    children: Vec<(&'static str, Child)>,
+}
+
+impl Procs {
+    fn spawn(&mut self, name: &'static str, cmd: &mut Command, log: &Path) {
+        let out = File::create(log).unwrap_or_else(|e| panic!("{}: {e}", log.display()));
+        let err = out.try_clone().expect("clone log file");
+        let child = cmd
+            .stdin(Stdio::null())
+            .stdout(out)
+            .stderr(err)
+            .process_group(0)
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start {name}: {e}"));
+        self.children.push((name, child));
+    }
+}
+
+impl Procs {
+    /// SIGTERM (graceful shutdown), then SIGKILL after 15 s.
+    fn stop(&mut self, name: &str) {
+        let i = self
+            .children
+            .iter()
+            .position(|(n, _)| *n == name)
+            .unwrap_or_else(|| panic!("{name} is not running"));
+        let (_, mut child) = self.children.remove(i);
+        // SAFETY: signals a child this test started.
+        unsafe {
+            libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
+        }
+        let deadline = Instant::now() + Duration::from_secs(15);
+        while child.try_wait().ok().flatten().is_none() {
+            if Instant::now() > deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("{name} did not stop within 15 s of SIGTERM");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+}
+
+impl Drop for Procs {
+    fn drop(&mut self) {
+        for (_, child) in self.children.iter_mut().rev() {
+            let pid = child.id() as libc::pid_t;
+            // SAFETY: signals the process group this test created.
+            unsafe {
+                libc::kill(-pid, libc::SIGKILL);
+            }
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port()
+}
+
+fn out_dir() -> PathBuf {
+    // CARGO_TARGET_TMPDIR is <target>/tmp.
+    let tmp = Path::new(env!("CARGO_TARGET_TMPDIR"));
+    let dir = tmp.parent().unwrap_or(tmp).join("browser-test");
+    std::fs::create_dir_all(&dir).expect("create target/browser-test");
+    dir
+}
+
+async fn wait_http(client: &reqwest::Client, url: &str, what: &str, secs: u64) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        if let Ok(r) = client.get(url).send().await {
+            if r.status().is_success() {
+                return;
+            }
+        }
+        assert!(
+            Instant::now() < deadline,
+            "timed out after {secs} s waiting for {what} ({url})"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// Evaluates `script` in the page.
+async fn js(c: &Client, script: &str) -> Value {
+    c.execute(script, vec![])
+        .await
+        .unwrap_or_else(|e| panic!("script failed: {e}\n{script}"))
+}
+
+/// Polls `script` until `ok` holds for its value.
+async fn wait_js(
+    c: &Client,
+    what: &str,
+    secs: u64,
+    script: &str,
+    ok: impl Fn(&Value) -> bool,
+) -> Value {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    loop {
+        let v = js(c, script).await;
+        if ok(&v) {
+            return v;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "timed out after {secs} s waiting for {what}; last value: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+const PROGRESS: &str = "return Number(document.getElementById('progress').value)";
+const CONN: &str = "return document.getElementById('conn').dataset.state";
+const RUN_STATE: &str = "return document.getElementById('run-state').textContent";
+const FILLED: &str = "return document.querySelectorAll(\
+    '#hemisphere [data-testid=hemi-marker][data-state=done], \
+     #hemisphere [data-testid=hemi-marker][data-state=partial]').length";
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dashboard_drives_a_run_in_chromium() {
+    for bin in [CHROMIUM, CHROMEDRIVER] {
+        assert!(
+            Path::new(bin).exists(),
+            "{bin} is missing: run scripts/test.sh, which installs Debian's chromium and \
+             chromium-driver (apt-get install chromium chromium-driver)"
+        );
+    }
+    let started = Instant::now();
+    let out = out_dir();
+    let data = tempfile::tempdir().expect("tempdir");
+    let profile_dir = tempfile::tempdir().expect("tempdir");
+    let mut procs = Procs { children: vec![] };
+
+    let port = free_port();
+    let base = format!("http://127.0.0.1:{port}");
+    spawn_daemon(&mut procs, data.path(), port, &out.join("rigd.log"));
+    let driver_port = free_port();
+    procs.spawn(
+        "chromedriver",
+        Command::new(CHROMEDRIVER).arg(format!("--port={driver_port}")),
+        &out.join("chromedriver.log"),
+    );
+    let http = reqwest::Client::new();
+    wait_http(&http, &format!("{base}/api/v1/health"), "the daemon", 30).await;
+    wait_http(
+        &http,
+        &format!("http://127.0.0.1:{driver_port}/status"),
+        "chromedriver",
+        30,
+    )
+    .await;
+    let token = std::fs::read_to_string(data.path().join("token")).expect("token file");
+    let token = token.trim().to_string();
+
+    let mut caps = serde_json::Map::new();
+    caps.insert(
+        "goog:chromeOptions".into(),
+        json!({
+            "binary": CHROMIUM,
+            "args": [
+                "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--disable-quic", "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync", "--window-size=1400,1500",
+                format!("--user-data-dir={}", profile_dir.path().display()),
+            ],
+        }),
+    );
+    let connector = hyper_util::client::legacy::connect::HttpConnector::new();
+    let client = tokio::time::timeout(
+        Duration::from_secs(60),
+        ClientBuilder::new(connector)
+            .capabilities(caps)
+            .connect(&format!("http://127.0.0.1:{driver_port}")),
+    )
+    .await
+    .expect("timed out after 60 s starting a Chromium session")
+    .expect("WebDriver session with Chromium");
+
+    let ctx = Ctx {
+        base: &base,
+        token: &token,
+        http: &http,
+        out: &out,
+        data: data.path(),
+        port,
+    };
+    let result = AssertUnwindSafe(operate(&client, &ctx, &mut procs))
+        .catch_unwind()
+        .await;
+    // Screenshot of whatever the page shows, also after a failure.
+    if result.is_err() {
+        if let Ok(png) = client.screenshot().await {
+            let _ = std::fs::write(out.join("dashboard-failure.png"), png);
+        }
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(10), client.close()).await;
+    drop(procs);
+    if let Err(panic) = result {
+        std::panic::resume_unwind(panic);
+    }
+    eprintln!("browser test: {:.1} s", started.elapsed().as_secs_f64());
+}
+
+fn spawn_daemon(procs: &mut Procs, data: &Path, port: u16, log: &Path) {
+    procs.spawn(
+        "rigd",
+        Command::new(env!("CARGO_BIN_EXE_rigd")).args([
+            "serve",
+            "--data",
+            data.to_str().expect("utf-8 path"),
+            "--listen",
+            &format!("127.0.0.1:{port}"),
+            "--sim-speed",
+            SIM_SPEED,
+        ]),
+        log,
+    );
+}
+
+struct Ctx<'a> {
+    base: &'a str,
+    token: &'a str,
+    http: &'a reqwest::Client,
+    out: &'a Path,
+    data: &'a Path,
+    port: u16,
+}
+
+async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
+    let (base, token, http, out) = (ctx.base, ctx.token, ctx.http, ctx.out);
+    c.goto(&format!("{base}/"))
+        .await
+        .expect("open the dashboard");
+    assert_eq!(c.title().await.expect("title"), "rigd dashboard");
+
+    // No token stored yet: the dashboard asks for it. A wrong one first.
+    enter_token(c, "not-the-token").await;
+    wait_js(
+        c,
+        "the live event stream",
+        10,
+        "return document.getElementById('conn').dataset.state",
+        |v| v == "live",
+    )
+    .await;
+    // The rig panel lists the simulated Bonn rig's devices.
+    wait_js(
+        c,
+        "the rig's devices",
+        10,
+        "return document.querySelectorAll('#rig tbody tr').length",
+        |v| v.as_u64() == Some(4),
+    )
+    .await;
+    // The plan select holds the built-in plans (h1 fits the Bonn rig).
+    wait_js(
+        c,
+        "the plan list",
+        10,
+        "return [...document.querySelectorAll('#plan option')].map(o => o.value)",
+        |v| {
+            v.as_array()
+                .is_some_and(|a| a.contains(&json!("h1")) && a.contains(&json!("__custom")))
+        },
+    )
+    .await;
+
+    // A small custom run.
+    c.find(Locator::Id("sample"))
+        .await
+        .expect("#sample")
+        .send_keys("felt-browser")
+        .await
+        .expect("sample");
+    c.find(Locator::Id("plan"))
+        .await
+        .expect("#plan")
+        .select_by_value("__custom")
+        .await
+        .expect("choose custom directions");
+    let dirs = c
+        .find(Locator::Id("custom-dirs"))
+        .await
+        .expect("#custom-dirs");
+    assert!(
+        dirs.is_displayed().await.expect("displayed"),
+        "the directions field appears for a custom plan"
+    );
+    dirs.clear().await.expect("clear");
+    dirs.send_keys(DIRECTIONS).await.expect("directions");
+    c.find(Locator::Id("frame-w"))
+        .await
+        .expect("#frame-w")
+        .send_keys("32")
+        .await
+        .expect("w");
+    c.find(Locator::Id("frame-h"))
+        .await
+        .expect("#frame-h")
+        .send_keys("24")
+        .await
+        .expect("h");
+    c.find(Locator::Id("operator"))
+        .await
+        .expect("#operator")
+        .send_keys("webdriver")
+        .await
+        .expect("op");
+    c.find(Locator::Id("start"))
+        .await
+        .expect("#start")
+        .click()
+        .await
+        .expect("click Start");
+    // The daemon answers 401: the dialog asks again; with the right token
+    // the start goes through.
+    let why = wait_js(
+        c,
+        "the token dialog after a 401",
+        10,
+        "const d = document.getElementById('token-dialog'); \
+         return d.open ? document.getElementById('token-why').textContent : null",
+        |v| v.is_string(),
+    )
+    .await;
+    assert!(
+        why.as_str().is_some_and(|t| t.contains("401")),
+        "dialog says: {why}"
+    );
+    enter_token(c, token).await;
+
+    // The run's total (or the form's error, if the start failed).
+    let total = wait_js(
+        c,
+        "the run's progress bar (frames total)",
+        15,
+        "const e = document.getElementById('form-error'); \
+         return e.hidden ? Number(document.getElementById('progress').dataset.total || 0) : e.textContent",
+        |v| v.as_u64() == Some(IMAGES) || v.is_string(),
+    )
+    .await;
+    assert_eq!(
+        total,
+        json!(IMAGES),
+        "the run did not start (form error shown)"
+    );
+    let run_id = js(
+        c,
+        "return document.querySelector('#history tbody tr').dataset.runId",
+    )
+    .await;
+    let run_id = run_id.as_str().expect("run id in the history").to_string();
+    assert!(run_id.contains("felt-browser"), "history row {run_id}");
+
+    // Progress and the hemisphere plot advance.
+    let p1 = wait_js(c, "the first frames", 30, PROGRESS, |v| {
+        v.as_u64().is_some_and(|n| n >= 2)
+    })
+    .await;
+    let f1 = js(c, FILLED).await.as_u64().expect("marker count");
+    assert!(f1 >= 1, "a captured direction is filled after {p1} frames");
+    let p1 = p1.as_u64().expect("progress");
+    wait_js(c, "the progress bar to advance", 30, PROGRESS, |v| {
+        v.as_u64().is_some_and(|n| n >= p1 + 10)
+    })
+    .await;
+    let f2 = wait_js(c, "more hemisphere markers filled", 30, FILLED, |v| {
+        v.as_u64().is_some_and(|n| n > f1)
+    })
+    .await;
+    let current = js(
+        c,
+        "return document.querySelectorAll('#hemisphere [data-testid=hemi-current]').length",
+    )
+    .await;
+    assert_eq!(
+        current,
+        json!(2),
+        "the current light and view are highlighted"
+    );
+    let crosses = js(
+        c,
+        "return document.querySelectorAll('#hemisphere [data-testid=hemi-infeasible]').length",
+    )
+    .await;
+    assert!(
+        crosses.as_u64().is_some_and(|n| n > 0),
+        "infeasible views are marked"
+    );
+    let eta = js(
+        c,
+        "return document.getElementById('progress-text').textContent",
+    )
+    .await;
+    assert!(
+        eta.as_str()
+            .is_some_and(|t| t.contains("ETA") && t.contains("physical")),
+        "progress text: {eta}"
+    );
+    eprintln!("hemisphere: {f1} then {f2} markers filled");
+    let png = c.screenshot().await.expect("screenshot");
+    std::fs::write(out.join("dashboard-running.png"), png).expect("write the screenshot");
+
+    // Pause: the state shows paused and the frames stop.
+    wait_js(
+        c,
+        "the Pause button to be enabled",
+        10,
+        "return !document.getElementById('pause').disabled",
+        |v| v == &json!(true),
+    )
+    .await;
+    c.find(Locator::Id("pause"))
+        .await
+        .expect("#pause")
+        .click()
+        .await
+        .expect("click Pause");
+    wait_js(c, "the run to show paused", 15, RUN_STATE, |v| {
+        v == "paused"
+    })
+    .await;
+    let held = js(c, PROGRESS).await.as_u64().expect("progress");
+    assert!(
+        held < IMAGES,
+        "the run finished before it could be paused ({held} frames)"
+    );
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    assert_eq!(
+        js(c, PROGRESS).await.as_u64(),
+        Some(held),
+        "frames kept coming while paused"
+    );
+    assert_eq!(js(c, RUN_STATE).await, json!("paused"));
+    let (_, api_run) = get_json(http, &format!("{base}/api/v1/runs/{run_id}")).await;
+    assert_eq!(
+        api_run["state"],
+        json!("paused"),
+        "the daemon agrees: {api_run}"
+    );
+
+    // Resume: frames come again, then the run completes.
+    wait_js(
+        c,
+        "the Resume button to be enabled",
+        10,
+        "return !document.getElementById('resume').disabled",
+        |v| v == &json!(true),
+    )
+    .await;
+    c.find(Locator::Id("resume"))
+        .await
+        .expect("#resume")
+        .click()
+        .await
+        .expect("click Resume");
+    wait_js(c, "frames after resuming", 30, PROGRESS, |v| {
+        v.as_u64().is_some_and(|n| n > held)
+    })
+    .await;
+    let row = format!("#history tr[data-run-id='{run_id}']");
+    wait_js(
+        c,
+        "the run completed in the history",
+        60,
+        &format!("const r = document.querySelector(\"{row}\"); return r ? r.dataset.state : null"),
+        |v| v == "completed",
+    )
+    .await;
+    wait_js(c, "the full progress bar", 10, PROGRESS, |v| {
+        v.as_u64() == Some(IMAGES)
+    })
+    .await;
+    wait_js(
+        c,
+        "every hemisphere marker filled",
+        10,
+        "return document.querySelectorAll('#hemisphere [data-testid=hemi-marker]:not([data-state=done])').length",
+        |v| v.as_u64() == Some(0),
+    )
+    .await;
+    let links = js(
+        c,
+        &format!(
+            "return [...document.querySelectorAll(\"{row} a\")].map(a => a.getAttribute('href'))"
+        ),
+    )
+    .await;
+    let manifest = format!("/api/v1/runs/{run_id}/manifest");
+    assert!(
+        links
+            .as_array()
+            .is_some_and(|a| a.contains(&json!(manifest))),
+        "a manifest link in the history row: {links}"
+    );
+    let (status, m) = get_json(http, &format!("{base}{manifest}")).await;
+    assert_eq!(status, 200, "manifest: {m}");
+    assert_eq!(m["state"], json!("completed"));
+    assert_eq!(m["frames_written"], json!(IMAGES));
+    // The latest frame's preview is shown.
+    let last_preview = format!("/api/v1/runs/{run_id}/frames/{}/preview", IMAGES - 1);
+    wait_js(
+        c,
+        "the last frame's preview",
+        10,
+        "const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0 && i.getAttribute('src')",
+        |v| v.as_str() == Some(last_preview.as_str()),
+    )
+    .await;
+    // The rig is idle again.
+    wait_js(
+        c,
+        "the rig to show idle",
+        10,
+        "return document.getElementById('rig-state').textContent",
+        |v| v == "rig idle",
+    )
+    .await;
+    let log_lines = js(c, "return document.querySelectorAll('#log li').length").await;
+    assert!(
+        log_lines.as_u64().is_some_and(|n| n > 10),
+        "event log lines: {log_lines}"
+    );
+
+    // The screenshot.
+    let png = c.screenshot().await.expect("screenshot");
+    let path = out.join("dashboard.png");
+    std::fs::write(&path, &png).expect("write the screenshot");
+    check_png(&png);
+    eprintln!("screenshot: {}", path.display());
+
+    // The daemon restarts: the indicator shows the lost stream, the page
+    // reconnects by itself and refetches its state. Event ids start again
+    // from 1, so a run started now over the API (not from the page) must
+    // still reach the page live.
+    procs.stop("rigd");
+    wait_js(c, "the indicator to show the lost stream", 10, CONN, |v| {
+        v == "reconnecting" || v == "offline"
+    })
+    .await;
+    spawn_daemon(procs, ctx.data, ctx.port, &out.join("rigd-restarted.log"));
+    wait_http(
+        http,
+        &format!("{base}/api/v1/health"),
+        "the restarted daemon",
+        30,
+    )
+    .await;
+    wait_js(c, "the stream to be live again", 20, CONN, |v| v == "live").await;
+    let body = json!({
+        "sample": "felt-restart",
+        "plan": {"directions": [
+            {"theta_deg": 0, "phi_deg": 0}, {"theta_deg": 30, "phi_deg": 0},
+            {"theta_deg": 30, "phi_deg": 120}, {"theta_deg": 30, "phi_deg": 240},
+            {"theta_deg": 60, "phi_deg": 60}, {"theta_deg": 60, "phi_deg": 180},
+            {"theta_deg": 60, "phi_deg": 300}, {"theta_deg": 80, "phi_deg": 0},
+        ]},
+        "frame_size": [32, 24],
+    });
+    let r = http
+        .post(format!("{base}/api/v1/runs"))
+        .bearer_auth(token)
+        .json(&body)
+        .send()
+        .await
+        .expect("POST /runs");
+    assert_eq!(r.status().as_u16(), 201, "start a run over the API");
+    let run2: Value = r.json().await.expect("run JSON");
+    let id2 = run2["id"].as_str().expect("run id").to_string();
+    wait_js(
+        c,
+        "the run started over the API to show running after the reconnect",
+        20,
+        "return [document.getElementById('run-id').textContent, document.getElementById('run-state').textContent, \
+         Number(document.getElementById('progress').value)]",
+        |v| {
+            v[0].as_str().is_some_and(|t| t.contains(&id2)) && v[1] == "running" && v[2].as_u64().is_some_and(|n| n >= 1)
+        },
+    )
+    .await;
+
+    // EMERGENCY STOP: the run pauses (no confirmation asked).
+    c.find(Locator::Id("estop"))
+        .await
+        .expect("#estop")
+        .click()
+        .await
+        .expect("click EMERGENCY STOP");
+    wait_js(
+        c,
+        "the run to show paused after the emergency stop",
+        15,
+        RUN_STATE,
+        |v| v == "paused",
+    )
+    .await;
+    let (_, api_run) = get_json(http, &format!("{base}/api/v1/runs/{id2}")).await;
+    assert_eq!(
+        api_run["state"],
+        json!("paused"),
+        "the daemon agrees: {api_run}"
+    );
+
+    // Abort asks for confirmation; accepted, the run ends aborted.
+    wait_js(
+        c,
+        "the Abort button to be enabled",
+        10,
+        "return !document.getElementById('abort').disabled",
+        |v| v == &json!(true),
+    )
+    .await;
+    c.find(Locator::Id("abort"))
+        .await
+        .expect("#abort")
+        .click()
+        .await
+        .expect("click Abort");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let question = loop {
+        match c.get_alert_text().await {
+            Ok(t) => break t,
+            Err(_) if Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(100)).await
+            }
+            Err(e) => panic!("no confirmation asked before aborting: {e}"),
+        }
+    };
+    assert!(question.contains("Abort run"), "confirmation: {question}");
+    c.accept_alert().await.expect("confirm the abort");
+    let row2 = format!("#history tr[data-run-id='{id2}']");
+    wait_js(
+        c,
+        "the aborted run in the history",
+        20,
+        &format!("const r = document.querySelector(\"{row2}\"); return r ? r.dataset.state : null"),
+        |v| v == "aborted",
+    )
+    .await;
+    let rows = js(
+        c,
+        "return document.querySelectorAll('#history tbody tr').length",
+    )
+    .await;
+    assert_eq!(rows, json!(2), "both runs in the history");
+}
+
+/// Waits for the token dialog, types `token` and saves it.
+async fn enter_token(c: &Client, token: &str) {
+    wait_js(
+        c,
+        "the token dialog",
+        10,
+        "return document.getElementById('token-dialog').open",
+        |v| v == &json!(true),
+    )
+    .await;
+    let input = c
+        .find(Locator::Id("token-input"))
+        .await
+        .expect("#token-input");
+    input.clear().await.expect("clear the token field");
+    input.send_keys(token).await.expect("type the token");
+    c.find(Locator::Id("token-save"))
+        .await
+        .expect("#token-save")
+        .click()
+        .await
+        .expect("save the token");
+    wait_js(
+        c,
+        "the token stored and the dialog closed",
+        10,
+        "return !document.getElementById('token-dialog').open && localStorage.getItem('rigd-token')",
+        |v| v.as_str() == Some(token),
+    )
+    .await;
+}
+
+async fn get_json(http: &reqwest::Client, url: &str) -> (u16, Value) {
+    let r = http
+        .get(url)
+        .send()
+        .await
+        .unwrap_or_else(|e| panic!("GET {url}: {e}"));
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+/// A real picture: a PNG of the window's size with many colours.
+fn check_png(png: &[u8]) {
+    assert!(png.len() > 20_000, "screenshot only {} bytes", png.len());
+    let decoder = png::Decoder::new(png);
+    let mut reader = decoder.read_info().expect("screenshot is a PNG");
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).expect("PNG frame");
+    assert!(
+        info.width >= 1000 && info.height >= 800,
+        "screenshot {}x{}",
+        info.width,
+        info.height
+    );
+    let bpp = info.line_size / info.width as usize;
+    let mut colours = std::collections::HashSet::new();
+    for px in buf[..info.buffer_size()].chunks(bpp).step_by(7) {
+        colours.insert(px.to_vec());
+    }
+    assert!(
+        colours.len() > 100,
+        "screenshot has only {} colours",
+        colours.len()
+    );
+}
