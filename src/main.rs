@@ -582,7 +582,7 @@ async fn drive(p: runner::Prepared, progress: Progress) -> anyhow::Result<ExitCo
     let interrupted = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
     let flag = interrupted.clone();
     let signals = tokio::spawn(async move {
-        wait_for_signal().await;
+        rigd::server::wait_for_signal().await;
         flag.store(true, std::sync::atomic::Ordering::SeqCst);
         eprintln!("interrupted: finishing the frame in flight, then stopping (resumable)");
         let _ = commands.send(Command::Detach).await;
@@ -657,22 +657,7 @@ fn sim_serve(
         println!("# ready; Ctrl-C stops");
         use std::io::Write;
         let _ = std::io::stdout().flush();
-        wait_for_signal().await;
+        rigd::server::wait_for_signal().await;
         anyhow::Ok(ExitCode::SUCCESS)
     })
-}
-
-async fn wait_for_signal() {
-    #[cfg(unix)]
-    {
-        use tokio::signal::unix::{signal, SignalKind};
-        if let Ok(mut term) = signal(SignalKind::terminate()) {
-            tokio::select! {
-                _ = tokio::signal::ctrl_c() => {}
-                _ = term.recv() => {}
-            }
-            return;
-        }
-    }
-    let _ = tokio::signal::ctrl_c().await;
 }

@@ -79,13 +79,18 @@ pub fn solve_plan(
     Ok((solver, plan, schedule))
 }
 
-fn check_exposure(exposure_s: Option<f64>) -> Result<(), RunError> {
-    match exposure_s {
-        Some(e) if !(e.is_finite() && e > 0.0 && e <= 3600.0) => Err(RunError::Invalid(format!(
-            "exposure {e} s: expected a positive number of seconds up to 3600"
-        ))),
-        _ => Ok(()),
+fn check_request(req: &NewRun) -> Result<(), RunError> {
+    if let Some(e) = req.exposure_s {
+        if !(e.is_finite() && e > 0.0 && e <= 3600.0) {
+            return Err(RunError::Invalid(format!(
+                "exposure {e} s: expected a positive number of seconds up to 3600"
+            )));
+        }
     }
+    if req.sample.trim().is_empty() {
+        return Err(RunError::Invalid("the sample name is empty".into()));
+    }
+    Ok(())
 }
 
 /// Connects the rig and creates the run directory and an engine.
@@ -95,10 +100,7 @@ pub async fn prepare_new(
     clock: Clock,
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
-    check_exposure(req.exposure_s)?;
-    if req.sample.trim().is_empty() {
-        return Err(RunError::Invalid("the sample name is empty".into()));
-    }
+    check_request(&req)?;
     let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan)?;
     create(req, solver, plan, schedule, faults, clock, policy).await
 }
@@ -122,10 +124,7 @@ pub async fn prepare_new_solved(
     clock: Clock,
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
-    check_exposure(req.exposure_s)?;
-    if req.sample.trim().is_empty() {
-        return Err(RunError::Invalid("the sample name is empty".into()));
-    }
+    check_request(&req)?;
     let (solver, plan, schedule) = solved;
     create(req, solver, plan, schedule, faults, clock, policy).await
 }

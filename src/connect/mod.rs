@@ -302,6 +302,12 @@ pub async fn build_rig(
     Ok(rig)
 }
 
+/// True when a call failed because the link is gone (so the next call
+/// must re-open it).
+fn lost_link<T>(r: &Result<T, DeviceError>) -> bool {
+    matches!(r, Err(e) if e.kind == ErrorKind::Disconnected)
+}
+
 /// Re-opens a line device's link after it was lost.
 struct Relink {
     name: String,
@@ -331,11 +337,7 @@ impl Relink {
     }
 
     fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
-        if let Err(e) = &r {
-            if e.kind == ErrorKind::Disconnected {
-                self.lost = true;
-            }
-        }
+        self.lost |= lost_link(&r);
         r
     }
 }
@@ -439,10 +441,8 @@ impl Bus {
     }
 
     fn note<T>(&self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
-        if let Err(e) = &r {
-            if e.kind == ErrorKind::Disconnected {
-                self.lost.store(true, Ordering::SeqCst);
-            }
+        if lost_link(&r) {
+            self.lost.store(true, Ordering::SeqCst);
         }
         r
     }
@@ -526,11 +526,7 @@ impl LinkedCamera {
     }
 
     fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
-        if let Err(e) = &r {
-            if e.kind == ErrorKind::Disconnected {
-                self.lost = true;
-            }
-        }
+        self.lost |= lost_link(&r);
         r
     }
 }

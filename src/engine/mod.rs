@@ -493,14 +493,13 @@ impl Engine {
         }
         let timing = Timing::new(&self.profile, self.meta.exposure_s);
         let mut at = timing.home_setpoints();
-        // Every lamp off but the first one needed: a known state after a crash.
+        // Every lamp off, the needed one too: a known state after a crash,
+        // and a lamp whose ballast tripped is struck again, not trusted.
         let lamp = first
             .map(|t| self.schedule.triggers[t].setpoints.lamp.clone())
             .unwrap_or_default();
         for (name, l) in lamps.iter_mut() {
-            if *name != lamp {
-                deadline(clock, name, DEADLINE_SLACK_S, l.set(false)).await?;
-            }
+            deadline(clock, name, DEADLINE_SLACK_S, l.set(false)).await?;
         }
         switch_lamp(clock, &timing, lamps, "", &lamp).await?;
         at.lamp = lamp;

@@ -190,9 +190,12 @@ impl ModbusModule {
         if let Some(l) = st.lamps.get_mut(k) {
             if on && !l.on {
                 l.on_at_s = now;
-            } else if !on && l.on {
-                l.burned_s += now - l.on_at_s;
-                // Switching off resets the ballast, as on real HMI supplies.
+            } else if !on {
+                if l.on {
+                    l.burned_s += now - l.on_at_s;
+                }
+                // Writing off resets the ballast's fault latch, as on real
+                // HMI supplies (also when a failed strike left it dark).
                 l.fault = false;
             }
             l.on = on;
