@@ -305,6 +305,18 @@ pub struct SimSettings {
     /// default so a full capture is quick (the real sensors are far larger).
     #[serde(default = "default_sim_frame")]
     pub frame_size: [u32; 2],
+    /// Faults the simulated firmware inject, in `--sim-fault` syntax
+    /// (`DEVICE:OP:N:KIND[:sticky]`), on top of those given on the command
+    /// line.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<String>,
+}
+
+impl SimSettings {
+    /// The profile's fault rules, parsed (validation guarantees they parse).
+    pub fn fault_rules(&self) -> Vec<rigd_sim::FaultRule> {
+        self.faults.iter().filter_map(|f| f.parse().ok()).collect()
+    }
 }
 
 fn default_sim_frame() -> [u32; 2] {
@@ -315,6 +327,7 @@ impl Default for SimSettings {
     fn default() -> Self {
         SimSettings {
             frame_size: default_sim_frame(),
+            faults: Vec::new(),
         }
     }
 }
@@ -412,6 +425,19 @@ impl Profile {
     fn validate(&self) -> Result<(), (String, String)> {
         for (name, dev) in &self.devices {
             dev.validate(&format!("devices.{name}"))?;
+        }
+        for (i, f) in self.sim.faults.iter().enumerate() {
+            let rule: rigd_sim::FaultRule =
+                f.parse().map_err(|e| (format!("sim.faults[{i}]"), e))?;
+            if !self.devices.contains_key(&rule.device) && !rule.device.starts_with("modbus-") {
+                return Err((
+                    format!("sim.faults[{i}]"),
+                    format!(
+                        "names device `{}`, but there is no [devices.{}]",
+                        rule.device, rule.device
+                    ),
+                ));
+            }
         }
         let want = |key: &str, name: &str, kind: DeviceKind| -> Result<(), (String, String)> {
             match self.devices.get(name) {

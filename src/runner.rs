@@ -155,6 +155,12 @@ async fn create(
         started_at: now_rfc3339(),
     };
     // The rig first: a rig that does not answer leaves no run directory.
+    let mut faults = faults;
+    if meta.simulated {
+        // The profile's own faults arm when a run starts (a resumed run gets
+        // only those of its command line: the profile's have had their turn).
+        faults.splice(0..0, meta.profile.sim.fault_rules());
+    }
     let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
     let dir = RunDir::create(&req.out, &meta)?;
     Ok(assemble(

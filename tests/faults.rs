@@ -280,3 +280,73 @@ fn command_line_pauses_on_a_fault_and_resume_completes() {
     );
     assert_complete_run(&dir, 6561);
 }
+
+#[test]
+fn faults_configured_in_the_profile_fire_once_and_resume_completes() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let bonn = std::fs::read_to_string(common::repo_file(
+        "rig-profiles/bonn-gonioreflectometer.toml",
+    ))
+    .expect("profile");
+    assert!(bonn.contains("[sim]\n"));
+    let with_fault = bonn.replace(
+        "[sim]\n",
+        "[sim]\nfaults = [\"camera:expose:150:alarm=shutter jammed\"]\n",
+    );
+    let profile = tmp.path().join("faulty.toml");
+    std::fs::write(&profile, with_fault).expect("write");
+    let dir = tmp.path().join("run");
+    let d = dir.to_str().expect("utf8");
+    let p = profile.to_str().expect("utf8");
+    let out = rigd()
+        .args([
+            "run",
+            "--sim",
+            "--profile",
+            p,
+            "--plan",
+            "h1",
+            "--frame-size",
+            "8x8",
+            "--progress",
+            "none",
+            "--out",
+            d,
+        ])
+        .output()
+        .expect("run");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains("camera") && stderr.contains("GeneralError"),
+        "{stderr}"
+    );
+    let out = rigd()
+        .args(["run", "--resume", d, "--progress", "none"])
+        .output()
+        .expect("resume");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_complete_run(&dir, 6561);
+
+    // A fault naming no device of the profile is refused up front.
+    let bad = tmp.path().join("bad.toml");
+    std::fs::write(
+        &bad,
+        bonn.replace("[sim]\n", "[sim]\nfaults = [\"lens:expose:1:timeout\"]\n"),
+    )
+    .expect("write");
+    let out = rigd()
+        .args(["profile", "check", bad.to_str().expect("utf8")])
+        .output()
+        .expect("check");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{stderr}");
+    assert!(
+        stderr.contains("sim.faults[0]") && stderr.contains("lens"),
+        "{stderr}"
+    );
+}

@@ -73,7 +73,9 @@ pub async fn serve(
 ) -> Result<Served, DeviceError> {
     let solver = Solver::new(profile)
         .map_err(|e| DeviceError::new("rig", ErrorKind::NotReady, e.to_string()))?;
-    let faults = Arc::new(rigd_sim::FaultInjector::new(faults));
+    let mut all = profile.sim.fault_rules();
+    all.extend(faults);
+    let faults = Arc::new(rigd_sim::FaultInjector::new(all));
     let parts = firmware(profile, Arc::new(solver), None, clock, &faults)?;
     let mut served = profile.clone();
     let mut endpoints = Vec::new();
@@ -181,6 +183,8 @@ pub async fn serve(
             }
         }
     }
+    // The faults are the served firmware's business, not the client's.
+    served.sim.faults.clear();
     served.name = format!("{}-sim-served", profile.name);
     served.description = format!(
         "{} (simulated firmware served by `rigd sim serve`)",
