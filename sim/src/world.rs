@@ -35,8 +35,16 @@ impl SharedWorld {
         self.lock().clone()
     }
 
+    /// Called after every exchange of a controller (every status poll), so
+    /// it allocates only the first time an axis appears.
     pub fn set_axis(&self, name: &str, position: f64) {
-        self.lock().axes.insert(name.to_string(), position);
+        let mut w = self.lock();
+        match w.axes.get_mut(name) {
+            Some(p) => *p = position,
+            None => {
+                w.axes.insert(name.to_string(), position);
+            }
+        }
     }
 
     pub fn set_arm(&self, joints: Vec<f64>) {
