@@ -1,0 +1,4 @@
+//! Post-processing of captured datasets. Pure numerics over images and
+//! direction tables: nothing here knows about devices, runs or the daemon,
+//! so each step is testable on analytic data and reusable by the CLI, the
+//! daemon and the trade-off report.
