@@ -13,10 +13,12 @@ pub mod geometry;
 pub mod hal;
 pub mod kinematics;
 pub mod plan;
+pub mod postprocess;
 pub mod profile;
 pub mod runner;
 pub mod schedule;
 pub mod server;
+pub mod sim_render;
 pub mod store;
 
 pub use rigd_sim as sim;

@@ -8,6 +8,7 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context};
 use clap::{Args, Parser, Subcommand};
 use rigd::engine::{Command, EventKind, Outcome, PausePolicy, RunState};
+use rigd::geometry::Direction;
 use rigd::profile::{Profile, DEFAULT_PROFILE};
 use rigd::runner::{self, NewRun};
 use rigd::schedule::Timing;
@@ -52,6 +53,12 @@ enum Cmd {
     /// run at a time, with a queue. SIGINT/SIGTERM pause the active run
     /// (resumable after restart) and stop.
     Serve(ServeArgs),
+    /// Turn captured frames into results: photometric stereo, BTF
+    /// compression.
+    Process {
+        #[command(subcommand)]
+        command: ProcessCmd,
+    },
     /// The simulated rig's firmware, for tools outside rigd.
     Sim {
         #[command(subcommand)]
@@ -81,6 +88,99 @@ enum SimCmd {
         #[arg(long = "sim-fault", value_name = "SPEC")]
         sim_faults: Vec<FaultRule>,
     },
+    /// Render one frame of a scene as a profile's camera sees it, to a PNG
+    /// (at the camera's bit depth) with a JSON file beside it: the live
+    /// effects, the render time and where every marker landed.
+    Render(RenderArgs),
+    /// List the built-in scenes and what each can show.
+    Scenes,
+}
+
+#[derive(Subcommand)]
+enum ProcessCmd {
+    /// Photometric stereo (seed 003 §2): albedo, normals, gradients p and q
+    /// and a Frankot–Chellappa height map, from a VirTex run directory or from
+    /// a folder of images with a light table. Writes normals.npy (H×W×3
+    /// float32, unit, z towards the camera), albedo.npy, height.npy, p.npy,
+    /// q.npy, PNG renderings of each and report.json into --out.
+    PhotometricStereo(PsArgs),
+}
+
+#[derive(Args)]
+struct PsArgs {
+    /// A run directory whose camera looks down on the sample (VirTex).
+    #[arg(conflicts_with_all = ["images", "lights", "names", "intensities"])]
+    run: Option<PathBuf>,
+    /// Folder of PNG images (8/16-bit, grey or RGB), one per light.
+    #[arg(long, requires = "lights")]
+    images: Option<PathBuf>,
+    /// Light table: one `x y z` direction per line, in image order
+    /// (x right, y up, z towards the camera).
+    #[arg(long, requires = "images")]
+    lights: Option<PathBuf>,
+    /// Image file names in light order, one per line [default: sorted names].
+    #[arg(long, requires = "images")]
+    names: Option<PathBuf>,
+    /// Light intensities: one `r g b` per line; each image is divided by its own.
+    #[arg(long, requires = "images")]
+    intensities: Option<PathBuf>,
+    /// PNG mask: non-zero pixels are solved.
+    #[arg(long)]
+    mask: Option<PathBuf>,
+    /// Reject shadowed and specular samples per pixel.
+    #[arg(long)]
+    robust: bool,
+    /// Refuse light sets whose matrix has a larger condition number.
+    #[arg(long, default_value_t = rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION)]
+    max_condition: f64,
+    /// Output folder (created).
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Args)]
+struct RenderArgs {
+    /// Rig profile: a TOML file or an embedded profile name.
+    #[arg(long, default_value = DEFAULT_PROFILE)]
+    profile: String,
+    /// Scene: a built-in name (`rigd sim scenes`) or a scene file
+    /// [default: the profile's [sim] scene, else flat-calibration]
+    #[arg(long)]
+    scene: Option<String>,
+    /// Light direction θ,φ in degrees, sample frame.
+    #[arg(long, value_parser = rigd::sim_render::parse_direction, default_value = "0,0")]
+    light: Direction,
+    /// View direction θ,φ in degrees, sample frame.
+    #[arg(long, value_parser = rigd::sim_render::parse_direction, default_value = "0,0")]
+    view: Direction,
+    /// Camera of the profile [default: its first]
+    #[arg(long)]
+    camera: Option<String>,
+    /// Frame size WIDTHxHEIGHT [default: the profile's [sim] frame_size]
+    #[arg(long, value_parser = rigd::sim_render::parse_frame_size)]
+    size: Option<[u32; 2]>,
+    /// Effect switches: `all`, `none`, or a list like `+interreflection,-noise`.
+    #[arg(long, default_value = "")]
+    effects: String,
+    /// Noise seed of this frame.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Exposure relative to the camera's nominal one.
+    #[arg(long, default_value_t = 1.0)]
+    exposure: f64,
+    /// A laser line: the plane crosses the sample plane at X mm, tilted
+    /// TILT degrees (`X` or `X,TILT`, tilt 30 by default).
+    #[arg(long, value_name = "X[,TILT]")]
+    laser: Option<String>,
+    /// Lamp off: only the laser lights the sample.
+    #[arg(long)]
+    lamp_off: bool,
+    /// Focal length multiplier: a longer lens for a closer look.
+    #[arg(long, default_value_t = 1.0)]
+    zoom: f64,
+    /// Output PNG; the metadata goes to the same name with .json.
+    #[arg(long, value_name = "FILE")]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -164,8 +264,13 @@ struct RunArgs {
     #[arg(long)]
     out: Option<PathBuf>,
     /// Simulated frame size, WIDTHxHEIGHT [default: the profile's [sim] frame_size]
-    #[arg(long, value_parser = parse_frame_size)]
+    #[arg(long, value_parser = rigd::sim_render::parse_frame_size)]
     frame_size: Option<[u32; 2]>,
+    /// Scene the simulated cameras render: a built-in name (`rigd sim
+    /// scenes`) or a scene file [default: the profile's [sim] scene, else
+    /// flat-calibration]
+    #[arg(long)]
+    scene: Option<String>,
     /// Operator name, recorded in the dataset.
     #[arg(long)]
     operator: Option<String>,
@@ -176,7 +281,7 @@ struct RunArgs {
     #[arg(long, allow_negative_numbers = true)]
     exposure: Option<f64>,
     /// Resume the run in this directory (all other run options come from it).
-    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "operator", "notes", "exposure"])]
+    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure"])]
     resume: Option<PathBuf>,
     /// Inject a fault into the simulated firmware: DEVICE:OP:N:KIND[:sticky], fired on
     /// the Nth OP command the device receives. OP: GRBL axes home, move, info;
@@ -198,17 +303,6 @@ enum Progress {
     Bar,
     Log,
     None,
-}
-
-fn parse_frame_size(s: &str) -> Result<[u32; 2], String> {
-    let bad = || format!("`{s}`: expected WIDTHxHEIGHT with each between 1 and 8192, e.g. 64x64");
-    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
-    let w: u32 = w.trim().parse().map_err(|_| bad())?;
-    let h: u32 = h.trim().parse().map_err(|_| bad())?;
-    if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
-        return Err(bad());
-    }
-    Ok([w, h])
 }
 
 fn main() -> ExitCode {
@@ -241,6 +335,15 @@ fn main() -> ExitCode {
                     sim_faults,
                 },
         } => sim_serve(&profile, speed, write_profile, sim_faults),
+        Cmd::Process {
+            command: ProcessCmd::PhotometricStereo(args),
+        } => photometric_stereo(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Sim {
+            command: SimCmd::Render(args),
+        } => sim_render(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Sim {
+            command: SimCmd::Scenes,
+        } => sim_scenes().map(|_| ExitCode::SUCCESS),
         Cmd::Serve(args) => serve(args),
     };
     match result {
@@ -431,7 +534,13 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
                     .profile
                     .clone()
                     .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
-                let profile = Profile::load(&source)?;
+                let mut profile = Profile::load(&source)?;
+                if let Some(scene) = &args.scene {
+                    // The run records its profile, so a resume renders
+                    // the same scene.
+                    rigd::sim::scene::Scene::load(scene)?;
+                    profile.sim.scene = Some(scene.clone());
+                }
                 let plan = args
                     .plan
                     .clone()
@@ -621,6 +730,140 @@ async fn drive(p: runner::Prepared, progress: Progress) -> anyhow::Result<ExitCo
             ExitCode::from(EXIT_ENDED_BADLY)
         }
     })
+}
+
+fn sim_render(args: RenderArgs) -> anyhow::Result<()> {
+    let profile = Profile::load(&args.profile)?;
+    let effects = args
+        .effects
+        .parse()
+        .map_err(|e| anyhow::anyhow!("--effects {}: {e}", args.effects))?;
+    let laser = args
+        .laser
+        .as_deref()
+        .map(rigd::sim_render::parse_laser)
+        .transpose()
+        .map_err(|e| anyhow::anyhow!("--laser {e}"))?;
+    let req = rigd::sim_render::RenderRequest {
+        scene: args.scene,
+        camera: args.camera,
+        light: args.light,
+        view: args.view,
+        size: args.size,
+        effects,
+        seed: args.seed,
+        exposure: args.exposure,
+        laser,
+        lamp_off: args.lamp_off,
+        zoom: args.zoom,
+    };
+    let out = rigd::sim_render::render(&profile, &req)?;
+    let meta_path = out.write(&args.out)?;
+    println!(
+        "{}: scene {} from {} at light {:.1},{:.1} view {:.1},{:.1}, {}x{} {}-bit, effects {} ({:.1} ms); metadata in {}",
+        args.out.display(),
+        out.scene.name,
+        out.camera,
+        req.light.theta_deg,
+        req.light.phi_deg,
+        req.view.theta_deg,
+        req.view.phi_deg,
+        out.rendered.width,
+        out.rendered.height,
+        out.rendered.bit_depth,
+        out.rendered.plan.live,
+        out.render_ms,
+        meta_path.display()
+    );
+    Ok(())
+}
+
+fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
+    use rigd_process::photometric_stereo as ps;
+    let (mut dataset, run) = match (&args.run, &args.images, &args.lights) {
+        (Some(run), _, _) => {
+            let frames = rigd::postprocess::RunFrames::open(run)?;
+            (
+                rigd::postprocess::ps_dataset_from_run(&frames)?,
+                Some(frames),
+            )
+        }
+        (None, Some(images), Some(lights)) => {
+            let inputs = ps::PsInputs {
+                images_dir: images.clone(),
+                lights_file: lights.clone(),
+                names_file: args.names.clone(),
+                intensities_file: args.intensities.clone(),
+                mask_file: None,
+            };
+            (ps::load_inputs(&inputs)?, None)
+        }
+        _ => bail!("give a run directory, or --images DIR --lights FILE"),
+    };
+    if let Some(mask) = &args.mask {
+        let m = rigd_process::image_io::load_png(mask)?;
+        dataset.mask = Some(
+            m.data
+                .chunks(m.channels)
+                .map(|px| px.iter().any(|&v| v > 0.0))
+                .collect(),
+        );
+    }
+    let rows_done = |done: usize, total: usize| {
+        if done == total || done % 64 == 0 {
+            eprint!("\rsolving: {done}/{total} rows");
+            if done == total {
+                eprintln!();
+            }
+        }
+    };
+    let opts = ps::PsOptions {
+        robust: args.robust,
+        max_condition: args.max_condition,
+        progress: Some(&rows_done),
+        ..Default::default()
+    };
+    let started = Instant::now();
+    let result = ps::solve(&dataset, &opts)?;
+    let written = ps::write_outputs(&result, &args.out)?;
+    let r = &result.report;
+    println!(
+        "{} images, {}x{}, light matrix condition number {:.3}, {} of {} pixels solved, mean residual {:.4}, {:.2} s",
+        dataset.images.len(),
+        result.width,
+        result.height,
+        r.condition_number,
+        result.valid.iter().filter(|v| **v).count(),
+        result.width * result.height,
+        r.mean_residual,
+        started.elapsed().as_secs_f64()
+    );
+    if let Some(run) = &run {
+        if let Some(err) = rigd::postprocess::ps_error_against_truth(run, &result)? {
+            println!(
+                "against the scene `{}`: mean angular error {:.2}°, median {:.2}°, 95th percentile {:.2}° over {} sample pixels",
+                err.scene, err.mean_deg, err.median_deg, err.p95_deg, err.pixels
+            );
+            let path = args.out.join("truth.json");
+            let mut json = serde_json::to_vec_pretty(&err)?;
+            json.push(b'\n');
+            rigd::store::write_atomic(&path, &json)?;
+        }
+    }
+    println!("wrote {} files into {}", written.len(), args.out.display());
+    Ok(())
+}
+
+fn sim_scenes() -> anyhow::Result<()> {
+    for name in rigd::sim::scene::Scene::builtin_names() {
+        let scene = rigd::sim::scene::Scene::load(name)?;
+        println!(
+            "{name}\t{}\n\t{}",
+            scene.description,
+            scene.describe_effects()
+        );
+    }
+    Ok(())
 }
 
 fn sim_serve(

@@ -310,12 +310,24 @@ pub struct SimSettings {
     /// line.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub faults: Vec<String>,
+    /// What the simulated cameras look at: a built-in scene's name or a
+    /// path to a scene file (`sim/scenes/*.toml`); `flat-calibration` if
+    /// absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<String>,
 }
 
 impl SimSettings {
     /// The profile's fault rules, parsed (validation guarantees they parse).
     pub fn fault_rules(&self) -> Vec<rigd_sim::FaultRule> {
         self.faults.iter().filter_map(|f| f.parse().ok()).collect()
+    }
+
+    /// The scene the simulated cameras render.
+    pub fn scene_name(&self) -> &str {
+        self.scene
+            .as_deref()
+            .unwrap_or(rigd_sim::scene::DEFAULT_SCENE)
     }
 }
 
@@ -328,6 +340,7 @@ impl Default for SimSettings {
         SimSettings {
             frame_size: default_sim_frame(),
             faults: Vec::new(),
+            scene: None,
         }
     }
 }
@@ -425,6 +438,18 @@ impl Profile {
     fn validate(&self) -> Result<(), (String, String)> {
         for (name, dev) in &self.devices {
             dev.validate(&format!("devices.{name}"))?;
+        }
+        if let Some(scene) = &self.sim.scene {
+            let builtin = rigd_sim::scene::Scene::builtin_names();
+            if !builtin.contains(&scene.as_str()) && !std::path::Path::new(scene).is_file() {
+                return Err((
+                    "sim.scene".into(),
+                    format!(
+                        "no built-in scene or scene file `{scene}` (built in: {})",
+                        builtin.join(", ")
+                    ),
+                ));
+            }
         }
         for (i, f) in self.sim.faults.iter().enumerate() {
             let rule: rigd_sim::FaultRule =

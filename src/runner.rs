@@ -14,7 +14,7 @@ use crate::kinematics::{KinematicsError, Solver};
 use crate::plan::{self, Plan, PlanError};
 use crate::profile::{Profile, ProfileError};
 use crate::schedule::{self, Schedule, Timing};
-use crate::store::{now_rfc3339, RunDir, RunMeta, StoreError, RUN_FORMAT};
+use crate::store::{now_rfc3339, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
@@ -152,6 +152,11 @@ async fn create(
             .simulated
             .then(|| req.frame_size.unwrap_or(req.profile.sim.frame_size)),
         simulated: req.simulated,
+        sim_scene: if req.simulated {
+            Some(sim_scene(&req.profile)?)
+        } else {
+            None
+        },
         started_at: now_rfc3339(),
     };
     // The rig first: a rig that does not answer leaves no run directory.
@@ -174,6 +179,22 @@ async fn create(
         clock,
         policy,
     ))
+}
+
+/// The scene a simulated run renders and what its lit frames pay for.
+fn sim_scene(profile: &Profile) -> Result<SimScene, RunError> {
+    let scene = connect::sim::load_scene(profile).map_err(RunError::Simulator)?;
+    let lit = rigd_sim::scene::Shot::default();
+    Ok(SimScene {
+        name: scene.name.clone(),
+        effects: scene
+            .plan(&lit)
+            .live
+            .names()
+            .into_iter()
+            .map(String::from)
+            .collect(),
+    })
 }
 
 /// Connects the simulated rig or the profile's hardware, as the run says.

@@ -88,8 +88,20 @@ pub struct RunMeta {
     #[serde(default)]
     pub frame_size: Option<[u32; 2]>,
     pub simulated: bool,
+    /// The scene the simulated cameras render and the effects a lit frame
+    /// of it pays for (None on hardware).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim_scene: Option<SimScene>,
     /// RFC 3339, UTC.
     pub started_at: String,
+}
+
+/// What a simulated run's frames show.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SimScene {
+    pub name: String,
+    /// Effects live in a frame lit by a lamp (no laser).
+    pub effects: Vec<String>,
 }
 
 /// One written image: a journal line, and later a manifest entry. The keys
@@ -188,7 +200,11 @@ pub fn now_rfc3339() -> String {
 /// Writes `bytes` to `path` atomically: a temporary file, fsync, rename, and
 /// an fsync of the directory so the rename itself survives a crash.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
-    let dir = path.parent().unwrap_or(Path::new("."));
+    // A bare file name has the empty path as its parent.
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
     let name = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())

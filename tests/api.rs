@@ -801,6 +801,8 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/frames/{index}/preview",
         "/api/v1/queue",
         "/api/v1/queue/{item}",
+        "/api/v1/sim/render",
+        "/api/v1/sim/scenes",
     ]
     .into_iter()
     .collect();
@@ -904,7 +906,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 19, "operations checked");
+    assert_eq!(checked, 21, "operations checked");
     s.shutdown().await;
 }
 
@@ -941,4 +943,74 @@ async fn a_device_fault_pauses_the_run_and_resume_completes_it() {
     assert_eq!(v["last_error"], reason.as_str());
     assert_complete_run(&dir.path().join("runs").join(&id), 9);
     s.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sim_render_returns_a_frame_with_its_effects() {
+    let (_d, s) = srv(FAST).await;
+    let resp = s
+        .client
+        .get(s.url("/api/v1/sim/render?scene=corduroy&light=80,0&view=30,90&size=64x48"))
+        .send()
+        .await
+        .expect("request");
+    assert_eq!(resp.status().as_u16(), 200);
+    let effects = resp
+        .headers()
+        .get("x-rigd-effects")
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_string();
+    assert!(
+        effects.contains("relief") && effects.contains("shadows"),
+        "{effects}"
+    );
+    let png = resp.bytes().await.expect("body");
+    let (w, h, pixels) = rigd::store::decode_png(&png).expect("a PNG");
+    assert_eq!((w, h), (64, 48));
+    assert!(pixels.iter().any(|&p| p > 0));
+    // The flat default scene pays for nothing.
+    let resp = s
+        .client
+        .get(s.url("/api/v1/sim/render?size=32x32"))
+        .send()
+        .await
+        .expect("request");
+    assert_eq!(
+        resp.headers()
+            .get("x-rigd-effects")
+            .and_then(|v| v.to_str().ok()),
+        Some("none")
+    );
+    for bad in [
+        "light=95,0",
+        "size=0x5",
+        "effects=sparkle",
+        "laser=a,b",
+        "size=4096x4096",
+    ] {
+        let (status, v) = s.get(&format!("/api/v1/sim/render?{bad}")).await;
+        assert_eq!(status, 400, "{bad}: {v}");
+        assert!(v["detail"].is_string(), "{v}");
+    }
+    let (status, v) = s.get("/api/v1/sim/render?scene=no-such-scene").await;
+    assert_eq!(status, 422, "{v}");
+    assert!(
+        v["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("flat-calibration")),
+        "{v}"
+    );
+    let (status, v) = s.get("/api/v1/sim/scenes").await;
+    assert_eq!(status, 200);
+    let names: Vec<&str> = v
+        .as_array()
+        .expect("list")
+        .iter()
+        .filter_map(|x| x["name"].as_str())
+        .collect();
+    assert!(
+        names.contains(&"knitted-wool") && names.contains(&"ps-target"),
+        "{v}"
+    );
 }

@@ -45,7 +45,7 @@ fn rig(faults: &[&str], bit_depth: u8) -> (PtpCamera<MemoryPipe>, Clock) {
         width: 320,
         height: 240,
         bit_depth,
-        relative_exposure: 1.0,
+        ..Shot::default()
     };
     let (host, dev) = memory_pair();
     PtpFirmware::new(spec, ctx, Box::new(shot)).spawn(dev);

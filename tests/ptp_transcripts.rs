@@ -252,7 +252,7 @@ fn firmware(clock: &Clock, faults: Vec<FaultRule>) -> (MemoryPipe, Arc<FaultInje
         width: 64,
         height: 48,
         bit_depth: 12,
-        relative_exposure: 1.0,
+        ..Shot::default()
     };
     let (host, dev) = memory_pair();
     PtpFirmware::new(spec, ctx, Box::new(shot)).spawn(dev);

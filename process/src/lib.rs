@@ -2,3 +2,10 @@
 //! direction tables: nothing here knows about devices, runs or the daemon,
 //! so each step is testable on analytic data and reusable by the CLI, the
 //! daemon and the trade-off report.
+
+pub mod btf;
+pub mod directions;
+pub mod image_io;
+pub mod npy;
+pub mod photometric_stereo;
+pub mod reflectance_fit;

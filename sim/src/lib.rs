@@ -1,7 +1,8 @@
 //! The simulated BTF rig behind rigd: one clock that can run in virtual
 //! time, simulated firmware that speaks each device's real wire protocol
 //! with its physics (motion, warm-up, exposure, readout, transfer), the
-//! world they share, a flat-sample scene renderer, and fault injection.
+//! world they share, the scene renderer (`sim/scenes/*.toml`) with its
+//! ground truth, and fault injection.
 //!
 //! The crate depends on nothing of the daemon, so the daemon can embed it as
 //! its default backend and tests can drive it directly.

@@ -22,14 +22,14 @@ use rigd_sim::firmware::modbus::{
 };
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
 use rigd_sim::motion::Trapezoid;
-use rigd_sim::scene::Shot;
+use rigd_sim::scene::{Scene as SceneModel, Shot};
 use rigd_sim::{Clock, FaultInjector, FaultRule, SharedWorld, World};
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::hal::{DeviceError, ErrorKind, Rig};
 use crate::kinematics::{Setpoints, Solver};
-use crate::profile::{DeviceKind, Motion, Profile, Transport};
+use crate::profile::{DeviceKind, Motion, Profile, RigGeometry, Transport};
 
 /// Bytes an in-memory serial pipe buffers each way.
 const PIPE_BUFFER: usize = 64 * 1024;
@@ -42,6 +42,13 @@ pub struct SimOptions {
     /// Frame size the cameras render; the profile's `[sim] frame_size` if None.
     pub frame_size: Option<[u32; 2]>,
     pub faults: Vec<FaultRule>,
+}
+
+/// The scene a profile's simulated cameras render, loaded once.
+pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
+    let name = profile.sim.scene_name();
+    SceneModel::load(name)
+        .map_err(|e| DeviceError::new("sim.scene", ErrorKind::NotReady, e.to_string()))
 }
 
 /// Handles into a running simulated rig: its faults and its world.
@@ -255,6 +262,8 @@ pub(crate) fn firmware(
         arm_home_deg,
     };
     let size = frame_size.unwrap_or(profile.sim.frame_size);
+    let scene = load_scene(profile)?;
+    tracing::info!("{}", scene.describe_effects());
 
     for (name, dev) in &profile.devices {
         let link = match dev.kind {
@@ -341,13 +350,18 @@ pub(crate) fn firmware(
                         },
                     },
                     ctx: SimContext::new(clock.clone(), faults.clone()),
-                    scene: Scene {
+                    view: CameraView {
                         camera: name.clone(),
                         solver: solver.clone(),
                         world: world.clone(),
                         size,
                         bit_depth: i.bit_depth,
+                        focal_px: camera_geometry(profile, name, size)
+                            .map_or(i.focal_px, |g| g.focal_px),
+                        distance_m: camera_distance(profile, name),
+                        lamp_distance_m: lamp_distances(profile),
                     },
+                    scene: scene.clone(),
                 });
                 cameras.insert(name.clone(), opener.clone());
                 Link::Usb(opener)
@@ -466,17 +480,71 @@ impl Opener for ModbusOpener {
     }
 }
 
-/// What a simulated camera sees.
+/// What a simulated frame of a profile's camera needs from the profile.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraGeometry {
+    /// The sensor's focal length scaled to the simulated frame's width.
+    pub focal_px: f64,
+    pub distance_m: Option<f64>,
+    pub bit_depth: u8,
+    /// The distance of the profile's first lamp (None: a directional light).
+    pub lamp_distance_m: Option<f64>,
+}
+
+/// A camera's geometry for frames of `size`; None if it is not a camera
+/// with intrinsics.
+pub fn camera_geometry(profile: &Profile, camera: &str, size: [u32; 2]) -> Option<CameraGeometry> {
+    let i = profile.devices.get(camera)?.intrinsics?;
+    Some(CameraGeometry {
+        focal_px: i.focal_px * f64::from(size[0]) / f64::from(i.resolution[0].max(1)),
+        distance_m: camera_distance(profile, camera),
+        bit_depth: i.bit_depth,
+        lamp_distance_m: lamp_distances(profile).into_values().next(),
+    })
+}
+
+/// How far a camera stands from the sample centre.
+fn camera_distance(profile: &Profile, camera: &str) -> Option<f64> {
+    let own = profile.devices.get(camera).and_then(|d| d.distance_m);
+    own.or(match &profile.rig {
+        RigGeometry::Gonioreflectometer { rail_radius_m, .. } => Some(*rail_radius_m),
+        _ => None,
+    })
+}
+
+/// How far each lamp stands from the sample centre.
+fn lamp_distances(profile: &Profile) -> BTreeMap<String, f64> {
+    profile
+        .lamp_names()
+        .into_iter()
+        .filter_map(|lamp| {
+            let own = profile.devices.get(&lamp).and_then(|d| d.distance_m);
+            let d = own.or(match &profile.rig {
+                RigGeometry::Gonioreflectometer {
+                    lamp_distance_m, ..
+                } => Some(*lamp_distance_m),
+                RigGeometry::TurntableArcs { arc_radius_m, .. } => Some(*arc_radius_m),
+                RigGeometry::FixedLamps { .. } => None,
+            })?;
+            Some((lamp, d))
+        })
+        .collect()
+}
+
+/// What a simulated camera sees: where it is and what the lamps do.
 #[derive(Clone)]
-struct Scene {
+struct CameraView {
     camera: String,
     solver: Arc<Solver>,
     world: SimWorld,
     size: [u32; 2],
     bit_depth: u8,
+    focal_px: f64,
+    distance_m: Option<f64>,
+    lamp_distance_m: BTreeMap<String, f64>,
 }
 
-impl Scene {
+impl CameraView {
     /// Light and view in the sample frame, from where the devices really are.
     fn shot(&self) -> Shot {
         let world = self.world.snapshot();
@@ -503,7 +571,10 @@ impl Scene {
             width: self.size[0],
             height: self.size[1],
             bit_depth: self.bit_depth,
-            relative_exposure: 1.0,
+            focal_px: Some(self.focal_px),
+            camera_distance_m: self.distance_m,
+            lamp_distance_m: lamp.and_then(|l| self.lamp_distance_m.get(&l).copied()),
+            ..Shot::default()
         }
     }
 }
@@ -512,18 +583,20 @@ impl Scene {
 pub(crate) struct PtpOpener {
     spec: PtpCameraSpec,
     ctx: SimContext,
-    scene: Scene,
+    view: CameraView,
+    scene: Arc<SceneModel>,
 }
 
 impl PtpOpener {
     /// Starts the camera's firmware on the device end of a link.
     pub(crate) fn start(&self, dev: MemoryDevice) {
-        let scene = self.scene.clone();
+        let view = self.view.clone();
         let fw = PtpFirmware::new(
             self.spec.clone(),
             self.ctx.clone(),
-            Box::new(move || scene.shot()),
-        );
+            Box::new(move || view.shot()),
+        )
+        .with_scene(self.scene.clone());
         fw.spawn(dev);
     }
 }

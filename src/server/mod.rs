@@ -141,6 +141,8 @@ pub fn router(daemon: Arc<state::Daemon>, token: auth::Token) -> Router {
         .route("/events", get(api::events_sse))
         .route("/queue", get(api::get_queue).post(api::post_queue))
         .route("/queue/{item}", delete(api::delete_queue))
+        .route("/sim/render", get(api::sim_render))
+        .route("/sim/scenes", get(api::sim_scenes))
         .route_layer(axum::middleware::from_fn_with_state(
             token,
             auth::require_token,

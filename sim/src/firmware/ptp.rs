@@ -27,7 +27,9 @@ use rigd_proto::ptp::{
 
 use crate::devices::{CameraTimes, SimContext};
 use crate::faults::FaultKind;
-use crate::scene::{render_flat, Shot};
+use std::sync::Arc;
+
+use crate::scene::{Scene, Shot, DEFAULT_SCENE};
 
 /// The storage every simulated frame is stored on.
 pub const STORAGE_ID: u32 = 0x0001_0001;
@@ -65,6 +67,9 @@ pub struct PtpFirmware {
     spec: PtpCameraSpec,
     ctx: SimContext,
     shot: ShotSource,
+    /// What the camera looks at; `None` only if the built-in default scene
+    /// failed to load, and then frames are black.
+    scene: Option<Arc<Scene>>,
     session: Option<u32>,
     exposure_units: u32,
     objects: BTreeMap<u32, RawFrame>,
@@ -96,12 +101,19 @@ impl PtpFirmware {
             spec,
             ctx,
             shot,
+            scene: Scene::load(DEFAULT_SCENE).ok(),
             session: None,
             exposure_units,
             objects: BTreeMap::new(),
             next_handle: FIRST_HANDLE,
             capture: None,
         }
+    }
+
+    /// The scene this camera renders (the built-in default otherwise).
+    pub fn with_scene(mut self, scene: Arc<Scene>) -> PtpFirmware {
+        self.scene = Some(scene);
+        self
     }
 
     /// The DeviceInfo dataset this camera sends.
@@ -320,13 +332,18 @@ impl PtpFirmware {
         } else {
             1.0
         };
+        let handle = self.next_handle;
+        shot.seed = u64::from(handle);
+        let pixels = match &self.scene {
+            Some(scene) => scene.render(&shot).pixels,
+            None => vec![0; shot.width as usize * shot.height as usize],
+        };
         let frame = RawFrame {
             width: shot.width,
             height: shot.height,
             bit_depth: shot.bit_depth,
-            pixels: render_flat(&shot),
+            pixels,
         };
-        let handle = self.next_handle;
         self.next_handle = self.next_handle.wrapping_add(1);
         self.objects.insert(handle, frame);
         let tid = cap.transaction_id;
@@ -434,7 +451,7 @@ mod tests {
             width: 8,
             height: 4,
             bit_depth: 12,
-            relative_exposure: 1.0,
+            ..Shot::default()
         }
     }
 

@@ -1,0 +1,67 @@
+//! PCA compression of one view slot at the seed-000 size: 81 lights (H1),
+//! 256 × 256 RGB normtextures, C = 16. A full BTF has 81 slots compressed
+//! independently, so its time is about 81 × one slot (printed as an
+//! estimate, not measured).
+
+use std::time::{Duration, Instant};
+
+use criterion::{criterion_group, criterion_main, Criterion};
+use rigd_process::btf::{compress_slot, TextureShape};
+use rigd_process::directions::h1;
+
+const SIDE: usize = 256;
+const COMPONENTS: usize = 16;
+
+/// Smooth lighting response plus texel noise, so the spectrum decays but is
+/// not trivially low-rank.
+fn slot_images(shape: TextureShape) -> Vec<Vec<f32>> {
+    let mut state = 0x2545_F491_4F6C_DD1Du64;
+    h1().iter()
+        .map(|light| {
+            let l = light.unit_vector();
+            (0..shape.values())
+                .map(|i| {
+                    state ^= state << 13;
+                    state ^= state >> 7;
+                    state ^= state << 17;
+                    let noise = (state >> 40) as f32 / (1u64 << 24) as f32;
+                    let x = (i / 3) as f64;
+                    let shade = l[2] * (0.6 + 0.3 * (0.01 * x).sin())
+                        + 0.2 * l[0] * (0.013 * x).cos()
+                        + 0.1 * (l[1] * l[1]);
+                    shade as f32 + 0.02 * noise
+                })
+                .collect()
+        })
+        .collect()
+}
+
+fn bench_compress_slot(c: &mut Criterion) {
+    let Ok(shape) = TextureShape::new(SIDE, SIDE, 3) else {
+        return;
+    };
+    let images = slot_images(shape);
+    let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+
+    let start = Instant::now();
+    if compress_slot(&refs, shape, COMPONENTS).is_ok() {
+        let slot = start.elapsed();
+        eprintln!(
+            "one slot (81 lights, {SIDE}x{SIDE}x3, C = {COMPONENTS}): {slot:.2?}; \
+             81-slot BTF estimate (81 x one slot, not measured): {:.1?}",
+            slot * 81
+        );
+    }
+
+    let mut group = c.benchmark_group("btf");
+    // About a second per compression: ten samples need more than the default 5 s.
+    group.sample_size(10);
+    group.measurement_time(Duration::from_secs(15));
+    group.bench_function("compress_slot_81_lights_256x256x3_c16", |b| {
+        b.iter(|| compress_slot(&refs, shape, COMPONENTS))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_compress_slot);
+criterion_main!(benches);

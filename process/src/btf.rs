@@ -1,0 +1,964 @@
+//! BTF compression by per-view-slot PCA (seed 000, §4.1) and reconstruction
+//! at arbitrary light and view directions (§4.2, eq. 3 and 5).
+//!
+//! # Model
+//!
+//! For one view slot j, the normtextures N_ij under the measured lights
+//! i = 1…n are vectors of `width · height · channels` values (texel-major,
+//! row-major texels, channels interleaved: r₁₁ g₁₁ b₁₁ r₁₂ …, as X_ij in the
+//! seed). The slot matrix has one column per light. Per value (row) the mean
+//! over lights is removed and stored as the *mean texture* M_j; the centred
+//! matrix is factored by a thin SVD, U Σ Vᵀ, and the first C components are
+//! kept:
+//!
+//! * eigen-textures B_kj = column k of U: unit L2 norm, mutually orthogonal;
+//!   sign chosen so the entry of largest magnitude is positive;
+//! * weights p_ikj = σ_k V_ik, i.e. the projection of the centred N_ij onto
+//!   B_kj;
+//!
+//! so that N_ij ≈ M_j + Σ_k p_ikj B_kj. The mean texture is the seed's B_0j
+//! with γ_0j = 1 (eq. 4) and makes the kept subspace the affine one of §4.1.
+//!
+//! C is clamped to min(C, lights, values); components whose singular value is
+//! below what rounding the input to f32 can produce (rank-deficient slots,
+//! e.g. constant images or one light) are stored as zero eigen-textures with
+//! zero weights, never NaN.
+//!
+//! All singular values are kept (not only C), so the RMS error of a rank-c
+//! approximation for any c is known without reconstructing: it is
+//! sqrt(Σ_{k>c} σ_k² / (values · lights)), exactly the RMS over the slot of
+//! (original − rank-c reconstruction), up to f32 rounding of stored factors.
+//!
+//! # On-disk format (version 1)
+//!
+//! A directory holding:
+//!
+//! * `btf.json`, UTF-8 JSON:
+//!   ```text
+//!   {
+//!     "format": "rigd-btf-pca",          // fixed
+//!     "version": 1,
+//!     "width": W, "height": H,
+//!     "channels": 1 | 3,
+//!     "components": C,                    // stored per slot, ≤ lights, ≤ W·H·channels
+//!     "value_encoding": "f32le",          // the only encoding of version 1
+//!     "light_directions": [{"theta_deg": θ, "phi_deg": φ}, …],  // light index order
+//!     "view_directions":  [{"theta_deg": θ, "phi_deg": φ}, …],  // slot order
+//!     "slots": [{"file": "slot_000.bin",
+//!                "singular_values": [σ_1 ≥ σ_2 ≥ …]}, …]       // min(lights, W·H·channels) each
+//!   }
+//!   ```
+//! * per view slot j, `slot_{j:03}.bin` (the name is listed in `btf.json`; a
+//!   plain file name in the same directory): little-endian IEEE-754 f32, no
+//!   header, in this order:
+//!   1. the mean texture: W·H·channels values;
+//!   2. C eigen-textures, component-major, each W·H·channels values;
+//!   3. the weights: lights × C values, light-major (all C weights of light 0,
+//!      then light 1, …).
+//!
+//!   The file size is therefore exactly 4 · (W·H·ch · (1 + C) + lights · C)
+//!   bytes; readers reject any other size and non-finite values.
+//!
+//! Every file is written to a temporary name in the directory, synced and
+//! renamed, and `btf.json` is written last, so a directory with a `btf.json`
+//! is complete.
+
+use std::fs;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+use faer::Mat;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::directions::{Direction, DirectionError, DirectionTable, Interpolation};
+
+/// Value of `format` in `btf.json`.
+pub const FORMAT_NAME: &str = "rigd-btf-pca";
+/// Value of `version` in `btf.json` written by this module.
+pub const FORMAT_VERSION: u32 = 1;
+/// The header file of a stored BTF.
+pub const HEADER_FILE: &str = "btf.json";
+/// The only value encoding of format version 1.
+pub const VALUE_ENCODING: &str = "f32le";
+/// Largest component count the error report goes up to (seed 000 keeps 16).
+pub const MAX_REPORTED_COMPONENTS: usize = 32;
+
+#[derive(Debug, thiserror::Error)]
+pub enum BtfError {
+    #[error("texture shape {width}×{height}×{channels} is invalid: {why}")]
+    Shape {
+        width: usize,
+        height: usize,
+        channels: usize,
+        why: &'static str,
+    },
+    #[error("a view slot needs at least one image")]
+    NoImages,
+    #[error("at least one PCA component is required")]
+    NoComponents,
+    #[error("image {image} has {actual} values, expected {expected} (width · height · channels)")]
+    ImageSize {
+        image: usize,
+        expected: usize,
+        actual: usize,
+    },
+    #[error("image {image} has a non-finite value at {value_index}")]
+    NonFiniteValue { image: usize, value_index: usize },
+    #[error("the SVD of view slot did not converge")]
+    SvdNoConvergence,
+    #[error(transparent)]
+    Direction(#[from] DirectionError),
+    #[error("view slot {slot}: {why}")]
+    SlotMismatch { slot: usize, why: String },
+    #[error("{slots} slots for {views} view directions")]
+    SlotCount { slots: usize, views: usize },
+    #[error("light index {light} out of range ({lights} lights)")]
+    LightIndex { light: usize, lights: usize },
+    #[error("view slot {slot} out of range ({slots} slots)")]
+    SlotIndex { slot: usize, slots: usize },
+    #[error("{}: {source}", path.display())]
+    Io { path: PathBuf, source: io::Error },
+    #[error("{}: {why}", path.display())]
+    Format { path: PathBuf, why: String },
+}
+
+/// Size of one normtexture.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TextureShape {
+    width: usize,
+    height: usize,
+    channels: usize,
+}
+
+impl TextureShape {
+    /// `channels` is 1 (grey) or 3 (RGB); the sizes must be positive.
+    pub fn new(width: usize, height: usize, channels: usize) -> Result<Self, BtfError> {
+        let invalid = |why| BtfError::Shape {
+            width,
+            height,
+            channels,
+            why,
+        };
+        if width == 0 || height == 0 {
+            return Err(invalid("width and height must be positive"));
+        }
+        if channels != 1 && channels != 3 {
+            return Err(invalid("channels must be 1 or 3"));
+        }
+        let values = width
+            .checked_mul(height)
+            .and_then(|t| t.checked_mul(channels))
+            // Room for the byte size of a slot file as well.
+            .and_then(|v| v.checked_mul(4));
+        if values.is_none() {
+            return Err(invalid("too many values"));
+        }
+        Ok(TextureShape {
+            width,
+            height,
+            channels,
+        })
+    }
+
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    pub fn texels(&self) -> usize {
+        self.width * self.height
+    }
+
+    /// Values per texture: texels · channels.
+    pub fn values(&self) -> usize {
+        self.texels() * self.channels
+    }
+}
+
+/// The component count actually stored for `requested` components: a slot of
+/// `lights` images of `values` values has at most min(lights, values).
+pub fn stored_components(requested: usize, lights: usize, values: usize) -> usize {
+    requested.min(lights).min(values)
+}
+
+/// The PCA of one view slot. See the module documentation for the model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SlotPca {
+    values: usize,
+    lights: usize,
+    components: usize,
+    mean: Vec<f32>,
+    /// `components` textures of `values` values, component-major.
+    eigen_textures: Vec<f32>,
+    /// `lights × components`, light-major.
+    weights: Vec<f32>,
+    /// All min(values, lights) singular values of the centred matrix,
+    /// non-increasing.
+    singular_values: Vec<f64>,
+}
+
+/// Compresses one view slot: `images[i]` is the normtexture under light i,
+/// `shape.values()` f32 values each. Keeps min(`components`, lights, values)
+/// components. Only this slot's matrix is in memory (in f64, plus the SVD's
+/// factors), so slots can be streamed one at a time.
+pub fn compress_slot(
+    images: &[&[f32]],
+    shape: TextureShape,
+    components: usize,
+) -> Result<SlotPca, BtfError> {
+    if images.is_empty() {
+        return Err(BtfError::NoImages);
+    }
+    if components == 0 {
+        return Err(BtfError::NoComponents);
+    }
+    let values = shape.values();
+    let lights = images.len();
+    for (image, data) in images.iter().enumerate() {
+        if data.len() != values {
+            return Err(BtfError::ImageSize {
+                image,
+                expected: values,
+                actual: data.len(),
+            });
+        }
+        if let Some(value_index) = data.iter().position(|v| !v.is_finite()) {
+            return Err(BtfError::NonFiniteValue { image, value_index });
+        }
+    }
+
+    let mut mean = vec![0.0f64; values];
+    for data in images {
+        for (m, &v) in mean.iter_mut().zip(data.iter()) {
+            *m += f64::from(v);
+        }
+    }
+    for m in &mut mean {
+        *m /= lights as f64;
+    }
+
+    // Direct thin SVD of the tall (values × lights) matrix rather than an
+    // eigen-decomposition of the small Gram matrix AᵀA: the Gram matrix
+    // squares the condition number, so with a fast-decaying spectrum (the
+    // usual case, seed 000 Fig. 7) every σ_k below ~1e-8·σ_1 is lost in
+    // rounding, and with it the small residual energies of the error report.
+    // faer reduces a tall matrix by QR first, so the cost stays O(values·lights²).
+    let centred = Mat::<f64>::from_fn(values, lights, |row, col| {
+        f64::from(images[col][row]) - mean[row]
+    });
+    let svd = centred.thin_svd().map_err(|_| BtfError::SvdNoConvergence)?;
+    drop(centred);
+
+    let singular_values: Vec<f64> = svd.S().column_vector().iter().copied().collect();
+    let stored = stored_components(components, lights, values);
+    // Rounding the input to f32 perturbs the matrix by at most
+    // ε/2 · ‖X‖_F (Frobenius), which bounds every singular value that rounding
+    // alone can create: components below it carry no data and are zero-filled,
+    // which also makes exactly rank-deficient slots deterministic.
+    let data_norm = images
+        .iter()
+        .flat_map(|data| data.iter())
+        .map(|&v| f64::from(v) * f64::from(v))
+        .sum::<f64>()
+        .sqrt();
+    let negligible = 0.5 * f64::from(f32::EPSILON) * data_norm;
+
+    let mut eigen_textures = vec![0.0f32; stored * values];
+    let mut weights = vec![0.0f32; lights * stored];
+    let (u, v) = (svd.U(), svd.V());
+    for (k, &sigma) in singular_values.iter().enumerate().take(stored) {
+        if sigma <= negligible || !sigma.is_finite() {
+            continue;
+        }
+        let column = u.col(k);
+        let sign = column
+            .iter()
+            .copied()
+            .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+            .map_or(1.0, |x| if x < 0.0 { -1.0 } else { 1.0 });
+        let texture = &mut eigen_textures[k * values..(k + 1) * values];
+        for (out, &x) in texture.iter_mut().zip(column.iter()) {
+            *out = (sign * x) as f32;
+        }
+        for (light, &x) in v.col(k).iter().enumerate() {
+            weights[light * stored + k] = (sign * sigma * x) as f32;
+        }
+    }
+
+    Ok(SlotPca {
+        values,
+        lights,
+        components: stored,
+        mean: mean.into_iter().map(|m| m as f32).collect(),
+        eigen_textures,
+        weights,
+        singular_values,
+    })
+}
+
+impl SlotPca {
+    /// Values per texture (width · height · channels).
+    pub fn values(&self) -> usize {
+        self.values
+    }
+
+    pub fn lights(&self) -> usize {
+        self.lights
+    }
+
+    /// Stored components C.
+    pub fn components(&self) -> usize {
+        self.components
+    }
+
+    pub fn mean(&self) -> &[f32] {
+        &self.mean
+    }
+
+    /// Eigen-texture k (0-based), unit norm (or zero if rank-deficient).
+    pub fn eigen_texture(&self, k: usize) -> Option<&[f32]> {
+        (k < self.components).then(|| &self.eigen_textures[k * self.values..(k + 1) * self.values])
+    }
+
+    /// The C weights p_ik of light i.
+    pub fn light_weights(&self, light: usize) -> Option<&[f32]> {
+        (light < self.lights)
+            .then(|| &self.weights[light * self.components..(light + 1) * self.components])
+    }
+
+    /// All singular values of the centred slot matrix, non-increasing.
+    pub fn singular_values(&self) -> &[f64] {
+        &self.singular_values
+    }
+
+    /// Eigenvalues of the PCA (σ², unnormalised scatter), non-increasing:
+    /// the decay curve of seed 000 Fig. 7.
+    pub fn eigenvalues(&self) -> Vec<f64> {
+        self.singular_values.iter().map(|s| s * s).collect()
+    }
+
+    /// RMS over all values and lights of original − rank-`components`
+    /// reconstruction, from the discarded singular values. `components` may
+    /// exceed the stored C (the report shows what more would buy); beyond the
+    /// rank it is 0.
+    pub fn rms_error(&self, components: usize) -> f64 {
+        let discarded: f64 = self
+            .singular_values
+            .iter()
+            .skip(components)
+            .map(|s| s * s)
+            .sum();
+        (discarded / (self.values as f64 * self.lights as f64)).sqrt()
+    }
+
+    /// `rms_error(c)` for c = 1 … min(`max_components`, number of singular values).
+    pub fn rms_error_curve(&self, max_components: usize) -> Vec<f64> {
+        let top = max_components.min(self.singular_values.len());
+        (1..=top).map(|c| self.rms_error(c)).collect()
+    }
+
+    /// The reconstruction of measured light `light` with all stored components.
+    pub fn reconstruct_measured(&self, light: usize) -> Result<Vec<f32>, BtfError> {
+        self.reconstruct_measured_truncated(light, self.components)
+    }
+
+    /// The reconstruction of measured light `light` with the first
+    /// min(`components`, C) components.
+    pub fn reconstruct_measured_truncated(
+        &self,
+        light: usize,
+        components: usize,
+    ) -> Result<Vec<f32>, BtfError> {
+        let mut acc = vec![0.0f64; self.values];
+        self.accumulate(&[(light, 1.0)], 1.0, components, &mut acc)?;
+        Ok(acc.into_iter().map(|v| v as f32).collect())
+    }
+
+    /// The texture under an interpolated light (eq. 3): blended weights
+    /// γ_k = Σ_m τ_m p_{i_m,k}, then M + Σ_k γ_k B_k.
+    pub fn reconstruct_blend(&self, light_weights: &Interpolation) -> Result<Vec<f32>, BtfError> {
+        let mut acc = vec![0.0f64; self.values];
+        self.accumulate(light_weights.entries(), 1.0, self.components, &mut acc)?;
+        Ok(acc.into_iter().map(|v| v as f32).collect())
+    }
+
+    /// acc += scale · (Σ_m τ_m · M + Σ_{k<components} γ_k B_k).
+    fn accumulate(
+        &self,
+        light_weights: &[(usize, f64)],
+        scale: f64,
+        components: usize,
+        acc: &mut [f64],
+    ) -> Result<(), BtfError> {
+        let components = components.min(self.components);
+        let mut gamma = vec![0.0f64; components];
+        let mut tau_total = 0.0;
+        for &(light, tau) in light_weights {
+            let p = self.light_weights(light).ok_or(BtfError::LightIndex {
+                light,
+                lights: self.lights,
+            })?;
+            tau_total += tau;
+            for (g, &pk) in gamma.iter_mut().zip(p) {
+                *g += tau * f64::from(pk);
+            }
+        }
+        let mean_scale = scale * tau_total;
+        for (a, &m) in acc.iter_mut().zip(&self.mean) {
+            *a += mean_scale * f64::from(m);
+        }
+        for (k, &g) in gamma.iter().enumerate() {
+            if g == 0.0 {
+                continue;
+            }
+            let g = scale * g;
+            let texture = &self.eigen_textures[k * self.values..(k + 1) * self.values];
+            for (a, &b) in acc.iter_mut().zip(texture) {
+                *a += g * f64::from(b);
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Eigenvalue decay and error curve of one view slot.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct SlotReport {
+    pub slot: usize,
+    pub view: Direction,
+    /// σ², non-increasing, all of them.
+    pub eigenvalues: Vec<f64>,
+    /// RMS error of the mean texture alone (C = 0).
+    pub rms_mean_only: f64,
+    /// `rms_by_components[c - 1]` is the RMS error with c components,
+    /// c = 1 … min(32, rank bound).
+    pub rms_by_components: Vec<f64>,
+}
+
+/// A compressed BTF: one [`SlotPca`] per view direction.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BtfStore {
+    shape: TextureShape,
+    components: usize,
+    lights: DirectionTable,
+    views: DirectionTable,
+    slots: Vec<SlotPca>,
+}
+
+impl BtfStore {
+    /// Assembles slots compressed with [`compress_slot`]; `slots[j]` belongs
+    /// to view direction j and must cover every light of `lights`.
+    pub fn new(
+        shape: TextureShape,
+        lights: DirectionTable,
+        views: DirectionTable,
+        slots: Vec<SlotPca>,
+    ) -> Result<Self, BtfError> {
+        if slots.len() != views.len() {
+            return Err(BtfError::SlotCount {
+                slots: slots.len(),
+                views: views.len(),
+            });
+        }
+        let components = slots.first().map_or(0, |s| s.components);
+        for (slot, pca) in slots.iter().enumerate() {
+            check_slot(slot, pca, shape, lights.len(), components)?;
+        }
+        Ok(BtfStore {
+            shape,
+            components,
+            lights,
+            views,
+            slots,
+        })
+    }
+
+    /// Compresses every view slot, in parallel over slots with rayon.
+    /// `load_slot(j)` returns the images of slot j in light order. Memory is
+    /// one slot per rayon worker; for one slot at a time use
+    /// [`compress_to_dir`] or [`compress_slot`] with a [`BtfWriter`].
+    pub fn compress<F>(
+        shape: TextureShape,
+        lights: DirectionTable,
+        views: DirectionTable,
+        components: usize,
+        load_slot: F,
+    ) -> Result<Self, BtfError>
+    where
+        F: Fn(usize) -> Result<Vec<Vec<f32>>, BtfError> + Sync,
+    {
+        let light_count = lights.len();
+        let slots = (0..views.len())
+            .into_par_iter()
+            .map(|slot| load_and_compress(slot, &load_slot, shape, light_count, components))
+            .collect::<Result<Vec<_>, _>>()?;
+        BtfStore::new(shape, lights, views, slots)
+    }
+
+    pub fn shape(&self) -> TextureShape {
+        self.shape
+    }
+
+    /// Stored components per slot.
+    pub fn components(&self) -> usize {
+        self.components
+    }
+
+    pub fn lights(&self) -> &DirectionTable {
+        &self.lights
+    }
+
+    pub fn views(&self) -> &DirectionTable {
+        &self.views
+    }
+
+    pub fn slots(&self) -> &[SlotPca] {
+        &self.slots
+    }
+
+    /// The texture for an arbitrary light and view (eq. 5): the four nearest
+    /// view slots, each reconstructed under the bilinearly interpolated light
+    /// (eq. 3), blended with the view weights. Errors only on non-finite
+    /// directions; out-of-range θ is clamped (see [`crate::directions`]).
+    pub fn reconstruct(&self, light: Direction, view: Direction) -> Result<Vec<f32>, BtfError> {
+        let view_weights = self.views.interpolate(view)?;
+        let light_weights = self.lights.interpolate(light)?;
+        let mut acc = vec![0.0f64; self.shape.values()];
+        for &(slot, omega) in view_weights.entries() {
+            let pca = self.slot_checked(slot)?;
+            pca.accumulate(light_weights.entries(), omega, pca.components, &mut acc)?;
+        }
+        Ok(acc.into_iter().map(|v| v as f32).collect())
+    }
+
+    /// The stored reconstruction of measured light `light` in view slot `slot`.
+    pub fn reconstruct_measured(&self, slot: usize, light: usize) -> Result<Vec<f32>, BtfError> {
+        self.slot_checked(slot)?.reconstruct_measured(light)
+    }
+
+    /// Eigenvalue decay and RMS error for C = 1 … `max_components` (clamped to
+    /// each slot's rank bound) per slot; see [`MAX_REPORTED_COMPONENTS`].
+    pub fn error_report(&self, max_components: usize) -> Vec<SlotReport> {
+        self.slots
+            .iter()
+            .zip(self.views.directions())
+            .enumerate()
+            .map(|(slot, (pca, &view))| SlotReport {
+                slot,
+                view,
+                eigenvalues: pca.eigenvalues(),
+                rms_mean_only: pca.rms_error(0),
+                rms_by_components: pca.rms_error_curve(max_components),
+            })
+            .collect()
+    }
+
+    /// Writes the store to `dir` (created if missing) in the format of the
+    /// module documentation.
+    pub fn write(&self, dir: &Path) -> Result<(), BtfError> {
+        let mut writer =
+            BtfWriter::create(dir, self.shape, &self.lights, &self.views, self.components)?;
+        for (slot, pca) in self.slots.iter().enumerate() {
+            writer.write_slot(slot, pca)?;
+        }
+        writer.finish()
+    }
+
+    /// Reads a store written by [`BtfStore::write`] or [`BtfWriter`].
+    pub fn read(dir: &Path) -> Result<Self, BtfError> {
+        let header = BtfHeader::read(dir)?;
+        let slots = (0..header.slots.len())
+            .map(|slot| header.read_slot(dir, slot))
+            .collect::<Result<Vec<_>, _>>()?;
+        let shape = header.shape(&dir.join(HEADER_FILE))?;
+        let lights = DirectionTable::new(header.light_directions)?;
+        let views = DirectionTable::new(header.view_directions)?;
+        BtfStore::new(shape, lights, views, slots)
+    }
+
+    fn slot_checked(&self, slot: usize) -> Result<&SlotPca, BtfError> {
+        self.slots.get(slot).ok_or(BtfError::SlotIndex {
+            slot,
+            slots: self.slots.len(),
+        })
+    }
+}
+
+fn load_and_compress<F>(
+    slot: usize,
+    load_slot: &F,
+    shape: TextureShape,
+    light_count: usize,
+    components: usize,
+) -> Result<SlotPca, BtfError>
+where
+    F: Fn(usize) -> Result<Vec<Vec<f32>>, BtfError>,
+{
+    let images = load_slot(slot)?;
+    if images.len() != light_count {
+        return Err(BtfError::SlotMismatch {
+            slot,
+            why: format!("{} images for {light_count} lights", images.len()),
+        });
+    }
+    let views: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+    compress_slot(&views, shape, components)
+}
+
+/// Compresses slot after slot straight to `dir`, holding one slot in memory
+/// (faer still parallelises inside each SVD).
+pub fn compress_to_dir<F>(
+    dir: &Path,
+    shape: TextureShape,
+    lights: &DirectionTable,
+    views: &DirectionTable,
+    components: usize,
+    load_slot: F,
+) -> Result<(), BtfError>
+where
+    F: Fn(usize) -> Result<Vec<Vec<f32>>, BtfError>,
+{
+    let mut writer = BtfWriter::create(dir, shape, lights, views, components)?;
+    for slot in 0..views.len() {
+        let pca = load_and_compress(slot, &load_slot, shape, lights.len(), components)?;
+        writer.write_slot(slot, &pca)?;
+    }
+    writer.finish()
+}
+
+fn check_slot(
+    slot: usize,
+    pca: &SlotPca,
+    shape: TextureShape,
+    lights: usize,
+    components: usize,
+) -> Result<(), BtfError> {
+    let mismatch = |why: String| Err(BtfError::SlotMismatch { slot, why });
+    if pca.values != shape.values() {
+        return mismatch(format!(
+            "{} values per texture, expected {}",
+            pca.values,
+            shape.values()
+        ));
+    }
+    if pca.lights != lights {
+        return mismatch(format!("{} lights, expected {lights}", pca.lights));
+    }
+    if pca.components != components {
+        return mismatch(format!(
+            "{} components, expected {components}",
+            pca.components
+        ));
+    }
+    Ok(())
+}
+
+/// One slot's entry in `btf.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SlotEntry {
+    pub file: String,
+    pub singular_values: Vec<f64>,
+}
+
+/// The contents of `btf.json`; see the module documentation.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BtfHeader {
+    pub format: String,
+    pub version: u32,
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    pub components: usize,
+    pub value_encoding: String,
+    pub light_directions: Vec<Direction>,
+    pub view_directions: Vec<Direction>,
+    pub slots: Vec<SlotEntry>,
+}
+
+impl BtfHeader {
+    /// Reads and validates `dir/btf.json` (not the slot files).
+    pub fn read(dir: &Path) -> Result<Self, BtfError> {
+        let path = dir.join(HEADER_FILE);
+        let text = fs::read_to_string(&path).map_err(|source| BtfError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        let header: BtfHeader = serde_json::from_str(&text).map_err(|e| BtfError::Format {
+            path: path.clone(),
+            why: e.to_string(),
+        })?;
+        header.validate(&path)?;
+        Ok(header)
+    }
+
+    fn shape(&self, path: &Path) -> Result<TextureShape, BtfError> {
+        TextureShape::new(self.width, self.height, self.channels).map_err(|e| BtfError::Format {
+            path: path.to_path_buf(),
+            why: e.to_string(),
+        })
+    }
+
+    fn validate(&self, path: &Path) -> Result<(), BtfError> {
+        let bad = |why: String| {
+            Err(BtfError::Format {
+                path: path.to_path_buf(),
+                why,
+            })
+        };
+        if self.format != FORMAT_NAME {
+            return bad(format!(
+                "format `{}`, expected `{FORMAT_NAME}`",
+                self.format
+            ));
+        }
+        if self.version != FORMAT_VERSION {
+            return bad(format!(
+                "version {}, this reader knows {FORMAT_VERSION}",
+                self.version
+            ));
+        }
+        if self.value_encoding != VALUE_ENCODING {
+            return bad(format!(
+                "value encoding `{}`, expected `{VALUE_ENCODING}`",
+                self.value_encoding
+            ));
+        }
+        let shape = self.shape(path)?;
+        let lights = self.light_directions.len();
+        if let Err(e) = DirectionTable::new(self.light_directions.clone()) {
+            return bad(format!("light directions: {e}"));
+        }
+        if let Err(e) = DirectionTable::new(self.view_directions.clone()) {
+            return bad(format!("view directions: {e}"));
+        }
+        if self.components == 0
+            || self.components != stored_components(self.components, lights, shape.values())
+        {
+            return bad(format!(
+                "{} components for {lights} lights of {} values",
+                self.components,
+                shape.values()
+            ));
+        }
+        if self.slots.len() != self.view_directions.len() {
+            return bad(format!(
+                "{} slots for {} view directions",
+                self.slots.len(),
+                self.view_directions.len()
+            ));
+        }
+        let rank_bound = lights.min(shape.values());
+        for (slot, entry) in self.slots.iter().enumerate() {
+            if !is_plain_file_name(&entry.file) {
+                return bad(format!(
+                    "slot {slot}: file `{}` is not a plain file name",
+                    entry.file
+                ));
+            }
+            if entry.singular_values.len() != rank_bound
+                || entry
+                    .singular_values
+                    .iter()
+                    .any(|s| !s.is_finite() || *s < 0.0)
+            {
+                return bad(format!(
+                    "slot {slot}: expected {rank_bound} finite non-negative singular values"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Reads the PCA of view slot `slot` from its file in `dir`.
+    pub fn read_slot(&self, dir: &Path, slot: usize) -> Result<SlotPca, BtfError> {
+        let entry = self.slots.get(slot).ok_or(BtfError::SlotIndex {
+            slot,
+            slots: self.slots.len(),
+        })?;
+        let path = dir.join(&entry.file);
+        let bad = |why: String| BtfError::Format {
+            path: path.clone(),
+            why,
+        };
+        let shape = self.shape(&dir.join(HEADER_FILE))?;
+        let (values, lights, components) =
+            (shape.values(), self.light_directions.len(), self.components);
+        let expected_floats = values
+            .checked_mul(components + 1)
+            .and_then(|v| v.checked_add(lights.checked_mul(components)?))
+            .ok_or_else(|| bad("slot size overflows".into()))?;
+        let bytes = fs::read(&path).map_err(|source| BtfError::Io {
+            path: path.clone(),
+            source,
+        })?;
+        if Some(bytes.len()) != expected_floats.checked_mul(4) {
+            return Err(bad(format!(
+                "{} bytes, expected {expected_floats} f32 values ({values} per texture, {components} components, {lights} lights)",
+                bytes.len()
+            )));
+        }
+        let floats: Vec<f32> = bytes
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+            .collect();
+        if let Some(at) = floats.iter().position(|v| !v.is_finite()) {
+            return Err(bad(format!("value {at} is not finite")));
+        }
+        let (mean, rest) = floats.split_at(values);
+        let (eigen_textures, weights) = rest.split_at(values * components);
+        Ok(SlotPca {
+            values,
+            lights,
+            components,
+            mean: mean.to_vec(),
+            eigen_textures: eigen_textures.to_vec(),
+            weights: weights.to_vec(),
+            singular_values: entry.singular_values.clone(),
+        })
+    }
+}
+
+fn is_plain_file_name(name: &str) -> bool {
+    !name.is_empty()
+        && name != "."
+        && name != ".."
+        && !name.contains(['/', '\\'])
+        && Path::new(name).file_name() == Some(std::ffi::OsStr::new(name))
+}
+
+/// File name of view slot `slot`.
+pub fn slot_file_name(slot: usize) -> String {
+    format!("slot_{slot:03}.bin")
+}
+
+/// Writes a store slot by slot, so a caller compressing in a stream keeps one
+/// slot in memory. `btf.json` is written by [`BtfWriter::finish`], last.
+#[derive(Debug)]
+pub struct BtfWriter {
+    dir: PathBuf,
+    shape: TextureShape,
+    lights: usize,
+    header: BtfHeader,
+    written: Vec<bool>,
+}
+
+impl BtfWriter {
+    /// Prepares `dir` (created if missing). `components` is the requested C;
+    /// it is clamped like [`compress_slot`] does.
+    pub fn create(
+        dir: &Path,
+        shape: TextureShape,
+        lights: &DirectionTable,
+        views: &DirectionTable,
+        components: usize,
+    ) -> Result<Self, BtfError> {
+        if components == 0 {
+            return Err(BtfError::NoComponents);
+        }
+        fs::create_dir_all(dir).map_err(|source| BtfError::Io {
+            path: dir.to_path_buf(),
+            source,
+        })?;
+        let header = BtfHeader {
+            format: FORMAT_NAME.into(),
+            version: FORMAT_VERSION,
+            width: shape.width,
+            height: shape.height,
+            channels: shape.channels,
+            components: stored_components(components, lights.len(), shape.values()),
+            value_encoding: VALUE_ENCODING.into(),
+            light_directions: lights.directions().to_vec(),
+            view_directions: views.directions().to_vec(),
+            slots: (0..views.len())
+                .map(|slot| SlotEntry {
+                    file: slot_file_name(slot),
+                    singular_values: Vec::new(),
+                })
+                .collect(),
+        };
+        Ok(BtfWriter {
+            dir: dir.to_path_buf(),
+            shape,
+            lights: lights.len(),
+            written: vec![false; views.len()],
+            header,
+        })
+    }
+
+    /// Writes `slot_{slot:03}.bin` atomically.
+    pub fn write_slot(&mut self, slot: usize, pca: &SlotPca) -> Result<(), BtfError> {
+        let slots = self.header.slots.len();
+        let entry = self
+            .header
+            .slots
+            .get_mut(slot)
+            .ok_or(BtfError::SlotIndex { slot, slots })?;
+        check_slot(slot, pca, self.shape, self.lights, self.header.components)?;
+        let path = self.dir.join(&entry.file);
+        write_atomically(&path, |out| {
+            for part in [&pca.mean, &pca.eigen_textures, &pca.weights] {
+                for value in part.iter() {
+                    out.write_all(&value.to_le_bytes())?;
+                }
+            }
+            Ok(())
+        })?;
+        entry.singular_values = pca.singular_values.clone();
+        self.written[slot] = true;
+        Ok(())
+    }
+
+    /// Writes `btf.json`; fails if a slot was never written.
+    pub fn finish(self) -> Result<(), BtfError> {
+        if let Some(slot) = self.written.iter().position(|w| !w) {
+            return Err(BtfError::SlotMismatch {
+                slot,
+                why: "never written".into(),
+            });
+        }
+        let path = self.dir.join(HEADER_FILE);
+        let json = serde_json::to_vec_pretty(&self.header).map_err(|e| BtfError::Format {
+            path: path.clone(),
+            why: e.to_string(),
+        })?;
+        write_atomically(&path, |out| out.write_all(&json))
+    }
+}
+
+/// Writes `path` via a temporary file in the same directory and a rename, so
+/// readers never see a partial file.
+fn write_atomically(
+    path: &Path,
+    fill: impl FnOnce(&mut io::BufWriter<&fs::File>) -> io::Result<()>,
+) -> Result<(), BtfError> {
+    let file_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let temp = path.with_file_name(format!(".{file_name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let file = fs::File::create(&temp)?;
+        let mut out = io::BufWriter::new(&file);
+        fill(&mut out)?;
+        out.flush()?;
+        drop(out);
+        file.sync_all()?;
+        fs::rename(&temp, path)
+    })();
+    result.map_err(|source| {
+        // Best effort: the error that matters is the one reported.
+        let _ = fs::remove_file(&temp);
+        BtfError::Io {
+            path: path.to_path_buf(),
+            source,
+        }
+    })
+}
