@@ -104,6 +104,59 @@ enum ProcessCmd {
     /// float32, unit, z towards the camera), albedo.npy, height.npy, p.npy,
     /// q.npy, PNG renderings of each and report.json into --out.
     PhotometricStereo(PsArgs),
+    /// Register every frame of a run by its holder markers (seed 000 §3.2)
+    /// and resample the sample to frontal textures: RUN/processed/
+    /// normtextures/ with index.json (per frame: the marker residual in
+    /// pixels, the markers used and rejected). Frames whose markers cannot be
+    /// found are named in the error and the index.
+    Rectify(RectifyArgs),
+    /// Compress a rectified run's BTF: a PCA per view slot (seed 000 §4.1)
+    /// into RUN/processed/btf/ (btf.json + slot files), with the eigenvalue
+    /// decay and the RMS error for C = 1 … 32 per slot in report.json.
+    Btf(BtfArgs),
+    /// Fit every texel of every view slot of a rectified run with the
+    /// K-lobe reflectance model by Levenberg–Marquardt and with a PTM
+    /// (seed 001 §4), and print the average error table (seed 001 Table 1);
+    /// also RUN/processed/fit/report.json.
+    Fit(FitArgs),
+}
+
+#[derive(Args)]
+struct FitArgs {
+    /// The run directory (after `rigd process rectify`).
+    run: PathBuf,
+    /// Lobes of the non-linear model.
+    #[arg(long, default_value_t = 2)]
+    lobes: usize,
+}
+
+#[derive(Args)]
+struct RectifyArgs {
+    /// The run directory.
+    run: PathBuf,
+    /// Side of the frontal normtexture each frame is resampled to first.
+    #[arg(long, default_value_t = 1024)]
+    size: usize,
+    /// Fraction of the normtexture kept around its centre.
+    #[arg(long, default_value_t = 1.0)]
+    roi: f64,
+    /// Side of the stored textures.
+    #[arg(long = "final", default_value_t = 256)]
+    final_size: usize,
+    /// Which 8 bits of the sensor value to keep: `top` (no clipping), a
+    /// shift N for value >> N clipped at 255 (2 = the central 8 bits of 12,
+    /// as seed 000 chose), or `float` for linear float32 (.npy).
+    #[arg(long, default_value = "top")]
+    bits: String,
+}
+
+#[derive(Args)]
+struct BtfArgs {
+    /// The run directory (after `rigd process rectify`).
+    run: PathBuf,
+    /// Components kept per view slot.
+    #[arg(long, default_value_t = 16)]
+    components: usize,
 }
 
 #[derive(Args)]
@@ -338,6 +391,15 @@ fn main() -> ExitCode {
         Cmd::Process {
             command: ProcessCmd::PhotometricStereo(args),
         } => photometric_stereo(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Process {
+            command: ProcessCmd::Rectify(args),
+        } => rectify(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Process {
+            command: ProcessCmd::Btf(args),
+        } => btf(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Process {
+            command: ProcessCmd::Fit(args),
+        } => fit(args).map(|_| ExitCode::SUCCESS),
         Cmd::Sim {
             command: SimCmd::Render(args),
         } => sim_render(args).map(|_| ExitCode::SUCCESS),
@@ -809,14 +871,7 @@ fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
                 .collect(),
         );
     }
-    let rows_done = |done: usize, total: usize| {
-        if done == total || done % 64 == 0 {
-            eprint!("\rsolving: {done}/{total} rows");
-            if done == total {
-                eprintln!();
-            }
-        }
-    };
+    let rows_done = progress_line("solving rows");
     let opts = ps::PsOptions {
         robust: args.robust,
         max_condition: args.max_condition,
@@ -851,6 +906,102 @@ fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
         }
     }
     println!("wrote {} files into {}", written.len(), args.out.display());
+    Ok(())
+}
+
+/// A progress line on stderr for long processing.
+fn progress_line(what: &'static str) -> impl Fn(usize, usize) + Sync {
+    move |done: usize, total: usize| {
+        if done == total || done % 16 == 0 {
+            eprint!("\r{what}: {done}/{total}");
+            if done == total {
+                eprintln!();
+            }
+        }
+    }
+}
+
+fn rectify(args: RectifyArgs) -> anyhow::Result<()> {
+    use rigd::postprocess::TextureBits;
+    let bits = match args.bits.as_str() {
+        "top" => TextureBits::Top8,
+        "float" => TextureBits::Float,
+        s => match s.parse::<u8>() {
+            Ok(shift) if shift <= 8 => TextureBits::Shift(shift),
+            _ => bail!("--bits {s}: expected `top`, a shift 0 ..= 8 or `float`"),
+        },
+    };
+    let cfg = rigd::postprocess::RectifyConfig {
+        size: args.size,
+        roi: args.roi,
+        final_size: args.final_size,
+        bits,
+    };
+    let run = rigd::postprocess::RunFrames::open(&args.run)?;
+    let started = Instant::now();
+    let index = rigd::postprocess::rectify_run(&run, &cfg, &progress_line("registering"))?;
+    let rms: Vec<f64> = index.frames.iter().filter_map(|f| f.rms_px).collect();
+    let worst = index
+        .frames
+        .iter()
+        .filter_map(|f| f.max_px)
+        .fold(0.0, f64::max);
+    let rejected: usize = index.frames.iter().map(|f| f.markers_rejected.len()).sum();
+    println!(
+        "{} frames registered ({} views × {} lights): marker residual RMS mean {:.3} px, worst marker {:.3} px, {} markers rejected as outliers; {}² textures in {} ({:.1} s)",
+        rms.len(),
+        index.views.len(),
+        index.lights.len(),
+        rms.iter().sum::<f64>() / rms.len().max(1) as f64,
+        worst,
+        rejected,
+        index.size,
+        args.run.join("processed/normtextures").display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn btf(args: BtfArgs) -> anyhow::Result<()> {
+    if args.components == 0 {
+        bail!("--components 0: expected at least 1");
+    }
+    let report = rigd::postprocess::btf_run(
+        &args.run,
+        args.components,
+        &progress_line("compressing view slots"),
+    )?;
+    println!(
+        "{} view slots × {} lights, C = {}: {:.1} MB in {} ({:.1} s)",
+        report.slots,
+        report.lights,
+        report.components,
+        report.bytes as f64 / 1e6,
+        args.run.join("processed/btf").display(),
+        report.compress_s
+    );
+    println!("C\tmean RMS error over slots (1 = full scale)");
+    for (c, rms) in report.mean_rms_by_components.iter().enumerate() {
+        if [1, 2, 4, 8, 16, 32].contains(&(c + 1)) {
+            println!("{}\t{:.5}", c + 1, rms);
+        }
+    }
+    Ok(())
+}
+
+fn fit(args: FitArgs) -> anyhow::Result<()> {
+    if !(1..=8).contains(&args.lobes) {
+        bail!("--lobes {}: expected 1 ..= 8", args.lobes);
+    }
+    let rows =
+        rigd::postprocess::fit_run(&args.run, args.lobes, &progress_line("fitting view slots"))?;
+    println!("method\tmean |error|\tRMS error\tfit time\tconverged texels");
+    for r in rows {
+        println!(
+            "{}\t{:.5}\t{:.5}\t{:.2} s\t{}",
+            r.method, r.mean_abs_error, r.rms_error, r.fit_s, r.converged_texels
+        );
+    }
     Ok(())
 }
 

@@ -10,6 +10,7 @@ use rigd_sim::scene::{Scene, Shot};
 use serde::Serialize;
 
 use crate::connect::sim::camera_geometry;
+use crate::geometry::Direction;
 use crate::store::{decode_png, read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
 
 #[derive(Debug, thiserror::Error)]
@@ -177,4 +178,529 @@ pub fn normal_error(scene: &Scene, shot: &Shot, result: &PsResult) -> Option<Nor
         median_deg: angles[n / 2],
         p95_deg: angles[(n * 95 / 100).min(n - 1)],
     })
+}
+
+/// Where processed results of a run go.
+pub const PROCESSED_DIR: &str = "processed";
+/// The registered textures, one per frame, and their index.
+pub const NORMTEXTURES_DIR: &str = "normtextures";
+pub const NORMTEXTURE_INDEX: &str = "index.json";
+
+/// How `rigd process rectify` resamples and stores the textures.
+#[derive(Debug, Clone, Copy)]
+pub struct RectifyConfig {
+    /// Side of the frontal normtexture each frame is resampled to first.
+    pub size: usize,
+    /// Fraction of the normtexture's side kept around its centre.
+    pub roi: f64,
+    /// Side of the stored texture (the ROI scaled).
+    pub final_size: usize,
+    pub bits: TextureBits,
+}
+
+/// How rectified textures are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TextureBits {
+    /// 8-bit PNG of the top 8 bits of the sensor value (no clipping).
+    Top8,
+    /// 8-bit PNG of `value >> shift`, clipped at 255 (2 = the central 8
+    /// bits of 12, as seed 000 §3.2 chose for the linear part of its CCD).
+    Shift(u8),
+    /// Linear float32 `.npy`, 1 = full scale.
+    Float,
+}
+
+impl Default for RectifyConfig {
+    fn default() -> Self {
+        RectifyConfig {
+            size: rigd_process::rectify::NORMTEXTURE_SIZE,
+            roi: 1.0,
+            final_size: rigd_process::rectify::FINAL_TEXTURE_SIZE,
+            bits: TextureBits::Top8,
+        }
+    }
+}
+
+/// One frame's registration, as `processed/rectify.json` records it.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct FrameRegistration {
+    pub index: usize,
+    pub view_slot: usize,
+    pub light_index: usize,
+    /// The texture file, relative to the normtextures folder; None if the
+    /// frame could not be registered.
+    pub file: Option<String>,
+    pub rms_px: Option<f64>,
+    pub max_px: Option<f64>,
+    pub markers_found: usize,
+    pub markers_used: usize,
+    pub markers_rejected: Vec<usize>,
+    /// Fraction of the texture the frame covered.
+    pub coverage: Option<f64>,
+    pub error: Option<String>,
+}
+
+/// The index of a run's normtextures: the measured directions and, per
+/// (view slot, light), the texture.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct NormtextureIndex {
+    pub size: usize,
+    /// `png8` (8-bit codes / 255) or `npy-f32` (linear, 1 = full scale).
+    pub encoding: String,
+    pub bit_depth: u8,
+    /// Commanded directions (sample frame); BTF slots are views.
+    pub lights: Vec<Direction>,
+    pub views: Vec<Direction>,
+    pub frames: Vec<FrameRegistration>,
+}
+
+impl NormtextureIndex {
+    pub fn read(run: &Path) -> Result<NormtextureIndex, ProcessError> {
+        let path = run
+            .join(PROCESSED_DIR)
+            .join(NORMTEXTURES_DIR)
+            .join(NORMTEXTURE_INDEX);
+        let bytes = std::fs::read(&path).map_err(|e| ProcessError::Frame {
+            path: path.clone(),
+            message: format!("{e} (run `rigd process rectify` first)"),
+        })?;
+        serde_json::from_slice(&bytes).map_err(|e| ProcessError::Frame {
+            path,
+            message: e.to_string(),
+        })
+    }
+
+    /// The texture of (view slot, light) as linear values.
+    pub fn load(&self, run: &Path, view_slot: usize, light: usize) -> Result<Image, ProcessError> {
+        let frame = self
+            .frames
+            .iter()
+            .find(|f| f.view_slot == view_slot && f.light_index == light);
+        let Some(file) = frame.and_then(|f| f.file.as_ref()) else {
+            return Err(ProcessError::Invalid(format!(
+                "no registered texture for view slot {view_slot}, light {light}{}",
+                frame
+                    .and_then(|f| f.error.as_ref())
+                    .map(|e| format!(" (frame {}: {e})", frame.map_or(0, |f| f.index)))
+                    .unwrap_or_default()
+            )));
+        };
+        let path = run.join(PROCESSED_DIR).join(NORMTEXTURES_DIR).join(file);
+        let frame_err = |message: String| ProcessError::Frame {
+            path: path.clone(),
+            message,
+        };
+        if self.encoding == "npy-f32" {
+            let a = rigd_process::npy::read_f32(&path).map_err(|e| frame_err(e.to_string()))?;
+            let (h, w) = (a.shape[0], a.shape.get(1).copied().unwrap_or(1));
+            let mut img = Image::new(w, h, 1);
+            img.data = a.data;
+            Ok(img)
+        } else {
+            rigd_process::image_io::load_png(&path).map_err(|e| frame_err(e.to_string()))
+        }
+    }
+}
+
+/// Index of `d` in `list` (adding it if new), by direction within 1e-6°.
+fn slot_of(list: &mut Vec<Direction>, d: Direction) -> usize {
+    let same = |a: &Direction| {
+        (a.theta_deg - d.theta_deg).abs() < 1e-6
+            && ((a.phi_deg - d.phi_deg).abs() < 1e-6 || d.theta_deg.abs() < 1e-9)
+    };
+    match list.iter().position(same) {
+        Some(i) => i,
+        None => {
+            list.push(d);
+            list.len() - 1
+        }
+    }
+}
+
+/// The holder the run's frames show, as the registration sees it: the
+/// simulated scene's, or the default plate for hardware runs.
+fn holder_scene(meta: &RunMeta) -> Result<std::sync::Arc<Scene>, ProcessError> {
+    let name = if meta.simulated {
+        meta.profile.sim.scene_name()
+    } else {
+        rigd_sim::scene::DEFAULT_SCENE
+    };
+    Ok(Scene::load(name)?)
+}
+
+/// Registers every frame of a run by its holder markers, resamples the
+/// sample square to a frontal texture, and writes the textures and
+/// `processed/normtextures/index.json`. Frames whose markers cannot be
+/// found are listed in the index with the reason and make the whole call
+/// fail with an error naming them (after every other frame is written).
+pub fn rectify_run(
+    run: &RunFrames,
+    cfg: &RectifyConfig,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<NormtextureIndex, ProcessError> {
+    use rayon::prelude::*;
+    use rigd_process::image_io::{write_png, PngDepth};
+    use rigd_process::rectify::{self as rect, MarkerLayout, Quantisation};
+    if cfg.final_size == 0 || cfg.size == 0 || !(cfg.roi > 0.0 && cfg.roi <= 1.0) {
+        return Err(ProcessError::Invalid(format!(
+            "size {}, ROI {}, final size {}: expected positive sizes and 0 < ROI ≤ 1",
+            cfg.size, cfg.roi, cfg.final_size
+        )));
+    }
+    let scene = holder_scene(&run.meta)?;
+    let points: Vec<[f64; 2]> = scene
+        .holder
+        .markers()
+        .into_iter()
+        .filter(|m| m.kind == "point")
+        .map(|m| m.position)
+        .collect();
+    let layout = MarkerLayout {
+        points,
+        radius_m: scene.holder.point_radius,
+        sample_half: scene.sample_half,
+    };
+    let out_dir = run.root.join(PROCESSED_DIR).join(NORMTEXTURES_DIR);
+    std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
+        path: out_dir.clone(),
+        message: e.to_string(),
+    })?;
+    let (mut lights, mut views) = (Vec::new(), Vec::new());
+    let slots: Vec<(usize, usize)> = run
+        .entries
+        .iter()
+        .map(|e| {
+            (
+                slot_of(&mut views, e.view.canonical()),
+                slot_of(&mut lights, e.light.canonical()),
+            )
+        })
+        .collect();
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    let total = run.entries.len();
+    let bit_depth = run.entries.first().map_or(8, |e| e.bit_depth);
+    let frames: Vec<FrameRegistration> = run
+        .entries
+        .par_iter()
+        .zip(slots.par_iter())
+        .map(|(entry, &(view_slot, light_index))| {
+            let mut rec = FrameRegistration {
+                index: entry.index,
+                view_slot,
+                light_index,
+                file: None,
+                rms_px: None,
+                max_px: None,
+                markers_found: 0,
+                markers_used: 0,
+                markers_rejected: Vec::new(),
+                coverage: None,
+                error: None,
+            };
+            let result = (|| -> Result<(), String> {
+                let image = run.image(entry).map_err(|e| e.to_string())?;
+                let geometry = camera_geometry(
+                    &run.meta.profile,
+                    &entry.camera,
+                    [entry.width, entry.height],
+                )
+                .ok_or_else(|| format!("no camera `{}` in the run's profile", entry.camera))?;
+                let shot = Shot {
+                    view: entry.achieved_view.to_vector(),
+                    width: entry.width,
+                    height: entry.height,
+                    focal_px: Some(geometry.focal_px),
+                    camera_distance_m: geometry.distance_m,
+                    ..Shot::default()
+                };
+                // Where the rig's pose says the markers are; the search
+                // finds them around that.
+                let predicted: Vec<Option<[f64; 2]>> = scene
+                    .true_markers(&shot)
+                    .into_iter()
+                    .filter(|(m, _)| m.kind == "point")
+                    .map(|(_, p)| p)
+                    .collect();
+                let radius = (0.03 * f64::from(entry.width.max(entry.height))).max(6.0);
+                let detections =
+                    rect::detect_markers(&image, &predicted, radius, &Default::default())
+                        .map_err(|e| e.to_string())?;
+                let reg = rect::register(&layout, &detections, &Default::default())
+                    .map_err(|e| e.to_string())?;
+                rec.rms_px = Some(reg.rms_px);
+                rec.max_px = Some(reg.max_px);
+                rec.markers_found = reg.found;
+                rec.markers_used = reg.used;
+                rec.markers_rejected = reg.rejected.clone();
+                let full = rect::rectify(
+                    &image,
+                    &reg.homography,
+                    layout.sample_region(),
+                    [cfg.size, cfg.size],
+                    &Default::default(),
+                )
+                .map_err(|e| e.to_string())?;
+                rec.coverage = Some(full.coverage);
+                let roi = rect::Roi::centred(cfg.size, cfg.size, cfg.roi);
+                let texture = rect::roi_cut(&full.texture, roi, [cfg.final_size, cfg.final_size])
+                    .map_err(|e| e.to_string())?;
+                let name = format!("v{view_slot:03}_l{light_index:03}");
+                let shift = match cfg.bits {
+                    TextureBits::Top8 => Some(entry.bit_depth.saturating_sub(8)),
+                    TextureBits::Shift(s) => Some(s),
+                    TextureBits::Float => None,
+                };
+                match shift {
+                    Some(shift) => {
+                        let q = rect::quantise(
+                            &texture,
+                            entry.bit_depth,
+                            Quantisation::Bits8 { shift },
+                        )
+                        .map_err(|e| e.to_string())?;
+                        let file = format!("{name}.png");
+                        write_png(&out_dir.join(&file), &q, PngDepth::Eight)
+                            .map_err(|e| e.to_string())?;
+                        rec.file = Some(file);
+                    }
+                    None => {
+                        let file = format!("{name}.npy");
+                        rigd_process::npy::write_f32(
+                            &out_dir.join(&file),
+                            &[texture.height, texture.width],
+                            &texture.data,
+                        )
+                        .map_err(|e| e.to_string())?;
+                        rec.file = Some(file);
+                    }
+                }
+                Ok(())
+            })();
+            if let Err(e) = result {
+                rec.error = Some(e);
+            }
+            let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            progress(n, total);
+            rec
+        })
+        .collect();
+    let index = NormtextureIndex {
+        size: cfg.final_size,
+        encoding: if cfg.bits == TextureBits::Float {
+            "npy-f32"
+        } else {
+            "png8"
+        }
+        .into(),
+        bit_depth,
+        lights: lights.clone(),
+        views: views.clone(),
+        frames,
+    };
+    let path = out_dir.join(NORMTEXTURE_INDEX);
+    let mut json =
+        serde_json::to_vec_pretty(&index).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    json.push(b'\n');
+    crate::store::write_atomic(&path, &json)?;
+    let failed: Vec<String> = index
+        .frames
+        .iter()
+        .filter_map(|f| f.error.as_ref().map(|e| format!("frame {}: {e}", f.index)))
+        .collect();
+    if !failed.is_empty() {
+        let shown: Vec<&str> = failed.iter().take(10).map(String::as_str).collect();
+        return Err(ProcessError::Invalid(format!(
+            "{} of {} frames could not be registered (listed in {}): {}{}",
+            failed.len(),
+            index.frames.len(),
+            path.display(),
+            shown.join("; "),
+            if failed.len() > 10 { "; …" } else { "" }
+        )));
+    }
+    Ok(index)
+}
+
+/// Per slot and for the whole run: how fast the spectrum decays and what
+/// RMS error C components leave.
+#[derive(Debug, Clone, Serialize)]
+pub struct BtfReport {
+    pub components: usize,
+    pub slots: usize,
+    pub lights: usize,
+    /// Mean over slots of the RMS reconstruction error with C = 1 … 32
+    /// components (in texture units, 1 = full scale).
+    pub mean_rms_by_components: Vec<f64>,
+    pub per_slot: Vec<SlotSummary>,
+    pub compress_s: f64,
+    pub bytes: u64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SlotSummary {
+    pub slot: usize,
+    pub view: Direction,
+    /// Eigenvalues (σ²), largest first, at most 32.
+    pub eigenvalues: Vec<f64>,
+    pub rms_by_components: Vec<f64>,
+}
+
+/// Compresses a rectified run's BTF: a PCA per view slot with `components`
+/// components (seed 000 §4.1), streamed slot by slot into
+/// `processed/btf/`, and its report.
+pub fn btf_run(
+    run: &Path,
+    components: usize,
+    progress: &dyn Fn(usize, usize),
+) -> Result<BtfReport, ProcessError> {
+    use rigd_process::btf::{compress_slot, BtfWriter, TextureShape};
+    use rigd_process::directions::{Direction as PDir, DirectionTable};
+    let index = NormtextureIndex::read(run)?;
+    let table = |dirs: &[Direction]| {
+        DirectionTable::new(
+            dirs.iter()
+                .map(|d| PDir::new(d.theta_deg, d.phi_deg))
+                .collect(),
+        )
+        .map_err(|e| ProcessError::Invalid(e.to_string()))
+    };
+    let (lights, views) = (table(&index.lights)?, table(&index.views)?);
+    let shape = TextureShape::new(index.size, index.size, 1)
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let dir = run.join(PROCESSED_DIR).join("btf");
+    let started = std::time::Instant::now();
+    let mut writer = BtfWriter::create(&dir, shape, &lights, &views, components)
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let mut per_slot = Vec::with_capacity(index.views.len());
+    for (slot, view) in index.views.iter().enumerate() {
+        let images = (0..index.lights.len())
+            .map(|l| index.load(run, slot, l).map(|img| img.data))
+            .collect::<Result<Vec<_>, _>>()?;
+        let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+        let pca = compress_slot(&refs, shape, components)
+            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
+        writer
+            .write_slot(slot, &pca)
+            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
+        per_slot.push(SlotSummary {
+            slot,
+            view: *view,
+            eigenvalues: pca.eigenvalues().into_iter().take(32).collect(),
+            rms_by_components: pca.rms_error_curve(32),
+        });
+        progress(slot + 1, index.views.len());
+    }
+    writer
+        .finish()
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let compress_s = started.elapsed().as_secs_f64();
+    let longest = per_slot
+        .iter()
+        .map(|s| s.rms_by_components.len())
+        .max()
+        .unwrap_or(0);
+    let mean_rms_by_components = (0..longest)
+        .map(|c| {
+            let vals: Vec<f64> = per_slot
+                .iter()
+                .map(|s| {
+                    s.rms_by_components
+                        .get(c)
+                        .or(s.rms_by_components.last())
+                        .copied()
+                        .unwrap_or(0.0)
+                })
+                .collect();
+            vals.iter().sum::<f64>() / vals.len().max(1) as f64
+        })
+        .collect();
+    let bytes = std::fs::read_dir(&dir)
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok()?.metadata().ok())
+                .map(|m| m.len())
+                .sum()
+        })
+        .unwrap_or(0);
+    let report = BtfReport {
+        components,
+        slots: index.views.len(),
+        lights: index.lights.len(),
+        mean_rms_by_components,
+        per_slot,
+        compress_s,
+        bytes,
+    };
+    let mut json =
+        serde_json::to_vec_pretty(&report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    json.push(b'\n');
+    crate::store::write_atomic(&dir.join("report.json"), &json)?;
+    Ok(report)
+}
+
+/// One row of the run's fit table (seed 001 Table 1).
+#[derive(Debug, Clone, Serialize)]
+pub struct FitRow {
+    pub method: String,
+    /// Mean over slots of the mean |model − value| over texels and lights,
+    /// in texture units (1 = full scale).
+    pub mean_abs_error: f64,
+    pub rms_error: f64,
+    pub fit_s: f64,
+    pub converged_texels: usize,
+}
+
+/// Fits every view slot of a rectified run with PTM and the K-lobe model
+/// (seed 001 §4) and tabulates the errors, written to
+/// `processed/fit/report.json`. The fitted parameters are not stored.
+pub fn fit_run(
+    run: &Path,
+    lobes: usize,
+    progress: &dyn Fn(usize, usize),
+) -> Result<Vec<FitRow>, ProcessError> {
+    use rigd_process::reflectance_fit::{error_table, FitOptions};
+    let index = NormtextureIndex::read(run)?;
+    let lights: Vec<[f64; 3]> = index.lights.iter().map(|d| d.to_vector()).collect();
+    let mut rows: Vec<FitRow> = Vec::new();
+    let slots = index.views.len();
+    for slot in 0..slots {
+        let images = (0..lights.len())
+            .map(|l| index.load(run, slot, l))
+            .collect::<Result<Vec<_>, _>>()?;
+        let texels = images.first().map_or(0, |i| i.data.len());
+        // Texel-major: each texel's values under every light.
+        let mut values = Vec::with_capacity(texels * lights.len());
+        for t in 0..texels {
+            values.extend(images.iter().map(|img| img.data[t]));
+        }
+        let table = error_table(&lights, &values, &[lobes], &FitOptions::default())
+            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
+        for (k, r) in table.rows.iter().enumerate() {
+            if rows.len() <= k {
+                rows.push(FitRow {
+                    method: r.method.to_string(),
+                    mean_abs_error: 0.0,
+                    rms_error: 0.0,
+                    fit_s: 0.0,
+                    converged_texels: 0,
+                });
+            }
+            let row = &mut rows[k];
+            row.mean_abs_error += r.mean_abs_error / slots as f64;
+            row.rms_error += r.rms_error / slots as f64;
+            row.fit_s += r.fit_time.as_secs_f64();
+            row.converged_texels += r.converged_texels;
+        }
+        progress(slot + 1, slots);
+    }
+    let dir = run.join(PROCESSED_DIR).join("fit");
+    std::fs::create_dir_all(&dir).map_err(|e| ProcessError::Frame {
+        path: dir.clone(),
+        message: e.to_string(),
+    })?;
+    let mut json =
+        serde_json::to_vec_pretty(&rows).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    json.push(b'\n');
+    crate::store::write_atomic(&dir.join("report.json"), &json)?;
+    Ok(rows)
 }

@@ -8,4 +8,5 @@ pub mod directions;
 pub mod image_io;
 pub mod npy;
 pub mod photometric_stereo;
+pub mod rectify;
 pub mod reflectance_fit;

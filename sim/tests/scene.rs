@@ -452,3 +452,56 @@ fn bad_scene_files_name_the_key() {
     let err = Scene::load("no-such-scene").unwrap_err().to_string();
     assert!(err.contains("flat-calibration"), "{err}");
 }
+
+#[test]
+fn image_heightfields_and_albedos_load_relative_to_the_scene_file() {
+    let dir = std::env::temp_dir().join(format!("rigd-scene-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    // A left-to-right ramp: black (0) to white (the amplitude).
+    let (w, h) = (64u32, 32u32);
+    let data: Vec<u8> = (0..h)
+        .flat_map(|_| (0..w).map(|i| (i * 255 / (w - 1)) as u8))
+        .collect();
+    let mut png_bytes = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut png_bytes, w, h);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Eight);
+        enc.write_header().unwrap().write_image_data(&data).unwrap();
+    }
+    std::fs::write(dir.join("ramp.png"), &png_bytes).unwrap();
+    let scene_path = dir.join("ramp.toml");
+    std::fs::write(
+        &scene_path,
+        r#"
+name = "ramp"
+[sample]
+size_mm = [80.0, 80.0]
+resolution = 128
+albedo = { pattern = "image", path = "ramp.png", min = 0.2, max = 0.6 }
+heightfield = { kind = "image", path = "ramp.png", amplitude_mm = 2.0 }
+"#,
+    )
+    .unwrap();
+    let scene = Scene::load(scene_path.to_str().unwrap()).unwrap();
+    let left = scene.true_height(-0.039, 0.0) * 1e3;
+    let right = scene.true_height(0.039, 0.0) * 1e3;
+    let mid = scene.true_height(0.0, 0.0) * 1e3;
+    assert!(
+        left < 0.1 && right > 1.9 && (mid - 1.0).abs() < 0.1,
+        "{left} {mid} {right}"
+    );
+    assert!((scene.albedo(0.0, 0.01) - 0.4).abs() < 0.02);
+    let n = scene.true_normal(0.0, 0.0);
+    // Slope 2 mm over 80 mm: the normal leans towards −x.
+    assert!((n[0] + 0.025).abs() < 0.003 && n[1].abs() < 1e-3, "{n:?}");
+    std::fs::write(dir.join("broken.toml"), "name = \"b\"\n[sample]\nsize_mm = [50.0, 50.0]\nalbedo = { pattern = \"image\", path = \"missing.png\", min = 0.0, max = 1.0 }\n").unwrap();
+    let err = Scene::load(dir.join("broken.toml").to_str().unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("sample.albedo.path") && err.contains("missing.png"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -46,18 +46,24 @@ impl VisibilityMaps {
         }
     }
 
-    /// Fraction of the (bilinearly weighted) four nearest vertices that see
-    /// direction `d` (unit, sample frame): binary maps, smooth boundaries.
+    /// Visibility of direction `d` (unit, sample frame) at (x, y): the
+    /// binary maps of the four nearest vertices, blended bilinearly over
+    /// the vertices and linearly between the two nearest polar rings, so
+    /// shadow boundaries are smooth rather than stepped by the cells.
     pub fn visibility(&self, x: f64, y: f64, d: [f64; 3]) -> f64 {
         if d[2] <= 0.0 {
             return 0.0;
         }
         let n = self.vertices;
+        let (nt, np) = (self.theta_cells, self.phi_cells);
         let theta = d[2].clamp(-1.0, 1.0).acos();
         let phi = d[1].atan2(d[0]).rem_euclid(std::f64::consts::TAU);
-        let ti = ((theta / std::f64::consts::FRAC_PI_2) * self.theta_cells as f64) as usize;
-        let pi = ((phi / std::f64::consts::TAU) * self.phi_cells as f64) as usize;
-        let cell = ti.min(self.theta_cells - 1) * self.phi_cells + pi.min(self.phi_cells - 1);
+        let pi = (((phi / std::f64::consts::TAU) * np as f64) as usize).min(np - 1);
+        let tf =
+            (theta / std::f64::consts::FRAC_PI_2 * nt as f64 - 0.5).clamp(0.0, (nt - 1) as f64);
+        let t0 = (tf.floor() as usize).min(nt - 1);
+        let t1 = (t0 + 1).min(nt - 1);
+        let wt = tf - t0 as f64;
         let u =
             ((x + self.half[0]) / (2.0 * self.half[0]) * (n - 1) as f64).clamp(0.0, (n - 1) as f64);
         let v =
@@ -67,8 +73,13 @@ impl VisibilityMaps {
             (v.floor() as usize).min(n - 2),
         );
         let (fu, fv) = (u - i0 as f64, v - j0 as f64);
-        let cells = self.theta_cells * self.phi_cells;
-        let bit = |i: usize, j: usize| self.bits[(j * n + i) * cells + cell] as f64;
+        let cells = nt * np;
+        let bit = |i: usize, j: usize| {
+            let base = (j * n + i) * cells;
+            let a = self.bits[base + t0 * np + pi] as f64;
+            let b = self.bits[base + t1 * np + pi] as f64;
+            a + (b - a) * wt
+        };
         let a = bit(i0, j0) * (1.0 - fu) + bit(i0 + 1, j0) * fu;
         let b = bit(i0, j0 + 1) * (1.0 - fu) + bit(i0 + 1, j0 + 1) * fu;
         a * (1.0 - fv) + b * fv

@@ -1,0 +1,169 @@
+//! `rigd process rectify` and `rigd process btf` on simulated captures.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn rigd() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_rigd"))
+}
+
+fn plan(dir: &Path) -> PathBuf {
+    let p = dir.join("plan.json");
+    std::fs::write(
+        &p,
+        r#"{
+  "lights": [{"theta_deg": 30, "phi_deg": 0}, {"theta_deg": 30, "phi_deg": 120},
+             {"theta_deg": 30, "phi_deg": 240}, {"theta_deg": 60, "phi_deg": 60},
+             {"theta_deg": 45, "phi_deg": 300}],
+  "views": [{"theta_deg": 0, "phi_deg": 0}, {"theta_deg": 40, "phi_deg": 90}]
+}"#,
+    )
+    .unwrap();
+    p
+}
+
+fn capture(dir: &Path, size: &str) -> PathBuf {
+    let run = dir.join(format!("run-{size}"));
+    let status = rigd()
+        .args([
+            "run",
+            "--sim",
+            "--scene",
+            "corduroy",
+            "--frame-size",
+            size,
+            "--sample",
+            "c",
+            "--progress",
+            "none",
+            "--plan",
+        ])
+        .arg(plan(dir))
+        .arg("--out")
+        .arg(&run)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    run
+}
+
+#[test]
+fn a_capture_is_rectified_and_compressed() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = capture(dir.path(), "512x384");
+    let out = rigd()
+        .args(["process", "rectify", "--size", "256", "--final", "64"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
+    )
+    .unwrap();
+    let frames = index["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 10);
+    assert_eq!(index["views"].as_array().unwrap().len(), 2);
+    assert_eq!(index["lights"].as_array().unwrap().len(), 5);
+    for f in frames {
+        let rms = f["rms_px"].as_f64().unwrap();
+        assert!(rms < 0.5, "frame {}: marker residual {rms} px", f["index"]);
+        assert!(f["markers_used"].as_u64().unwrap() >= 6, "{f}");
+        let file = run
+            .join("processed/normtextures")
+            .join(f["file"].as_str().unwrap());
+        let img = rigd_process::image_io::load_png(&file).unwrap();
+        assert_eq!((img.width, img.height), (64, 64));
+        // The sample fills the texture: no dark holder at its centre.
+        assert!(img.get(32, 32, 0) > 0.02, "{}", file.display());
+    }
+    let out = rigd()
+        .args(["process", "btf", "--components", "3"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/btf/report.json")).unwrap())
+            .unwrap();
+    let rms: Vec<f64> = report["mean_rms_by_components"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert!(rms.iter().all(|v| v.is_finite()));
+    assert!(rms.windows(2).all(|w| w[1] <= w[0] + 1e-9), "{rms:?}");
+    // Five lights: five components reproduce each slot.
+    assert!(rms[4] < 1e-4, "{rms:?}");
+    let store = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).unwrap();
+    let tex = store
+        .reconstruct(
+            rigd_process::directions::Direction::new(35.0, 10.0),
+            rigd_process::directions::Direction::new(20.0, 45.0),
+        )
+        .unwrap();
+    assert!(tex.iter().all(|v| v.is_finite()));
+    // Five lights allow one lobe (four parameters) per texel.
+    let out = rigd()
+        .args(["process", "fit", "--lobes", "1"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    let rows: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/fit/report.json")).unwrap())
+            .unwrap();
+    let methods: Vec<&str> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|r| r["method"].as_str())
+        .collect();
+    assert_eq!(methods.len(), 2, "{rows}");
+    for r in rows.as_array().unwrap() {
+        let e = r["mean_abs_error"].as_f64().unwrap();
+        assert!(e.is_finite() && (0.0..0.5).contains(&e), "{r}");
+    }
+}
+
+#[test]
+fn frames_whose_markers_cannot_be_found_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    // At 40×30 pixels a 6 mm marker is a fraction of a pixel.
+    let run = capture(dir.path(), "40x30");
+    let out = rigd()
+        .args(["process", "rectify"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("could not be registered") && stderr.contains("frame 0"),
+        "{stderr}"
+    );
+    // The BTF step refuses a run with missing textures, naming the slot.
+    let out = rigd().args(["process", "btf"]).arg(&run).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("no registered texture"), "{stderr}");
+}
