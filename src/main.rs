@@ -53,6 +53,13 @@ enum Cmd {
     /// run at a time, with a queue. SIGINT/SIGTERM pause the active run
     /// (resumable after restart) and stop.
     Serve(ServeArgs),
+    /// Write a rectified run's textures for existing BTF tools: `utia` (a
+    /// folder per view of tl…_pl…_tv…_pv….png) or `ubo2003` (a zip of
+    /// `tl… pl… tv… pv….jpg`, integer degrees, as the Bonn 2003 database).
+    Export(ExportArgs),
+    /// Read textures in an export format (ours or a database's) into
+    /// OUT/processed/normtextures/, ready for `rigd process btf OUT`.
+    Import(ImportArgs),
     /// Turn captured frames into results: photometric stereo, BTF
     /// compression.
     Process {
@@ -119,6 +126,33 @@ enum ProcessCmd {
     /// (seed 001 §4), and print the average error table (seed 001 Table 1);
     /// also RUN/processed/fit/report.json.
     Fit(FitArgs),
+}
+
+#[derive(Args)]
+struct ExportArgs {
+    /// The run directory (after `rigd process rectify`).
+    run: PathBuf,
+    /// utia or ubo2003.
+    #[arg(long)]
+    format: rigd_process::export::Format,
+    /// A folder (utia) or a .zip file (ubo2003).
+    #[arg(long)]
+    out: PathBuf,
+    /// JPEG quality for ubo2003, 1 ..= 100.
+    #[arg(long, default_value_t = 95)]
+    quality: u8,
+}
+
+#[derive(Args)]
+struct ImportArgs {
+    /// A utia folder or a ubo2003 zip.
+    path: PathBuf,
+    /// utia or ubo2003.
+    #[arg(long)]
+    format: rigd_process::export::Format,
+    /// Directory to create the normtextures in.
+    #[arg(long)]
+    out: PathBuf,
 }
 
 #[derive(Args)]
@@ -400,6 +434,31 @@ fn main() -> ExitCode {
         Cmd::Process {
             command: ProcessCmd::Fit(args),
         } => fit(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Export(args) => {
+            if !(1..=100).contains(&args.quality) {
+                eprintln!("error: --quality {}: expected 1 ..= 100", args.quality);
+                return ExitCode::from(EXIT_BAD_INPUT);
+            }
+            rigd::postprocess::export_run(&args.run, args.format, &args.out, args.quality)
+                .map(|n| {
+                    println!("{n} textures written to {}", args.out.display());
+                    ExitCode::SUCCESS
+                })
+                .map_err(anyhow::Error::from)
+        }
+        Cmd::Import(args) => rigd::postprocess::import_textures(args.format, &args.path, &args.out)
+            .map(|index| {
+                println!(
+                    "{} textures ({} views × {} lights, {}²) in {}",
+                    index.frames.len(),
+                    index.views.len(),
+                    index.lights.len(),
+                    index.size,
+                    args.out.join("processed/normtextures").display()
+                );
+                ExitCode::SUCCESS
+            })
+            .map_err(anyhow::Error::from),
         Cmd::Sim {
             command: SimCmd::Render(args),
         } => sim_render(args).map(|_| ExitCode::SUCCESS),

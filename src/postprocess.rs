@@ -704,3 +704,98 @@ pub fn fit_run(
     crate::store::write_atomic(&dir.join("report.json"), &json)?;
     Ok(rows)
 }
+
+fn to_pdir(d: Direction) -> rigd_process::directions::Direction {
+    rigd_process::directions::Direction::new(d.theta_deg, d.phi_deg)
+}
+
+/// Writes a rectified run's textures in an existing BTF tool's layout
+/// (`rigd export`); returns how many.
+pub fn export_run(
+    run: &Path,
+    format: rigd_process::export::Format,
+    out: &Path,
+    jpeg_quality: u8,
+) -> Result<usize, ProcessError> {
+    use rigd_process::export::{write, Texture};
+    let index = NormtextureIndex::read(run)?;
+    let mut textures = Vec::with_capacity(index.frames.len());
+    for f in &index.frames {
+        textures.push(Texture {
+            light: to_pdir(index.lights[f.light_index]),
+            view: to_pdir(index.views[f.view_slot]),
+            image: index.load(run, f.view_slot, f.light_index)?,
+        });
+    }
+    write(&textures, format, out, jpeg_quality).map_err(|e| ProcessError::Invalid(e.to_string()))
+}
+
+/// Reads textures in an export format into `out/processed/normtextures/`,
+/// so `rigd process btf out` works on them (`rigd import`).
+pub fn import_textures(
+    format: rigd_process::export::Format,
+    path: &Path,
+    out: &Path,
+) -> Result<NormtextureIndex, ProcessError> {
+    use rigd_process::image_io::{write_png, PngDepth};
+    let textures = rigd_process::export::read(format, path)
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let first = textures
+        .first()
+        .ok_or_else(|| ProcessError::Invalid(format!("{}: no textures found", path.display())))?;
+    let size = first.image.width;
+    let dir = out.join(PROCESSED_DIR).join(NORMTEXTURES_DIR);
+    std::fs::create_dir_all(&dir).map_err(|e| ProcessError::Frame {
+        path: dir.clone(),
+        message: e.to_string(),
+    })?;
+    let (mut lights, mut views, mut frames) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, t) in textures.iter().enumerate() {
+        if t.image.width != size || t.image.height != size {
+            return Err(ProcessError::Invalid(format!(
+                "{}: texture {i} is {}x{}, the first is {size}x{size}",
+                path.display(),
+                t.image.width,
+                t.image.height
+            )));
+        }
+        let view_slot = slot_of(&mut views, Direction::new(t.view.theta_deg, t.view.phi_deg));
+        let light_index = slot_of(
+            &mut lights,
+            Direction::new(t.light.theta_deg, t.light.phi_deg),
+        );
+        let file = format!("v{view_slot:03}_l{light_index:03}.png");
+        write_png(&dir.join(&file), &t.image, PngDepth::Eight).map_err(|e| {
+            ProcessError::Frame {
+                path: dir.join(&file),
+                message: e.to_string(),
+            }
+        })?;
+        frames.push(FrameRegistration {
+            index: i,
+            view_slot,
+            light_index,
+            file: Some(file),
+            rms_px: None,
+            max_px: None,
+            markers_found: 0,
+            markers_used: 0,
+            markers_rejected: Vec::new(),
+            coverage: None,
+            error: None,
+        });
+    }
+    let index = NormtextureIndex {
+        size,
+        encoding: "png8".into(),
+        bit_depth: 8,
+        lights,
+        views,
+        frames,
+    };
+    let mut json =
+        serde_json::to_vec_pretty(&index).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    json.push(b'\n');
+    crate::store::write_atomic(&dir.join(NORMTEXTURE_INDEX), &json)?;
+    Ok(index)
+}

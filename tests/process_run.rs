@@ -116,6 +116,49 @@ fn a_capture_is_rectified_and_compressed() {
         )
         .unwrap();
     assert!(tex.iter().all(|v| v.is_finite()));
+    // Exported for other tools and read back by rigd's own reader.
+    for (format, out) in [
+        ("utia", dir.path().join("utia")),
+        ("ubo2003", dir.path().join("ubo.zip")),
+    ] {
+        let status = rigd()
+            .args(["export", "--format", format, "--out"])
+            .arg(&out)
+            .arg(&run)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{format}");
+        let back = dir.path().join(format!("import-{format}"));
+        let status = rigd()
+            .args(["import", "--format", format, "--out"])
+            .arg(&back)
+            .arg(&out)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{format}");
+        let index: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(back.join("processed/normtextures/index.json")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(index["frames"].as_array().unwrap().len(), 10, "{format}");
+        // Same texture under the same directions (JPEG within its loss).
+        let original = texture_at(&run, 60.0, 60.0, 40.0, 90.0);
+        let copy = texture_at(&back, 60.0, 60.0, 40.0, 90.0);
+        let worst = original
+            .data
+            .iter()
+            .zip(&copy.data)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        let tolerance = if format == "utia" { 0.0 } else { 0.1 };
+        assert!(worst <= tolerance, "{format}: worst difference {worst}");
+        let status = rigd()
+            .args(["process", "btf", "--components", "2"])
+            .arg(&back)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{format}");
+    }
     // Five lights allow one lobe (four parameters) per texel.
     let out = rigd()
         .args(["process", "fit", "--lobes", "1"])
@@ -166,4 +209,37 @@ fn frames_whose_markers_cannot_be_found_are_named() {
     assert_eq!(out.status.code(), Some(2));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("no registered texture"), "{stderr}");
+}
+
+/// The normtexture of a run directory under light (θl, φl) and view (θv, φv).
+fn texture_at(root: &Path, tl: f64, pl: f64, tv: f64, pv: f64) -> rigd_process::image_io::Image {
+    let dir = root.join("processed/normtextures");
+    let index: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("index.json")).unwrap()).unwrap();
+    let is = |d: &serde_json::Value, t: f64, p: f64| {
+        (d["theta_deg"].as_f64().unwrap() - t).abs() < 1e-6
+            && (d["phi_deg"].as_f64().unwrap() - p).abs() < 1e-6
+    };
+    let f = index["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| {
+            is(
+                &index["views"][f["view_slot"].as_u64().unwrap() as usize],
+                tv,
+                pv,
+            ) && is(
+                &index["lights"][f["light_index"].as_u64().unwrap() as usize],
+                tl,
+                pl,
+            )
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "{}: no texture for light {tl},{pl} view {tv},{pv}",
+                root.display()
+            )
+        });
+    rigd_process::image_io::load_png(&dir.join(f["file"].as_str().unwrap())).unwrap()
 }

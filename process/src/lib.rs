@@ -5,6 +5,7 @@
 
 pub mod btf;
 pub mod directions;
+pub mod export;
 pub mod image_io;
 pub mod npy;
 pub mod photometric_stereo;

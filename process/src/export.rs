@@ -1,0 +1,322 @@
+//! Export of registered BTF textures in the layouts existing BTF tools read,
+//! and the readers that bring them back:
+//!
+//! - **UTIA** (`Format::Utia`): a folder per view, `tv{θv:03}_pv{φv:03}/`,
+//!   holding one 8-bit PNG per light named
+//!   `tl{θl:03}_pl{φl:03}_tv{θv:03}_pv{φv:03}.png`;
+//! - **UBO2003** (`Format::Ubo2003`): a zip of 8-bit JPEG images named
+//!   `tl{ttt} pl{ppp} tv{ttt} pv{ppp}.jpg` (spaces, integer degrees), as the
+//!   Bonn 2003 BTF database ships.
+//!
+//! Angles are rounded to whole degrees, as both formats name them; two
+//! measured directions that round to the same name are an error rather
+//! than a silent overwrite. Textures are grey, values in [0, 1].
+
+use std::collections::BTreeSet;
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+use crate::directions::Direction;
+use crate::image_io::{self, Image, PngDepth};
+
+/// The export formats.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    Utia,
+    Ubo2003,
+}
+
+impl std::str::FromStr for Format {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Format, String> {
+        match s {
+            "utia" => Ok(Format::Utia),
+            "ubo2003" => Ok(Format::Ubo2003),
+            _ => Err(format!("unknown format `{s}` (known: utia, ubo2003)")),
+        }
+    }
+}
+
+/// One texture and the directions it was measured under.
+#[derive(Debug, Clone)]
+pub struct Texture {
+    pub light: Direction,
+    pub view: Direction,
+    pub image: Image,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum ExportError {
+    #[error("{}: {message}", path.display())]
+    Io { path: PathBuf, message: String },
+    #[error("directions {first} and {second} both round to the name `{name}`")]
+    NameClash {
+        name: String,
+        first: String,
+        second: String,
+    },
+    #[error("{}: `{name}` is not a name this format uses", path.display())]
+    BadName { path: PathBuf, name: String },
+    #[error("texture for {what} is {width}x{height} with {channels} channels: expected grey, at most 65535 pixels a side")]
+    BadTexture {
+        what: String,
+        width: usize,
+        height: usize,
+        channels: usize,
+    },
+}
+
+fn io_err(path: &Path, e: impl std::fmt::Display) -> ExportError {
+    ExportError::Io {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+/// Whole degrees for a file name: θ in 0 ..= 90, φ in 0 ..= 359 (the pole's
+/// φ is written as 0).
+fn degrees(d: Direction) -> (u32, u32) {
+    let theta = d.theta_deg.round().clamp(0.0, 90.0) as u32;
+    let phi = if theta == 0 {
+        0
+    } else {
+        (d.phi_deg.rem_euclid(360.0).round() as u32) % 360
+    };
+    (theta, phi)
+}
+
+fn utia_view_dir(v: Direction) -> String {
+    let (t, p) = degrees(v);
+    format!("tv{t:03}_pv{p:03}")
+}
+
+fn utia_name(l: Direction, v: Direction) -> String {
+    let ((tl, pl), (tv, pv)) = (degrees(l), degrees(v));
+    format!("tl{tl:03}_pl{pl:03}_tv{tv:03}_pv{pv:03}.png")
+}
+
+fn ubo_name(l: Direction, v: Direction) -> String {
+    let ((tl, pl), (tv, pv)) = (degrees(l), degrees(v));
+    format!("tl{tl:03} pl{pl:03} tv{tv:03} pv{pv:03}.jpg")
+}
+
+/// Parses `tl…pl…tv…pv…` names of either format (separators `_` or ` `).
+fn parse_name(stem: &str) -> Option<(Direction, Direction)> {
+    let parts: Vec<&str> = stem.split(['_', ' ']).collect();
+    let [tl, pl, tv, pv] = parts[..] else {
+        return None;
+    };
+    let num = |s: &str, prefix: &str| s.strip_prefix(prefix)?.parse::<u32>().ok().map(f64::from);
+    Some((
+        Direction::new(num(tl, "tl")?, num(pl, "pl")?),
+        Direction::new(num(tv, "tv")?, num(pv, "pv")?),
+    ))
+}
+
+fn check_names<'a>(
+    textures: &'a [Texture],
+    name: impl Fn(&Texture) -> String,
+) -> Result<(), ExportError> {
+    let mut seen: std::collections::BTreeMap<String, &'a Texture> = Default::default();
+    for t in textures {
+        let n = name(t);
+        if let Some(first) = seen.get(&n) {
+            return Err(ExportError::NameClash {
+                name: n,
+                first: format!("light {:?} view {:?}", first.light, first.view),
+                second: format!("light {:?} view {:?}", t.light, t.view),
+            });
+        }
+        let img = &t.image;
+        if img.channels != 1
+            || img.width > 65535
+            || img.height > 65535
+            || img.width == 0
+            || img.height == 0
+        {
+            return Err(ExportError::BadTexture {
+                what: n,
+                width: img.width,
+                height: img.height,
+                channels: img.channels,
+            });
+        }
+        seen.insert(n, t);
+    }
+    Ok(())
+}
+
+fn codes8(image: &Image) -> Vec<u8> {
+    image
+        .data
+        .iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .collect()
+}
+
+/// Writes the textures to `out` in `format`; returns the files written.
+/// UBO2003 JPEGs use `jpeg_quality` (1 ..= 100).
+pub fn write(
+    textures: &[Texture],
+    format: Format,
+    out: &Path,
+    jpeg_quality: u8,
+) -> Result<usize, ExportError> {
+    match format {
+        Format::Utia => {
+            check_names(textures, |t| {
+                format!("{}/{}", utia_view_dir(t.view), utia_name(t.light, t.view))
+            })?;
+            for t in textures {
+                let dir = out.join(utia_view_dir(t.view));
+                std::fs::create_dir_all(&dir).map_err(|e| io_err(&dir, e))?;
+                image_io::write_png(
+                    &dir.join(utia_name(t.light, t.view)),
+                    &t.image,
+                    PngDepth::Eight,
+                )
+                .map_err(|e| io_err(&dir, e))?;
+            }
+            Ok(textures.len())
+        }
+        Format::Ubo2003 => {
+            check_names(textures, |t| ubo_name(t.light, t.view))?;
+            if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
+                std::fs::create_dir_all(parent).map_err(|e| io_err(parent, e))?;
+            }
+            // The archive is built under a temporary name and renamed, so a
+            // failure never leaves a half-written zip.
+            let tmp = out.with_extension("zip.tmp");
+            let file = std::fs::File::create(&tmp).map_err(|e| io_err(&tmp, e))?;
+            let mut zip = zip::ZipWriter::new(std::io::BufWriter::new(file));
+            let options = zip::write::SimpleFileOptions::default()
+                .compression_method(zip::CompressionMethod::Stored);
+            for t in textures {
+                let name = ubo_name(t.light, t.view);
+                let mut jpeg = Vec::new();
+                jpeg_encoder::Encoder::new(&mut jpeg, jpeg_quality.clamp(1, 100))
+                    .encode(
+                        &codes8(&t.image),
+                        t.image.width as u16,
+                        t.image.height as u16,
+                        jpeg_encoder::ColorType::Luma,
+                    )
+                    .map_err(|e| io_err(out, format!("{name}: {e}")))?;
+                zip.start_file(name.as_str(), options)
+                    .map_err(|e| io_err(&tmp, e))?;
+                zip.write_all(&jpeg).map_err(|e| io_err(&tmp, e))?;
+            }
+            let mut inner = zip.finish().map_err(|e| io_err(&tmp, e))?;
+            inner.flush().map_err(|e| io_err(&tmp, e))?;
+            let file = inner.into_inner().map_err(|e| io_err(&tmp, e.error()))?;
+            file.sync_all().map_err(|e| io_err(&tmp, e))?;
+            std::fs::rename(&tmp, out).map_err(|e| io_err(out, e))?;
+            Ok(textures.len())
+        }
+    }
+}
+
+/// Reads textures written in `format` (by [`write`] or by the databases
+/// these formats come from), sorted by view then light.
+pub fn read(format: Format, path: &Path) -> Result<Vec<Texture>, ExportError> {
+    let mut out = Vec::new();
+    match format {
+        Format::Utia => {
+            let mut files = BTreeSet::new();
+            for view in std::fs::read_dir(path).map_err(|e| io_err(path, e))? {
+                let view = view.map_err(|e| io_err(path, e))?.path();
+                if !view.is_dir() {
+                    continue;
+                }
+                for f in std::fs::read_dir(&view).map_err(|e| io_err(&view, e))? {
+                    let f = f.map_err(|e| io_err(&view, e))?.path();
+                    if f.extension().is_some_and(|e| e == "png") {
+                        files.insert(f);
+                    }
+                }
+            }
+            for f in files {
+                let stem = f
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default();
+                let (light, view) = parse_name(&stem).ok_or_else(|| ExportError::BadName {
+                    path: f.clone(),
+                    name: stem.clone(),
+                })?;
+                let image = image_io::load_png(&f).map_err(|e| io_err(&f, e))?;
+                out.push(Texture { light, view, image });
+            }
+        }
+        Format::Ubo2003 => {
+            let file = std::fs::File::open(path).map_err(|e| io_err(path, e))?;
+            let mut zip =
+                zip::ZipArchive::new(std::io::BufReader::new(file)).map_err(|e| io_err(path, e))?;
+            for i in 0..zip.len() {
+                let mut entry = zip.by_index(i).map_err(|e| io_err(path, e))?;
+                let name = entry.name().to_string();
+                let Some(stem) = name.rsplit('/').next().and_then(|n| n.strip_suffix(".jpg"))
+                else {
+                    continue;
+                };
+                let (light, view) = parse_name(stem).ok_or_else(|| ExportError::BadName {
+                    path: path.to_path_buf(),
+                    name: name.clone(),
+                })?;
+                let mut bytes = Vec::new();
+                entry.read_to_end(&mut bytes).map_err(|e| io_err(path, e))?;
+                let image =
+                    decode_jpeg(&bytes).map_err(|m| io_err(path, format!("{name}: {m}")))?;
+                out.push(Texture { light, view, image });
+            }
+        }
+    }
+    out.sort_by(|a, b| {
+        let key = |t: &Texture| (degrees(t.view), degrees(t.light));
+        key(a).cmp(&key(b))
+    });
+    Ok(out)
+}
+
+/// A JPEG as a grey image in [0, 1] (colour JPEGs are read as luma).
+fn decode_jpeg(bytes: &[u8]) -> Result<Image, String> {
+    use zune_core::bytestream::ZCursor;
+    use zune_core::colorspace::ColorSpace;
+    use zune_core::options::DecoderOptions;
+    let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::Luma);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    decoder.decode_headers().map_err(|e| e.to_string())?;
+    let (w, h) = decoder.dimensions().ok_or("no image dimensions")?;
+    let pixels = decoder.decode().map_err(|e| e.to_string())?;
+    if pixels.len() != w * h {
+        return Err(format!(
+            "decoded {} values for {w}x{h} grey pixels",
+            pixels.len()
+        ));
+    }
+    let mut image = Image::new(w, h, 1);
+    for (d, p) in image.data.iter_mut().zip(pixels) {
+        *d = f32::from(p) / 255.0;
+    }
+    Ok(image)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_follow_each_format() {
+        let (l, v) = (Direction::new(17.0, 345.0), Direction::new(85.0, 0.4));
+        assert_eq!(utia_name(l, v), "tl017_pl345_tv085_pv000.png");
+        assert_eq!(ubo_name(l, v), "tl017 pl345 tv085 pv000.jpg");
+        // The pole has no azimuth; 359.6° wraps to 0.
+        assert_eq!(degrees(Direction::new(0.0, 123.0)), (0, 0));
+        assert_eq!(degrees(Direction::new(30.0, 359.6)), (30, 0));
+        assert_eq!(
+            parse_name("tl017 pl345 tv085 pv000").map(|(l, _)| l.theta_deg),
+            Some(17.0)
+        );
+        assert!(parse_name("tl17_pl345").is_none());
+    }
+}
