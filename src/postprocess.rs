@@ -799,3 +799,111 @@ pub fn import_textures(
     crate::store::write_atomic(&dir.join(NORMTEXTURE_INDEX), &json)?;
     Ok(index)
 }
+
+/// The error of a compressed BTF at one (light, view) against the scene's
+/// true reflectance.
+#[derive(Debug, Clone, Serialize)]
+pub struct HeldOutError {
+    pub light: Direction,
+    pub view: Direction,
+    /// RMS over texels of reconstruction − truth, texture units.
+    pub rms: f64,
+    /// RMS of the truth itself, for scale.
+    pub truth_rms: f64,
+}
+
+/// What a perfect rig's normtexture of `scene` at (light, view) holds:
+/// `Scene::true_btf` over the sample square, `size`² texels (row 0 the +y
+/// edge, column 0 the −x edge), each averaged over its area (4 × 4
+/// samples, as the registration's area filter averages the frame's
+/// pixels; point samples would alias the relief's highlights), scaled as
+/// the sensor scales radiance ([`rigd_sim::scene::WHITE_LEVEL`] of full
+/// scale for a white Lambertian sample lit frontally) with a directional
+/// lamp (a rig's lamp fall-off therefore counts as error).
+pub fn true_texture(scene: &Scene, size: usize, light: Direction, view: Direction) -> Vec<f32> {
+    use rayon::prelude::*;
+    const SUB: usize = 4;
+    let [hx, hy] = scene.sample_half;
+    let (l, v) = (light.to_vector(), view.to_vector());
+    let mut out = vec![0f32; size * size];
+    out.par_chunks_mut(size.max(1))
+        .enumerate()
+        .for_each(|(j, row)| {
+            for (i, texel) in row.iter_mut().enumerate() {
+                let mut sum = 0.0;
+                for sj in 0..SUB {
+                    let y =
+                        hy - (j as f64 + (sj as f64 + 0.5) / SUB as f64) / size as f64 * 2.0 * hy;
+                    for si in 0..SUB {
+                        let x = -hx
+                            + (i as f64 + (si as f64 + 0.5) / SUB as f64) / size as f64 * 2.0 * hx;
+                        sum += scene.true_btf(x, y, l, v, Default::default());
+                    }
+                }
+                *texel = (rigd_sim::scene::WHITE_LEVEL * sum / (SUB * SUB) as f64) as f32;
+            }
+        });
+    out
+}
+
+/// Compares the run's compressed BTF (`processed/btf/`) at each (light,
+/// view) with the simulated run's scene ([`true_texture`]).
+pub fn btf_truth_error(
+    run: &Path,
+    pairs: &[(Direction, Direction)],
+) -> Result<Vec<HeldOutError>, ProcessError> {
+    let meta = read_meta(run)?;
+    if !meta.simulated {
+        return Err(ProcessError::Invalid(format!(
+            "{}: ground truth exists only for simulated runs",
+            run.display()
+        )));
+    }
+    let scene = Scene::load(meta.profile.sim.scene_name())?;
+    let size = NormtextureIndex::read(run)?.size;
+    let truths: Vec<Vec<f32>> = pairs
+        .iter()
+        .map(|&(l, v)| true_texture(&scene, size, l, v))
+        .collect();
+    btf_error(run, pairs, &truths)
+}
+
+/// RMS differences between the run's compressed BTF at each pair and the
+/// given textures.
+pub fn btf_error(
+    run: &Path,
+    pairs: &[(Direction, Direction)],
+    truths: &[Vec<f32>],
+) -> Result<Vec<HeldOutError>, ProcessError> {
+    let store = rigd_process::btf::BtfStore::read(&run.join(PROCESSED_DIR).join("btf"))
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    pairs
+        .iter()
+        .zip(truths)
+        .map(|(&(light, view), truth)| {
+            let tex = store
+                .reconstruct(to_pdir(light), to_pdir(view))
+                .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+            if tex.len() != truth.len() {
+                return Err(ProcessError::Invalid(format!(
+                    "{} texels reconstructed, {} in the truth",
+                    tex.len(),
+                    truth.len()
+                )));
+            }
+            let n = tex.len().max(1) as f64;
+            let err2: f64 = tex
+                .iter()
+                .zip(truth)
+                .map(|(a, b)| f64::from(a - b).powi(2))
+                .sum();
+            let truth2: f64 = truth.iter().map(|b| f64::from(*b).powi(2)).sum();
+            Ok(HeldOutError {
+                light,
+                view,
+                rms: (err2 / n).sqrt(),
+                truth_rms: (truth2 / n).sqrt(),
+            })
+        })
+        .collect()
+}

@@ -7,6 +7,7 @@ pub mod btf;
 pub mod directions;
 pub mod export;
 pub mod image_io;
+pub mod mdf;
 pub mod npy;
 pub mod photometric_stereo;
 pub mod rectify;

@@ -661,8 +661,9 @@ impl Engine {
 
     async fn abort(&mut self) -> Result<(), EngineError> {
         self.lamps_off().await;
-        self.go(RunState::Aborted, Some("aborted by operator".into()))?;
-        self.write_manifest()?;
+        let reason = Some("aborted by operator".to_string());
+        self.write_manifest(RunState::Aborted, reason.clone())?;
+        self.go(RunState::Aborted, reason)?;
         Ok(())
     }
 
@@ -671,15 +672,17 @@ impl Engine {
         // The capture ends with its last frame; switching off is not part of it.
         self.finished_at_s = Some(self.t());
         self.lamps_off().await;
-        if missing > 0 {
-            self.go(
+        let (end, reason) = if missing > 0 {
+            (
                 RunState::Failed,
                 Some(format!("{missing} frames missing at the end of the plan")),
-            )?;
+            )
         } else {
-            self.go(RunState::Completed, None)?;
-        }
-        self.write_manifest()?;
+            (RunState::Completed, None)
+        };
+        // The manifest first: whoever sees the run end can read it.
+        self.write_manifest(end, reason.clone())?;
+        self.go(end, reason)?;
         Ok(self.outcome())
     }
 
@@ -692,7 +695,8 @@ impl Engine {
         }
     }
 
-    fn write_manifest(&self) -> Result<(), EngineError> {
+    /// Writes the manifest of a run ending in `state`.
+    fn write_manifest(&self, state: RunState, reason: Option<String>) -> Result<(), EngineError> {
         let infeasible = self
             .schedule
             .infeasible()
@@ -711,8 +715,8 @@ impl Engine {
             profile: self.profile.name.clone(),
             plan: self.schedule.plan.clone(),
             sample: self.meta.sample.clone(),
-            state: self.state.as_str().into(),
-            reason: self.reason.clone(),
+            state: state.as_str().into(),
+            reason,
             steps_total: self.schedule.images.len(),
             triggers_total: self.schedule.triggers.len(),
             frames_written: self.done.len(),

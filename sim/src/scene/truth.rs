@@ -3,17 +3,19 @@
 //! any (light, view), the true height and normals, the mesostructure
 //! distance function (seed 002 §3), and where the markers are in a frame.
 //!
-//! Texels are points (x, y) of the reference plane, which lies at the top
-//! of the relief (seed 002 §3: "a reference surface that lies above the top
-//! of mesostructure details"); for a flat sample it is the sample plane.
+//! BTF texels are points (x, y) of the holder plane z = 0, the plane the
+//! markers register frames to (seed 000 §3.2): a texel shows what the ray
+//! through (x, y, 0) from the view direction meets first. The MDF's texels
+//! lie on a reference plane at the top of the relief (seed 002 §3: "a
+//! reference surface that lies above the top of mesostructure details").
 
 use super::effects::{Effect, EffectSwitches};
 use super::render::{add3, scale3, unit, Camera, Frame, Shot};
 use super::{Marker, Scene};
 
 impl Scene {
-    /// The apparent reflectance factor at reference-plane texel (x, y) for
-    /// a directional light and an orthographic view: the BTF value, with
+    /// The apparent reflectance factor at texel (x, y) of the holder plane
+    /// for a directional light and an orthographic view: the BTF value, with
     /// parallax, masking, shadows and the lobe as the scene renders them
     /// (1 = white Lambertian, frontally lit). `effects` switches as in a
     /// frame; sensor effects never apply.
@@ -36,7 +38,14 @@ impl Scene {
             ..Shot::default()
         };
         let frame = Frame::new(self, &shot);
-        let above = add3([x, y, self.reference_height()], scale3(v, 1e-6));
+        if v[2] <= 1e-9 {
+            return 0.0;
+        }
+        // Back along the ray through (x, y, 0) to above the relief.
+        let above = add3(
+            [x, y, 0.0],
+            scale3(v, (self.reference_height() + 1e-6) / v[2]),
+        );
         match frame.intersect(above, scale3(v, -1.0)) {
             Some(p) => frame.shade(p, v),
             None => 0.0,
