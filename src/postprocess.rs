@@ -221,7 +221,7 @@ impl Default for RectifyConfig {
     }
 }
 
-/// One frame's registration, as `processed/rectify.json` records it.
+/// One frame's registration, as `processed/normtextures/index.json` records it.
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct FrameRegistration {
     pub index: usize,
@@ -238,6 +238,25 @@ pub struct FrameRegistration {
     /// Fraction of the texture the frame covered.
     pub coverage: Option<f64>,
     pub error: Option<String>,
+}
+
+impl FrameRegistration {
+    /// A frame at (view slot, light) with nothing registered yet.
+    fn new(index: usize, view_slot: usize, light_index: usize) -> FrameRegistration {
+        FrameRegistration {
+            index,
+            view_slot,
+            light_index,
+            file: None,
+            rms_px: None,
+            max_px: None,
+            markers_found: 0,
+            markers_used: 0,
+            markers_rejected: Vec::new(),
+            coverage: None,
+            error: None,
+        }
+    }
 }
 
 /// The index of a run's normtextures: the measured directions and, per
@@ -384,19 +403,7 @@ pub fn rectify_run(
         .par_iter()
         .zip(slots.par_iter())
         .map(|(entry, &(view_slot, light_index))| {
-            let mut rec = FrameRegistration {
-                index: entry.index,
-                view_slot,
-                light_index,
-                file: None,
-                rms_px: None,
-                max_px: None,
-                markers_found: 0,
-                markers_used: 0,
-                markers_rejected: Vec::new(),
-                coverage: None,
-                error: None,
-            };
+            let mut rec = FrameRegistration::new(entry.index, view_slot, light_index);
             let result = (|| -> Result<(), String> {
                 let image = run.image(entry).map_err(|e| e.to_string())?;
                 let geometry = camera_geometry(
@@ -772,17 +779,8 @@ pub fn import_textures(
             }
         })?;
         frames.push(FrameRegistration {
-            index: i,
-            view_slot,
-            light_index,
             file: Some(file),
-            rms_px: None,
-            max_px: None,
-            markers_found: 0,
-            markers_used: 0,
-            markers_rejected: Vec::new(),
-            coverage: None,
-            error: None,
+            ..FrameRegistration::new(i, view_slot, light_index)
         });
     }
     let index = NormtextureIndex {

@@ -12,3 +12,4 @@ pub mod npy;
 pub mod photometric_stereo;
 pub mod rectify;
 pub mod reflectance_fit;
+pub mod vec3;

@@ -61,6 +61,7 @@ use rayon::prelude::*;
 
 use crate::image_io::{write_png, Image, ImageError, PngDepth};
 use crate::npy::{write_f32, NpyError};
+use crate::vec3::{add, cross, dot, norm, scale, sub, unit};
 
 /// Depth value of a pixel without a measurement (the seed's `−1`).
 pub const NO_DEPTH: f32 = -1.0;
@@ -111,33 +112,6 @@ pub enum MdfError {
 
 // ------------------------------------------------------------- 3-vectors
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-fn scale(a: [f64; 3], s: f64) -> [f64; 3] {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-fn norm(a: [f64; 3]) -> f64 {
-    dot(a, a).sqrt()
-}
-/// `a / |a|`, `None` for a zero or non-finite vector.
-fn unit(a: [f64; 3]) -> Option<[f64; 3]> {
-    let n = norm(a);
-    (n.is_finite() && n > 1e-300).then(|| scale(a, 1.0 / n))
-}
 /// `a > b`, false when either is NaN (so `!gt(a, b)` reads "not clearly
 /// above", NaN included).
 fn gt(a: f64, b: f64) -> bool {

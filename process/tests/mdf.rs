@@ -9,6 +9,7 @@
 use proptest::prelude::*;
 use rigd_process::image_io::Image;
 use rigd_process::mdf::*;
+use rigd_process::vec3::{self, add, cross, dot, scale, sub};
 
 const W: usize = 160;
 const H: usize = 120;
@@ -28,27 +29,9 @@ const NOISE: f64 = 0.01;
 const SOURCE_R: f64 = 0.5;
 const SOURCE_ELEV_DEG: f64 = 45.0;
 
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn add(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-fn scale(a: [f64; 3], s: f64) -> [f64; 3] {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
+/// A unit vector (test inputs are never zero).
 fn unit(a: [f64; 3]) -> [f64; 3] {
-    scale(a, 1.0 / dot(a, a).sqrt())
+    vec3::unit(a).unwrap_or([0.0, 0.0, 1.0])
 }
 
 fn camera() -> PinholeCamera {
