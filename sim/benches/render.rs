@@ -48,6 +48,14 @@ fn frames_per_second(c: &mut Criterion) {
             &s,
             |b, s| b.iter(|| flat.render(s)),
         );
+        // Asking the flat scene for every effect but the laser costs
+        // nothing: none of them can show.
+        let s = shot(w, h, all, false);
+        g.bench_with_input(
+            BenchmarkId::new("flat-calibration-all-asked", format!("{w}x{h}")),
+            &s,
+            |b, s| b.iter(|| flat.render(s)),
+        );
         let s = shot(w, h, all, true);
         g.bench_with_input(
             BenchmarkId::new("knitted-wool-all-effects", format!("{w}x{h}")),
