@@ -675,6 +675,12 @@ pub fn fit_run(
             .map(|l| index.load(run, slot, l))
             .collect::<Result<Vec<_>, _>>()?;
         let texels = images.first().map_or(0, |i| i.data.len());
+        if let Some(l) = images.iter().position(|i| i.data.len() != texels) {
+            return Err(ProcessError::Invalid(format!(
+                "view slot {slot}: the texture of light {l} has {} values, that of light 0 {texels}",
+                images[l].data.len()
+            )));
+        }
         // Texel-major: each texel's values under every light.
         let mut values = Vec::with_capacity(texels * lights.len());
         for t in 0..texels {
@@ -728,9 +734,21 @@ pub fn export_run(
     let index = NormtextureIndex::read(run)?;
     let mut textures = Vec::with_capacity(index.frames.len());
     for f in &index.frames {
+        let (Some(&light), Some(&view)) = (
+            index.lights.get(f.light_index),
+            index.views.get(f.view_slot),
+        ) else {
+            return Err(ProcessError::Invalid(format!(
+                "{}: frame {} names light {} and view slot {}, which the index does not list",
+                run.display(),
+                f.index,
+                f.light_index,
+                f.view_slot
+            )));
+        };
         textures.push(Texture {
-            light: to_pdir(index.lights[f.light_index]),
-            view: to_pdir(index.views[f.view_slot]),
+            light: to_pdir(light),
+            view: to_pdir(view),
             image: index.load(run, f.view_slot, f.light_index)?,
         });
     }
