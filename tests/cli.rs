@@ -325,3 +325,63 @@ fn help_documents_every_command() {
         assert!(!out.stdout.is_empty());
     }
 }
+
+#[test]
+fn sim_render_writes_a_frame_and_its_metadata() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("cord.png");
+    let o = rigd()
+        .args([
+            "sim",
+            "render",
+            "--profile",
+            "msra-btf-mdf",
+            "--scene",
+            "corduroy",
+        ])
+        .args([
+            "--light", "80,0", "--view", "0,0", "--size", "96x72", "--zoom", "2", "--out",
+        ])
+        .arg(&out)
+        .output()
+        .expect("rigd");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let (w, h, pixels) =
+        rigd::store::decode_png(&std::fs::read(&out).expect("png")).expect("decodes");
+    assert_eq!((w, h), (96, 72));
+    assert!(
+        pixels.iter().any(|&p| p > 0) && pixels.iter().all(|&p| p <= 255),
+        "8-bit camera"
+    );
+    let meta: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("cord.json")).expect("json"))
+            .expect("parses");
+    assert_eq!(meta["scene"], "corduroy");
+    let live: Vec<&str> = meta["effects"]["live"]
+        .as_array()
+        .expect("live")
+        .iter()
+        .filter_map(|e| e.as_str())
+        .collect();
+    assert!(
+        live.contains(&"relief") && live.contains(&"shadows"),
+        "{meta}"
+    );
+    assert!(!live.contains(&"laser"), "no laser asked for: {meta}");
+    assert_eq!(meta["markers"].as_array().expect("markers").len(), 12);
+    // Bad input: one line naming the problem, exit 2, no file written.
+    for (arg, value) in [
+        ("--light", "95,0"),
+        ("--effects", "sparkle"),
+        ("--scene", "no-such-scene"),
+    ] {
+        let bad = dir.path().join("bad.png");
+        let o = rigd()
+            .args(["sim", "render", arg, value, "--out"])
+            .arg(&bad)
+            .output()
+            .expect("rigd");
+        assert_eq!(o.status.code(), Some(2), "{arg} {value}");
+        assert!(!bad.exists(), "{arg} {value} wrote a file");
+    }
+}

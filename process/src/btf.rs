@@ -933,32 +933,13 @@ impl BtfWriter {
     }
 }
 
-/// Writes `path` via a temporary file in the same directory and a rename, so
-/// readers never see a partial file.
+/// Writes `path` whole or not at all ([`crate::atomic`]).
 fn write_atomically(
     path: &Path,
     fill: impl FnOnce(&mut io::BufWriter<&fs::File>) -> io::Result<()>,
 ) -> Result<(), BtfError> {
-    let file_name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let temp = path.with_file_name(format!(".{file_name}.tmp-{}", std::process::id()));
-    let result = (|| {
-        let file = fs::File::create(&temp)?;
-        let mut out = io::BufWriter::new(&file);
-        fill(&mut out)?;
-        out.flush()?;
-        drop(out);
-        file.sync_all()?;
-        fs::rename(&temp, path)
-    })();
-    result.map_err(|source| {
-        // Best effort: the error that matters is the one reported.
-        let _ = fs::remove_file(&temp);
-        BtfError::Io {
-            path: path.to_path_buf(),
-            source,
-        }
+    crate::atomic::write_with(path, fill).map_err(|source| BtfError::Io {
+        path: path.to_path_buf(),
+        source,
     })
 }

@@ -184,33 +184,29 @@ pub fn write(
             if let Some(parent) = out.parent().filter(|p| !p.as_os_str().is_empty()) {
                 std::fs::create_dir_all(parent).map_err(|e| io_err(parent, e))?;
             }
-            // The archive is built under a temporary name and renamed, so a
-            // failure never leaves a half-written zip.
-            let tmp = out.with_extension("zip.tmp");
-            let file = std::fs::File::create(&tmp).map_err(|e| io_err(&tmp, e))?;
-            let mut zip = zip::ZipWriter::new(std::io::BufWriter::new(file));
             let options = zip::write::SimpleFileOptions::default()
                 .compression_method(zip::CompressionMethod::Stored);
-            for t in textures {
-                let name = ubo_name(t.light, t.view);
-                let mut jpeg = Vec::new();
-                jpeg_encoder::Encoder::new(&mut jpeg, jpeg_quality.clamp(1, 100))
-                    .encode(
-                        &codes8(&t.image),
-                        t.image.width as u16,
-                        t.image.height as u16,
-                        jpeg_encoder::ColorType::Luma,
-                    )
-                    .map_err(|e| io_err(out, format!("{name}: {e}")))?;
-                zip.start_file(name.as_str(), options)
-                    .map_err(|e| io_err(&tmp, e))?;
-                zip.write_all(&jpeg).map_err(|e| io_err(&tmp, e))?;
-            }
-            let mut inner = zip.finish().map_err(|e| io_err(&tmp, e))?;
-            inner.flush().map_err(|e| io_err(&tmp, e))?;
-            let file = inner.into_inner().map_err(|e| io_err(&tmp, e.error()))?;
-            file.sync_all().map_err(|e| io_err(&tmp, e))?;
-            std::fs::rename(&tmp, out).map_err(|e| io_err(out, e))?;
+            crate::atomic::write_with(out, |file| {
+                let mut zip = zip::ZipWriter::new(file);
+                for t in textures {
+                    let name = ubo_name(t.light, t.view);
+                    let mut jpeg = Vec::new();
+                    jpeg_encoder::Encoder::new(&mut jpeg, jpeg_quality.clamp(1, 100))
+                        .encode(
+                            &codes8(&t.image),
+                            t.image.width as u16,
+                            t.image.height as u16,
+                            jpeg_encoder::ColorType::Luma,
+                        )
+                        .map_err(|e| std::io::Error::other(format!("{name}: {e}")))?;
+                    zip.start_file(name.as_str(), options)
+                        .map_err(std::io::Error::other)?;
+                    zip.write_all(&jpeg)?;
+                }
+                zip.finish().map_err(std::io::Error::other)?;
+                Ok(())
+            })
+            .map_err(|e| io_err(out, e))?;
             Ok(textures.len())
         }
     }

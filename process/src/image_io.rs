@@ -15,9 +15,8 @@
 //!   leaves a half-written file behind.
 
 use std::fs::File;
-use std::io::{BufReader, Write};
+use std::io::BufReader;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// Largest decoded image accepted, in bytes: guards against a corrupt or
 /// hostile header making us allocate the whole machine.
@@ -235,40 +234,10 @@ pub fn encode_png(image: &Image, depth: PngDepth, path: &Path) -> Result<Vec<u8>
 /// Writes an image as PNG, atomically.
 pub fn write_png(path: &Path, image: &Image, depth: PngDepth) -> Result<(), ImageError> {
     let bytes = encode_png(image, depth, path)?;
-    write_atomic(path, &bytes).map_err(|source| ImageError::Write {
+    crate::atomic::write(path, &bytes).map_err(|source| ImageError::Write {
         path: path.to_path_buf(),
         source,
     })
-}
-
-/// Writes `bytes` to `path` through a temporary sibling file that is synced
-/// and then renamed over `path`; on failure the temporary file is removed.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    static COUNTER: AtomicU64 = AtomicU64::new(0);
-    let dir = match path.parent() {
-        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    let name = path.file_name().ok_or_else(|| {
-        std::io::Error::new(std::io::ErrorKind::InvalidInput, "path has no file name")
-    })?;
-    let tmp = dir.join(format!(
-        ".{}.tmp.{}.{}",
-        name.to_string_lossy(),
-        std::process::id(),
-        COUNTER.fetch_add(1, Ordering::Relaxed)
-    ));
-    let result = (|| {
-        let mut file = File::create(&tmp)?;
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        drop(file);
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result
 }
 
 #[cfg(test)]
@@ -342,17 +311,5 @@ mod tests {
         std::fs::write(&garbage, b"not a png").unwrap();
         let err = load_png(&garbage).unwrap_err().to_string();
         assert!(err.contains("garbage.png"), "{err}");
-    }
-
-    #[test]
-    fn atomic_write_leaves_no_temporary_file() {
-        let dir = tempfile::tempdir().unwrap();
-        let path = dir.path().join("x.bin");
-        write_atomic(&path, b"abc").unwrap();
-        write_atomic(&path, b"defg").unwrap();
-        assert_eq!(std::fs::read(&path).unwrap(), b"defg");
-        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
-        let bad = dir.path().join("no-such-dir").join("y.bin");
-        assert!(write_atomic(&bad, b"abc").is_err());
     }
 }

@@ -3,6 +3,7 @@
 //! so each step is testable on analytic data and reusable by the CLI, the
 //! daemon and the trade-off report.
 
+pub mod atomic;
 pub mod btf;
 pub mod directions;
 pub mod export;

@@ -150,7 +150,7 @@ pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyEr
         path: path.to_path_buf(),
         source,
     })?;
-    crate::image_io::write_atomic(path, &bytes).map_err(|source| NpyError::Write {
+    crate::atomic::write(path, &bytes).map_err(|source| NpyError::Write {
         path: path.to_path_buf(),
         source,
     })

@@ -1315,7 +1315,7 @@ pub fn write_outputs(result: &PsResult, out_dir: &Path) -> Result<Vec<PathBuf>, 
     )?;
 
     let path = out_dir.join("report.json");
-    image_io::write_atomic(&path, report_json(&result.report).as_bytes()).map_err(|source| {
+    crate::atomic::write(&path, report_json(&result.report).as_bytes()).map_err(|source| {
         PsError::Write {
             path: path.clone(),
             source,

@@ -329,7 +329,8 @@ pub(crate) fn firmware(
                 }
             }
             DeviceKind::Camera => {
-                let (Some(t), Some(i)) = (dev.timing, dev.intrinsics) else {
+                let (Some(t), Some(geometry)) = (dev.timing, camera_geometry(profile, name, size))
+                else {
                     return Err(DeviceError::new(
                         name,
                         ErrorKind::NotReady,
@@ -355,10 +356,7 @@ pub(crate) fn firmware(
                         solver: solver.clone(),
                         world: world.clone(),
                         size,
-                        bit_depth: i.bit_depth,
-                        focal_px: camera_geometry(profile, name, size)
-                            .map_or(i.focal_px, |g| g.focal_px),
-                        distance_m: camera_distance(profile, name),
+                        geometry,
                         lamp_distance_m: lamp_distances(profile),
                     },
                     scene: scene.clone(),
@@ -538,9 +536,8 @@ struct CameraView {
     solver: Arc<Solver>,
     world: SimWorld,
     size: [u32; 2],
-    bit_depth: u8,
-    focal_px: f64,
-    distance_m: Option<f64>,
+    geometry: CameraGeometry,
+    /// Per lamp: the geometry's own lamp distance is only the first lamp's.
     lamp_distance_m: BTreeMap<String, f64>,
 }
 
@@ -570,9 +567,9 @@ impl CameraView {
             view,
             width: self.size[0],
             height: self.size[1],
-            bit_depth: self.bit_depth,
-            focal_px: Some(self.focal_px),
-            camera_distance_m: self.distance_m,
+            bit_depth: self.geometry.bit_depth,
+            focal_px: Some(self.geometry.focal_px),
+            camera_distance_m: self.geometry.distance_m,
             lamp_distance_m: lamp.and_then(|l| self.lamp_distance_m.get(&l).copied()),
             ..Shot::default()
         }
