@@ -12,6 +12,8 @@ pub mod engine;
 pub mod geometry;
 pub mod hal;
 pub mod kinematics;
+pub mod laser;
+pub mod mdf_run;
 pub mod plan;
 pub mod postprocess;
 pub mod profile;

@@ -9,9 +9,10 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::geometry::Direction;
+use crate::laser::{LaserPlan, LaserRig};
 
 /// Names accepted for `PLAN` besides a file path.
-pub const BUILTIN_PLANS: &[&str] = &["h1", "h2", "grid12x8", "lamps"];
+pub const BUILTIN_PLANS: &[&str] = &["h1", "h2", "grid12x8", "lamps", "laser"];
 
 /// Largest plan accepted, in images; a typo in a generated file should not
 /// start a capture of a billion frames.
@@ -38,12 +39,15 @@ pub struct Pair {
 pub struct Plan {
     pub name: String,
     pub pairs: Vec<Pair>,
+    /// A laser scan (seed 002 §3.2) instead of pairs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<LaserPlan>,
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PlanError {
     #[error(
-        "unknown plan `{0}` (expected one of h1, h2, grid12x8, lamps, or a .json/.toml plan file)"
+        "unknown plan `{0}` (expected one of h1, h2, grid12x8, lamps, laser[:key=value,…], or a .json/.toml plan file)"
     )]
     Unknown(String),
     #[error("plan `{plan}` does not fit profile `{profile}`: {why}")]
@@ -107,6 +111,8 @@ pub struct RigOffer {
     pub profile: String,
     pub arc_elevations: Option<(Vec<f64>, Vec<f64>)>,
     pub fixed_lamps: Option<(Vec<Direction>, Direction)>,
+    /// The laser unit, on rigs that have one.
+    pub laser: Option<LaserRig>,
 }
 
 /// Resolves a plan name or file for a rig.
@@ -114,6 +120,7 @@ pub fn resolve(spec: &str, rig: &RigOffer) -> Result<Plan, PlanError> {
     let named = |pairs: Vec<Pair>| Plan {
         name: spec.to_string(),
         pairs,
+        laser: None,
     };
     match spec {
         "h1" => Ok(named(btf(&h1(), &h1()))),
@@ -137,6 +144,26 @@ pub fn resolve(spec: &str, rig: &RigOffer) -> Result<Plan, PlanError> {
                         .into(),
                 })?;
             Ok(named(btf(&lamps, &[camera])))
+        }
+        _ if spec == "laser" || spec.starts_with("laser:") => {
+            let not_for_rig = |why: String| PlanError::NotForRig {
+                plan: spec.into(),
+                profile: rig.profile.clone(),
+                why,
+            };
+            let laser = LaserPlan::parse(spec).map_err(&not_for_rig)?;
+            let rig_laser = rig.laser.as_ref().ok_or_else(|| {
+                not_for_rig(
+                    "a laser scan needs a turntable rig with a laser, its tilt axis and the laser's `elevation_deg`"
+                        .into(),
+                )
+            })?;
+            rig_laser.check(&laser).map_err(not_for_rig)?;
+            Ok(Plan {
+                name: spec.to_string(),
+                pairs: Vec::new(),
+                laser: Some(laser),
+            })
         }
         _ if looks_like_file(spec) => from_file(Path::new(spec)),
         _ => Err(PlanError::Unknown(spec.to_string())),
@@ -235,7 +262,11 @@ fn from_parsed(parsed: PlanFile, file: &str, default_name: String) -> Result<Pla
         }
     }
     let name = parsed.name.unwrap_or(default_name);
-    Ok(Plan { name, pairs })
+    Ok(Plan {
+        name,
+        pairs,
+        laser: None,
+    })
 }
 
 #[cfg(test)]

@@ -315,6 +315,15 @@ pub struct SimSettings {
     /// absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub scene: Option<String>,
+    /// The simulated cameras' focal length relative to the profile's
+    /// intrinsics: a longer lens, so a small simulated frame still
+    /// resolves the sample (laser scans need it).
+    #[serde(default = "default_zoom")]
+    pub zoom: f64,
+}
+
+fn default_zoom() -> f64 {
+    1.0
 }
 
 impl SimSettings {
@@ -341,6 +350,7 @@ impl Default for SimSettings {
             frame_size: default_sim_frame(),
             faults: Vec::new(),
             scene: None,
+            zoom: default_zoom(),
         }
     }
 }
@@ -589,6 +599,13 @@ impl Profile {
             return Err((
                 "sim.frame_size".into(),
                 format!("expected [width, height] between 1 and 8192, got [{w}, {h}]"),
+            ));
+        }
+        let zoom = self.sim.zoom;
+        if !(zoom.is_finite() && (0.1..=100.0).contains(&zoom)) {
+            return Err((
+                "sim.zoom".into(),
+                format!("expected 0.1 ..= 100, got {zoom}"),
             ));
         }
         Ok(())

@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::Direction;
 use crate::kinematics::{Setpoints, Solver};
+use crate::laser::{LaserRig, LaserRun, LaserStep};
 use crate::plan::{Plan, RigOffer};
 use crate::profile::{DeviceKind, Profile, RigGeometry};
 
@@ -28,6 +29,9 @@ pub struct ImageStep {
     pub feasible: bool,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
+    /// Laser plans: the source and tilt of this frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<LaserStep>,
 }
 
 /// One trigger: set-points, then all its cameras expose together.
@@ -37,6 +41,10 @@ pub struct Trigger {
     pub setpoints: Setpoints,
     /// Indices into [`Schedule::images`].
     pub images: Vec<usize>,
+    /// Triggers of one laser sweep share this index: the engine runs them
+    /// as one continuous move while the cameras record at video rate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sweep: Option<usize>,
 }
 
 /// A plan solved for a rig, in capture order.
@@ -46,6 +54,9 @@ pub struct Schedule {
     pub profile: String,
     pub images: Vec<ImageStep>,
     pub triggers: Vec<Trigger>,
+    /// Laser plans: what the engine needs for the sweeps.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<LaserRun>,
 }
 
 /// What the rig offers plans: arcs for the grid, fixed lamps for photometric stereo.
@@ -62,6 +73,7 @@ pub fn rig_offer(profile: &Profile, solver: &Solver) -> RigOffer {
         profile: profile.name.clone(),
         arc_elevations: solver.arc_elevations(),
         fixed_lamps,
+        laser: LaserRig::of(profile),
     }
 }
 
@@ -78,12 +90,18 @@ fn setpoint_key(s: &Setpoints) -> String {
     }
     key.push('|');
     key.push_str(&s.lamp);
+    if let Some(p) = s.plate_mm {
+        key.push_str(&format!("|plate={:x}", p.to_bits()));
+    }
     key
 }
 
 /// Solves every pair and groups the images of each trigger, keeping the
 /// plan's order of first appearance.
 pub fn build(profile: &Profile, solver: &Solver, plan: &Plan) -> Schedule {
+    if let (Some(lp), Some(rig)) = (&plan.laser, LaserRig::of(profile)) {
+        return crate::laser::schedule(&rig, &plan.name, &profile.name, lp);
+    }
     let mut images = Vec::with_capacity(plan.pairs.len());
     let mut triggers: Vec<Trigger> = Vec::new();
     let mut open: HashMap<String, usize> = HashMap::new();
@@ -104,6 +122,7 @@ pub fn build(profile: &Profile, solver: &Solver, plan: &Plan) -> Schedule {
                     index: triggers.len(),
                     setpoints: pose.setpoints.clone(),
                     images: Vec::new(),
+                    sweep: None,
                 });
                 open.insert(key, triggers.len() - 1);
                 triggers.len() - 1
@@ -120,6 +139,7 @@ pub fn build(profile: &Profile, solver: &Solver, plan: &Plan) -> Schedule {
             achieved_view: pose.achieved_view,
             feasible: pose.feasible,
             reason: pose.reason,
+            laser: None,
         });
     }
     // Number images in capture order: trigger by trigger.
@@ -138,6 +158,7 @@ pub fn build(profile: &Profile, solver: &Solver, plan: &Plan) -> Schedule {
         profile: profile.name.clone(),
         images: sorted,
         triggers,
+        laser: None,
     }
 }
 
@@ -146,6 +167,10 @@ impl Schedule {
         self.images.iter().filter(|i| !i.feasible)
     }
 }
+
+/// What the estimate allows an operator to place or remove the laser
+/// calibration plate (an estimate: the engine waits for the operator).
+pub const PLATE_CHANGE_S: f64 = 60.0;
 
 /// The timing model shared by the estimate and the engine's pipeline.
 #[derive(Debug, Clone)]
@@ -168,6 +193,7 @@ impl<'a> Timing<'a> {
             axes: Default::default(),
             arm: None,
             lamp: String::new(),
+            plate_mm: None,
         };
         for (name, d) in &self.profile.devices {
             match d.kind {
@@ -276,12 +302,25 @@ impl<'a> Timing<'a> {
             }
             None => 0.0,
         };
+        let mut sweep = None;
         for trig in remaining {
             let cams: Vec<&str> = trig
                 .images
                 .iter()
                 .map(|&i| schedule.images[i].camera.as_str())
                 .collect();
+            if let (Some(s), Some(laser)) = (trig.sweep, &schedule.laser) {
+                if sweep == Some(s) {
+                    // Inside a sweep the axis runs on and frames follow at video rate.
+                    total += 1.0 / laser.plan.frame_hz;
+                    pos = trig.setpoints.clone();
+                    continue;
+                }
+            }
+            sweep = trig.sweep;
+            if trig.setpoints.plate_mm != pos.plate_mm {
+                total += PLATE_CHANGE_S;
+            }
             let prep = self
                 .motion_s(&pos, &trig.setpoints)
                 .max(self.lamp_change_s(&pos.lamp, &trig.setpoints.lamp));

@@ -127,6 +127,9 @@ pub struct FrameEntry {
     pub width: u32,
     pub height: u32,
     pub bit_depth: u8,
+    /// Laser frames: source, and the tilt measured around the exposure.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<crate::laser::LaserStep>,
 }
 
 /// The run's last known state, replaced atomically on every change.
@@ -540,10 +543,12 @@ mod tests {
                 axes: Default::default(),
                 arm: None,
                 lamp: "hmi".into(),
+                plate_mm: None,
             },
             width: 0,
             height: 0,
             bit_depth: 0,
+            laser: None,
         }
     }
 

@@ -12,8 +12,11 @@ pub struct World {
     pub axes: BTreeMap<String, f64>,
     /// Arm joint values in degrees, in profile order.
     pub arm: Option<Vec<f64>>,
-    /// Lamp relays, by device name.
+    /// Lamp (and laser) relays, by device name.
     pub lamps_on: BTreeMap<String, bool>,
+    /// The laser calibration plate's height over the turntable, mm, while
+    /// it is in place.
+    pub plate_mm: Option<f64>,
 }
 
 /// The world, written by the firmware simulators and read by the cameras
@@ -49,6 +52,10 @@ impl SharedWorld {
 
     pub fn set_arm(&self, joints: Vec<f64>) {
         self.lock().arm = Some(joints);
+    }
+
+    pub fn set_plate(&self, height_mm: Option<f64>) {
+        self.lock().plate_mm = height_mm;
     }
 
     pub fn set_lamp(&self, name: &str, on: bool) {

@@ -163,5 +163,9 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
 
 /// Opens every device of a profile on real hardware.
 pub async fn connect(profile: &Profile, clock: &Clock) -> Result<Rig, DeviceError> {
-    build_rig(profile, &links(profile), clock).await
+    let mut rig = build_rig(profile, &links(profile), clock).await?;
+    if crate::laser::LaserRig::of(profile).is_some() {
+        rig.fixture = Some(Box::new(super::plate::OperatorPlate::default()));
+    }
+    Ok(rig)
 }

@@ -9,6 +9,7 @@
 //! fixed the cable.
 
 pub mod hardware;
+pub mod plate;
 pub mod serve;
 pub mod sim;
 
@@ -375,6 +376,18 @@ impl Axis for LinkedAxis {
     async fn position(&mut self) -> Result<f64, DeviceError> {
         self.ready().await?;
         let r = self.axis.position().await;
+        self.link.note(r)
+    }
+
+    async fn start_sweep(&mut self, target: f64, velocity: f64) -> Result<(), DeviceError> {
+        self.ready().await?;
+        let r = self.axis.start_sweep(target, velocity).await;
+        self.link.note(r)
+    }
+
+    async fn wait_idle(&mut self) -> Result<f64, DeviceError> {
+        self.ready().await?;
+        let r = self.axis.wait_idle().await;
         self.link.note(r)
     }
 }

@@ -22,7 +22,7 @@ use rigd_sim::firmware::modbus::{
 };
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
 use rigd_sim::motion::Trapezoid;
-use rigd_sim::scene::{Scene as SceneModel, Shot};
+use rigd_sim::scene::{LaserLine, Scene as SceneModel, Shot};
 use rigd_sim::{Clock, FaultInjector, FaultRule, SharedWorld, World};
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
@@ -33,6 +33,9 @@ use crate::profile::{DeviceKind, Motion, Profile, RigGeometry, Transport};
 
 /// Bytes an in-memory serial pipe buffers each way.
 const PIPE_BUFFER: usize = 64 * 1024;
+/// Width (FWHM) and peak of the simulated laser strip.
+const SIM_LASER_WIDTH_M: f64 = 1.0e-3;
+const SIM_LASER_POWER: f64 = 12.0;
 /// Duration of the simulated arm's homing cycle.
 const ARM_HOME_S: f64 = 12.0;
 
@@ -102,6 +105,7 @@ impl SimWorld {
             }
         }
         for m in &self.modules {
+            // Lamps, then the laser, in coil order.
             for (on, name) in m.module.coils().into_iter().zip(&m.lamp_names) {
                 if let Some(n) = name {
                     w.lamps_on.insert(n.clone(), on);
@@ -140,7 +144,13 @@ pub async fn connect(
 ) -> Result<(Rig, SimHandle), DeviceError> {
     let faults = Arc::new(FaultInjector::new(opts.faults));
     let parts = firmware(profile, solver, opts.frame_size, clock, &faults)?;
-    let rig = build_rig(profile, &parts.links, clock).await?;
+    let mut rig = build_rig(profile, &parts.links, clock).await?;
+    if crate::laser::LaserRig::of(profile).is_some() {
+        rig.fixture = Some(Box::new(super::plate::SimPlate {
+            world: parts.world.shared.clone(),
+            clock: clock.clone(),
+        }));
+    }
     Ok((
         rig,
         SimHandle {
@@ -216,6 +226,8 @@ pub(crate) fn firmware(
         }
         let laser = devs.iter().find(|(_, d)| d.kind == DeviceKind::Laser);
         if let Some((lname, ld)) = laser {
+            // The world reports the laser's relay beside the lamps'.
+            names.push(Some((*lname).clone()));
             let coil = usize::from(ld.coil.unwrap_or(0));
             if coil != n {
                 return Err(DeviceError::new(
@@ -358,6 +370,7 @@ pub(crate) fn firmware(
                         size,
                         geometry,
                         lamp_distance_m: lamp_distances(profile),
+                        laser: crate::laser::LaserRig::of(profile),
                     },
                     scene: scene.clone(),
                 });
@@ -494,7 +507,8 @@ pub struct CameraGeometry {
 pub fn camera_geometry(profile: &Profile, camera: &str, size: [u32; 2]) -> Option<CameraGeometry> {
     let i = profile.devices.get(camera)?.intrinsics?;
     Some(CameraGeometry {
-        focal_px: i.focal_px * f64::from(size[0]) / f64::from(i.resolution[0].max(1)),
+        focal_px: i.focal_px * profile.sim.zoom * f64::from(size[0])
+            / f64::from(i.resolution[0].max(1)),
         distance_m: camera_distance(profile, camera),
         bit_depth: i.bit_depth,
         lamp_distance_m: lamp_distances(profile).into_values().next(),
@@ -539,21 +553,47 @@ struct CameraView {
     geometry: CameraGeometry,
     /// Per lamp: the geometry's own lamp distance is only the first lamp's.
     lamp_distance_m: BTreeMap<String, f64>,
+    /// The laser unit, on rigs that have one.
+    laser: Option<crate::laser::LaserRig>,
 }
 
 impl CameraView {
     /// Light and view in the sample frame, from where the devices really are.
     fn shot(&self) -> Shot {
         let world = self.world.snapshot();
+        let laser_name = self.laser.as_ref().map(|l| l.laser.as_str());
         let lamp = world
             .lamps_on
             .iter()
-            .find(|(_, on)| **on)
+            .find(|(n, on)| **on && Some(n.as_str()) != laser_name)
             .map(|(n, _)| n.clone());
+        let laser = self.laser.as_ref().and_then(|rig| {
+            if world.lamps_on.get(&rig.laser) != Some(&true) {
+                return None;
+            }
+            let axis = |n: &str| world.axes.get(n).copied().unwrap_or(0.0);
+            // The source's azimuth in the sample frame, as for a lamp on the arc.
+            let azimuth = axis(&rig.light_arc) - axis(&rig.turntable);
+            let (emitter, normal) = rig.geometry.plane(azimuth, axis(&rig.tilt_axis))?;
+            Some(LaserLine {
+                emitter,
+                normal,
+                width_m: SIM_LASER_WIDTH_M,
+                power: SIM_LASER_POWER,
+            })
+        });
+        // The view does not depend on the lamp, but forward kinematics
+        // needs one: with every lamp dark (laser frames), any lamp will do.
+        let any_lamp = world
+            .lamps_on
+            .keys()
+            .find(|n| Some(n.as_str()) != laser_name)
+            .cloned();
         let setpoints = Setpoints {
             axes: world.axes,
             arm: world.arm,
-            lamp: lamp.clone().unwrap_or_default(),
+            lamp: lamp.clone().or(any_lamp).unwrap_or_default(),
+            plate_mm: None,
         };
         let dark = [0.0, 0.0, -1.0];
         let (light, view) = match self.solver.forward(&setpoints, &self.camera) {
@@ -571,6 +611,8 @@ impl CameraView {
             focal_px: Some(self.geometry.focal_px),
             camera_distance_m: self.geometry.distance_m,
             lamp_distance_m: lamp.and_then(|l| self.lamp_distance_m.get(&l).copied()),
+            laser,
+            plate_height_m: world.plate_mm.map(|h| h * 1e-3),
             ..Shot::default()
         }
     }

@@ -570,6 +570,35 @@ where
         Self::x_of(&s)
     }
 
+    /// A jog (`$J=G90 X… F…`): the controller runs it at the feed given, and
+    /// answers `ok` as soon as it is planned.
+    async fn sweep_inner(&mut self, target: f64, velocity: f64) -> Result<(), GrblError> {
+        let l = self.cfg.limits;
+        if !target.is_finite() || !l.contains(target) {
+            return Err(GrblError::OutOfLimits {
+                target,
+                min: l.min,
+                max: l.max,
+            });
+        }
+        self.resync().await?;
+        let feed = velocity.abs().min(self.cfg.motion.max_velocity) * 60.0;
+        self.command(&Command::Jog { x: target, feed }, self.cfg.command_timeout)
+            .await?;
+        Ok(())
+    }
+
+    /// Waits for a sweep to end. Its duration depends on the velocity the
+    /// caller chose, so the caller sets the real deadline; this one only
+    /// bounds a controller that never reports Idle.
+    async fn wait_sweep(&mut self) -> Result<f64, GrblError> {
+        let clock = self.clock.clone();
+        let timeout = SWEEP_WAIT_LIMIT;
+        let r = clock.deadline(timeout, self.wait_idle()).await;
+        let s = self.deadline_result(r, "sweep to reach Idle", timeout)?;
+        Self::x_of(&s)
+    }
+
     /// Polls `?` every poll interval until the controller reports Idle.
     async fn wait_idle(&mut self) -> Result<Status, GrblError> {
         loop {
@@ -585,6 +614,9 @@ where
         }
     }
 }
+
+/// Longest a sweep may run before the driver gives up on it.
+const SWEEP_WAIT_LIMIT: Duration = Duration::from_secs(3600);
 
 /// Feed hold then soft reset, written while any call may be in flight:
 /// GRBL acts on realtime bytes the moment its serial interrupt sees them,
@@ -630,6 +662,16 @@ where
             Self::x_of(&s)
         }
         .await;
+        self.map(r)
+    }
+
+    async fn start_sweep(&mut self, target: f64, velocity: f64) -> Result<(), DeviceError> {
+        let r = self.sweep_inner(target, velocity).await;
+        self.map(r)
+    }
+
+    async fn wait_idle(&mut self) -> Result<f64, DeviceError> {
+        let r = self.wait_sweep().await;
         self.map(r)
     }
 }

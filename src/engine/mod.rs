@@ -24,7 +24,7 @@ use tokio::sync::{broadcast, mpsc};
 pub use estop::{EStop, StopAck, StopReport};
 pub use state::{check_command, Command, Refused, RunState};
 
-use crate::hal::{Arm, Axis, Camera, DeviceError, ErrorKind, Frame, Lamp, Rig};
+use crate::hal::{Arm, Axis, Camera, DeviceError, ErrorKind, Fixture, Frame, Lamp, LaserLine, Rig};
 use crate::kinematics::Setpoints;
 use crate::profile::Profile;
 use crate::schedule::{Schedule, Timing};
@@ -38,6 +38,9 @@ use crate::store::{
 const DEADLINE_SLACK_S: f64 = 10.0;
 /// Deadline of a homing cycle.
 const HOMING_DEADLINE_S: f64 = 300.0;
+/// Deadline for an operator (or the simulator) to place or remove the
+/// laser calibration plate.
+const PLATE_DEADLINE_S: f64 = 3600.0;
 
 /// What the engine does when a run pauses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -201,7 +204,7 @@ impl Engine {
     pub fn new(
         profile: Profile,
         schedule: Schedule,
-        meta: RunMeta,
+        mut meta: RunMeta,
         mut rig: Rig,
         clock: Clock,
         store: RunDir,
@@ -209,6 +212,10 @@ impl Engine {
         t_offset: f64,
         policy: PausePolicy,
     ) -> (Engine, EngineHandle) {
+        if meta.exposure_s.is_none() {
+            // Laser sweeps use the plan's short exposure (seed 002 §3.2).
+            meta.exposure_s = schedule.laser.as_ref().map(|l| l.plan.exposure_s);
+        }
         let (cmd_tx, cmd_rx) = mpsc::channel(16);
         let (ev_tx, _) = broadcast::channel(1024);
         let estop = EStop::new(std::mem::take(&mut rig.stops), clock.clone());
@@ -233,6 +240,7 @@ impl Engine {
                 axes: BTreeMap::new(),
                 arm: None,
                 lamp: String::new(),
+                plate_mm: None,
             },
             finished_at_s: None,
         };
@@ -339,7 +347,23 @@ impl Engine {
             if next.is_none() && pending.is_none() {
                 break;
             }
-            let target = next.map(|i| self.schedule.triggers[i].setpoints.clone());
+            let sweep_next = next.filter(|&i| self.schedule.triggers[i].sweep.is_some());
+            if let (Some(i), None) = (sweep_next, &pending) {
+                match self.sweep(&mut queue).await {
+                    Ok(()) => {
+                        attempts.remove(&i);
+                        continue;
+                    }
+                    Err(fault) => match self.handle_fault(fault, i, &mut attempts).await? {
+                        Flow::Continue => continue,
+                        Flow::Stop => return Ok(self.outcome()),
+                    },
+                }
+            }
+            // A sweep starts once the frames still in flight are written.
+            let target = next
+                .filter(|_| sweep_next.is_none())
+                .map(|i| self.schedule.triggers[i].setpoints.clone());
             let finishing = pending.take();
             let (moved, finished) = {
                 let timing = Timing::new(&self.profile, self.meta.exposure_s);
@@ -347,14 +371,30 @@ impl Engine {
                     axes,
                     arms,
                     lamps,
+                    lasers,
+                    fixture,
                     cameras,
                     ..
                 } = &mut self.rig;
                 let go = async {
                     match &target {
-                        Some(to) => goto(&self.clock, &timing, axes, arms, lamps, &self.pos, to)
+                        Some(to) => {
+                            let mut lights = Lights { lamps, lasers };
+                            goto(
+                                &self.clock,
+                                &timing,
+                                Movers {
+                                    axes,
+                                    arms,
+                                    fixture,
+                                },
+                                &mut lights,
+                                &self.pos,
+                                to,
+                            )
                             .await
-                            .map(Some),
+                            .map(Some)
+                        }
                         None => Ok(None),
                     }
                 };
@@ -460,6 +500,195 @@ impl Engine {
             .collect()
     }
 
+    /// Runs the laser sweep whose trigger heads the queue (seed 002 §3.2):
+    /// moves to its first pose with the laser on, starts the tilt axis at
+    /// the sweep velocity, and while it runs exposes every camera at the
+    /// video rate, recording the tilt measured just before and after each
+    /// exposure (their mean). A fault retakes the whole sweep.
+    async fn sweep(&mut self, queue: &mut VecDeque<usize>) -> Result<(), StepFault> {
+        let Some(&head) = queue.front() else {
+            return Ok(());
+        };
+        let (Some(id), Some(run)) = (
+            self.schedule.triggers[head].sweep,
+            self.schedule.laser.clone(),
+        ) else {
+            return Ok(());
+        };
+        let members: Vec<usize> = self
+            .schedule
+            .triggers
+            .iter()
+            .filter(|t| t.sweep == Some(id))
+            .map(|t| t.index)
+            .collect();
+        let (Some(&first), Some(&last)) = (members.first(), members.last()) else {
+            return Ok(());
+        };
+        let start = self.schedule.triggers[first].setpoints.clone();
+        let end_tilt = self.schedule.triggers[last]
+            .setpoints
+            .axes
+            .get(&run.tilt_axis)
+            .copied()
+            .unwrap_or_default();
+        let tilt_name = run.tilt_axis.clone();
+        let period = 1.0 / run.plan.frame_hz;
+        let timing = Timing::new(&self.profile, self.meta.exposure_s);
+        let reached = {
+            let Rig {
+                axes,
+                arms,
+                lamps,
+                lasers,
+                fixture,
+                ..
+            } = &mut self.rig;
+            goto(
+                &self.clock,
+                &timing,
+                Movers {
+                    axes,
+                    arms,
+                    fixture,
+                },
+                &mut Lights { lamps, lasers },
+                &self.pos,
+                &start,
+            )
+            .await?
+        };
+        self.pos = reached;
+        let no_axis = || {
+            StepFault::from(DeviceError::new(
+                &tilt_name,
+                ErrorKind::NotReady,
+                "the laser tilt axis is not connected",
+            ))
+        };
+        let budget = DEADLINE_SLACK_S;
+        {
+            let axis = self.rig.axes.get_mut(&tilt_name).ok_or_else(no_axis)?;
+            deadline(
+                &self.clock,
+                &tilt_name,
+                budget,
+                axis.start_sweep(end_tilt, run.velocity_deg_s),
+            )
+            .await?;
+        }
+        let t0 = self.clock.now_s();
+        let result = self.sweep_frames(&members, &run, t0, period).await;
+        // Whatever happened, the axis ends its move before anything else
+        // commands it.
+        let remaining = (members.len() as f64 * period - (self.clock.now_s() - t0)).max(0.0);
+        let idle = match self.rig.axes.get_mut(&tilt_name) {
+            Some(axis) => {
+                deadline(
+                    &self.clock,
+                    &tilt_name,
+                    remaining * 2.0 + budget,
+                    axis.wait_idle(),
+                )
+                .await
+            }
+            None => Err(no_axis().error),
+        };
+        result?;
+        let at = idle?;
+        self.pos.axes.insert(tilt_name, at);
+        queue.retain(|t| !members.contains(t));
+        Ok(())
+    }
+
+    /// The frames of a running sweep, one trigger per video frame.
+    async fn sweep_frames(
+        &mut self,
+        members: &[usize],
+        run: &crate::laser::LaserRun,
+        t0: f64,
+        period: f64,
+    ) -> Result<(), StepFault> {
+        for (j, &trigger) in members.iter().enumerate() {
+            let due = t0 + j as f64 * period;
+            let wait = due - self.clock.now_s();
+            if wait > 0.0 {
+                self.clock.sleep_s(wait).await;
+            }
+            if self.estop.is_tripped() {
+                return Err(DeviceError::new(
+                    &run.tilt_axis,
+                    ErrorKind::NotReady,
+                    "sweep cut short by the emergency stop",
+                )
+                .into());
+            }
+            let cams = self.cameras_of(trigger);
+            let timing = Timing::new(&self.profile, self.meta.exposure_s);
+            let t_s = self.t();
+            let tilt = {
+                let Rig { axes, cameras, .. } = &mut self.rig;
+                let axis = axes.get_mut(&run.tilt_axis).ok_or_else(|| {
+                    StepFault::from(DeviceError::new(
+                        &run.tilt_axis,
+                        ErrorKind::NotReady,
+                        "the laser tilt axis is not connected",
+                    ))
+                })?;
+                let before = deadline(
+                    &self.clock,
+                    &run.tilt_axis,
+                    DEADLINE_SLACK_S,
+                    axis.position(),
+                )
+                .await?;
+                expose(&self.clock, &timing, cameras, &cams).await?;
+                let after = deadline(
+                    &self.clock,
+                    &run.tilt_axis,
+                    DEADLINE_SLACK_S,
+                    axis.position(),
+                )
+                .await?;
+                0.5 * (before + after)
+            };
+            let mut reached = self.schedule.triggers[trigger].setpoints.clone();
+            for (name, v) in &self.pos.axes {
+                if name != &run.tilt_axis {
+                    reached.axes.insert(name.clone(), *v);
+                }
+            }
+            reached.axes.insert(run.tilt_axis.clone(), tilt);
+            let pending = Pending {
+                trigger,
+                t_s,
+                reached,
+            };
+            let entries = finish(
+                &self.clock,
+                &timing,
+                &self.schedule,
+                &self.store,
+                &mut self.rig.cameras,
+                &pending,
+                self.meta.exposure_s,
+            )
+            .await?;
+            let images = entries.iter().map(|e| e.index).collect();
+            for e in entries {
+                self.done.insert(e.index, e);
+            }
+            let (done, total) = (self.done.len(), self.schedule.images.len());
+            self.emit(EventKind::Step {
+                trigger,
+                images,
+                frames_done: done,
+                frames_total: total,
+            });
+        }
+        Ok(())
+    }
+
     /// Homes every axis and arm, sets exposures, and switches on and warms
     /// up the first trigger's lamp. Returns where the rig stands.
     async fn prepare(&mut self, first: Option<usize>) -> Result<Setpoints, StepFault> {
@@ -468,6 +697,7 @@ impl Engine {
             axes,
             arms,
             lamps,
+            lasers,
             cameras,
             ..
         } = &mut self.rig;
@@ -493,6 +723,8 @@ impl Engine {
         }
         let timing = Timing::new(&self.profile, self.meta.exposure_s);
         let mut at = timing.home_setpoints();
+        // Homing moves no plate.
+        at.plate_mm = self.pos.plate_mm;
         // Every lamp off, the needed one too: a known state after a crash,
         // and a lamp whose ballast tripped is struck again, not trusted.
         let lamp = first
@@ -501,7 +733,10 @@ impl Engine {
         for (name, l) in lamps.iter_mut() {
             deadline(clock, name, DEADLINE_SLACK_S, l.set(false)).await?;
         }
-        switch_lamp(clock, &timing, lamps, "", &lamp).await?;
+        for (name, l) in lasers.iter_mut() {
+            deadline(clock, name, DEADLINE_SLACK_S, l.set(false)).await?;
+        }
+        switch_lamp(clock, &timing, &mut Lights { lamps, lasers }, "", &lamp).await?;
         at.lamp = lamp;
         Ok(at)
     }
@@ -693,6 +928,11 @@ impl Engine {
                 tracing::warn!("could not switch {name} off: {e}");
             }
         }
+        for (name, l) in self.rig.lasers.iter_mut() {
+            if let Err(e) = deadline(&self.clock, name, DEADLINE_SLACK_S, l.set(false)).await {
+                tracing::warn!("could not switch {name} off: {e}");
+            }
+        }
     }
 
     /// Writes the manifest of a run ending in `state`.
@@ -757,11 +997,24 @@ async fn deadline<T>(
     }
 }
 
-/// Switches from lamp `from` to lamp `to` and waits for it to be stable.
+/// What lights a trigger: its lamps and lasers, by name.
+struct Lights<'a> {
+    lamps: &'a mut BTreeMap<String, Box<dyn Lamp>>,
+    lasers: &'a mut BTreeMap<String, Box<dyn LaserLine>>,
+}
+
+/// What moves (or is placed) before a trigger.
+struct Movers<'a> {
+    axes: &'a mut BTreeMap<String, Box<dyn Axis>>,
+    arms: &'a mut BTreeMap<String, Box<dyn Arm>>,
+    fixture: &'a mut Option<Box<dyn Fixture>>,
+}
+
+/// Switches from lamp (or laser) `from` to `to` and waits for it to be stable.
 async fn switch_lamp(
     clock: &Clock,
     timing: &Timing<'_>,
-    lamps: &mut BTreeMap<String, Box<dyn Lamp>>,
+    lights: &mut Lights<'_>,
     from: &str,
     to: &str,
 ) -> Result<(), DeviceError> {
@@ -769,14 +1022,40 @@ async fn switch_lamp(
         return Ok(());
     }
     let budget = timing.lamp_change_s(from, to) + DEADLINE_SLACK_S;
-    if let Some(l) = lamps.get_mut(from) {
+    if let Some(l) = lights.lamps.get_mut(from) {
         deadline(clock, from, budget, l.set(false)).await?;
     }
-    if let Some(l) = lamps.get_mut(to) {
+    if let Some(l) = lights.lasers.get_mut(from) {
+        deadline(clock, from, budget, l.set(false)).await?;
+    }
+    if let Some(l) = lights.lamps.get_mut(to) {
         deadline(clock, to, budget, l.set(true)).await?;
         deadline(clock, to, budget, l.wait_ready()).await?;
     }
+    if let Some(l) = lights.lasers.get_mut(to) {
+        deadline(clock, to, budget, l.set(true)).await?;
+    }
     Ok(())
+}
+
+/// Places or removes the laser calibration plate.
+async fn place_plate(
+    clock: &Clock,
+    fixture: &mut Option<Box<dyn Fixture>>,
+    from: Option<f64>,
+    to: Option<f64>,
+) -> Result<(), DeviceError> {
+    if from == to {
+        return Ok(());
+    }
+    let Some(f) = fixture.as_mut() else {
+        return Err(DeviceError::new(
+            "plate",
+            ErrorKind::NotReady,
+            "this rig has no way to place the calibration plate",
+        ));
+    };
+    deadline(clock, "plate", PLATE_DEADLINE_S, f.place(to)).await
 }
 
 /// Moves every axis and the arm to `to` and changes the lamp, all in
@@ -784,12 +1063,18 @@ async fn switch_lamp(
 async fn goto(
     clock: &Clock,
     timing: &Timing<'_>,
-    axes: &mut BTreeMap<String, Box<dyn Axis>>,
-    arms: &mut BTreeMap<String, Box<dyn Arm>>,
-    lamps: &mut BTreeMap<String, Box<dyn Lamp>>,
+    movers: Movers<'_>,
+    lights: &mut Lights<'_>,
     from: &Setpoints,
     to: &Setpoints,
 ) -> Result<Setpoints, StepFault> {
+    let Movers {
+        axes,
+        arms,
+        fixture,
+    } = movers;
+    // The plate goes in or out before anything moves over it.
+    place_plate(clock, fixture, from.plate_mm, to.plate_mm).await?;
     let budget = timing.motion_s(from, to) * 2.0 + DEADLINE_SLACK_S;
     let axis_moves = join_all(
         axes.iter_mut()
@@ -808,12 +1093,13 @@ async fn goto(
             _ => Ok(None),
         }
     };
-    let lamp = switch_lamp(clock, timing, lamps, &from.lamp, &to.lamp);
+    let lamp = switch_lamp(clock, timing, lights, &from.lamp, &to.lamp);
     let (moved, arm, lamp) = tokio::join!(axis_moves, arm_move, lamp);
     let mut reached = Setpoints {
         axes: BTreeMap::new(),
         arm: None,
         lamp: to.lamp.clone(),
+        plate_mm: to.plate_mm,
     };
     for r in moved {
         let (name, p) = r?;
@@ -905,6 +1191,17 @@ async fn finish(
             width: 0,
             height: 0,
             bit_depth: 0,
+            laser: img.laser.map(|mut l| {
+                // The tilt as measured, not as planned.
+                let measured = schedule
+                    .laser
+                    .as_ref()
+                    .and_then(|run| p.reached.axes.get(&run.tilt_axis));
+                if let Some(&t) = measured {
+                    l.tilt_deg = t;
+                }
+                l
+            }),
         };
         work.push((entry, frame));
     }

@@ -113,8 +113,15 @@ pub trait Axis: Send {
     async fn home(&mut self) -> Result<f64, DeviceError>;
     /// Moves to an absolute position and settles; returns the position reached.
     async fn move_to(&mut self, target: f64) -> Result<f64, DeviceError>;
-    /// Asks the device where it stands.
+    /// Asks the device where it stands; answers while the axis moves.
     async fn position(&mut self) -> Result<f64, DeviceError>;
+    /// Starts a move at a constant velocity (degrees per second, within the
+    /// axis's maximum) and returns once the controller accepted it: the
+    /// laser sweep, during which cameras keep recording.
+    async fn start_sweep(&mut self, target: f64, velocity: f64) -> Result<(), DeviceError>;
+    /// Waits until a move started by [`Axis::start_sweep`] ends; returns the
+    /// position reached.
+    async fn wait_idle(&mut self) -> Result<f64, DeviceError>;
 }
 
 /// A multi-joint manipulator that moves all joints to a joint-space pose.
@@ -138,6 +145,16 @@ pub trait Lamp: Send {
 #[async_trait]
 pub trait LaserLine: Send {
     async fn set(&mut self, on: bool) -> Result<(), DeviceError>;
+}
+
+/// Something an operator places by hand, such as the laser calibration
+/// plate of seed 002 §3.2 (a flat plate at a known height over the
+/// turntable).
+#[async_trait]
+pub trait Fixture: Send {
+    /// Places the plate at `height_mm` above the turntable, or removes it
+    /// (`None`); returns once it is in place.
+    async fn place(&mut self, height_mm: Option<f64>) -> Result<(), DeviceError>;
 }
 
 /// A camera: expose (the sensor is busy and nothing may move), then transfer.
@@ -166,6 +183,8 @@ pub struct Rig {
     pub arms: BTreeMap<String, Box<dyn Arm>>,
     pub lamps: BTreeMap<String, Box<dyn Lamp>>,
     pub lasers: BTreeMap<String, Box<dyn LaserLine>>,
+    /// The calibration plate, for rigs with a laser.
+    pub fixture: Option<Box<dyn Fixture>>,
     pub cameras: BTreeMap<String, Box<dyn Camera>>,
     /// Out-of-band stops, by device (or bus) name.
     pub stops: BTreeMap<String, Arc<dyn EmergencyStop>>,

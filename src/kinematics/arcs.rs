@@ -188,6 +188,7 @@ impl ArcsSolver {
                 axes,
                 arm: None,
                 lamp: lamp.clone(),
+                plate_mm: None,
             },
             camera: camera.clone(),
             achieved_light,

@@ -99,6 +99,7 @@ impl FixedSolver {
                 axes: BTreeMap::new(),
                 arm: None,
                 lamp: lamp.clone(),
+                plate_mm: None,
             },
             camera: self.camera.clone(),
             achieved_light: *lamp_dir,

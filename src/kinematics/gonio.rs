@@ -217,6 +217,7 @@ impl GonioSolver {
                 axes,
                 arm: Some(arm),
                 lamp: self.lamp.clone(),
+                plate_mm: None,
             },
             camera: self.camera.clone(),
             achieved_light,

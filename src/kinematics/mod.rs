@@ -36,8 +36,12 @@ pub struct Setpoints {
     /// Arm joint values in degrees, in the profile's joint order (gonioreflectometer only).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub arm: Option<Vec<f64>>,
-    /// The lamp that is on during the exposure.
+    /// The lamp (or laser) that is on during the exposure.
     pub lamp: String,
+    /// The laser calibration plate's height over the turntable, when it is
+    /// in place (seed 002 §3.2).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plate_mm: Option<f64>,
 }
 
 /// The solved pose of one image.

@@ -54,6 +54,9 @@ pub struct Shot {
     /// of the distance); `None` a directional light.
     pub lamp_distance_m: Option<f64>,
     pub laser: Option<LaserLine>,
+    /// A flat matte plate at this height over the holder hides the sample:
+    /// the laser calibration plate of seed 002 §3.2.
+    pub plate_height_m: Option<f64>,
     /// Mixed into the scene's noise seed: one stream per frame.
     pub seed: u64,
     pub effects: EffectSwitches,
@@ -73,6 +76,7 @@ impl Default for Shot {
             camera_distance_m: None,
             lamp_distance_m: None,
             laser: None,
+            plate_height_m: None,
             seed: 0,
             effects: EffectSwitches::default(),
         }
@@ -231,7 +235,11 @@ pub(crate) struct Frame<'a> {
     pub plan: EffectPlan,
     pub lamp: Option<Lamp>,
     pub laser: Option<LaserLine>,
+    plate: Option<f64>,
 }
+
+/// Reflectance of the laser calibration plate (matte white paint).
+pub const PLATE_ALBEDO: f64 = 0.8;
 
 /// Cosine-weighted directions of the local hemisphere for the one-bounce
 /// gather (fixed, so frames stay deterministic without an RNG).
@@ -253,11 +261,12 @@ impl<'a> Frame<'a> {
             plan: scene.plan(shot),
             lamp: Lamp::new(shot),
             laser: shot.laser,
+            plate: shot.plate_height_m.filter(|h| h.is_finite() && *h > 0.0),
         }
     }
 
     fn relief(&self) -> Option<&'a Relief> {
-        if self.plan.has(Effect::Relief) {
+        if self.plan.has(Effect::Relief) && self.plate.is_none() {
             self.scene.relief.as_ref()
         } else {
             None
@@ -285,7 +294,7 @@ impl<'a> Frame<'a> {
         if d[2] >= -1e-9 {
             return None;
         }
-        let t_floor = o[2] / -d[2];
+        let t_floor = (o[2] - self.plate.unwrap_or(0.0)) / -d[2];
         let floor = add3(o, scale3(d, t_floor));
         let Some(relief) = self.relief() else {
             return Some(floor);
@@ -394,7 +403,9 @@ impl<'a> Frame<'a> {
             return (0.0, l);
         }
         let mut vis = 1.0;
-        if self.plan.has(Effect::VisibilityMaps) {
+        if self.plate.is_some() {
+            // The plate lies over the sample: nothing shadows it.
+        } else if self.plan.has(Effect::VisibilityMaps) {
             if let Some(maps) = &self.scene.visibility {
                 vis = maps.visibility(p[0], p[1], l);
             }
@@ -463,13 +474,16 @@ impl<'a> Frame<'a> {
     /// Outgoing radiance at surface point `p` towards `to_eye`.
     pub(crate) fn shade(&self, p: [f64; 3], to_eye: [f64; 3]) -> f64 {
         let (x, y) = (p[0], p[1]);
-        let on_sample = self.scene.on_sample(x, y);
+        let on_sample = self.plate.is_none() && self.scene.on_sample(x, y);
         let n = if on_sample {
             self.normal(x, y)
         } else {
             [0.0, 0.0, 1.0]
         };
-        let albedo = self.scene.albedo(x, y);
+        let albedo = match self.plate {
+            Some(_) => PLATE_ALBEDO,
+            None => self.scene.albedo(x, y),
+        };
         let mut radiance = 0.0;
         if self.lamp.is_some() {
             let (e, l) = self.irradiance(p, n);
