@@ -169,8 +169,9 @@ impl Schedule {
 }
 
 /// What the estimate allows an operator to place or remove the laser
-/// calibration plate (an estimate: the engine waits for the operator).
-pub const PLATE_CHANGE_S: f64 = 60.0;
+/// calibration plate (an estimate: the engine waits for the operator; the
+/// simulated operator takes exactly this).
+pub const PLATE_CHANGE_S: f64 = 30.0;
 
 /// The timing model shared by the estimate and the engine's pipeline.
 #[derive(Debug, Clone)]

@@ -11,8 +11,6 @@ use crate::hal::{DeviceError, ErrorKind, Fixture};
 
 /// Name the plate's messages and deadlines carry.
 pub const PLATE_DEVICE: &str = "plate";
-/// How long the simulated operator takes to place or remove the plate.
-pub const SIM_PLATE_S: f64 = 30.0;
 
 /// Asks the operator: the first call for a placement fails with the
 /// instruction (the engine pauses with it as the reason, and never retries
@@ -51,7 +49,8 @@ pub struct SimPlate {
 #[async_trait]
 impl Fixture for SimPlate {
     async fn place(&mut self, height_mm: Option<f64>) -> Result<(), DeviceError> {
-        self.clock.sleep_s(SIM_PLATE_S).await;
+        // The operator takes the time the estimate allows.
+        self.clock.sleep_s(crate::schedule::PLATE_CHANGE_S).await;
         self.world.set_plate(height_mm);
         Ok(())
     }
