@@ -74,7 +74,15 @@ fn a_laser_scan_measures_the_domes() {
     let plan = "laser:sources=4,turns=1,step=0.75";
     run_ok(
         rigd()
-            .args(["run", "--sim", "--progress", "none", "--plan", plan, "--profile"])
+            .args([
+                "run",
+                "--sim",
+                "--progress",
+                "none",
+                "--plan",
+                plan,
+                "--profile",
+            ])
             .arg(profile(dir.path()))
             .arg("--out")
             .arg(&run),
@@ -100,7 +108,10 @@ fn a_laser_scan_measures_the_domes() {
     assert_eq!(sweep0.len(), per_sweep);
     for pair in sweep0.windows(2) {
         let dt = pair[1]["t_s"].as_f64().unwrap() - pair[0]["t_s"].as_f64().unwrap();
-        assert!((dt - 1.0 / 7.5).abs() < 1e-3, "frames {dt} s apart, not at 7.5 Hz");
+        assert!(
+            (dt - 1.0 / 7.5).abs() < 1e-3,
+            "frames {dt} s apart, not at 7.5 Hz"
+        );
         let (a, b) = (
             pair[0]["laser"]["tilt_deg"].as_f64().unwrap(),
             pair[1]["laser"]["tilt_deg"].as_f64().unwrap(),
@@ -117,10 +128,12 @@ fn a_laser_scan_measures_the_domes() {
         assert!(mean < bound, "{camera}: mean depth error {mean} mm");
         assert!(coverage > 0.95, "{camera}: coverage {coverage}");
     }
-    let depth =
-        rigd_process::npy::read_f32(&run.join("processed/mdf/t000_cam3.npy")).unwrap();
+    let depth = rigd_process::npy::read_f32(&run.join("processed/mdf/t000_cam3.npy")).unwrap();
     assert_eq!(depth.shape, vec![180, 240]);
-    assert!(depth.data.iter().all(|v| v.is_finite() && (*v == -1.0 || *v >= 0.0)));
+    assert!(depth
+        .data
+        .iter()
+        .all(|v| v.is_finite() && (*v == -1.0 || *v >= 0.0)));
     assert!(run.join("processed/mdf/t000_cam3.png").exists());
 
     // The seed's model (planes of a sweep parallel at the calibrated angle)
@@ -160,20 +173,23 @@ fn a_fault_mid_sweep_retakes_the_sweep_and_loses_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
     // cam3's 12th exposure: in the sweep, after 2 calibration frames.
-    run_ok(rigd().args([
-        "run",
-        "--sim",
-        "--progress",
-        "none",
-        "--profile",
-        "msra-btf-mdf",
-        "--plan",
-        "laser:sources=1,turns=1,step=5",
-        "--sim-fault",
-        "cam3:expose:12:timeout",
-        "--out",
-    ])
-    .arg(&run));
+    run_ok(
+        rigd()
+            .args([
+                "run",
+                "--sim",
+                "--progress",
+                "none",
+                "--profile",
+                "msra-btf-mdf",
+                "--plan",
+                "laser:sources=1,turns=1,step=5",
+                "--sim-fault",
+                "cam3:expose:12:timeout",
+                "--out",
+            ])
+            .arg(&run),
+    );
     let manifest = json(&run.join("manifest.json"));
     assert_eq!(manifest["state"], "completed");
     let per_sweep = (2.0f64 * 65.0 / 5.0).ceil() as usize + 1;

@@ -186,6 +186,100 @@ fn a_capture_is_rectified_and_compressed() {
         let e = r["mean_abs_error"].as_f64().unwrap();
         assert!(e.is_finite() && (0.0..0.5).contains(&e), "{r}");
     }
+    // The stored parameters reproduce the reported errors.
+    stored_fits_reproduce_the_report(&run, &rows);
+}
+
+/// Evaluates `processed/fit/slot_NNN_{lobes,ptm}.npy` at every light and
+/// compares with the normtextures: the mean |error| over slots must be the
+/// one `report.json` gives.
+fn stored_fits_reproduce_the_report(run: &Path, rows: &serde_json::Value) {
+    use rigd_process::image_io::load_png;
+    use rigd_process::npy::read_f32;
+    use rigd_process::reflectance_fit::{Lobe, LobeModel, PtmFit};
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
+    )
+    .unwrap();
+    let dir = |d: &serde_json::Value| {
+        let (t, p) = (
+            d["theta_deg"].as_f64().unwrap().to_radians(),
+            d["phi_deg"].as_f64().unwrap().to_radians(),
+        );
+        [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+    };
+    let lights: Vec<[f64; 3]> = index["lights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(dir)
+        .collect();
+    let slots = index["views"].as_array().unwrap().len();
+    let (mut ptm_err, mut lobe_err) = (0.0, 0.0);
+    for slot in 0..slots {
+        let lobes = read_f32(&run.join(format!("processed/fit/slot_{slot:03}_lobes.npy"))).unwrap();
+        let ptm = read_f32(&run.join(format!("processed/fit/slot_{slot:03}_ptm.npy"))).unwrap();
+        // (a, b, c, n) per lobe, lobes side by side.
+        assert_eq!(lobes.shape[2] % 4, 0);
+        let k = lobes.shape[2] / 4;
+        assert_eq!(ptm.shape[2], 6);
+        assert!(lobes.data.iter().chain(&ptm.data).all(|v| v.is_finite()));
+        let texels = lobes.shape[0] * lobes.shape[1];
+        let (mut pe, mut le) = (0.0, 0.0);
+        for (l, light) in lights.iter().enumerate() {
+            let file = index["frames"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|f| f["view_slot"] == slot && f["light_index"] == l)
+                .and_then(|f| f["file"].as_str())
+                .unwrap();
+            let img = load_png(&run.join("processed/normtextures").join(file)).unwrap();
+            for t in 0..texels {
+                let value = f64::from(img.data[t]);
+                let c: Vec<f64> = ptm.data[t * 6..t * 6 + 6]
+                    .iter()
+                    .map(|&v| f64::from(v))
+                    .collect();
+                let fit = PtmFit {
+                    coefficients: [c[0], c[1], c[2], c[3], c[4], c[5]],
+                    rms_error: 0.0,
+                    mean_abs_error: 0.0,
+                };
+                pe += (fit.evaluate(*light) - value).abs();
+                let model = LobeModel::new(
+                    (0..k)
+                        .map(|j| {
+                            let p = &lobes.data[(t * k + j) * 4..(t * k + j) * 4 + 4];
+                            let abcn = [p[0], p[1], p[2], p[3]].map(f64::from);
+                            Lobe::from_paper_coefficients(abcn).unwrap()
+                        })
+                        .collect(),
+                )
+                .unwrap();
+                le += (model.evaluate(*light) - value).abs();
+            }
+        }
+        let n = (texels * lights.len()) as f64;
+        ptm_err += pe / n / slots as f64;
+        lobe_err += le / n / slots as f64;
+    }
+    let reported: Vec<f64> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["mean_abs_error"].as_f64().unwrap())
+        .collect();
+    assert!(
+        (ptm_err - reported[0]).abs() < 1e-4,
+        "PTM {ptm_err} vs {}",
+        reported[0]
+    );
+    assert!(
+        (lobe_err - reported[1]).abs() < 1e-4,
+        "lobes {lobe_err} vs {}",
+        reported[1]
+    );
 }
 
 #[test]
