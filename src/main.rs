@@ -212,9 +212,15 @@ struct RectifyArgs {
     final_size: usize,
     /// Which 8 bits of the sensor value to keep: `top` (no clipping), a
     /// shift N for value >> N clipped at 255 (2 = the central 8 bits of 12,
-    /// as seed 000 chose), or `float` for linear float32 (.npy).
+    /// as seed 000 chose), `float` for linear float32 or `half` for linear
+    /// float16 (the seed's 16-bit floats), both .npy.
     #[arg(long, default_value = "top")]
     bits: String,
+    /// Linear edge blending (seed 000 §3.2): the ROI is scaled to
+    /// final + N texels and the extra band blended into the opposite edges,
+    /// so the textures tile without seams. 0 = none.
+    #[arg(long, default_value_t = 0)]
+    blend: usize,
 }
 
 #[derive(Args)]
@@ -1021,15 +1027,17 @@ fn rectify(args: RectifyArgs) -> anyhow::Result<()> {
     let bits = match args.bits.as_str() {
         "top" => TextureBits::Top8,
         "float" => TextureBits::Float,
+        "half" => TextureBits::Half,
         s => match s.parse::<u8>() {
             Ok(shift) if shift <= 8 => TextureBits::Shift(shift),
-            _ => bail!("--bits {s}: expected `top`, a shift 0 ..= 8 or `float`"),
+            _ => bail!("--bits {s}: expected `top`, a shift 0 ..= 8, `float` or `half`"),
         },
     };
     let cfg = rigd::postprocess::RectifyConfig {
         size: args.size,
         roi: args.roi,
         final_size: args.final_size,
+        blend: args.blend,
         bits,
     };
     let run = rigd::postprocess::RunFrames::open(&args.run)?;

@@ -5,6 +5,7 @@
 use std::path::{Path, PathBuf};
 
 use rigd_process::image_io::Image;
+use rigd_process::npy::Dtype;
 use rigd_process::photometric_stereo::{PsDataset, PsResult};
 use rigd_sim::scene::{Scene, Shot};
 use serde::Serialize;
@@ -195,6 +196,9 @@ pub struct RectifyConfig {
     pub roi: f64,
     /// Side of the stored texture (the ROI scaled).
     pub final_size: usize,
+    /// Width of the linear edge blend that makes textures tile (seed 000
+    /// §3.2), in final texels; 0 = none.
+    pub blend: usize,
     pub bits: TextureBits,
 }
 
@@ -208,6 +212,8 @@ pub enum TextureBits {
     Shift(u8),
     /// Linear float32 `.npy`, 1 = full scale.
     Float,
+    /// Linear float16 `.npy` (the seed's "16-bit floats"), half the bytes.
+    Half,
 }
 
 impl Default for RectifyConfig {
@@ -216,6 +222,7 @@ impl Default for RectifyConfig {
             size: rigd_process::rectify::NORMTEXTURE_SIZE,
             roi: 1.0,
             final_size: rigd_process::rectify::FINAL_TEXTURE_SIZE,
+            blend: 0,
             bits: TextureBits::Top8,
         }
     }
@@ -264,7 +271,8 @@ impl FrameRegistration {
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct NormtextureIndex {
     pub size: usize,
-    /// `png8` (8-bit codes / 255) or `npy-f32` (linear, 1 = full scale).
+    /// `png8` (8-bit codes / 255), `npy-f32` or `npy-f16` (linear, 1 =
+    /// full scale).
     pub encoding: String,
     pub bit_depth: u8,
     /// Commanded directions (sample frame); BTF slots are views.
@@ -309,7 +317,7 @@ impl NormtextureIndex {
             path: path.clone(),
             message,
         };
-        if self.encoding == "npy-f32" {
+        if self.encoding.starts_with("npy-") {
             let a = rigd_process::npy::read_f32(&path).map_err(|e| frame_err(e.to_string()))?;
             let (h, w) = (a.shape[0], a.shape.get(1).copied().unwrap_or(1));
             let mut img = Image::new(w, h, 1);
@@ -360,6 +368,12 @@ pub fn rectify_run(
     use rayon::prelude::*;
     use rigd_process::image_io::{write_png, PngDepth};
     use rigd_process::rectify::{self as rect, MarkerLayout, Quantisation};
+    if cfg.blend >= cfg.final_size {
+        return Err(ProcessError::Invalid(format!(
+            "edge blend of {} texels: must be narrower than the {}-texel texture",
+            cfg.blend, cfg.final_size
+        )));
+    }
     if cfg.final_size == 0 || cfg.size == 0 || !(cfg.roi > 0.0 && cfg.roi <= 1.0) {
         return Err(ProcessError::Invalid(format!(
             "size {}, ROI {}, final size {}: expected positive sizes and 0 < ROI ≤ 1",
@@ -449,13 +463,18 @@ pub fn rectify_run(
                 .map_err(|e| e.to_string())?;
                 rec.coverage = Some(full.coverage);
                 let roi = rect::Roi::centred(cfg.size, cfg.size, cfg.roi);
-                let texture = rect::roi_cut(&full.texture, roi, [cfg.final_size, cfg.final_size])
+                // With a blend the ROI is scaled to final + blend texels,
+                // whose extra band is blended into the opposite edge.
+                let side = cfg.final_size + cfg.blend;
+                let texture = rect::roi_cut(&full.texture, roi, [side, side])
+                    .and_then(|t| rect::edge_blend(&t, cfg.blend))
                     .map_err(|e| e.to_string())?;
                 let name = format!("v{view_slot:03}_l{light_index:03}");
-                let shift = match cfg.bits {
-                    TextureBits::Top8 => Some(entry.bit_depth.saturating_sub(8)),
-                    TextureBits::Shift(s) => Some(s),
-                    TextureBits::Float => None,
+                let (shift, dtype) = match cfg.bits {
+                    TextureBits::Top8 => (Some(entry.bit_depth.saturating_sub(8)), Dtype::F32),
+                    TextureBits::Shift(s) => (Some(s), Dtype::F32),
+                    TextureBits::Float => (None, Dtype::F32),
+                    TextureBits::Half => (None, Dtype::F16),
                 };
                 match shift {
                     Some(shift) => {
@@ -472,10 +491,11 @@ pub fn rectify_run(
                     }
                     None => {
                         let file = format!("{name}.npy");
-                        rigd_process::npy::write_f32(
+                        rigd_process::npy::write(
                             &out_dir.join(&file),
                             &[texture.height, texture.width],
                             &texture.data,
+                            dtype,
                         )
                         .map_err(|e| e.to_string())?;
                         rec.file = Some(file);
@@ -493,10 +513,10 @@ pub fn rectify_run(
         .collect();
     let index = NormtextureIndex {
         size: cfg.final_size,
-        encoding: if cfg.bits == TextureBits::Float {
-            "npy-f32"
-        } else {
-            "png8"
+        encoding: match cfg.bits {
+            TextureBits::Float => "npy-f32",
+            TextureBits::Half => "npy-f16",
+            TextureBits::Top8 | TextureBits::Shift(_) => "png8",
         }
         .into(),
         bit_depth,

@@ -188,6 +188,44 @@ fn a_capture_is_rectified_and_compressed() {
     }
     // The stored parameters reproduce the reported errors.
     stored_fits_reproduce_the_report(&run, &rows);
+
+    // The seed's 16-bit floats and edge blending; the BTF reads them.
+    let out = rigd()
+        .args(["process", "rectify", "--size", "256", "--final", "64"])
+        .args(["--bits", "half", "--blend", "8"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(index["encoding"], "npy-f16");
+    let file = index["frames"][0]["file"].as_str().unwrap();
+    let tex = rigd_process::npy::read_f32(&run.join("processed/normtextures").join(file)).unwrap();
+    assert_eq!(tex.shape, vec![64, 64]);
+    assert!(tex
+        .data
+        .iter()
+        .all(|v| v.is_finite() && (0.0..=1.0).contains(v)));
+    let status = rigd()
+        .args(["process", "btf", "--components", "2"])
+        .arg(&run)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let out = rigd()
+        .args(["process", "rectify", "--final", "64", "--blend", "64"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("edge blend"));
 }
 
 /// Evaluates `processed/fit/slot_NNN_{lobes,ptm}.npy` at every light and

@@ -1,10 +1,12 @@
-//! Minimal NumPy `.npy` reader and writer for little-endian `float32` arrays
-//! of shape `(H, W)` or `(H, W, C)` in C (row-major) order.
+//! Minimal NumPy `.npy` reader and writer for little-endian `float32` and
+//! `float16` arrays of shape `(H, W)` or `(H, W, C)` in C (row-major)
+//! order; both read back as `f32`.
 //!
 //! Writing produces format version 1.0 with the header padded so the data
 //! starts on a 64-byte boundary, as NumPy itself does. Reading accepts
 //! versions 1.0, 2.0 and 3.0 (they differ only in the header-length field),
-//! but only `descr` `'<f4'`, `fortran_order: False` and rank 2 or 3.
+//! but only `descr` `'<f4'` or `'<f2'`, `fortran_order: False` and rank 2
+//! or 3.
 //! `np.load` reads the written files directly.
 
 use std::path::{Path, PathBuf};
@@ -46,8 +48,40 @@ fn format_err<T>(reason: impl Into<String>) -> Result<T, NpyFormatError> {
     Err(NpyFormatError(reason.into()))
 }
 
-/// Encodes `data` with `shape` as `.npy` v1.0 bytes.
+/// How values are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dtype {
+    /// `'<f4'`.
+    F32,
+    /// `'<f2'`: IEEE half precision, an 11-bit mantissa (a 12-bit sensor's
+    /// codes near full scale within half a code), half the bytes.
+    F16,
+}
+
+impl Dtype {
+    fn descr(self) -> &'static str {
+        match self {
+            Dtype::F32 => "<f4",
+            Dtype::F16 => "<f2",
+        }
+    }
+
+    fn size(self) -> usize {
+        match self {
+            Dtype::F32 => 4,
+            Dtype::F16 => 2,
+        }
+    }
+}
+
+/// Encodes `data` with `shape` as `.npy` v1.0 bytes of `float32`.
 pub fn encode_f32(shape: &[usize], data: &[f32]) -> Result<Vec<u8>, NpyFormatError> {
+    encode(shape, data, Dtype::F32)
+}
+
+/// Encodes `data` with `shape` as `.npy` v1.0 bytes of `dtype` (values
+/// beyond half precision's range become ±infinity, as NumPy's cast does).
+pub fn encode(shape: &[usize], data: &[f32], dtype: Dtype) -> Result<Vec<u8>, NpyFormatError> {
     if shape.len() != 2 && shape.len() != 3 {
         return format_err(format!("rank {} (expected 2 or 3)", shape.len()));
     }
@@ -63,7 +97,8 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Result<Vec<u8>, NpyFormatErr
     }
     let dims: Vec<String> = shape.iter().map(|d| d.to_string()).collect();
     let mut header = format!(
-        "{{'descr': '<f4', 'fortran_order': False, 'shape': ({}), }}",
+        "{{'descr': '{}', 'fortran_order': False, 'shape': ({}), }}",
+        dtype.descr(),
         dims.join(", ")
     );
     // Preamble is magic (6) + version (2) + length (2); NumPy pads with
@@ -73,13 +108,16 @@ pub fn encode_f32(shape: &[usize], data: &[f32]) -> Result<Vec<u8>, NpyFormatErr
     header.push('\n');
     let header_len = u16::try_from(header.len())
         .map_err(|_| NpyFormatError("header too long for v1.0".into()))?;
-    let mut out = Vec::with_capacity(MAGIC.len() + 4 + header.len() + 4 * data.len());
+    let mut out = Vec::with_capacity(MAGIC.len() + 4 + header.len() + dtype.size() * data.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&[1, 0]);
     out.extend_from_slice(&header_len.to_le_bytes());
     out.extend_from_slice(header.as_bytes());
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
+    for &v in data {
+        match dtype {
+            Dtype::F32 => out.extend_from_slice(&v.to_le_bytes()),
+            Dtype::F16 => out.extend_from_slice(&half::f16::from_f32(v).to_le_bytes()),
+        }
     }
     Ok(out)
 }
@@ -111,9 +149,11 @@ pub fn decode_f32(bytes: &[u8]) -> Result<NpyArray, NpyFormatError> {
     let header = std::str::from_utf8(&bytes[header_start..data_start])
         .map_err(|_| NpyFormatError("header is not UTF-8".into()))?;
     let header = parse_header(header)?;
-    if header.descr != "<f4" {
-        return format_err(format!("dtype '{}' (expected '<f4')", header.descr));
-    }
+    let dtype = match header.descr.as_str() {
+        "<f4" => Dtype::F32,
+        "<f2" => Dtype::F16,
+        other => return format_err(format!("dtype '{other}' (expected '<f4' or '<f2')")),
+    };
     if header.fortran_order {
         return format_err("Fortran order");
     }
@@ -126,27 +166,38 @@ pub fn decode_f32(bytes: &[u8]) -> Result<NpyArray, NpyFormatError> {
         .try_fold(1usize, |acc, &d| acc.checked_mul(d))
         .ok_or_else(|| NpyFormatError("shape overflows".into()))?;
     let payload = &bytes[data_start..];
-    if count.checked_mul(4) != Some(payload.len()) {
+    if count.checked_mul(dtype.size()) != Some(payload.len()) {
         return format_err(format!(
             "shape {:?} needs {} data bytes, file has {}",
             header.shape,
-            count.saturating_mul(4),
+            count.saturating_mul(dtype.size()),
             payload.len()
         ));
     }
-    let data = payload
-        .chunks_exact(4)
-        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-        .collect();
+    let data = match dtype {
+        Dtype::F32 => payload
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect(),
+        Dtype::F16 => payload
+            .chunks_exact(2)
+            .map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32())
+            .collect(),
+    };
     Ok(NpyArray {
         shape: header.shape,
         data,
     })
 }
 
-/// Writes an array atomically (temporary file + rename).
+/// Writes a `float32` array atomically (temporary file + rename).
 pub fn write_f32(path: &Path, shape: &[usize], data: &[f32]) -> Result<(), NpyError> {
-    let bytes = encode_f32(shape, data).map_err(|source| NpyError::Format {
+    write(path, shape, data, Dtype::F32)
+}
+
+/// Writes an array of `dtype` atomically (temporary file + rename).
+pub fn write(path: &Path, shape: &[usize], data: &[f32], dtype: Dtype) -> Result<(), NpyError> {
+    let bytes = encode(shape, data, dtype).map_err(|source| NpyError::Format {
         path: path.to_path_buf(),
         source,
     })?;
@@ -309,6 +360,22 @@ mod tests {
         assert!(header.starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3), }"));
         assert!(header.ends_with('\n'));
         assert_eq!(bytes.len(), 10 + header_len + 24);
+    }
+
+    #[test]
+    fn float16_round_trips_within_half_precision() {
+        // 12-bit codes near full scale, small values, zero, and one beyond
+        // half's range (infinity, as NumPy casts it).
+        let values = [4095.0 / 4095.0, 4094.0 / 4095.0, 1e-3, 0.0, -0.5, 1e6];
+        let bytes = encode(&[2, 3], &values, Dtype::F16).unwrap();
+        let header_len = usize::from(u16::from_le_bytes([bytes[8], bytes[9]]));
+        assert_eq!(bytes.len(), 10 + header_len + 12);
+        let back = decode_f32(&bytes).unwrap();
+        assert_eq!(back.shape, vec![2, 3]);
+        for (a, b) in values.iter().zip(&back.data).take(5) {
+            assert!((a - b).abs() <= a.abs() / 2048.0, "{a} -> {b}");
+        }
+        assert!(back.data[5].is_infinite());
     }
 
     #[test]

@@ -1772,6 +1772,58 @@ pub fn roi_cut(texture: &Image, roi: Roi, size: [usize; 2]) -> Result<Image, Rec
     Ok(out)
 }
 
+/// Linear edge blending (seed 000 §3.2: "linear edgeblending is applied,
+/// which reduces the usual tiling artifacts"): an `(n + band)`-square
+/// texture becomes an `n`-square one that tiles without seams. Along each
+/// axis, texel `x < band` mixes texel `x` (weight `(x + ½)/band`) with texel
+/// `x + n` (the rest), so where one tile's texel `n − 1` meets the next
+/// tile's texel 0 the values are those of neighbouring input texels `n − 1`
+/// and (almost) `n`. `band = 0` returns the texture unchanged.
+pub fn edge_blend(texture: &Image, band: usize) -> Result<Image, RectifyError> {
+    check_image(texture)?;
+    if band == 0 {
+        return Ok(texture.clone());
+    }
+    let (w, h, ch) = (texture.width, texture.height, texture.channels);
+    if w != h || band >= w.saturating_sub(band) {
+        return Err(RectifyError::InvalidInput(format!(
+            "edge blend of {band} texels on a {w}x{h} texture (square, band < side − band)"
+        )));
+    }
+    let n = w - band;
+    let weight = |x: usize| (x as f64 + 0.5) / band as f64;
+    // Columns first, into an n × (n + band) image, then rows.
+    let mut cols = vec![0.0f32; h * n * ch];
+    for y in 0..h {
+        for x in 0..n {
+            for c in 0..ch {
+                let at = |xx: usize| f64::from(texture.data[(y * w + xx) * ch + c]);
+                let v = if x < band {
+                    weight(x) * at(x) + (1.0 - weight(x)) * at(x + n)
+                } else {
+                    at(x)
+                };
+                cols[(y * n + x) * ch + c] = v as f32;
+            }
+        }
+    }
+    let mut out = Image::new(n, n, ch);
+    for y in 0..n {
+        for x in 0..n {
+            for c in 0..ch {
+                let at = |yy: usize| f64::from(cols[(yy * n + x) * ch + c]);
+                let v = if y < band {
+                    weight(y) * at(y) + (1.0 - weight(y)) * at(y + n)
+                } else {
+                    at(y)
+                };
+                out.data[(y * n + x) * ch + c] = v as f32;
+            }
+        }
+    }
+    Ok(out)
+}
+
 /// Per output index, the input indices and weights (summing to 1).
 fn resample_weights(n_in: usize, n_out: usize) -> Vec<Vec<(usize, f64)>> {
     let s = n_in as f64 / n_out as f64;

@@ -945,3 +945,78 @@ proptest! {
         }
     }
 }
+
+/// A smooth texture that does not tile: a ramp plus a slow wave.
+fn ramp(side: usize) -> Image {
+    let mut img = Image::new(side, side, 1);
+    for y in 0..side {
+        for x in 0..side {
+            let v = 0.2 + 0.5 * x as f32 / side as f32 + 0.1 * (y as f32 * 0.05).sin();
+            img.set(x, y, 0, v);
+        }
+    }
+    img
+}
+
+/// Largest step between neighbouring texels inside the texture, and across
+/// the seam where it meets a copy of itself (right edge to left, bottom to top).
+fn steps(img: &Image) -> (f32, f32) {
+    let n = img.width;
+    let (mut inside, mut seam) = (0f32, 0f32);
+    for y in 0..n {
+        for x in 0..n {
+            let v = img.get(x, y, 0);
+            let right = img.get((x + 1) % n, y, 0);
+            let down = img.get(x, (y + 1) % n, 0);
+            let (a, b) = ((v - right).abs(), (v - down).abs());
+            if x + 1 == n {
+                seam = seam.max(a);
+            } else {
+                inside = inside.max(a);
+            }
+            if y + 1 == n {
+                seam = seam.max(b);
+            } else {
+                inside = inside.max(b);
+            }
+        }
+    }
+    (inside, seam)
+}
+
+#[test]
+fn edge_blending_removes_the_tiling_seam() {
+    let (n, band) = (64, 8);
+    let input = ramp(n + band);
+    let plain = rigd_process::rectify::roi_cut(
+        &input,
+        rigd_process::rectify::Roi {
+            x: 0,
+            y: 0,
+            width: n,
+            height: n,
+        },
+        [n, n],
+    )
+    .unwrap();
+    let (_, raw_seam) = steps(&plain);
+    let blended = rigd_process::rectify::edge_blend(&input, band).unwrap();
+    assert_eq!((blended.width, blended.height), (n, n));
+    let (inside, seam) = steps(&blended);
+    assert!(raw_seam > 0.4, "the ramp jumps at the seam: {raw_seam}");
+    // Across the seam now no larger a step than the blend band makes inside.
+    assert!(seam <= 1.5 * inside, "seam {seam}, inside {inside}");
+    assert!(blended.data.iter().all(|v| v.is_finite()));
+    // Outside the band the texture is untouched; a constant stays constant.
+    assert_eq!(
+        blended.get(band + 3, band + 5, 0),
+        input.get(band + 3, band + 5, 0)
+    );
+    let mut flat = Image::new(n + band, n + band, 1);
+    flat.data.iter_mut().for_each(|v| *v = 0.37);
+    let b = rigd_process::rectify::edge_blend(&flat, band).unwrap();
+    assert!(b.data.iter().all(|v| (v - 0.37).abs() < 1e-6));
+    // No band: unchanged; a band too wide for the texture: an error.
+    assert_eq!(rigd_process::rectify::edge_blend(&input, 0).unwrap(), input);
+    assert!(rigd_process::rectify::edge_blend(&ramp(10), 5).is_err());
+}
