@@ -48,6 +48,7 @@ fn one_run(plan: &str) -> Duration {
             frame_size: Some([1, 1]),
             out: tmp.path().join("run"),
             simulated: true,
+            order: None,
         };
         let p = prepare_new(req, vec![], Clock::virtual_time(), PausePolicy::Return)
             .await
@@ -92,6 +93,7 @@ fn one_stop(frames: usize) -> (Duration, f64, usize) {
             frame_size: Some([1, 1]),
             out: tmp.path().join("run"),
             simulated: true,
+            order: None,
         };
         let p = prepare_new(req, vec![], Clock::virtual_time(), PausePolicy::Wait)
             .await

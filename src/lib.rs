@@ -14,6 +14,7 @@ pub mod hal;
 pub mod kinematics;
 pub mod laser;
 pub mod mdf_run;
+pub mod ordering;
 pub mod plan;
 pub mod postprocess;
 pub mod profile;

@@ -9,6 +9,7 @@ use anyhow::{bail, Context};
 use clap::{Args, Parser, Subcommand};
 use rigd::engine::{Command, EventKind, Outcome, PausePolicy, RunState};
 use rigd::geometry::Direction;
+use rigd::ordering::Order;
 use rigd::profile::{Profile, DEFAULT_PROFILE};
 use rigd::runner::{self, NewRun};
 use rigd::schedule::Timing;
@@ -356,6 +357,10 @@ enum PlanCmd {
         /// Exposure time for every camera, seconds (default: the profile's).
         #[arg(long, allow_negative_numbers = true)]
         exposure: Option<f64>,
+        /// Trigger order: optimised (the shortest physical time under the
+        /// motion model) or naive (the plan's nested loops).
+        #[arg(long, value_enum, default_value_t = Order::Optimised)]
+        order: Order,
     },
 }
 
@@ -406,8 +411,13 @@ struct RunArgs {
     /// Exposure time for every camera, seconds (default: the profile's).
     #[arg(long, allow_negative_numbers = true)]
     exposure: Option<f64>,
+    /// Trigger order: optimised (the shortest physical time under the
+    /// motion model) or naive (the plan's nested loops) [default:
+    /// optimised; laser plans keep theirs].
+    #[arg(long, value_enum)]
+    order: Option<Order>,
     /// Resume the run in this directory (all other run options come from it).
-    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure"])]
+    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure", "order"])]
     resume: Option<PathBuf>,
     /// Inject a fault into the simulated firmware: DEVICE:OP:N:KIND[:sticky], fired on
     /// the Nth OP command the device receives. OP: GRBL axes home, move, info;
@@ -448,8 +458,9 @@ fn main() -> ExitCode {
                     profile,
                     json,
                     exposure,
+                    order,
                 },
-        } => plan_show(&plan, &profile, json, exposure).map(|_| ExitCode::SUCCESS),
+        } => plan_show(&plan, &profile, json, exposure, order).map(|_| ExitCode::SUCCESS),
         Cmd::Profile { command } => profile_cmd(command).map(|_| ExitCode::SUCCESS),
         Cmd::Run(args) => run(args),
         Cmd::Sim {
@@ -558,14 +569,26 @@ fn profile_cmd(cmd: ProfileCmd) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn plan_show(plan: &str, profile: &str, json: bool, exposure: Option<f64>) -> anyhow::Result<()> {
+fn plan_show(
+    plan: &str,
+    profile: &str,
+    json: bool,
+    exposure: Option<f64>,
+    order: Order,
+) -> anyhow::Result<()> {
     if let Some(e) = exposure {
         if !(e.is_finite() && e > 0.0) {
             bail!("--exposure {e}: expected a positive number of seconds");
         }
     }
     let profile = Profile::load(profile)?;
-    let (_, _, schedule) = runner::solve_plan(&profile, plan)?;
+    let solver = rigd::kinematics::Solver::new(&profile)?;
+    let offer = rigd::schedule::rig_offer(&profile, &solver);
+    let mut resolved = rigd::plan::resolve(plan, &offer)?;
+    if resolved.laser.is_none() {
+        resolved.order = order;
+    }
+    let (schedule, report) = rigd::schedule::build_with_report(&profile, &solver, &resolved);
     let estimate = Timing::new(&profile, exposure).estimate_s(&schedule, |_| false);
     let infeasible = schedule.infeasible().count();
     if json {
@@ -591,6 +614,8 @@ fn plan_show(plan: &str, profile: &str, json: bool, exposure: Option<f64>) -> an
             "triggers_total": schedule.triggers.len(),
             "infeasible_total": infeasible,
             "estimated_physical_s": estimate,
+            "order": resolved.order,
+            "order_report": report,
             "steps": steps,
         });
         println!("{}", serde_json::to_string_pretty(&out)?);
@@ -629,6 +654,19 @@ fn plan_show(plan: &str, profile: &str, json: bool, exposure: Option<f64>) -> an
                 .map(|r| format!("  ({r})"))
                 .unwrap_or_default()
         );
+    }
+    match &report.kept {
+        Some(why) => println!("order: as planned ({why})"),
+        None => println!(
+            "order: {:?}; physical time (motion-model estimate, profile exposures): naive {}, optimised {} ({:.1} % shorter), lower bound {} ({}; optimised is within {:.3}×)",
+            resolved.order,
+            hms(report.naive_s),
+            hms(report.optimised_s),
+            100.0 * (1.0 - report.optimised_s / report.naive_s.max(1e-9)),
+            hms(report.lower_bound_s),
+            report.bound,
+            report.gap()
+        ),
     }
     println!(
         "plan {} on {}: {} images in {} triggers, {} infeasible (substituted), estimated physical capture time {}",
@@ -734,6 +772,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
                     frame_size: args.frame_size,
                     out,
                     simulated,
+                    order: args.order,
                 };
                 runner::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)
                     .await?

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::Direction;
 use crate::laser::{LaserPlan, LaserRig};
+use crate::ordering::Order;
 
 /// Names accepted for `PLAN` besides a file path.
 pub const BUILTIN_PLANS: &[&str] = &["h1", "h2", "grid12x8", "lamps", "laser"];
@@ -42,6 +43,10 @@ pub struct Plan {
     /// A laser scan (seed 002 §3.2) instead of pairs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub laser: Option<LaserPlan>,
+    /// The order the engine takes the triggers in. Runs recorded before
+    /// orders existed read as `naive`, the order they were taken in.
+    #[serde(default)]
+    pub order: Order,
 }
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -121,6 +126,7 @@ pub fn resolve(spec: &str, rig: &RigOffer) -> Result<Plan, PlanError> {
         name: spec.to_string(),
         pairs,
         laser: None,
+        order: Order::Optimised,
     };
     match spec {
         "h1" => Ok(named(btf(&h1(), &h1()))),
@@ -163,6 +169,7 @@ pub fn resolve(spec: &str, rig: &RigOffer) -> Result<Plan, PlanError> {
                 name: spec.to_string(),
                 pairs: Vec::new(),
                 laser: Some(laser),
+                order: Order::Naive,
             })
         }
         _ if looks_like_file(spec) => from_file(Path::new(spec)),
@@ -266,6 +273,7 @@ fn from_parsed(parsed: PlanFile, file: &str, default_name: String) -> Result<Pla
         name,
         pairs,
         laser: None,
+        order: Order::Optimised,
     })
 }
 

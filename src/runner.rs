@@ -11,6 +11,7 @@ use crate::connect::{self, sim::SimHandle, sim::SimOptions};
 use crate::engine::{Engine, EngineHandle, PausePolicy};
 use crate::hal::{DeviceError, Rig};
 use crate::kinematics::{KinematicsError, Solver};
+use crate::ordering::Order;
 use crate::plan::{self, Plan, PlanError};
 use crate::profile::{Profile, ProfileError};
 use crate::schedule::{self, Schedule, Timing};
@@ -48,6 +49,9 @@ pub struct NewRun {
     pub out: PathBuf,
     /// Drive the simulated rig instead of the profile's hardware.
     pub simulated: bool,
+    /// The trigger order; None: the plan's default (optimised, laser
+    /// plans as planned).
+    pub order: Option<Order>,
 }
 
 /// An engine ready to run, and what a progress display needs to know.
@@ -71,10 +75,14 @@ pub struct Prepared {
 pub fn solve_plan(
     profile: &Profile,
     plan_spec: &str,
+    order: Option<Order>,
 ) -> Result<(Solver, Plan, Schedule), RunError> {
     let solver = Solver::new(profile)?;
     let offer = schedule::rig_offer(profile, &solver);
-    let plan = plan::resolve(plan_spec, &offer)?;
+    let mut plan = plan::resolve(plan_spec, &offer)?;
+    if let Some(o) = order {
+        plan.order = o;
+    }
     let schedule = schedule::build(profile, &solver, &plan);
     Ok((solver, plan, schedule))
 }
@@ -101,7 +109,7 @@ pub async fn prepare_new(
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
     check_request(&req)?;
-    let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan)?;
+    let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan, req.order)?;
     create(req, solver, plan, schedule, faults, clock, policy).await
 }
 

@@ -96,9 +96,30 @@ fn setpoint_key(s: &Setpoints) -> String {
     key
 }
 
-/// Solves every pair and groups the images of each trigger, keeping the
-/// plan's order of first appearance.
+/// Solves every pair, groups the images of each trigger, and orders the
+/// triggers as the plan asks (`ordering`).
 pub fn build(profile: &Profile, solver: &Solver, plan: &Plan) -> Schedule {
+    let mut schedule = build_in_plan_order(profile, solver, plan);
+    let timing = Timing::new(profile, None);
+    crate::ordering::apply(profile, &mut schedule, &timing, plan.order, false);
+    schedule
+}
+
+/// [`build`], and what the order gained: naive, optimised and lower-bound
+/// physical times (under the profile's exposures).
+pub fn build_with_report(
+    profile: &Profile,
+    solver: &Solver,
+    plan: &Plan,
+) -> (Schedule, crate::ordering::OrderReport) {
+    let mut schedule = build_in_plan_order(profile, solver, plan);
+    let timing = Timing::new(profile, None);
+    let report = crate::ordering::apply(profile, &mut schedule, &timing, plan.order, true);
+    (schedule, report)
+}
+
+/// Solves every pair in the plan's own order.
+fn build_in_plan_order(profile: &Profile, solver: &Solver, plan: &Plan) -> Schedule {
     if let (Some(lp), Some(rig)) = (&plan.laser, LaserRig::of(profile)) {
         return crate::laser::schedule(&rig, &plan.name, &profile.name, lp);
     }

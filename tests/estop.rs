@@ -38,6 +38,7 @@ async fn emergency_stop_mid_run_pauses_and_resume_rehomes_and_completes() {
         frame_size: Some([8, 8]),
         out: out.clone(),
         simulated: true,
+        order: None,
     };
     let p = prepare_new(req, vec![], Clock::virtual_time(), PausePolicy::Wait)
         .await

@@ -28,6 +28,7 @@ async fn run_with_fault(rule: &str) -> Vec<String> {
         frame_size: Some([8, 8]),
         out: out.clone(),
         simulated: true,
+        order: None,
     };
     let rule: FaultRule = rule.parse().expect("fault rule");
     let device = rule.device.clone();

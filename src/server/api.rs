@@ -205,10 +205,11 @@ async fn builtin_schedule(d: &AppState, name: &str) -> Result<Arc<Schedule>, Api
     }
     let profile = d.profile.clone();
     let n = name.to_string();
-    let schedule = tokio::task::spawn_blocking(move || crate::runner::solve_plan(&profile, &n))
-        .await
-        .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
+    let schedule =
+        tokio::task::spawn_blocking(move || crate::runner::solve_plan(&profile, &n, None))
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+            .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
     let s = Arc::new(schedule.2);
     d.cache_schedule(&key, s.clone());
     Ok(s)

@@ -84,6 +84,10 @@ pub struct RunRequest {
     /// Simulated frame size `[width, height]`, each 1..=4096 (default: the profile's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame_size: Option<[u32; 2]>,
+    /// `optimised` (default: the shortest physical time under the motion
+    /// model) or `naive` (the plan's nested-loop order).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub order: Option<crate::ordering::Order>,
 }
 
 /// A run as the API shows it.

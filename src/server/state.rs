@@ -187,14 +187,15 @@ impl Daemon {
         }
         match &req.plan {
             PlanSpec::Name(name) => {
-                if !BUILTIN_PLANS.contains(&name.as_str()) {
+                if !BUILTIN_PLANS.contains(&name.as_str()) && !name.starts_with("laser:") {
                     return Err(ApiError::invalid(format!(
                         "unknown plan `{}` (expected one of {}, or an inline plan object)",
                         name.chars().take(64).collect::<String>(),
                         BUILTIN_PLANS.join(", ")
                     )));
                 }
-                let (_, plan, _) = runner::solve_plan(&self.profile, name).map_err(run_error)?;
+                let (_, plan, _) =
+                    runner::solve_plan(&self.profile, name, req.order).map_err(run_error)?;
                 Ok(plan)
             }
             PlanSpec::Inline(p) => {
@@ -207,8 +208,12 @@ impl Daemon {
                 }
                 let value =
                     serde_json::to_value(p).map_err(|e| ApiError::internal(e.to_string()))?;
-                plan::from_json_value(value, "inline plan", "custom")
-                    .map_err(|e| ApiError::invalid(e.to_string()))
+                let mut plan = plan::from_json_value(value, "inline plan", "custom")
+                    .map_err(|e| ApiError::invalid(e.to_string()))?;
+                if let Some(o) = req.order {
+                    plan.order = o;
+                }
+                Ok(plan)
             }
         }
     }
@@ -256,6 +261,7 @@ impl Daemon {
             frame_size: req.frame_size,
             out: root.clone(),
             simulated: self.config.sim,
+            order: Some(plan.order),
         };
         let profile = self.profile.clone();
         let clock = self.clock();
