@@ -15,6 +15,10 @@ use crate::kinematics::Setpoints;
 use crate::profile::{Profile, RigGeometry};
 use crate::schedule::{ImageStep, Schedule, Trigger};
 
+/// The strip lands at most this many emitter radii from the centre; a
+/// tilt beyond puts it nowhere a turntable is.
+const MAX_STRIP_OFFSET_RADII: f64 = 10.0;
+
 /// Laser source positions of seed 002 (Figure 4).
 pub const SEED_SOURCES: usize = 26;
 
@@ -193,8 +197,12 @@ impl LaserGeometry {
         let t = self.theta_deg.to_radians();
         let (horizontal, height) = (self.radius_m * t.sin(), self.radius_m * t.cos());
         let depression = self.depression_at_zero() + tilt_deg.to_radians();
-        (depression > 1e-6 && depression < std::f64::consts::PI - 1e-6)
-            .then(|| horizontal - height / depression.tan())
+        // A beam this close to the horizon lands far beyond any turntable.
+        let offset = horizontal - height / depression.tan();
+        (depression > 1e-6
+            && depression < std::f64::consts::PI - 1e-6
+            && offset.abs() <= MAX_STRIP_OFFSET_RADII * self.radius_m)
+            .then_some(offset)
     }
 
     /// The laser plane for a source at `azimuth_deg` (sample frame) and a
@@ -539,7 +547,10 @@ mod tests {
                 assert!(d(further).abs() < 1e-12);
             }
         }
-        // Beyond the horizon the beam never meets the turntable.
+        // Beyond the horizon the beam never meets the turntable; just above
+        // it, it meets it nowhere near.
         assert_eq!(g.offset_for_tilt(-50.0), None);
+        assert_eq!(g.offset_for_tilt(-45.0 + 1e-3), None);
+        assert!(g.offset_for_tilt(-40.0).is_some());
     }
 }

@@ -23,5 +23,6 @@ pub mod schedule;
 pub mod server;
 pub mod sim_render;
 pub mod store;
+pub mod tradeoff;
 
 pub use rigd_sim as sim;

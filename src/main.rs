@@ -58,6 +58,12 @@ enum Cmd {
     /// folder per view of tl…_pl…_tv…_pv….png) or `ubo2003` (a zip of
     /// `tl… pl… tv… pv….jpg`, integer degrees, as the Bonn 2003 database).
     Export(ExportArgs),
+    /// What accuracy costs in time on this rig and material: sampling plans
+    /// (H2, H1, ring subsets, grids, a dense reference) against held-out BTF
+    /// error, PCA components, and the simulator's effects against render
+    /// time; prints the table and writes tradeoff.csv, tradeoff.json and
+    /// tradeoff.svg (error against physical time) into --out.
+    Tradeoff(TradeoffArgs),
     /// Read textures in an export format (ours or a database's) into
     /// OUT/processed/normtextures/, ready for `rigd process btf OUT`.
     Import(ImportArgs),
@@ -160,6 +166,31 @@ struct MdfArgs {
     /// Gaussian filter before the strip search, pixels.
     #[arg(long, default_value_t = 1.0)]
     sigma: f64,
+}
+
+#[derive(Args)]
+struct TradeoffArgs {
+    /// Rig profile: a TOML file or an embedded profile name.
+    #[arg(long, default_value = DEFAULT_PROFILE)]
+    profile: String,
+    /// The material: a built-in scene or a scene file.
+    #[arg(long, default_value = "corduroy")]
+    scene: String,
+    /// Where to write tradeoff.csv, .json and .svg.
+    #[arg(long, default_value = ".")]
+    out: PathBuf,
+    /// Side of the normtextures, texels.
+    #[arg(long, default_value_t = 16)]
+    texture: usize,
+    /// Held-out (light, view) pairs.
+    #[arg(long, default_value_t = 24)]
+    held_out: usize,
+    /// PCA components for the plan rows.
+    #[arg(long, default_value_t = 16)]
+    components: usize,
+    /// Frame size of the fidelity renders, WIDTHxHEIGHT.
+    #[arg(long, default_value = "256x192", value_parser = rigd::sim_render::parse_frame_size)]
+    render_size: [u32; 2],
 }
 
 #[derive(Args)]
@@ -487,6 +518,7 @@ fn main() -> ExitCode {
         Cmd::Process {
             command: ProcessCmd::Mdf(args),
         } => mdf(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Tradeoff(args) => tradeoff(args).map(|_| ExitCode::SUCCESS),
         Cmd::Export(args) => {
             if !(1..=100).contains(&args.quality) {
                 eprintln!("error: --quality {}: expected 1 ..= 100", args.quality);
@@ -1144,6 +1176,53 @@ fn fit(args: FitArgs) -> anyhow::Result<()> {
             r.method, r.mean_abs_error, r.rms_error, r.fit_s, r.converged_texels
         );
     }
+    Ok(())
+}
+
+fn tradeoff(args: TradeoffArgs) -> anyhow::Result<()> {
+    let profile = Profile::load(&args.profile)?;
+    let cfg = rigd::tradeoff::TradeoffConfig {
+        texture: args.texture,
+        held_out: args.held_out,
+        components: args.components,
+        render_size: args.render_size,
+    };
+    let started = Instant::now();
+    let report = rigd::tradeoff::run(&profile, &args.scene, &cfg, &args.out, &|what| {
+        eprintln!(
+            "tradeoff: {what} ({:.0} s)",
+            started.elapsed().as_secs_f64()
+        );
+    })?;
+    println!(
+        "{} on {}, {}² textures, {} held-out pairs",
+        report.scene, report.profile, report.texture, report.held_out
+    );
+    println!("family\tsetting\timages\tphysical time\tbytes\terror\tcompute");
+    for r in &report.rows {
+        println!(
+            "{}\t{}\t{}\t{}\t{}\t{}\t{}",
+            r.family,
+            r.setting,
+            r.images
+                .map(|x| x.to_string())
+                .unwrap_or_else(|| "-".into()),
+            r.physical_s.map(hms).unwrap_or_else(|| "-".into()),
+            r.bytes
+                .map(|b| format!("{:.1} MB", b as f64 / 1e6))
+                .unwrap_or_else(|| "-".into()),
+            r.error
+                .map(|e| format!("{:.2} %", 100.0 * e))
+                .unwrap_or_else(|| "-".into()),
+            r.compute_s
+                .map(|t| format!("{t:.2} s"))
+                .unwrap_or_else(|| "-".into()),
+        );
+    }
+    for m in &report.method {
+        println!("note: {m}");
+    }
+    println!("wrote {}/tradeoff.{{csv,json,svg}}", args.out.display());
     Ok(())
 }
 

@@ -1,0 +1,69 @@
+//! `rigd tradeoff` on the Bonn rig and corduroy, at the smallest textures:
+//! every family's rows, the three files, and the orderings a lab relies on
+//! (fewer rings: less time, more error).
+
+use std::process::Command;
+
+#[test]
+fn the_tradeoff_table_is_written_and_ordered() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_rigd"))
+        .args([
+            "tradeoff",
+            "--profile",
+            "bonn-gonioreflectometer",
+            "--scene",
+            "corduroy",
+            "--texture",
+            "4",
+            "--held-out",
+            "6",
+            "--render-size",
+            "64x48",
+            "--out",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    for f in ["tradeoff.csv", "tradeoff.json", "tradeoff.svg"] {
+        assert!(dir.path().join(f).exists(), "{f}");
+    }
+    let svg = std::fs::read_to_string(dir.path().join("tradeoff.svg")).unwrap();
+    assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("tradeoff.json")).unwrap()).unwrap();
+    let rows = report["rows"].as_array().unwrap();
+    let find = |family: &str, setting: &str| {
+        rows.iter()
+            .find(|r| r["family"] == family && r["setting"] == setting)
+            .unwrap_or_else(|| panic!("no row {family} / {setting}"))
+    };
+    for r in rows {
+        if let Some(e) = r["error"].as_f64() {
+            assert!(e.is_finite() && e >= 0.0, "{r}");
+        }
+    }
+    let (h2, three) = (find("plans", "h2"), find("plans", "h2, 3 rings"));
+    assert_eq!(h2["images"], 6561);
+    assert_eq!(three["images"], 19 * 19);
+    assert!(three["physical_s"].as_f64() < h2["physical_s"].as_f64());
+    assert!(
+        three["error"].as_f64() > h2["error"].as_f64(),
+        "{three} vs {h2}"
+    );
+    for c in [2, 4, 8, 16, 32] {
+        find("pca", &format!("C = {c}"));
+    }
+    let c2 = find("pca", "C = 2")["bytes"].as_u64().unwrap();
+    let c32 = find("pca", "C = 32")["bytes"].as_u64().unwrap();
+    assert!(c32 > c2);
+    assert!(rows.iter().any(|r| r["family"] == "fidelity"
+        && r["setting"].as_str().unwrap().starts_with("without relief")));
+}
