@@ -1198,10 +1198,10 @@ fn tradeoff(args: TradeoffArgs) -> anyhow::Result<()> {
         "{} on {}, {}² textures, {} held-out pairs",
         report.scene, report.profile, report.texture, report.held_out
     );
-    println!("family\tsetting\timages\tphysical time\tbytes\terror\tcompute");
+    println!("family\tsetting\timages\tphysical time\tbytes\terror\tcompute\tdetail");
     for r in &report.rows {
         println!(
-            "{}\t{}\t{}\t{}\t{}\t{}\t{}",
+            "{}\t{}\t{}\t{}\t{}\t{}\t{}\t{}",
             r.family,
             r.setting,
             r.images
@@ -1212,11 +1212,16 @@ fn tradeoff(args: TradeoffArgs) -> anyhow::Result<()> {
                 .map(|b| format!("{:.1} MB", b as f64 / 1e6))
                 .unwrap_or_else(|| "-".into()),
             r.error
-                .map(|e| format!("{:.2} %", 100.0 * e))
+                .map(|e| match r.unit.as_str() {
+                    "relative" => format!("{:.2} %", 100.0 * e),
+                    "degrees" => format!("{e:.2}°"),
+                    unit => format!("{e:.3} {unit}"),
+                })
                 .unwrap_or_else(|| "-".into()),
             r.compute_s
                 .map(|t| format!("{t:.2} s"))
                 .unwrap_or_else(|| "-".into()),
+            r.detail.as_deref().unwrap_or(""),
         );
     }
     for m in &report.method {

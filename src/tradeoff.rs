@@ -18,9 +18,12 @@
 //! - **fidelity**: the renderer with every effect the scene can show, then
 //!   with each effect off: render time, and how far the frame moves (the
 //!   accuracy a shortcut costs).
-//!
-//! Not yet: the laser-position and photometric-stereo families (their
-//! figures come from `tests/laser_mdf.rs` and `tests/ps_accuracy.rs`).
+//! - **laser**: a simulated laser scan on the MSRA rig (the rig with a
+//!   laser unit; one camera at 40°, small frames) with 26 source positions,
+//!   processed with 1, 5, 13 and 26 of them: MDF depth error against the
+//!   scene, and the scan time of a plan with that many sources.
+//! - **photometric stereo**: simulated VirTex captures with 3, 6 and 12
+//!   lamps: mean normal error against the scene, and the capture time.
 
 use std::path::Path;
 use std::time::Instant;
@@ -77,6 +80,12 @@ pub struct Row {
     pub error: Option<f64>,
     /// Wall time of the computation (compression, render), seconds.
     pub compute_s: Option<f64>,
+    /// What `error` is: `relative` (plans, pca, fidelity), `mm` (laser:
+    /// mean depth error), `degrees` (photometric stereo: mean normal error).
+    pub unit: String,
+    /// More about the row (coverage, what was measured).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub detail: Option<String>,
 }
 
 /// The whole report.
@@ -332,6 +341,8 @@ pub fn run(
             bytes: Some(raw_bytes(profile, &s)),
             error: Some(held_out_error(&store, &truths)?),
             compute_s: Some(compress_s),
+            unit: "relative".into(),
+            detail: None,
         });
         if case.name == "h2" {
             h2_grid = Some((g, order.optimised_s, s.images.len()));
@@ -356,6 +367,8 @@ pub fn run(
                 bytes: Some(bytes),
                 error: Some(held_out_error(&store, &truths)?),
                 compute_s: Some(compress_s),
+                unit: "relative".into(),
+                detail: None,
             });
         }
     }
@@ -363,6 +376,11 @@ pub fn run(
     // Simulator fidelity.
     progress("fidelity");
     rows.extend(fidelity(&scene, cfg.render_size));
+
+    progress("laser scan (MSRA rig, 26 sources)");
+    rows.extend(laser_family(scene_name, out)?);
+    progress("photometric stereo (VirTex rig)");
+    rows.extend(ps_family(scene_name, out)?);
 
     let report = Report {
         profile: profile.name.clone(),
@@ -375,12 +393,212 @@ pub fn run(
             "plans: texture-space capture (the scene's true BTF at the achieved directions); camera and registration left out".into(),
             "error: RMS over held-out (light, view) pairs relative to the truth's RMS".into(),
             "fidelity: error is the frame's RMS change with the effect off, relative to the frame's RMS".into(),
-            "not yet measured here: laser positions, photometric stereo (see tests/laser_mdf.rs, tests/ps_accuracy.rs)".into(),
+            "laser: one 26-source scan on the MSRA rig (cam3 at 40°, 160×120 frames, 1.5 mm steps) processed with subsets of its sources; time: motion-model estimate of a plan with that many sources; error: mean depth error in mm".into(),
+            "photometric stereo: simulated VirTex captures (128×96 frames); time: the simulated run's physical duration; error: mean normal error in degrees".into(),
         ],
         rows,
     };
     write_outputs(out, &report)?;
     Ok(report)
+}
+
+/// One simulated capture in virtual time into `out`; its physical duration.
+fn capture(profile: Profile, plan: &str, out: &Path) -> Result<f64, ProcessError> {
+    use crate::engine::{PausePolicy, RunState};
+    let invalid = |e: String| ProcessError::Invalid(format!("capture of `{plan}`: {e}"));
+    let _ = std::fs::remove_dir_all(out);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(true)
+        .build()
+        .map_err(|e| invalid(e.to_string()))?;
+    runtime.block_on(async {
+        let req = crate::runner::NewRun {
+            profile_source: format!("<tradeoff {}>", profile.name),
+            profile,
+            plan: plan.to_string(),
+            sample: "tradeoff".into(),
+            operator: None,
+            notes: None,
+            exposure_s: None,
+            frame_size: None,
+            out: out.to_path_buf(),
+            simulated: true,
+            order: None,
+        };
+        let p = crate::runner::prepare_new(
+            req,
+            vec![],
+            rigd_sim::Clock::virtual_time(),
+            PausePolicy::Return,
+        )
+        .await
+        .map_err(|e| invalid(e.to_string()))?;
+        let outcome = p.engine.run().await.map_err(|e| invalid(e.to_string()))?;
+        if outcome.state != RunState::Completed {
+            return Err(invalid(format!(
+                "ended {} ({})",
+                outcome.state,
+                outcome.reason.unwrap_or_default()
+            )));
+        }
+        Ok(outcome.physical_s)
+    })
+}
+
+/// MDF depth error against the number of laser source positions.
+fn laser_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
+    let mut profile =
+        Profile::load("msra-btf-mdf").map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    if let crate::profile::RigGeometry::TurntableArcs { cameras, .. } = &mut profile.rig {
+        *cameras = vec!["cam3".into()];
+    }
+    profile.sim.frame_size = [160, 120];
+    profile.sim.zoom = 2.4;
+    profile.sim.scene = Some(scene_name.to_string());
+    let plan = |n: usize| format!("laser:sources={n},turns=1,step=1.5");
+    let dir = out.join(".tradeoff-laser");
+    capture(profile.clone(), &plan(26), &dir)?;
+    let run = crate::postprocess::RunFrames::open(&dir)?;
+    let solver = Solver::new(&profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let offer = schedule::rig_offer(&profile, &solver);
+    let mut rows = Vec::new();
+    for n in [1usize, 5, 13, 26] {
+        let cfg = crate::mdf_run::MdfConfig {
+            sources: Some(n),
+            ..Default::default()
+        };
+        let started = Instant::now();
+        let report = crate::mdf_run::mdf_run(&run, &cfg, &|_, _| {})?;
+        let compute_s = started.elapsed().as_secs_f64();
+        let truth = report.views.first().and_then(|v| v.truth);
+        let plan_n =
+            plan::resolve(&plan(n), &offer).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+        let s = schedule::build(&profile, &solver, &plan_n);
+        let physical = schedule::Timing::new(&profile, None).estimate_s(&s, |_| false);
+        rows.push(Row {
+            family: "laser".into(),
+            setting: format!("{n} source{}", if n == 1 { "" } else { "s" }),
+            images: Some(s.images.len()),
+            physical_s: Some(physical),
+            bytes: None,
+            error: truth.map(|t| t.mean_mm),
+            compute_s: Some(compute_s),
+            unit: "mm".into(),
+            detail: truth.map(|t| {
+                format!(
+                    "coverage {:.1} % of the sample's pixels",
+                    100.0 * t.coverage
+                )
+            }),
+        });
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(rows)
+}
+
+/// Photometric-stereo normal error against the number of lamps.
+fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
+    use rigd_process::photometric_stereo as ps;
+    let base = Profile::load("virtex-photometric-stereo")
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let mut rows = Vec::new();
+    let layouts: [(&str, Vec<Direction>); 3] = [
+        ("3 lights", vec![]),
+        (
+            "6 lights",
+            (0..6)
+                .map(|k| Direction::new(45.0, 60.0 * k as f64))
+                .collect(),
+        ),
+        (
+            "12 lights",
+            (0..12)
+                .map(|k| {
+                    Direction::new(
+                        if k < 6 { 30.0 } else { 60.0 },
+                        60.0 * (k % 6) as f64 + if k < 6 { 0.0 } else { 30.0 },
+                    )
+                })
+                .collect(),
+        ),
+    ];
+    for (name, lamps) in layouts {
+        let mut profile = base.clone();
+        if !lamps.is_empty() {
+            with_lamps(&mut profile, &lamps)?;
+        }
+        profile.sim.scene = Some(scene_name.to_string());
+        let dir = out.join(".tradeoff-ps");
+        let physical = capture(profile, "lamps", &dir)?;
+        let run = crate::postprocess::RunFrames::open(&dir)?;
+        let dataset = crate::postprocess::ps_dataset_from_run(&run)?;
+        let modes: &[bool] = if name == "3 lights" {
+            &[false]
+        } else {
+            &[false, true]
+        };
+        for &robust in modes {
+            let started = Instant::now();
+            let result = ps::solve(
+                &dataset,
+                &ps::PsOptions {
+                    robust,
+                    ..Default::default()
+                },
+            )
+            .map_err(|e| ProcessError::Invalid(format!("{name}: {e}")))?;
+            let compute_s = started.elapsed().as_secs_f64();
+            let err = crate::postprocess::ps_error_against_truth(&run, &result)?;
+            rows.push(Row {
+                family: "photometric stereo".into(),
+                setting: if robust {
+                    format!("{name}, robust")
+                } else {
+                    name.to_string()
+                },
+                images: Some(run.entries.len()),
+                physical_s: Some(physical),
+                bytes: None,
+                error: err.as_ref().map(|e| e.mean_deg),
+                compute_s: Some(compute_s),
+                unit: "degrees".into(),
+                detail: err.map(|e| {
+                    format!(
+                        "median {:.2}°, 95th percentile {:.2}°",
+                        e.median_deg, e.p95_deg
+                    )
+                }),
+            });
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    Ok(rows)
+}
+
+/// Replaces a fixed-lamp rig's lamps with ones in `directions`, each a copy
+/// of its first lamp on the next relay coil.
+fn with_lamps(profile: &mut Profile, directions: &[Direction]) -> Result<(), ProcessError> {
+    let crate::profile::RigGeometry::FixedLamps { lamps, .. } = &mut profile.rig else {
+        return Err(ProcessError::Invalid("not a fixed-lamp rig".into()));
+    };
+    let template = lamps
+        .first()
+        .and_then(|l| profile.devices.get(l))
+        .cloned()
+        .ok_or_else(|| ProcessError::Invalid("the rig has no lamp".into()))?;
+    for old in lamps.drain(..) {
+        profile.devices.remove(&old);
+    }
+    for (k, d) in directions.iter().enumerate() {
+        let name = format!("lamp{k}");
+        let mut dev = template.clone();
+        dev.direction = Some(*d);
+        dev.coil = Some(k as u16);
+        profile.devices.insert(name.clone(), dev);
+        lamps.push(name);
+    }
+    Ok(())
 }
 
 /// Writes the compressed BTF and returns its size on disk.
@@ -447,6 +665,8 @@ fn fidelity(scene: &Scene, size: [u32; 2]) -> Vec<Row> {
         bytes: None,
         error: Some(0.0),
         compute_s: Some(t_all),
+        unit: "relative".into(),
+        detail: None,
     }];
     for effect in plan.live.iter().collect::<Vec<Effect>>() {
         let switches: EffectSwitches = format!("all,-{}", effect.name())
@@ -462,6 +682,8 @@ fn fidelity(scene: &Scene, size: [u32; 2]) -> Vec<Row> {
             bytes: None,
             error: Some(rms(&diff) / ref_rms),
             compute_s: Some(t),
+            unit: "relative".into(),
+            detail: None,
         });
     }
     rows
@@ -474,17 +696,20 @@ fn write_outputs(out: &Path, report: &Report) -> Result<(), ProcessError> {
         serde_json::to_vec_pretty(report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     rigd_process::atomic::write(&out.join("tradeoff.json"), &json).map_err(io)?;
     let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
-    let mut csv = String::from("family,setting,images,physical_s,bytes,error,compute_s\n");
+    let mut csv =
+        String::from("family,setting,images,physical_s,bytes,error,unit,compute_s,detail\n");
     for r in &report.rows {
         csv.push_str(&format!(
-            "{},\"{}\",{},{},{},{},{}\n",
+            "{},\"{}\",{},{},{},{},{},{},\"{}\"\n",
             r.family,
             r.setting.replace('"', "'"),
             r.images.map(|x| x.to_string()).unwrap_or_default(),
             opt(r.physical_s),
             r.bytes.map(|x| x.to_string()).unwrap_or_default(),
             opt(r.error),
-            opt(r.compute_s)
+            r.unit,
+            opt(r.compute_s),
+            r.detail.clone().unwrap_or_default().replace('"', "'")
         ));
     }
     rigd_process::atomic::write(&out.join("tradeoff.csv"), csv.as_bytes()).map_err(io)?;
@@ -532,7 +757,7 @@ pub fn svg(report: &Report) -> String {
     let px = |t: f64| m + (t.log10() - x0) / (x1 - x0) * (w - 2.0 * m);
     let py = |e: f64| h - m - (e.log10() - y0) / (y1 - y0) * (h - 2.0 * m);
     let mut s = format!(
-        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"13\">{} on {}: BTF error vs physical capture time</text>\n",
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"13\">{} on {}: error vs physical capture time (units per family)</text>\n",
         w / 2.0,
         report.scene,
         report.profile
@@ -576,9 +801,14 @@ pub fn svg(report: &Report) -> String {
                 px(p.2), py(p.3), p.0, p.1, p.2, p.3, px(p.2) + 5.0, py(p.3) - 5.0, p.1
             ));
         }
+        let unit = report
+            .rows
+            .iter()
+            .find(|r| r.family == *fam)
+            .map_or("", |r| r.unit.as_str());
         s.push_str(&format!(
-            "<text x=\"{}\" y=\"{}\" fill=\"{colour}\">{fam}</text>\n",
-            w - m - 60.0,
+            "<text x=\"{}\" y=\"{}\" fill=\"{colour}\">{fam} ({unit})</text>\n",
+            w - m - 160.0,
             m + 14.0 * i as f64
         ));
     }

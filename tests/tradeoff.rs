@@ -66,4 +66,21 @@ fn the_tradeoff_table_is_written_and_ordered() {
     assert!(c32 > c2);
     assert!(rows.iter().any(|r| r["family"] == "fidelity"
         && r["setting"].as_str().unwrap().starts_with("without relief")));
+    // Laser: four subsets of one scan, more sources take longer.
+    let laser: Vec<&serde_json::Value> = rows.iter().filter(|r| r["family"] == "laser").collect();
+    assert_eq!(laser.len(), 4, "{laser:?}");
+    for pair in laser.windows(2) {
+        assert!(pair[1]["physical_s"].as_f64() > pair[0]["physical_s"].as_f64());
+    }
+    for r in &laser {
+        assert_eq!(r["unit"], "mm");
+        let e = r["error"].as_f64().unwrap();
+        assert!(e > 0.0 && e < 5.0, "{r}");
+    }
+    // Photometric stereo: twelve lights, robust, beat three.
+    let three = find("photometric stereo", "3 lights");
+    let twelve = find("photometric stereo", "12 lights, robust");
+    assert_eq!(three["unit"], "degrees");
+    assert!(twelve["error"].as_f64() < three["error"].as_f64(), "{twelve} vs {three}");
+    assert!(twelve["physical_s"].as_f64() > three["physical_s"].as_f64());
 }
