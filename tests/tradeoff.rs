@@ -81,6 +81,9 @@ fn the_tradeoff_table_is_written_and_ordered() {
     let three = find("photometric stereo", "3 lights");
     let twelve = find("photometric stereo", "12 lights, robust");
     assert_eq!(three["unit"], "degrees");
-    assert!(twelve["error"].as_f64() < three["error"].as_f64(), "{twelve} vs {three}");
+    assert!(
+        twelve["error"].as_f64() < three["error"].as_f64(),
+        "{twelve} vs {three}"
+    );
     assert!(twelve["physical_s"].as_f64() > three["physical_s"].as_f64());
 }

@@ -49,6 +49,9 @@ pub struct SimPlate {
 #[async_trait]
 impl Fixture for SimPlate {
     async fn place(&mut self, height_mm: Option<f64>) -> Result<(), DeviceError> {
+        if self.world.snapshot().plate_mm == height_mm {
+            return Ok(());
+        }
         // The operator takes the time the estimate allows.
         self.clock.sleep_s(crate::schedule::PLATE_CHANGE_S).await;
         self.world.set_plate(height_mm);

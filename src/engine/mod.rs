@@ -169,6 +169,10 @@ pub struct Engine {
     pos: Setpoints,
     /// Physical time the last frame was taken, once the plan is through.
     finished_at_s: Option<f64>,
+    /// Whether `pos.plate_mm` is known. A laser run starts not knowing (a
+    /// resumed one cannot know what an operator left on the turntable), so
+    /// its first move places or removes the plate; other plans never use it.
+    plate_known: bool,
 }
 
 /// A trigger exposed but not yet transferred.
@@ -216,6 +220,7 @@ impl Engine {
             // Laser sweeps use the plan's short exposure (seed 002 §3.2).
             meta.exposure_s = schedule.laser.as_ref().map(|l| l.plan.exposure_s);
         }
+        let laser_plan = schedule.laser.is_some();
         let (cmd_tx, cmd_rx) = mpsc::channel(16);
         let (ev_tx, _) = broadcast::channel(1024);
         let estop = EStop::new(std::mem::take(&mut rig.stops), clock.clone());
@@ -243,6 +248,7 @@ impl Engine {
                 plate_mm: None,
             },
             finished_at_s: None,
+            plate_known: !laser_plan,
         };
         (
             engine,
@@ -387,6 +393,7 @@ impl Engine {
                                     axes,
                                     arms,
                                     fixture,
+                                    plate_known: self.plate_known,
                                 },
                                 &mut lights,
                                 &self.pos,
@@ -459,6 +466,7 @@ impl Engine {
                 }
             };
             self.pos = reached.clone();
+            self.plate_known = true;
             let Some(i) = next else { continue };
             if self.estop.is_tripped() {
                 // The stop cut the move short (or lands now): the rig is
@@ -551,6 +559,7 @@ impl Engine {
                     axes,
                     arms,
                     fixture,
+                    plate_known: self.plate_known,
                 },
                 &mut Lights { lamps, lasers },
                 &self.pos,
@@ -559,6 +568,7 @@ impl Engine {
             .await?
         };
         self.pos = reached;
+        self.plate_known = true;
         let no_axis = || {
             StepFault::from(DeviceError::new(
                 &tilt_name,
@@ -1008,6 +1018,8 @@ struct Movers<'a> {
     axes: &'a mut BTreeMap<String, Box<dyn Axis>>,
     arms: &'a mut BTreeMap<String, Box<dyn Arm>>,
     fixture: &'a mut Option<Box<dyn Fixture>>,
+    /// False: place (or remove) the plate whatever `from` says.
+    plate_known: bool,
 }
 
 /// Switches from lamp (or laser) `from` to `to` and waits for it to be stable.
@@ -1038,17 +1050,21 @@ async fn switch_lamp(
     Ok(())
 }
 
-/// Places or removes the laser calibration plate.
+/// Places or removes the laser calibration plate; `from` None: unknown.
 async fn place_plate(
     clock: &Clock,
     fixture: &mut Option<Box<dyn Fixture>>,
-    from: Option<f64>,
+    from: Option<Option<f64>>,
     to: Option<f64>,
 ) -> Result<(), DeviceError> {
-    if from == to {
+    if from == Some(to) {
         return Ok(());
     }
     let Some(f) = fixture.as_mut() else {
+        if to.is_none() {
+            // A rig without a plate has none to remove.
+            return Ok(());
+        }
         return Err(DeviceError::new(
             "plate",
             ErrorKind::NotReady,
@@ -1072,9 +1088,11 @@ async fn goto(
         axes,
         arms,
         fixture,
+        plate_known,
     } = movers;
     // The plate goes in or out before anything moves over it.
-    place_plate(clock, fixture, from.plate_mm, to.plate_mm).await?;
+    let from_plate = plate_known.then_some(from.plate_mm);
+    place_plate(clock, fixture, from_plate, to.plate_mm).await?;
     let budget = timing.motion_s(from, to) * 2.0 + DEADLINE_SLACK_S;
     let axis_moves = join_all(
         axes.iter_mut()
