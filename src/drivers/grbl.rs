@@ -546,15 +546,22 @@ where
         Self::x_of(&s)
     }
 
-    async fn move_inner(&mut self, target: f64) -> Result<f64, GrblError> {
+    /// Refuses a target outside the soft limits before anything is sent.
+    fn check_target(&self, target: f64) -> Result<(), GrblError> {
         let l = self.cfg.limits;
-        if !target.is_finite() || !l.contains(target) {
-            return Err(GrblError::OutOfLimits {
+        if target.is_finite() && l.contains(target) {
+            Ok(())
+        } else {
+            Err(GrblError::OutOfLimits {
                 target,
                 min: l.min,
                 max: l.max,
-            });
+            })
         }
+    }
+
+    async fn move_inner(&mut self, target: f64) -> Result<f64, GrblError> {
+        self.check_target(target)?;
         self.resync().await?;
         let from = self
             .last_status
@@ -573,14 +580,7 @@ where
     /// A jog (`$J=G90 X… F…`): the controller runs it at the feed given, and
     /// answers `ok` as soon as it is planned.
     async fn sweep_inner(&mut self, target: f64, velocity: f64) -> Result<(), GrblError> {
-        let l = self.cfg.limits;
-        if !target.is_finite() || !l.contains(target) {
-            return Err(GrblError::OutOfLimits {
-                target,
-                min: l.min,
-                max: l.max,
-            });
-        }
+        self.check_target(target)?;
         self.resync().await?;
         let feed = velocity.abs().min(self.cfg.motion.max_velocity) * 60.0;
         self.command(&Command::Jog { x: target, feed }, self.cfg.command_timeout)
