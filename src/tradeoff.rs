@@ -224,25 +224,40 @@ fn grid(schedule: &Schedule) -> Result<Grid, ProcessError> {
     })
 }
 
-/// Compresses a grid's true textures with `components` and returns the
-/// store and the compression's wall time.
-fn compress(
-    scene: &Scene,
-    g: &Grid,
-    size: usize,
-    components: usize,
-) -> Result<(BtfStore, Vec<SlotPca>, f64), ProcessError> {
-    let invalid = |e: rigd_process::btf::BtfError| ProcessError::Invalid(e.to_string());
-    let shape = TextureShape::new(size, size, 1).map_err(invalid)?;
-    let textures: Vec<Vec<Vec<f32>>> = g
-        .achieved
+/// A grid's "capture": per view slot and light, the scene's true texture
+/// at the achieved directions.
+type Textures = Vec<Vec<Vec<f32>>>;
+
+fn true_textures(scene: &Scene, g: &Grid, size: usize) -> Textures {
+    g.achieved
         .par_iter()
         .map(|row| {
             row.iter()
                 .map(|&(l, v)| true_texture(scene, size, l, v))
                 .collect()
         })
-        .collect();
+        .collect()
+}
+
+/// The grid's light and view tables.
+fn tables(g: &Grid) -> Result<(DirectionTable, DirectionTable), ProcessError> {
+    let table = |d: &[Direction]| {
+        DirectionTable::new(d.iter().map(|&x| pdir(x)).collect())
+            .map_err(|e| ProcessError::Invalid(e.to_string()))
+    };
+    Ok((table(&g.lights)?, table(&g.views)?))
+}
+
+/// Compresses a grid's textures with `components` and returns the store
+/// and the compression's wall time.
+fn compress(
+    textures: &Textures,
+    g: &Grid,
+    size: usize,
+    components: usize,
+) -> Result<(BtfStore, Vec<SlotPca>, f64), ProcessError> {
+    let invalid = |e: rigd_process::btf::BtfError| ProcessError::Invalid(e.to_string());
+    let shape = TextureShape::new(size, size, 1).map_err(invalid)?;
     let started = Instant::now();
     let slots = textures
         .iter()
@@ -252,12 +267,8 @@ fn compress(
         })
         .collect::<Result<Vec<_>, _>>()?;
     let compress_s = started.elapsed().as_secs_f64();
-    let table = |d: &[Direction]| {
-        DirectionTable::new(d.iter().map(|&x| pdir(x)).collect())
-            .map_err(|e| ProcessError::Invalid(e.to_string()))
-    };
-    let store = BtfStore::new(shape, table(&g.lights)?, table(&g.views)?, slots.clone())
-        .map_err(invalid)?;
+    let (lights, views) = tables(g)?;
+    let store = BtfStore::new(shape, lights, views, slots.clone()).map_err(invalid)?;
     Ok((store, slots, compress_s))
 }
 
@@ -332,7 +343,8 @@ pub fn run(
         progress(&format!("plan {}", case.name));
         let (s, order) = schedule::build_with_report(profile, &solver, &case.plan);
         let g = grid(&s)?;
-        let (store, _, compress_s) = compress(&scene, &g, cfg.texture, cfg.components)?;
+        let textures = true_textures(&scene, &g, cfg.texture);
+        let (store, _, compress_s) = compress(&textures, &g, cfg.texture, cfg.components)?;
         rows.push(Row {
             family: "plans".into(),
             setting: case.name.clone(),
@@ -345,15 +357,16 @@ pub fn run(
             detail: None,
         });
         if case.name == "h2" {
-            h2_grid = Some((g, order.optimised_s, s.images.len()));
+            // The PCA family reuses H2's textures.
+            h2_grid = Some((g, textures, order.optimised_s, s.images.len()));
         }
     }
 
     // PCA components, on H2.
-    if let Some((g, physical, images)) = &h2_grid {
+    if let Some((g, textures, physical, images)) = &h2_grid {
         for c in [2usize, 4, 8, 16, 32] {
             progress(&format!("pca C = {c}"));
-            let (store, slots, compress_s) = compress(&scene, g, cfg.texture, c)?;
+            let (store, slots, compress_s) = compress(textures, g, cfg.texture, c)?;
             let dir = out.join(format!(".pca-{c}"));
             let bytes = stored_bytes(&dir, &slots, g, cfg.texture, c);
             // Only the size was wanted: the files go either way.
@@ -611,18 +624,8 @@ fn stored_bytes(
 ) -> Result<u64, ProcessError> {
     let invalid = |e: rigd_process::btf::BtfError| ProcessError::Invalid(e.to_string());
     let shape = TextureShape::new(size, size, 1).map_err(invalid)?;
-    let table = |d: &[Direction]| {
-        DirectionTable::new(d.iter().map(|&x| pdir(x)).collect())
-            .map_err(|e| ProcessError::Invalid(e.to_string()))
-    };
-    let mut w = BtfWriter::create(
-        dir,
-        shape,
-        &table(&g.lights)?,
-        &table(&g.views)?,
-        components,
-    )
-    .map_err(invalid)?;
+    let (lights, views) = tables(g)?;
+    let mut w = BtfWriter::create(dir, shape, &lights, &views, components).map_err(invalid)?;
     for (k, pca) in slots.iter().enumerate() {
         w.write_slot(k, pca).map_err(invalid)?;
     }

@@ -569,13 +569,7 @@ impl Engine {
         };
         self.pos = reached;
         self.plate_known = true;
-        let no_axis = || {
-            StepFault::from(DeviceError::new(
-                &tilt_name,
-                ErrorKind::NotReady,
-                "the laser tilt axis is not connected",
-            ))
-        };
+        let no_axis = || no_tilt_axis(&tilt_name);
         let budget = DEADLINE_SLACK_S;
         {
             let axis = self.rig.axes.get_mut(&tilt_name).ok_or_else(no_axis)?;
@@ -638,13 +632,9 @@ impl Engine {
             let t_s = self.t();
             let tilt = {
                 let Rig { axes, cameras, .. } = &mut self.rig;
-                let axis = axes.get_mut(&run.tilt_axis).ok_or_else(|| {
-                    StepFault::from(DeviceError::new(
-                        &run.tilt_axis,
-                        ErrorKind::NotReady,
-                        "the laser tilt axis is not connected",
-                    ))
-                })?;
+                let axis = axes
+                    .get_mut(&run.tilt_axis)
+                    .ok_or_else(|| no_tilt_axis(&run.tilt_axis))?;
                 let before = deadline(
                     &self.clock,
                     &run.tilt_axis,
@@ -1048,6 +1038,15 @@ async fn switch_lamp(
         deadline(clock, to, budget, l.set(true)).await?;
     }
     Ok(())
+}
+
+/// A laser plan on a rig whose tilt axis is missing.
+fn no_tilt_axis(name: &str) -> StepFault {
+    StepFault::from(DeviceError::new(
+        name,
+        ErrorKind::NotReady,
+        "the laser tilt axis is not connected",
+    ))
 }
 
 /// Places or removes the laser calibration plate; `from` None: unknown.
