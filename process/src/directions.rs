@@ -139,6 +139,14 @@ impl Ring {
     }
 }
 
+/// One ring of a [`DirectionTable`], for consumers outside Rust.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RingLayout {
+    pub theta_deg: f64,
+    pub pole: bool,
+    pub members: Vec<(f64, usize)>,
+}
+
 /// Interpolation weights: (table index, weight), sorted by index, each
 /// index once, every weight > 0, weights summing to 1.
 #[derive(Debug, Clone, PartialEq)]
@@ -289,6 +297,42 @@ impl DirectionTable {
             .collect()
     }
 
+    /// The rings as the viewer's shader reads them: θ, whether it is the
+    /// pole, and its members (φ in [0, 360), table index) sorted by φ.
+    pub fn ring_layout(&self) -> Vec<RingLayout> {
+        self.rings
+            .iter()
+            .map(|r| RingLayout {
+                theta_deg: r.theta_deg,
+                pole: r.is_pole,
+                members: r.members.clone(),
+            })
+            .collect()
+    }
+
+    /// Solid angle (sr) each direction stands for: the hemisphere cut into
+    /// bands at the midpoints between rings, each band shared equally by its
+    /// ring's members. Sums to 2π.
+    pub fn solid_angles(&self) -> Vec<f64> {
+        let mut out = vec![0.0; self.directions.len()];
+        for (k, ring) in self.rings.iter().enumerate() {
+            let lo = if k == 0 {
+                0.0
+            } else {
+                (self.rings[k - 1].theta_deg + ring.theta_deg) / 2.0
+            };
+            let hi = match self.rings.get(k + 1) {
+                Some(next) => (ring.theta_deg + next.theta_deg) / 2.0,
+                None => 90.0,
+            };
+            let band = 2.0 * std::f64::consts::PI * (lo.to_radians().cos() - hi.to_radians().cos());
+            for &(_, index) in &ring.members {
+                out[index] = band / ring.members.len() as f64;
+            }
+        }
+        out
+    }
+
     /// Bilinear weights of the measured directions around `query`; see the
     /// module documentation for the pole, wrap-around, grazing and
     /// out-of-range rules.
@@ -406,6 +450,19 @@ mod tests {
         let sum: f64 = w.entries().iter().map(|e| e.1).sum();
         assert!((sum - 1.0).abs() < 1e-12, "sum {sum}");
         assert!(w.entries().iter().all(|e| e.1 > 0.0 && e.1.is_finite()));
+    }
+
+    #[test]
+    fn solid_angles_cover_the_hemisphere_and_rings_list_every_direction() {
+        for dirs in [h1(), h2(), ring_directions(&[20.0, 50.0], &[5, 7])] {
+            let table = DirectionTable::new(dirs).unwrap();
+            let omega = table.solid_angles();
+            let total: f64 = omega.iter().sum();
+            assert!((total - 2.0 * std::f64::consts::PI).abs() < 1e-9, "{total}");
+            assert!(omega.iter().all(|&w| w > 0.0));
+            let listed: usize = table.ring_layout().iter().map(|r| r.members.len()).sum();
+            assert_eq!(listed, table.len());
+        }
     }
 
     #[test]

@@ -1,0 +1,297 @@
+//! A processed run in the form the browser viewer uploads to WebGL2 without
+//! conversion (issue 8): one binary blob plus a JSON manifest saying where
+//! each part lies.
+//!
+//! # BTF (`kind: "btf"`)
+//!
+//! * `textures`: little-endian IEEE-754 half floats (`f16le`), one layer per
+//!   (slot, k): layer `slot · (components + 1) + k`, k = 0 the slot's mean
+//!   texture, k ≥ 1 its eigen-texture k. A layer is `height` rows from the
+//!   sample's +y edge down, each `width` texels of `channels` interleaved
+//!   values: what `texImage3D(TEXTURE_2D_ARRAY, 0, R16F | RGB16F, width,
+//!   height, layers, 0, RED | RGB, HALF_FLOAT, …)` takes. Eigen-textures are
+//!   scaled to a largest magnitude of 1 (half floats keep 11 significant bits
+//!   there, where a unit-norm texture of 256² × 3 values would sit near the
+//!   half-float subnormals); the scale moves into the weights.
+//! * `weights`: little-endian f32 (`f32le`), `slots × lights × components`,
+//!   slot-major, then light, then component: `p_isk · peak_sk`, so
+//!   `value = M_s + Σ_k (Σ_i τ_i w_isk) B'_sk` with the stored B' is the
+//!   seed's eq. 3 unchanged.
+//! * `light_table` and `view_table`: the measured directions, their rings
+//!   (θ, pole, members as (φ, index) sorted by φ) for the shader's eq. 3 and
+//!   5 interpolation, and each direction's solid angle for environment
+//!   lighting (seed 000 eq. 10).
+//!
+//! # Photometric stereo (`kind: "photometric-stereo"`)
+//!
+//! `textures` holds two RGB `f16le` layers: the albedo (grey repeated) and
+//! the unit normals (x right, y up, z towards the camera).
+//!
+//! Sections start on 4-byte boundaries so a `Float32Array` can view them.
+
+use serde::Serialize;
+
+use crate::btf::BtfStore;
+use crate::directions::{Direction, DirectionTable, RingLayout};
+
+/// The format version the viewer checks.
+pub const PACK_VERSION: u32 = 1;
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Section {
+    pub offset: usize,
+    pub bytes: usize,
+    pub encoding: &'static str,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TableLayout {
+    pub directions: Vec<Direction>,
+    pub rings: Vec<RingLayout>,
+    pub solid_angle_sr: Vec<f64>,
+}
+
+impl TableLayout {
+    fn of(table: &DirectionTable) -> TableLayout {
+        TableLayout {
+            directions: table.directions().to_vec(),
+            rings: table.ring_layout(),
+            solid_angle_sr: table.solid_angles(),
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Manifest {
+    pub version: u32,
+    pub kind: &'static str,
+    pub width: usize,
+    pub height: usize,
+    pub channels: usize,
+    /// Components per slot in this blob (the stored ones, or fewer when asked).
+    pub components: usize,
+    pub layers: usize,
+    pub textures: Section,
+    pub weights: Option<Section>,
+    pub light_table: Option<TableLayout>,
+    pub view_table: Option<TableLayout>,
+    /// Total blob size.
+    pub bytes: usize,
+}
+
+fn push_f16(out: &mut Vec<u8>, values: impl Iterator<Item = f32>) {
+    for v in values {
+        out.extend(half::f16::from_f32(v).to_le_bytes());
+    }
+}
+
+fn align4(out: &mut Vec<u8>) {
+    while out.len() % 4 != 0 {
+        out.push(0);
+    }
+}
+
+/// Packs `store`, keeping at most `max_components` per slot.
+pub fn pack_btf(store: &BtfStore, max_components: usize) -> (Manifest, Vec<u8>) {
+    let shape = store.shape();
+    let components = store.components().min(max_components);
+    let layers = store.slots().len() * (components + 1);
+    let mut data = Vec::with_capacity(2 * layers * shape.values());
+    let mut peaks = Vec::with_capacity(store.slots().len() * components);
+    for pca in store.slots() {
+        push_f16(&mut data, pca.mean().iter().copied());
+        for k in 0..components {
+            let texture = pca.eigen_texture(k).unwrap_or(&[]);
+            let peak = texture.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            let scale = if peak > 0.0 { 1.0 / peak } else { 0.0 };
+            push_f16(&mut data, texture.iter().map(|v| v * scale));
+            peaks.push(peak);
+        }
+    }
+    let textures = Section {
+        offset: 0,
+        bytes: data.len(),
+        encoding: "f16le",
+    };
+    align4(&mut data);
+    let weights_offset = data.len();
+    let lights = store.lights().len();
+    for (slot, pca) in store.slots().iter().enumerate() {
+        for light in 0..lights {
+            let w = pca.light_weights(light).unwrap_or(&[]);
+            for k in 0..components {
+                let scaled = w.get(k).copied().unwrap_or(0.0) * peaks[slot * components + k];
+                data.extend(scaled.to_le_bytes());
+            }
+        }
+    }
+    let manifest = Manifest {
+        version: PACK_VERSION,
+        kind: "btf",
+        width: shape.width(),
+        height: shape.height(),
+        channels: shape.channels(),
+        components,
+        layers,
+        textures,
+        weights: Some(Section {
+            offset: weights_offset,
+            bytes: data.len() - weights_offset,
+            encoding: "f32le",
+        }),
+        light_table: Some(TableLayout::of(store.lights())),
+        view_table: Some(TableLayout::of(store.views())),
+        bytes: data.len(),
+    };
+    (manifest, data)
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PackError {
+    #[error(
+        "albedo has shape {albedo:?} and normals {normals:?}: expected H×W (or H×W×C) and H×W×3"
+    )]
+    Shapes {
+        albedo: Vec<usize>,
+        normals: Vec<usize>,
+    },
+}
+
+/// Packs a photometric-stereo result: `albedo` H×W or H×W×C, `normals`
+/// H×W×3 (shapes as in the `.npy` files).
+pub fn pack_photometric_stereo(
+    albedo_shape: &[usize],
+    albedo: &[f32],
+    normals_shape: &[usize],
+    normals: &[f32],
+) -> Result<(Manifest, Vec<u8>), PackError> {
+    let bad = || PackError::Shapes {
+        albedo: albedo_shape.to_vec(),
+        normals: normals_shape.to_vec(),
+    };
+    let (h, w) = match normals_shape {
+        [h, w, 3] => (*h, *w),
+        _ => return Err(bad()),
+    };
+    let albedo_channels = match albedo_shape {
+        [ah, aw] if (*ah, *aw) == (h, w) => 1,
+        [ah, aw, c] if (*ah, *aw) == (h, w) && *c >= 1 => *c,
+        _ => return Err(bad()),
+    };
+    if albedo.len() != h * w * albedo_channels || normals.len() != h * w * 3 {
+        return Err(bad());
+    }
+    let mut data = Vec::with_capacity(2 * 6 * h * w);
+    push_f16(
+        &mut data,
+        (0..h * w).flat_map(|t| {
+            (0..3).map(move |c| albedo[t * albedo_channels + c.min(albedo_channels - 1)])
+        }),
+    );
+    push_f16(&mut data, normals.iter().copied());
+    align4(&mut data);
+    let manifest = Manifest {
+        version: PACK_VERSION,
+        kind: "photometric-stereo",
+        width: w,
+        height: h,
+        channels: 3,
+        components: 0,
+        layers: 2,
+        textures: Section {
+            offset: 0,
+            bytes: 2 * 6 * h * w,
+            encoding: "f16le",
+        },
+        weights: None,
+        light_table: None,
+        view_table: None,
+        bytes: data.len(),
+    };
+    Ok((manifest, data))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::btf::{compress_slot, TextureShape};
+    use crate::directions::h1;
+
+    fn store() -> BtfStore {
+        let shape = TextureShape::new(4, 3, 3).unwrap();
+        let lights = DirectionTable::new(h1()).unwrap();
+        let views = DirectionTable::new(vec![Direction::new(0.0, 0.0), Direction::new(40.0, 90.0)])
+            .unwrap();
+        let slots = (0..2)
+            .map(|slot| {
+                let images: Vec<Vec<f32>> = lights
+                    .directions()
+                    .iter()
+                    .enumerate()
+                    .map(|(i, l)| {
+                        (0..36)
+                            .map(|v| {
+                                (0.3 + 0.2 * l.theta_deg.to_radians().cos()
+                                    + 0.01 * (v * (i + slot) % 7) as f64)
+                                    as f32
+                            })
+                            .collect()
+                    })
+                    .collect();
+                let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+                compress_slot(&refs, shape, 5).unwrap()
+            })
+            .collect();
+        BtfStore::new(shape, lights, views, slots).unwrap()
+    }
+
+    fn f16_at(data: &[u8], index: usize) -> f32 {
+        half::f16::from_le_bytes([data[2 * index], data[2 * index + 1]]).to_f32()
+    }
+
+    #[test]
+    fn the_blob_reconstructs_what_the_store_does() {
+        let store = store();
+        let (m, data) = pack_btf(&store, 3);
+        assert_eq!(m.components, 3);
+        assert_eq!(m.layers, 2 * 4);
+        assert_eq!(m.bytes, data.len());
+        let weights = m.weights.as_ref().unwrap();
+        assert_eq!(weights.offset % 4, 0);
+        assert_eq!(weights.bytes, 4 * 2 * 81 * 3);
+        let values = 36;
+        // Evaluate light 17 of slot 1 with 3 components from the blob.
+        let (slot, light) = (1, 17);
+        let weight = |k: usize| {
+            let at = weights.offset + 4 * ((slot * 81 + light) * 3 + k);
+            f32::from_le_bytes([data[at], data[at + 1], data[at + 2], data[at + 3]])
+        };
+        let pca = &store.slots()[slot];
+        let want = pca.reconstruct_measured_truncated(light, 3).unwrap();
+        for v in 0..values {
+            let mut got = f16_at(&data, (slot * 4) * values + v);
+            for k in 0..3 {
+                got += weight(k) * f16_at(&data, (slot * 4 + 1 + k) * values + v);
+            }
+            assert!(
+                (got - want[v]).abs() < 2e-3,
+                "value {v}: {got} vs {}",
+                want[v]
+            );
+        }
+        let rings = &m.light_table.as_ref().unwrap().rings;
+        assert!(rings[0].pole);
+    }
+
+    #[test]
+    fn photometric_stereo_maps_pack_and_bad_shapes_are_named() {
+        let albedo = vec![0.5f32; 6];
+        let normals: Vec<f32> = (0..6).flat_map(|_| [0.0, 0.0, 1.0]).collect();
+        let (m, data) = pack_photometric_stereo(&[2, 3], &albedo, &[2, 3, 3], &normals).unwrap();
+        assert_eq!((m.width, m.height, m.layers), (3, 2, 2));
+        assert_eq!(f16_at(&data, 0), 0.5);
+        assert_eq!(f16_at(&data, 18 + 2), 1.0);
+        let err = pack_photometric_stereo(&[3, 3], &albedo, &[2, 3, 3], &normals).unwrap_err();
+        assert!(err.to_string().contains("[3, 3]"), "{err}");
+    }
+}
