@@ -18,6 +18,7 @@ pub mod ordering;
 pub mod plan;
 pub mod postprocess;
 pub mod profile;
+pub mod relight;
 pub mod runner;
 pub mod schedule;
 pub mod server;

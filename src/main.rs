@@ -142,6 +142,68 @@ enum ProcessCmd {
     /// .png per view and report.json; prints the depth error against the
     /// scene for simulated runs.
     Mdf(MdfArgs),
+    /// The reference render of a processed run's BTF on a mesh, exactly as
+    /// the viewer (`/viewer/RUN`) draws it: the four nearest view slots, the
+    /// light interpolated from the four nearest measured lights, the smooth
+    /// shadow boundary of seed 000 eq. 6. Writes an 8-bit RGB PNG.
+    Render(RelightArgs),
+}
+
+#[derive(Args)]
+struct RelightArgs {
+    /// The run directory (after `rigd process btf`).
+    run: PathBuf,
+    /// flat, cylinder or cloth.
+    #[arg(long, default_value = "flat")]
+    mesh: rigd_process::mesh::MeshKind,
+    /// Directional light θ,φ in degrees, world frame (z up); θ up to 180
+    /// (below the horizon: no light).
+    #[arg(long, value_parser = parse_world_light, default_value = "30,45")]
+    light: rigd_process::directions::Direction,
+    /// Orbit camera θ,φ in degrees (θ 0 … 89).
+    #[arg(long, value_parser = parse_orbit, default_value = "35,270")]
+    view: rigd_process::directions::Direction,
+    /// Image size WIDTHxHEIGHT.
+    #[arg(long, default_value = "512x512", value_parser = rigd::sim_render::parse_frame_size)]
+    size: [u32; 2],
+    /// Multiplies the BTF's values before display.
+    #[arg(long, default_value_t = 1.0)]
+    exposure: f64,
+    /// Eq. 6's offset α in degrees (the seed used 15 for a coarse mesh).
+    #[arg(long, default_value_t = 0.0)]
+    shadow_alpha: f64,
+    /// btf, or plain: one frontal texture with Lambert's cosine (the
+    /// comparison of seed 000 figures 13–14).
+    #[arg(long, value_enum, default_value_t = ShadingArg::Btf)]
+    shading: ShadingArg,
+    /// Material tiles per world unit (the flat sample is 2 units across).
+    #[arg(long, default_value_t = rigd::relight::DEFAULT_DENSITY)]
+    density: f64,
+    /// The PNG to write.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ShadingArg {
+    Btf,
+    Plain,
+}
+
+fn parse_angles(s: &str, theta_max: f64) -> Result<rigd_process::directions::Direction, String> {
+    let d = rigd::sim_render::parse_direction_within(s, theta_max)?;
+    Ok(rigd_process::directions::Direction::new(
+        d.theta_deg,
+        d.phi_deg,
+    ))
+}
+
+fn parse_world_light(s: &str) -> Result<rigd_process::directions::Direction, String> {
+    parse_angles(s, 180.0)
+}
+
+fn parse_orbit(s: &str) -> Result<rigd_process::directions::Direction, String> {
+    parse_angles(s, 89.0)
 }
 
 #[derive(Args)]
@@ -291,9 +353,10 @@ struct PsArgs {
     /// Refuse light sets whose matrix has a larger condition number.
     #[arg(long, default_value_t = rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION)]
     max_condition: f64,
-    /// Output folder (created).
+    /// Output folder (created) [default: RUN/processed/ps for a run; the
+    /// viewer looks there].
     #[arg(long)]
-    out: PathBuf,
+    out: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -518,6 +581,9 @@ fn main() -> ExitCode {
         Cmd::Process {
             command: ProcessCmd::Mdf(args),
         } => mdf(args).map(|_| ExitCode::SUCCESS),
+        Cmd::Process {
+            command: ProcessCmd::Render(args),
+        } => relight(args).map(|_| ExitCode::SUCCESS),
         Cmd::Tradeoff(args) => tradeoff(args).map(|_| ExitCode::SUCCESS),
         Cmd::Export(args) => {
             if !(1..=100).contains(&args.quality) {
@@ -1034,6 +1100,11 @@ fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
         }
         _ => bail!("give a run directory, or --images DIR --lights FILE"),
     };
+    let out = match (&args.out, &args.run) {
+        (Some(out), _) => out.clone(),
+        (None, Some(run)) => rigd::relight::ps_dir(run),
+        (None, None) => bail!("--out DIR is needed with --images"),
+    };
     if let Some(mask) = &args.mask {
         let m = rigd_process::image_io::load_png(mask)?;
         dataset.mask = Some(
@@ -1052,7 +1123,7 @@ fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
     };
     let started = Instant::now();
     let result = ps::solve(&dataset, &opts)?;
-    let written = ps::write_outputs(&result, &args.out)?;
+    let written = ps::write_outputs(&result, &out)?;
     let r = &result.report;
     println!(
         "{} images, {}x{}, light matrix condition number {:.3}, {} of {} pixels solved, mean residual {:.4}, {:.2} s",
@@ -1071,13 +1142,13 @@ fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
                 "against the scene `{}`: mean angular error {:.2}°, median {:.2}°, 95th percentile {:.2}° over {} sample pixels",
                 err.scene, err.mean_deg, err.median_deg, err.p95_deg, err.pixels
             );
-            let path = args.out.join("truth.json");
+            let path = out.join("truth.json");
             let mut json = serde_json::to_vec_pretty(&err)?;
             json.push(b'\n');
             rigd::store::write_atomic(&path, &json)?;
         }
     }
-    println!("wrote {} files into {}", written.len(), args.out.display());
+    println!("wrote {} files into {}", written.len(), out.display());
     Ok(())
 }
 
@@ -1228,6 +1299,58 @@ fn tradeoff(args: TradeoffArgs) -> anyhow::Result<()> {
         println!("note: {m}");
     }
     println!("wrote {}/tradeoff.{{csv,json,svg}}", args.out.display());
+    Ok(())
+}
+
+fn relight(args: RelightArgs) -> anyhow::Result<()> {
+    use rigd_process::render::{RenderSettings, Shading};
+    if !(args.density.is_finite() && args.density > 0.0 && args.density <= 64.0) {
+        bail!(
+            "--density {}: expected more than 0 and at most 64 tiles per unit",
+            args.density
+        );
+    }
+    if !(args.shadow_alpha.is_finite() && (0.0..=45.0).contains(&args.shadow_alpha)) {
+        bail!(
+            "--shadow-alpha {}: expected 0 ..= 45 degrees",
+            args.shadow_alpha
+        );
+    }
+    let settings = RenderSettings {
+        width: args.size[0] as usize,
+        height: args.size[1] as usize,
+        light: args.light,
+        view: args.view,
+        exposure: args.exposure,
+        shadow_alpha_deg: args.shadow_alpha,
+        shading: match args.shading {
+            ShadingArg::Btf => Shading::Btf,
+            ShadingArg::Plain => Shading::Plain,
+        },
+    };
+    let started = Instant::now();
+    let img = rigd::relight::render_run(&args.run, args.mesh, args.density, &settings)?;
+    let data = img.pixels.iter().map(|&v| f32::from(v) / 255.0).collect();
+    let image = rigd_process::image_io::Image {
+        width: img.width,
+        height: img.height,
+        channels: 3,
+        data,
+    };
+    rigd_process::image_io::write_png(&args.out, &image, rigd_process::image_io::PngDepth::Eight)?;
+    println!(
+        "{} on a {} mesh, light {},{} view {},{}: {}x{} in {:.2} s -> {}",
+        args.run.display(),
+        args.mesh.name(),
+        args.light.theta_deg,
+        args.light.phi_deg,
+        args.view.theta_deg,
+        args.view.phi_deg,
+        img.width,
+        img.height,
+        started.elapsed().as_secs_f64(),
+        args.out.display()
+    );
     Ok(())
 }
 

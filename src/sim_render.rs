@@ -287,6 +287,11 @@ pub fn parse_frame_size(s: &str) -> Result<[u32; 2], String> {
 
 /// Parses `θ,φ` in degrees, 0 ≤ θ ≤ 90.
 pub fn parse_direction(s: &str) -> Result<Direction, String> {
+    parse_direction_within(s, 90.0)
+}
+
+/// Parses `θ,φ` in degrees with 0 ≤ θ ≤ `theta_max`.
+pub fn parse_direction_within(s: &str, theta_max: f64) -> Result<Direction, String> {
     let parts: Vec<&str> = s.split(',').map(str::trim).collect();
     let [theta, phi] = parts[..] else {
         return Err(format!("`{s}`: expected θ,φ in degrees, like 45,90"));
@@ -298,8 +303,8 @@ pub fn parse_direction(s: &str) -> Result<Direction, String> {
             .ok_or_else(|| format!("`{v}` in `{s}` is not a number"))
     };
     let (theta, phi) = (num(theta)?, num(phi)?);
-    if !(0.0..=90.0).contains(&theta) {
-        return Err(format!("θ = {theta}: expected 0 ..= 90 degrees"));
+    if !(0.0..=theta_max).contains(&theta) {
+        return Err(format!("θ = {theta}: expected 0 ..= {theta_max} degrees"));
     }
     Ok(Direction::new(theta, phi))
 }

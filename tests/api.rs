@@ -744,6 +744,7 @@ fn fill(path: &str, run: &str, item: &str) -> String {
         .replace("{index}", "0")
         .replace("{name}", "h1")
         .replace("{item}", item)
+        .replace("{kind}", "cloth")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -803,6 +804,9 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/queue/{item}",
         "/api/v1/sim/render",
         "/api/v1/sim/scenes",
+        "/api/v1/runs/{id}/btf",
+        "/api/v1/runs/{id}/btf/data",
+        "/api/v1/runs/{id}/btf/mesh/{kind}",
     ]
     .into_iter()
     .collect();
@@ -906,7 +910,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 21, "operations checked");
+    assert_eq!(checked, 24, "operations checked");
     s.shutdown().await;
 }
 
@@ -1013,4 +1017,122 @@ async fn sim_render_returns_a_frame_with_its_effects() {
         names.contains(&"knitted-wool") && names.contains(&"ps-target"),
         "{v}"
     );
+}
+
+/// A small compressed BTF written where `rigd process btf` writes.
+fn write_tiny_btf(run_dir: &std::path::Path) -> usize {
+    use rigd_process::btf::{compress_slot, BtfStore, TextureShape};
+    use rigd_process::directions::{h1, Direction, DirectionTable};
+    let shape = TextureShape::new(8, 8, 1).expect("shape");
+    let lights = DirectionTable::new(h1()).expect("lights");
+    let views = DirectionTable::new(vec![Direction::new(0.0, 0.0), Direction::new(45.0, 0.0)])
+        .expect("views");
+    let slots = (0..2)
+        .map(|_| {
+            let images: Vec<Vec<f32>> = lights
+                .directions()
+                .iter()
+                .map(|l| {
+                    (0..64)
+                        .map(|i| (l.theta_deg.to_radians().cos() * (0.5 + 0.01 * i as f64)) as f32)
+                        .collect()
+                })
+                .collect();
+            let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+            compress_slot(&refs, shape, 3).expect("compress")
+        })
+        .collect();
+    let store = BtfStore::new(shape, lights, views, slots).expect("store");
+    store
+        .write(&rigd::relight::btf_dir(run_dir))
+        .expect("write the BTF");
+    store.lights().len()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewer_routes_serve_a_processed_run_and_explain_the_rest() {
+    let (dir, mut s) = srv(FAST).await;
+    let run = start_run(&s, run_body("tiny", small_plan(2))).await;
+    s.wait_state(&run, "completed").await;
+    // Not processed yet: 404 naming the commands, and no `processed`.
+    let (status, v) = s.get(&format!("/api/v1/runs/{run}/btf")).await;
+    assert_eq!(status, 404);
+    assert!(
+        v["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("rigd process btf")),
+        "{v}"
+    );
+    let (_, v) = s.get(&format!("/api/v1/runs/{run}")).await;
+    assert_eq!(v["processed"], Value::Null);
+    let (status, _) = s.get("/api/v1/runs/no-such-run/btf").await;
+    assert_eq!(status, 404);
+
+    let lights = write_tiny_btf(&dir.path().join("runs").join(&run));
+    let (_, list) = s.get("/api/v1/runs").await;
+    assert_eq!(list["runs"][0]["processed"], "btf");
+    let (status, m) = s.get(&format!("/api/v1/runs/{run}/btf?components=2")).await;
+    assert_eq!(status, 200, "{m}");
+    assert_eq!(m["kind"], "btf");
+    assert_eq!(m["components"], 2);
+    assert_eq!(m["layers"], 2 * 3);
+    assert_eq!(m["light_table"]["rings"][0]["pole"], true);
+    let data_url = m["data_url"].as_str().expect("data_url").to_string();
+    let blob = s
+        .client
+        .get(s.url(&data_url))
+        .send()
+        .await
+        .expect("GET data")
+        .bytes()
+        .await
+        .expect("bytes");
+    assert_eq!(Some(blob.len() as u64), m["bytes"].as_u64());
+    assert_eq!(
+        m["textures"]["bytes"].as_u64(),
+        Some(2 * 6 * 64),
+        "six f16 layers of 8×8 grey texels"
+    );
+    let (status, mesh) = s
+        .get(&format!("/api/v1/runs/{run}/btf/mesh/cylinder"))
+        .await;
+    assert_eq!(status, 200);
+    let verts = mesh["nu"].as_u64().unwrap_or(0) * mesh["nv"].as_u64().unwrap_or(0);
+    assert_eq!(
+        mesh["visibility"].as_array().map(Vec::len),
+        Some(verts as usize * lights)
+    );
+    assert_eq!(
+        mesh["positions"].as_array().map(Vec::len),
+        Some(3 * verts as usize)
+    );
+    let (status, v) = s.get(&format!("/api/v1/runs/{run}/btf/mesh/sphere")).await;
+    assert_eq!(status, 404);
+    assert!(v["detail"]
+        .as_str()
+        .is_some_and(|d| d.contains("flat, cylinder or cloth")));
+    let (status, _) = s
+        .get(&format!("/api/v1/runs/{run}/btf/mesh/flat?density=0"))
+        .await;
+    assert_eq!(status, 422);
+    let (status, _) = s
+        .get(&format!("/api/v1/runs/{run}/btf?components=many"))
+        .await;
+    assert_eq!(status, 400);
+    // The page and its script.
+    for (path, kind) in [
+        (format!("/viewer/{run}"), "text/html"),
+        ("/viewer.js".to_string(), "text/javascript"),
+    ] {
+        let r = s.client.get(s.url(&path)).send().await.expect("GET");
+        assert_eq!(r.status().as_u16(), 200, "{path}");
+        let ct = r
+            .headers()
+            .get("content-type")
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("")
+            .to_string();
+        assert!(ct.starts_with(kind), "{path}: {ct}");
+    }
+    s.shutdown().await;
 }

@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+use fantoccini::actions::{InputSource, MouseActions, PointerAction, MOUSE_BUTTON_LEFT};
 use fantoccini::{Client, ClientBuilder, Locator};
 use futures::FutureExt;
 use serde_json::{json, Value};
@@ -32,6 +33,10 @@ const SIM_SPEED: &str = "60";
 /// the Bonn rig (lamp and camera too close).
 const DIRECTIONS: &str = "0 0\n30 0\n30 120\n30 240\n60 60\n60 180\n60 300\n80 0";
 const IMAGES: u64 = 64;
+
+/// One Chromium at a time: the two tests share two cores, and the
+/// dashboard test's pause check needs the daemon to keep its pace.
+static ONE_BROWSER: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
 /// Kills what the test started, also when an assertion fails: each child
 /// runs in its own process group and the whole group is killed (so
@@ -163,13 +168,7 @@ const FILLED: &str = "return document.querySelectorAll(\
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dashboard_drives_a_run_in_chromium() {
-    for bin in [CHROMIUM, CHROMEDRIVER] {
-        assert!(
-            Path::new(bin).exists(),
-            "{bin} is missing: run scripts/test.sh, which installs Debian's chromium and \
-             chromium-driver (apt-get install chromium chromium-driver)"
-        );
-    }
+    let _one_browser = ONE_BROWSER.lock().await;
     let started = Instant::now();
     let out = out_dir();
     let data = tempfile::tempdir().expect("tempdir");
@@ -178,48 +177,18 @@ async fn dashboard_drives_a_run_in_chromium() {
 
     let port = free_port();
     let base = format!("http://127.0.0.1:{port}");
-    spawn_daemon(&mut procs, data.path(), port, &out.join("rigd.log"));
-    let driver_port = free_port();
-    procs.spawn(
-        "chromedriver",
-        Command::new(CHROMEDRIVER).arg(format!("--port={driver_port}")),
-        &out.join("chromedriver.log"),
+    spawn_daemon(
+        &mut procs,
+        data.path(),
+        port,
+        SIM_SPEED,
+        &out.join("rigd.log"),
     );
     let http = reqwest::Client::new();
     wait_http(&http, &format!("{base}/api/v1/health"), "the daemon", 30).await;
-    wait_http(
-        &http,
-        &format!("http://127.0.0.1:{driver_port}/status"),
-        "chromedriver",
-        30,
-    )
-    .await;
     let token = std::fs::read_to_string(data.path().join("token")).expect("token file");
     let token = token.trim().to_string();
-
-    let mut caps = serde_json::Map::new();
-    caps.insert(
-        "goog:chromeOptions".into(),
-        json!({
-            "binary": CHROMIUM,
-            "args": [
-                "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
-                "--disable-quic", "--no-first-run", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync", "--window-size=1400,1500",
-                format!("--user-data-dir={}", profile_dir.path().display()),
-            ],
-        }),
-    );
-    let connector = hyper_util::client::legacy::connect::HttpConnector::new();
-    let client = tokio::time::timeout(
-        Duration::from_secs(60),
-        ClientBuilder::new(connector)
-            .capabilities(caps)
-            .connect(&format!("http://127.0.0.1:{driver_port}")),
-    )
-    .await
-    .expect("timed out after 60 s starting a Chromium session")
-    .expect("WebDriver session with Chromium");
+    let client = chromium(&mut procs, &out, profile_dir.path(), "1400,1500").await;
 
     let ctx = Ctx {
         base: &base,
@@ -246,7 +215,55 @@ async fn dashboard_drives_a_run_in_chromium() {
     eprintln!("browser test: {:.1} s", started.elapsed().as_secs_f64());
 }
 
-fn spawn_daemon(procs: &mut Procs, data: &Path, port: u16, log: &Path) {
+/// Starts chromedriver and a headless Chromium session on it.
+async fn chromium(procs: &mut Procs, out: &Path, profile: &Path, window: &str) -> Client {
+    for bin in [CHROMIUM, CHROMEDRIVER] {
+        assert!(
+            Path::new(bin).exists(),
+            "{bin} is missing: run scripts/test.sh, which installs Debian's chromium and \
+             chromium-driver (apt-get install chromium chromium-driver)"
+        );
+    }
+    let driver_port = free_port();
+    procs.spawn(
+        "chromedriver",
+        Command::new(CHROMEDRIVER).arg(format!("--port={driver_port}")),
+        &out.join("chromedriver.log"),
+    );
+    wait_http(
+        &reqwest::Client::new(),
+        &format!("http://127.0.0.1:{driver_port}/status"),
+        "chromedriver",
+        30,
+    )
+    .await;
+    let mut caps = serde_json::Map::new();
+    caps.insert(
+        "goog:chromeOptions".into(),
+        json!({
+            "binary": CHROMIUM,
+            "args": [
+                "--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+                "--disable-quic", "--no-first-run", "--disable-background-networking",
+                "--disable-component-update", "--disable-sync", "--enable-unsafe-swiftshader",
+                format!("--window-size={window}"),
+                format!("--user-data-dir={}", profile.display()),
+            ],
+        }),
+    );
+    let connector = hyper_util::client::legacy::connect::HttpConnector::new();
+    tokio::time::timeout(
+        Duration::from_secs(60),
+        ClientBuilder::new(connector)
+            .capabilities(caps)
+            .connect(&format!("http://127.0.0.1:{driver_port}")),
+    )
+    .await
+    .expect("timed out after 60 s starting a Chromium session")
+    .expect("WebDriver session with Chromium")
+}
+
+fn spawn_daemon(procs: &mut Procs, data: &Path, port: u16, speed: &str, log: &Path) {
     procs.spawn(
         "rigd",
         Command::new(env!("CARGO_BIN_EXE_rigd")).args([
@@ -256,7 +273,7 @@ fn spawn_daemon(procs: &mut Procs, data: &Path, port: u16, log: &Path) {
             "--listen",
             &format!("127.0.0.1:{port}"),
             "--sim-speed",
-            SIM_SPEED,
+            speed,
         ]),
         log,
     );
@@ -583,7 +600,13 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         v == "reconnecting" || v == "offline"
     })
     .await;
-    spawn_daemon(procs, ctx.data, ctx.port, &out.join("rigd-restarted.log"));
+    spawn_daemon(
+        procs,
+        ctx.data,
+        ctx.port,
+        SIM_SPEED,
+        &out.join("rigd-restarted.log"),
+    );
     wait_http(
         http,
         &format!("{base}/api/v1/health"),
@@ -755,4 +778,424 @@ fn check_png(png: &[u8]) {
         "screenshot has only {} colours",
         colours.len()
     );
+}
+
+// ------------------------------------------------------------ the viewer
+
+/// Largest RMS difference (8-bit levels) between the viewer's image and
+/// `rigd process render`: half floats, GPU filtering and the odd pixel on
+/// a triangle edge; a wrong interpolation or frame costs tens of levels.
+const VIEWER_RMS_BOUND: f64 = 3.0;
+const VIEWER_SIZE: usize = 192;
+
+/// Lights × views of the viewer's run: a pole, two rings each.
+fn viewer_plan() -> Value {
+    let ring = |theta: f64, n: usize, offset: f64| -> Vec<Value> {
+        (0..n)
+            .map(|k| json!({"theta_deg": theta, "phi_deg": offset + 360.0 * k as f64 / n as f64}))
+            .collect()
+    };
+    let mut lights = vec![json!({"theta_deg": 0, "phi_deg": 0})];
+    lights.extend(ring(30.0, 6, 0.0));
+    lights.extend(ring(60.0, 8, 0.0));
+    let mut views = vec![json!({"theta_deg": 0, "phi_deg": 0})];
+    views.extend(ring(30.0, 4, 45.0));
+    views.extend(ring(60.0, 4, 0.0));
+    json!({"name": "viewer", "lights": lights, "views": views})
+}
+
+/// The viewer's left half, as RGB rows from the top.
+async fn viewer_pixels(c: &Client) -> Vec<u8> {
+    let px = js(c, "return window.rigdViewer.pixels()").await;
+    px.as_array()
+        .expect("an array of pixel values")
+        .iter()
+        .map(|v| {
+            v.as_u64()
+                .and_then(|v| u8::try_from(v).ok())
+                .expect("8-bit value")
+        })
+        .collect()
+}
+
+fn rms(a: &[u8], b: &[u8]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let sum: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(&x, &y)| (f64::from(x) - f64::from(y)).powi(2))
+        .sum();
+    (sum / a.len() as f64).sqrt()
+}
+
+fn mean_of(px: &[u8]) -> f64 {
+    px.iter().map(|&v| f64::from(v)).sum::<f64>() / px.len() as f64
+}
+
+/// Sets the viewer to a mesh, light and view; returns its pixels and the
+/// reference render of the same.
+async fn viewer_case(
+    c: &Client,
+    run: &Path,
+    mesh: &str,
+    light: (f64, f64),
+    view: (f64, f64),
+) -> (Vec<u8>, rigd_process::render::RgbImage) {
+    use rigd_process::directions::Direction;
+    js(
+        c,
+        &format!(
+            "window.rigdViewer.ready = false; window.rigdViewer.setMesh('{mesh}').then(() => {{ \
+             window.rigdViewer.setLight({}, {}); window.rigdViewer.setView({}, {}); \
+             window.rigdViewer.ready = true; }}); return 0",
+            light.0, light.1, view.0, view.1
+        ),
+    )
+    .await;
+    wait_js(
+        c,
+        "the viewer to take the case",
+        30,
+        "return window.rigdViewer.ready",
+        |v| v == &json!(true),
+    )
+    .await;
+    let got = viewer_pixels(c).await;
+    let settings = rigd_process::render::RenderSettings {
+        width: VIEWER_SIZE,
+        height: VIEWER_SIZE,
+        light: Direction::new(light.0, light.1),
+        view: Direction::new(view.0, view.1),
+        ..Default::default()
+    };
+    let kind = mesh.parse().expect("mesh kind");
+    let want = rigd::relight::render_run(run, kind, rigd::relight::DEFAULT_DENSITY, &settings)
+        .expect("reference render");
+    (got, want)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
+    let _one_browser = ONE_BROWSER.lock().await;
+    let started = Instant::now();
+    let out = out_dir();
+    let data = tempfile::tempdir().expect("tempdir");
+    let profile_dir = tempfile::tempdir().expect("tempdir");
+    let mut procs = Procs { children: vec![] };
+    let port = free_port();
+    let base = format!("http://127.0.0.1:{port}");
+    // The Bonn rig, simulated, photographing corduroy.
+    let profile = data.path().join("bonn-corduroy.toml");
+    let toml = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/rig-profiles/bonn-gonioreflectometer.toml"
+    ))
+    .expect("Bonn profile")
+    .replace("[sim]\n", "[sim]\nscene = \"corduroy\"\n");
+    std::fs::write(&profile, toml).expect("write the profile");
+    procs.spawn(
+        "rigd",
+        Command::new(env!("CARGO_BIN_EXE_rigd")).args([
+            "serve",
+            "--sim",
+            "--profile",
+            profile.to_str().expect("utf-8 path"),
+            "--data",
+            data.path().to_str().expect("utf-8 path"),
+            "--listen",
+            &format!("127.0.0.1:{port}"),
+            "--sim-speed",
+            "5000",
+        ]),
+        &out.join("rigd-viewer.log"),
+    );
+    let http = reqwest::Client::new();
+    wait_http(&http, &format!("{base}/api/v1/health"), "the daemon", 30).await;
+    let token = std::fs::read_to_string(data.path().join("token")).expect("token file");
+
+    // Capture a small corduroy BTF through the API and process it.
+    let r = http
+        .post(format!("{base}/api/v1/runs"))
+        .bearer_auth(token.trim())
+        .json(
+            &json!({"sample": "corduroy", "plan": viewer_plan(), "frame_size": [512, 384],
+                      "operator": "viewer-test"}),
+        )
+        .send()
+        .await
+        .expect("POST /runs");
+    let status = r.status().as_u16();
+    let created: Value = r.json().await.unwrap_or(Value::Null);
+    assert_eq!(status, 201, "{created}");
+    let run_id = created["id"].as_str().expect("run id").to_string();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let (_, v) = get_json(&http, &format!("{base}/api/v1/runs/{run_id}")).await;
+        if v["state"] == "completed" {
+            assert_eq!(v["processed"], Value::Null, "nothing processed yet");
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the capture did not complete: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    let run = data.path().join("runs").join(&run_id);
+    let (status, v) = get_json(&http, &format!("{base}/api/v1/runs/{run_id}/btf")).await;
+    assert_eq!(status, 404, "an unprocessed run has no BTF: {v}");
+    assert!(
+        v["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("rigd process btf")),
+        "{v}"
+    );
+    for args in [
+        vec![
+            "process", "rectify", "--size", "128", "--final", "64", "--bits", "float",
+        ],
+        vec!["process", "btf", "--components", "8"],
+    ] {
+        let o = Command::new(env!("CARGO_BIN_EXE_rigd"))
+            .args(&args)
+            .arg(&run)
+            .output()
+            .expect("spawn rigd");
+        assert!(
+            o.status.success(),
+            "rigd {args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+
+    let client = chromium(&mut procs, &out, profile_dir.path(), "1200,900").await;
+    let result = AssertUnwindSafe(view_and_compare(
+        &client,
+        &base,
+        token.trim(),
+        &run_id,
+        &run,
+        &out,
+    ))
+    .catch_unwind()
+    .await;
+    if result.is_err() {
+        if let Ok(png) = client.screenshot().await {
+            let _ = std::fs::write(out.join("viewer-failure.png"), png);
+        }
+    }
+    let _ = tokio::time::timeout(Duration::from_secs(10), client.close()).await;
+    drop(procs);
+    if let Err(panic) = result {
+        std::panic::resume_unwind(panic);
+    }
+    eprintln!("viewer test: {:.1} s", started.elapsed().as_secs_f64());
+}
+
+async fn view_and_compare(
+    c: &Client,
+    base: &str,
+    token: &str,
+    run_id: &str,
+    run: &Path,
+    out: &Path,
+) {
+    // From the run history to the viewer.
+    c.goto(&format!("{base}/"))
+        .await
+        .expect("open the dashboard");
+    enter_token(c, token).await;
+    let link = format!("#history tr[data-run-id='{run_id}'] [data-testid=open-viewer]");
+    wait_js(
+        c,
+        "the viewer link in the run history",
+        20,
+        &format!("return !!document.querySelector(\"{link}\")"),
+        |v| v == &json!(true),
+    )
+    .await;
+    c.find(Locator::Css(&link))
+        .await
+        .expect("viewer link")
+        .click()
+        .await
+        .expect("open the viewer");
+    wait_js(
+        c,
+        "the viewer to load",
+        60,
+        "return window.rigdViewer && (window.rigdViewer.ready || window.rigdViewer.error)",
+        |v| v == &json!(true) || v.is_string(),
+    )
+    .await;
+    let err = js(c, "return window.rigdViewer.error").await;
+    assert_eq!(err, Value::Null, "the viewer failed");
+    let path = js(c, "return location.pathname").await;
+    assert_eq!(path, json!(format!("/viewer/{run_id}")));
+    // Fixed size for the comparison.
+    c.goto(&format!("{base}/viewer/{run_id}?size={VIEWER_SIZE}"))
+        .await
+        .expect("viewer at a fixed size");
+    wait_js(
+        c,
+        "the viewer to load",
+        60,
+        "return window.rigdViewer && (window.rigdViewer.ready || window.rigdViewer.error)",
+        |v| v == &json!(true) || v.is_string(),
+    )
+    .await;
+    assert_eq!(js(c, "return window.rigdViewer.error").await, Value::Null);
+
+    // The viewer agrees with the reference renderer, on every mesh and at
+    // the hard cases: the pole view, a grazing light, the φ wrap.
+    let cases = [
+        ("flat", (40.0, 30.0), (35.0, 270.0)),
+        ("cylinder", (35.0, 100.0), (40.0, 250.0)),
+        ("cloth", (50.0, 200.0), (30.0, 300.0)),
+        ("flat", (30.0, 10.0), (0.0, 123.0)),
+        ("flat", (85.0, 40.0), (30.0, 200.0)),
+        ("flat", (45.0, 359.9), (40.0, 0.1)),
+    ];
+    let mut worst = 0.0f64;
+    for (mesh, light, view) in cases {
+        let (got, want) = viewer_case(c, run, mesh, light, view).await;
+        let e = rms(&got, &want.pixels);
+        eprintln!("viewer vs reference, {mesh} light {light:?} view {view:?}: RMS {e:.2} levels");
+        if e > VIEWER_RMS_BOUND {
+            write_rgb(&out.join("viewer-got.png"), VIEWER_SIZE, &got);
+            write_rgb(&out.join("viewer-want.png"), VIEWER_SIZE, &want.pixels);
+        }
+        assert!(
+            e <= VIEWER_RMS_BOUND,
+            "{mesh} {light:?} {view:?}: RMS {e:.2} > {VIEWER_RMS_BOUND}"
+        );
+        worst = worst.max(e);
+        if mesh == "flat" {
+            // Lit everywhere on the sample: no black (or NaN) texel.
+            let dark = want
+                .covered
+                .iter()
+                .enumerate()
+                .filter(|(i, &c)| c && got[3 * i] == 0)
+                .count();
+            assert_eq!(
+                dark, 0,
+                "{light:?} {view:?}: black pixels on the lit sample"
+            );
+        }
+    }
+    eprintln!("viewer vs reference: worst RMS {worst:.2} levels (bound {VIEWER_RMS_BOUND})");
+
+    // Moving the light changes the image as the reference says: a lower
+    // light darkens the flat sample by what the reference predicts.
+    let (high, high_ref) = viewer_case(c, run, "flat", (20.0, 60.0), (35.0, 270.0)).await;
+    let (low, low_ref) = viewer_case(c, run, "flat", (70.0, 60.0), (35.0, 270.0)).await;
+    let change = mean_of(&high) - mean_of(&low);
+    let change_ref = mean_of(&high_ref.pixels) - mean_of(&low_ref.pixels);
+    eprintln!("light 20° → 70°: the viewer's mean falls {change:.1} levels, the reference's {change_ref:.1}");
+    assert!(change_ref > 5.0, "the reference darkens: {change_ref}");
+    assert!(
+        (change - change_ref).abs() < 0.1 * change_ref + 1.0,
+        "{change} vs {change_ref}"
+    );
+
+    // A light below the horizon: no light at all, not negative light.
+    let (below, below_ref) = viewer_case(c, run, "flat", (100.0, 0.0), (35.0, 270.0)).await;
+    let lit = below_ref
+        .covered
+        .iter()
+        .enumerate()
+        .filter(|(i, &c)| c && (below[3 * i] != 0 || below_ref.pixels[3 * i] != 0))
+        .count();
+    assert_eq!(lit, 0, "light from below the horizon lit {lit} pixels");
+
+    // The mouse: dragging the image orbits the camera, the disk moves the light.
+    let before = js(c, "return window.rigdViewer.state.view.slice()").await;
+    let canvas = c.find(Locator::Id("canvas")).await.expect("#canvas");
+    let drag = MouseActions::new("mouse".into())
+        .then(PointerAction::MoveToElement {
+            element: canvas.clone(),
+            duration: None,
+            x: -100,
+            y: 0,
+        })
+        .then(PointerAction::Down {
+            button: MOUSE_BUTTON_LEFT,
+        })
+        .then(PointerAction::MoveBy {
+            duration: Some(Duration::from_millis(100)),
+            x: 60,
+            y: -30,
+        })
+        .then(PointerAction::Up {
+            button: MOUSE_BUTTON_LEFT,
+        });
+    c.perform_actions(drag).await.expect("drag the image");
+    let after = js(c, "return window.rigdViewer.state.view.slice()").await;
+    assert_ne!(before, after, "dragging the image orbits the camera");
+    let disk = c
+        .find(Locator::Id("light-disk"))
+        .await
+        .expect("#light-disk");
+    let click = MouseActions::new("mouse".into())
+        .then(PointerAction::MoveToElement {
+            element: disk,
+            duration: None,
+            x: 30,
+            y: -20,
+        })
+        .then(PointerAction::Down {
+            button: MOUSE_BUTTON_LEFT,
+        })
+        .then(PointerAction::Up {
+            button: MOUSE_BUTTON_LEFT,
+        });
+    c.perform_actions(click)
+        .await
+        .expect("click the light disk");
+    let light = js(c, "return window.rigdViewer.state.light.slice()").await;
+    let (theta, phi) = (
+        light[0].as_f64().unwrap_or(-1.0),
+        light[1].as_f64().unwrap_or(-1.0),
+    );
+    // 30 px right and 20 px up of the centre of a 60 px horizon radius.
+    assert!(
+        (theta - 54.1).abs() < 3.0 && (phi - 33.7).abs() < 3.0,
+        "light {light}"
+    );
+
+    // Environment light and the cloth: renders, no error.
+    js(c, "window.rigdViewer.ready = false; window.rigdViewer.setMesh('cloth').then(() => window.rigdViewer.setMode('env')).then(() => { window.rigdViewer.ready = true; }); return 0").await;
+    wait_js(
+        c,
+        "environment mode",
+        30,
+        "return window.rigdViewer.ready",
+        |v| v == &json!(true),
+    )
+    .await;
+    let env = viewer_pixels(c).await;
+    assert!(
+        mean_of(&env) > 40.0,
+        "the sky lights the cloth: mean {}",
+        mean_of(&env)
+    );
+    assert_eq!(js(c, "return window.rigdViewer.error").await, Value::Null);
+    js(c, "window.rigdViewer.setMode('point'); return 0").await;
+    let fps = js(c, "return window.rigdViewer.benchmark(10)").await;
+    eprintln!(
+        "viewer frame rate under software GL: {:.1} frames/s ({VIEWER_SIZE}² per half, cloth, point light)",
+        fps.as_f64().unwrap_or(0.0)
+    );
+    let png = c.screenshot().await.expect("screenshot");
+    std::fs::write(out.join("viewer.png"), png).expect("write the screenshot");
+}
+
+fn write_rgb(path: &Path, size: usize, rgb: &[u8]) {
+    let file = File::create(path).expect("create png");
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), size as u32, size as u32);
+    enc.set_color(png::ColorType::Rgb);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().expect("png header");
+    w.write_image_data(rgb).expect("png data");
 }

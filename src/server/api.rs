@@ -29,7 +29,8 @@ pub type AppState = Arc<Daemon>;
     paths(
         health, rig, plans, plan_detail, list_runs, create_run, get_run, run_steps, run_manifest,
         pause_run, resume_run, abort_run, estop, events_sse, frame_raw, frame_preview,
-        get_queue, post_queue, delete_queue, sim_render, sim_scenes
+        get_queue, post_queue, delete_queue, sim_render, sim_scenes,
+        super::viewer::btf_manifest, super::viewer::btf_data, super::viewer::btf_mesh
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
@@ -284,13 +285,25 @@ pub async fn plan_detail(
 #[utoipa::path(get, path = "/api/v1/runs", tag = "runs",
     responses((status = 200, description = "The run history", body = RunList)))]
 pub async fn list_runs(State(d): State<AppState>) -> Json<RunList> {
-    let inner = d.inner();
-    let mut runs: Vec<RunView> = inner.runs.values().cloned().collect();
+    let (mut runs, active) = {
+        let inner = d.inner();
+        let runs: Vec<RunView> = inner.runs.values().cloned().collect();
+        (runs, inner.active.as_ref().map(|a| a.id.clone()))
+    };
     runs.sort_by(|a, b| b.started_at.cmp(&a.started_at).then(b.id.cmp(&a.id)));
-    Json(RunList {
-        runs,
-        active: inner.active.as_ref().map(|a| a.id.clone()),
-    })
+    for run in &mut runs {
+        mark_processed(&d, run);
+    }
+    Json(RunList { runs, active })
+}
+
+/// Fills `processed` from what lies on disk now (`rigd process` runs
+/// outside the daemon).
+fn mark_processed(d: &Daemon, run: &mut RunView) {
+    run.processed = d
+        .run_root(&run.id)
+        .and_then(|root| crate::relight::processed_kind(&root))
+        .map(str::to_string);
 }
 
 /// Starts a run now.
@@ -320,7 +333,9 @@ pub async fn get_run(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
 ) -> Result<Json<RunView>, ApiError> {
-    d.view(&id).map(Json).ok_or_else(|| not_found_run(&id))
+    let mut run = d.view(&id).ok_or_else(|| not_found_run(&id))?;
+    mark_processed(&d, &mut run);
+    Ok(Json(run))
 }
 
 /// Every image of the run's plan, planned and captured (for hemisphere plots).

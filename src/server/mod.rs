@@ -18,6 +18,7 @@ pub mod frames;
 pub mod model;
 pub mod persist;
 pub mod state;
+pub mod viewer;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -141,6 +142,9 @@ pub fn router(daemon: Arc<state::Daemon>, token: auth::Token) -> Router {
         .route("/events", get(api::events_sse))
         .route("/queue", get(api::get_queue).post(api::post_queue))
         .route("/queue/{item}", delete(api::delete_queue))
+        .route("/runs/{id}/btf", get(viewer::btf_manifest))
+        .route("/runs/{id}/btf/data", get(viewer::btf_data))
+        .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh))
         .route("/sim/render", get(api::sim_render))
         .route("/sim/scenes", get(api::sim_scenes))
         .route_layer(axum::middleware::from_fn_with_state(
@@ -164,6 +168,11 @@ pub fn router(daemon: Arc<state::Daemon>, token: auth::Token) -> Router {
         .route(
             "/hemisphere.js",
             get(|| async { static_file("text/javascript; charset=utf-8", HEMISPHERE_JS) }),
+        )
+        .route("/viewer/{run}", get(viewer::page))
+        .route(
+            "/viewer.js",
+            get(|| async { static_file("text/javascript; charset=utf-8", viewer::VIEWER_JS) }),
         )
         .route(
             "/style.css",

@@ -125,6 +125,10 @@ pub struct RunView {
     pub started_at: String,
     pub updated_at: Option<String>,
     pub finished_at: Option<String>,
+    /// What `rigd process` made of it that the viewer (`/viewer/{id}`)
+    /// shows: `btf` or `photometric-stereo`; null before processing.
+    #[serde(default)]
+    pub processed: Option<String>,
 }
 
 /// `GET /api/v1/runs`.

@@ -223,6 +223,7 @@ pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError>
         started_at: meta.started_at.clone(),
         updated_at: state.as_ref().map(|s| s.updated_at.clone()),
         finished_at: manifest.map(|m| m.finished_at),
+        processed: None,
     };
     Ok((view, meta))
 }

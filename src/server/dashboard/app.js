@@ -466,6 +466,12 @@ function renderHistory() {
     if (r.steps_done > 0) {
       links.append(" ", text("a", "first frame", { href: `${base}/frames/0`, target: "_blank", rel: "noopener" }));
     }
+    if (r.processed) {
+      links.append(" ", text("a", "view", {
+        href: `/viewer/${encodeURIComponent(r.id)}`, "data-testid": "open-viewer",
+        title: r.processed === "btf" ? "Relight the BTF on a mesh" : "Bump-mapped albedo and normals",
+      }));
+    }
     tr.append(links);
     tbody.append(tr);
   }

@@ -1,0 +1,147 @@
+//! What the BTF viewer and `rigd process render` read from a processed run:
+//! the compressed BTF (`RUN/processed/btf/`, from `rigd process btf`) or,
+//! for a photometric-stereo run, its albedo and normals
+//! (`RUN/processed/ps/`, from `rigd process photometric-stereo RUN`).
+
+use std::path::{Path, PathBuf};
+
+use rigd_process::btf::{BtfError, BtfStore, HEADER_FILE};
+use rigd_process::mesh::{Mesh, MeshKind};
+use rigd_process::npy::{self, NpyError};
+use rigd_process::render::{self, RenderError, RenderSettings, RgbImage};
+use rigd_process::webgl::{self, Manifest, PackError};
+use serde::Serialize;
+
+/// Where `rigd process btf` writes, inside a run.
+pub fn btf_dir(run: &Path) -> PathBuf {
+    run.join("processed").join("btf")
+}
+
+/// Where `rigd process photometric-stereo RUN` writes by default.
+pub fn ps_dir(run: &Path) -> PathBuf {
+    run.join("processed").join("ps")
+}
+
+/// Material tiles per world unit on the viewer's meshes (two across the
+/// flat sample).
+pub const DEFAULT_DENSITY: f64 = 1.0;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RelightError {
+    #[error(
+        "{run} has no processed BTF ({btf}) and no photometric-stereo result ({ps}): run `rigd process rectify` then `rigd process btf`, or `rigd process photometric-stereo`"
+    )]
+    NotProcessed {
+        run: String,
+        btf: String,
+        ps: String,
+    },
+    #[error("{what} needs a compressed BTF; {run} holds a photometric-stereo result only")]
+    NeedsBtf { what: &'static str, run: String },
+    #[error(transparent)]
+    Btf(#[from] BtfError),
+    #[error(transparent)]
+    Npy(#[from] NpyError),
+    #[error(transparent)]
+    Pack(#[from] PackError),
+    #[error(transparent)]
+    Render(#[from] RenderError),
+}
+
+/// `btf` or `photometric-stereo` when the run holds what the viewer shows.
+pub fn processed_kind(run: &Path) -> Option<&'static str> {
+    if btf_dir(run).join(HEADER_FILE).is_file() {
+        Some("btf")
+    } else if ps_dir(run).join("normals.npy").is_file() && ps_dir(run).join("albedo.npy").is_file()
+    {
+        Some("photometric-stereo")
+    } else {
+        None
+    }
+}
+
+/// What a processed run holds for relighting.
+pub enum Material {
+    Btf(BtfStore),
+    PhotometricStereo { dir: PathBuf },
+}
+
+/// Opens what the run holds: the BTF if there is one, else the
+/// photometric-stereo maps.
+pub fn open(run: &Path) -> Result<Material, RelightError> {
+    let btf = btf_dir(run);
+    if btf.join(HEADER_FILE).is_file() {
+        return Ok(Material::Btf(BtfStore::read(&btf)?));
+    }
+    let ps = ps_dir(run);
+    if ps.join("normals.npy").is_file() && ps.join("albedo.npy").is_file() {
+        return Ok(Material::PhotometricStereo { dir: ps });
+    }
+    Err(RelightError::NotProcessed {
+        run: run.display().to_string(),
+        btf: btf.join(HEADER_FILE).display().to_string(),
+        ps: ps.join("normals.npy").display().to_string(),
+    })
+}
+
+/// The viewer's blob and its manifest ([`rigd_process::webgl`]).
+pub fn pack(run: &Path, max_components: usize) -> Result<(Manifest, Vec<u8>), RelightError> {
+    match open(run)? {
+        Material::Btf(store) => Ok(webgl::pack_btf(&store, max_components)),
+        Material::PhotometricStereo { dir } => {
+            let albedo = npy::read_f32(&dir.join("albedo.npy"))?;
+            let normals = npy::read_f32(&dir.join("normals.npy"))?;
+            Ok(webgl::pack_photometric_stereo(
+                &albedo.shape,
+                &albedo.data,
+                &normals.shape,
+                &normals.data,
+            )?)
+        }
+    }
+}
+
+/// A mesh as the viewer gets it: the geometry, and for a BTF run the
+/// visibility of each measured light direction per vertex (vertex-major).
+#[derive(Debug, Serialize)]
+pub struct MeshView {
+    #[serde(flatten)]
+    pub mesh: Mesh,
+    pub density: f64,
+    pub visibility: Vec<u8>,
+    pub visibility_directions: usize,
+}
+
+pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, RelightError> {
+    let mesh = Mesh::build(kind, density);
+    let (visibility, visibility_directions) = match open(run)? {
+        Material::Btf(store) => {
+            let dirs: Vec<_> = store.lights().directions().to_vec();
+            (mesh.visibility(&dirs), dirs.len())
+        }
+        Material::PhotometricStereo { .. } => (Vec::new(), 0),
+    };
+    Ok(MeshView {
+        mesh,
+        density,
+        visibility,
+        visibility_directions,
+    })
+}
+
+/// The reference render of a BTF run (`rigd process render`).
+pub fn render_run(
+    run: &Path,
+    kind: MeshKind,
+    density: f64,
+    settings: &RenderSettings,
+) -> Result<RgbImage, RelightError> {
+    let Material::Btf(store) = open(run)? else {
+        return Err(RelightError::NeedsBtf {
+            what: "the reference renderer",
+            run: run.display().to_string(),
+        });
+    };
+    let mesh = Mesh::build(kind, density);
+    Ok(render::render(&store, &mesh, settings)?)
+}

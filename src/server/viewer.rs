@@ -1,0 +1,137 @@
+//! The BTF viewer's routes: the packed material of a processed run, the
+//! meshes it is drawn on, and the viewer page itself (`/viewer/{run}`).
+
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Path, Query, State};
+use axum::http::header;
+use axum::response::{IntoResponse, Response};
+use rigd_process::mesh::MeshKind;
+use serde::Deserialize;
+
+use super::api::AppState;
+use super::error::{ApiError, ApiPath};
+use crate::relight::{self, RelightError, DEFAULT_DENSITY};
+
+pub const VIEWER_HTML: &str = include_str!("dashboard/viewer.html");
+pub const VIEWER_JS: &str = include_str!("dashboard/viewer.js");
+
+/// Most components the viewer is sent per slot unless it asks for fewer.
+const MAX_COMPONENTS: usize = 64;
+
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+pub struct BtfQuery {
+    /// Send at most this many PCA components per view slot (default: all stored).
+    pub components: Option<usize>,
+}
+
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+pub struct MeshQuery {
+    /// Material tiles per world unit (default 1; the flat sample is 2 units across).
+    pub density: Option<f64>,
+}
+
+fn relight_error(e: RelightError) -> ApiError {
+    match e {
+        RelightError::NotProcessed { .. } | RelightError::NeedsBtf { .. } => {
+            ApiError::not_found(e.to_string())
+        }
+        other => ApiError::internal(other.to_string()),
+    }
+}
+
+async fn packed(
+    d: &AppState,
+    id: &str,
+    q: &BtfQuery,
+) -> Result<(rigd_process::webgl::Manifest, Vec<u8>), ApiError> {
+    let root = d
+        .run_root(id)
+        .ok_or_else(|| ApiError::not_found("no such run"))?;
+    let components = q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS);
+    tokio::task::spawn_blocking(move || relight::pack(&root, components))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(relight_error)
+}
+
+/// The processed run's material for the viewer: the manifest of the blob at
+/// `…/btf/data` (a compressed BTF: f16 eigen-textures and f32 weights per
+/// view slot, ring tables; or a photometric-stereo run's albedo and
+/// normals). The layout is documented in `docs/viewer.md`.
+#[utoipa::path(get, path = "/api/v1/runs/{id}/btf", tag = "runs",
+    params(("id" = String, Path, description = "Run id"), BtfQuery),
+    responses((status = 200, description = "The manifest", content_type = "application/json", body = Object),
+              (status = 404, description = "No such run, or not processed yet", body = super::error::ErrorBody)))]
+pub async fn btf_manifest(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+    q: Result<Query<BtfQuery>, QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
+    let (manifest, _) = packed(&d, &id, &q).await?;
+    let mut body =
+        serde_json::to_value(&manifest).map_err(|e| ApiError::internal(e.to_string()))?;
+    body["data_url"] = serde_json::Value::String(format!(
+        "/api/v1/runs/{id}/btf/data?components={}",
+        manifest.components
+    ));
+    Ok(axum::Json(body).into_response())
+}
+
+/// The blob the manifest describes (`application/octet-stream`).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/btf/data", tag = "runs",
+    params(("id" = String, Path, description = "Run id"), BtfQuery),
+    responses((status = 200, description = "The packed material", content_type = "application/octet-stream", body = Vec<u8>),
+              (status = 404, description = "No such run, or not processed yet", body = super::error::ErrorBody)))]
+pub async fn btf_data(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+    q: Result<Query<BtfQuery>, QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
+    let (_, data) = packed(&d, &id, &q).await?;
+    Ok(([(header::CONTENT_TYPE, "application/octet-stream")], data).into_response())
+}
+
+/// A viewer mesh (`flat`, `cylinder` or `cloth`): a grid with positions,
+/// normals, tangents, texture coordinates and triangles, plus per vertex
+/// the visibility of each of the run's measured light directions (seed 004).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/btf/mesh/{kind}", tag = "runs",
+    params(("id" = String, Path, description = "Run id"),
+           ("kind" = String, Path, description = "flat, cylinder or cloth"), MeshQuery),
+    responses((status = 200, description = "The mesh", content_type = "application/json", body = Object),
+              (status = 404, description = "No such run or mesh, or not processed yet", body = super::error::ErrorBody),
+              (status = 422, description = "Density out of range", body = super::error::ErrorBody)))]
+pub async fn btf_mesh(
+    State(d): State<AppState>,
+    ApiPath((id, kind)): ApiPath<(String, String)>,
+    q: Result<Query<MeshQuery>, QueryRejection>,
+) -> Result<Response, ApiError> {
+    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
+    let kind: MeshKind = kind
+        .parse()
+        .map_err(|e: rigd_process::mesh::MeshError| ApiError::not_found(e.to_string()))?;
+    let density = q.density.unwrap_or(DEFAULT_DENSITY);
+    if !(density.is_finite() && density > 0.0 && density <= 64.0) {
+        return Err(ApiError::invalid(format!(
+            "density {density}: expected more than 0 and at most 64 tiles per unit"
+        )));
+    }
+    let root = d
+        .run_root(&id)
+        .ok_or_else(|| ApiError::not_found("no such run"))?;
+    let view = tokio::task::spawn_blocking(move || relight::mesh_view(&root, kind, density))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(relight_error)?;
+    Ok(axum::Json(view).into_response())
+}
+
+/// The viewer page; the run id is read by the page from its own path.
+pub async fn page(Path(_run): Path<String>) -> Response {
+    (
+        [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
+        VIEWER_HTML,
+    )
+        .into_response()
+}
