@@ -341,8 +341,9 @@ pub fn render(
         return Err(RenderError::Exposure(settings.exposure));
     }
     let view_theta = settings.view.theta_deg;
-    if !(view_theta.is_finite() && (0.0..=89.0).contains(&view_theta))
-        || !settings.view.phi_deg.is_finite()
+    if !(view_theta.is_finite()
+        && (0.0..=89.0).contains(&view_theta)
+        && settings.view.phi_deg.is_finite())
     {
         return Err(RenderError::ViewElevation(view_theta));
     }
@@ -466,7 +467,7 @@ mod tests {
                         let cos = l.theta_deg.to_radians().cos() as f32;
                         (0..size * size)
                             .flat_map(|i| {
-                                let check = if (i % size + i / size) % 2 == 0 {
+                                let check = if (i % size + i / size).is_multiple_of(2) {
                                     0.8
                                 } else {
                                     0.5

@@ -86,7 +86,7 @@ fn push_f16(out: &mut Vec<u8>, values: impl Iterator<Item = f32>) {
 }
 
 fn align4(out: &mut Vec<u8>) {
-    while out.len() % 4 != 0 {
+    while !out.len().is_multiple_of(4) {
         out.push(0);
     }
 }
@@ -268,16 +268,12 @@ mod tests {
         };
         let pca = &store.slots()[slot];
         let want = pca.reconstruct_measured_truncated(light, 3).unwrap();
-        for v in 0..values {
+        for (v, &wanted) in want.iter().enumerate().take(values) {
             let mut got = f16_at(&data, (slot * 4) * values + v);
             for k in 0..3 {
                 got += weight(k) * f16_at(&data, (slot * 4 + 1 + k) * values + v);
             }
-            assert!(
-                (got - want[v]).abs() < 2e-3,
-                "value {v}: {got} vs {}",
-                want[v]
-            );
+            assert!((got - wanted).abs() < 2e-3, "value {v}: {got} vs {wanted}");
         }
         let rings = &m.light_table.as_ref().unwrap().rings;
         assert!(rings[0].pole);
