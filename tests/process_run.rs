@@ -83,6 +83,19 @@ fn a_capture_is_rectified_and_compressed() {
         // The sample fills the texture: no dark holder at its centre.
         assert!(img.get(32, 32, 0) > 0.02, "{}", file.display());
     }
+    // Before compression the reference renderer says what is missing.
+    let png = dir.path().join("render.png");
+    let out = rigd()
+        .args(["process", "render"])
+        .arg(&run)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("rigd process btf"), "{err}");
+    assert!(!png.exists());
     let out = rigd()
         .args(["process", "btf", "--components", "3"])
         .arg(&run)
@@ -108,6 +121,43 @@ fn a_capture_is_rectified_and_compressed() {
     assert!(rms.windows(2).all(|w| w[1] <= w[0] + 1e-9), "{rms:?}");
     // Five lights: five components reproduce each slot.
     assert!(rms[4] < 1e-4, "{rms:?}");
+    // The reference render of the viewer, also with the light below the horizon.
+    for (mesh, light) in [("cloth", "40,30"), ("flat", "100,0")] {
+        let out = rigd()
+            .args([
+                "process", "render", "--mesh", mesh, "--light", light, "--size", "80x60",
+            ])
+            .arg(&run)
+            .arg("--out")
+            .arg(&png)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let img = rigd_process::image_io::load_png(&png).unwrap();
+        assert_eq!((img.width, img.height, img.channels), (80, 60, 3));
+    }
+    for (flag, value, why) in [
+        ("--mesh", "sphere", "flat, cylinder or cloth"),
+        ("--view", "95,0", "0 ..= 89"),
+        ("--light", "45", "θ,φ"),
+    ] {
+        let out = rigd()
+            .args(["process", "render", flag, value])
+            .arg(&run)
+            .arg("--out")
+            .arg(&png)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(why),
+            "{flag} {value}: {err}"
+        );
+    }
     let store = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).unwrap();
     let tex = store
         .reconstruct(
