@@ -58,6 +58,12 @@ fn the_tradeoff_table_is_written_and_ordered() {
         three["error"].as_f64() > h2["error"].as_f64(),
         "{three} vs {h2}"
     );
+    // The texture-space shortcut, checked through camera and registration.
+    let chain = find("plans", "h2, 3 rings, camera chain");
+    assert_eq!(chain["images"], 361);
+    let e = chain["error"].as_f64().unwrap();
+    assert!(e.is_finite() && e > 0.0 && e < 1.5, "{chain}");
+    assert!(chain["physical_s"].as_f64() >= three["physical_s"].as_f64());
     for c in [2, 4, 8, 16, 32] {
         find("pca", &format!("C = {c}"));
     }

@@ -436,9 +436,11 @@ struct Blob {
 /// grows beyond `max_pixels`.
 fn grow(win: &Window, seed: usize, threshold: f32, max_pixels: usize) -> Option<Blob> {
     let (w, h) = (win.w, win.h);
-    let mut inside = std::collections::HashSet::new();
+    // A mask, not a hash set: a window holds a few thousand pixels and a
+    // textured frame sends hundreds of candidate peaks through here.
+    let mut inside = vec![false; w * h];
     let mut pixels = vec![seed];
-    inside.insert(seed);
+    inside[seed] = true;
     let mut touches_border = false;
     let mut k = 0;
     while k < pixels.len() {
@@ -450,7 +452,8 @@ fn grow(win: &Window, seed: usize, threshold: f32, max_pixels: usize) -> Option<
         }
         let mut overflow = false;
         for_neighbours(i, w, h, |j| {
-            if win.v[j] > threshold && inside.insert(j) {
+            if win.v[j] > threshold && !inside[j] {
+                inside[j] = true;
                 pixels.push(j);
                 if pixels.len() > max_pixels {
                     overflow = true;
@@ -469,25 +472,31 @@ fn grow(win: &Window, seed: usize, threshold: f32, max_pixels: usize) -> Option<
 
 /// Pixels at chessboard distance 1 (`ring1`) and 2 (`ring2`) from the blob.
 fn rings(win: &Window, blob: &[usize]) -> (Vec<usize>, Vec<usize>) {
-    let inside: std::collections::HashSet<usize> = blob.iter().copied().collect();
-    let mut ring1 = std::collections::HashSet::new();
+    const INSIDE: u8 = 1;
+    const RING1: u8 = 2;
+    const RING2: u8 = 3;
+    let mut mark = vec![0u8; win.w * win.h];
+    for &i in blob {
+        mark[i] = INSIDE;
+    }
+    let mut r1 = Vec::new();
     for &i in blob {
         for_neighbours(i, win.w, win.h, |j| {
-            if !inside.contains(&j) {
-                ring1.insert(j);
+            if mark[j] == 0 {
+                mark[j] = RING1;
+                r1.push(j);
             }
         });
     }
-    let mut ring2 = std::collections::HashSet::new();
-    for &i in &ring1 {
+    let mut r2 = Vec::new();
+    for &i in &r1 {
         for_neighbours(i, win.w, win.h, |j| {
-            if !inside.contains(&j) && !ring1.contains(&j) {
-                ring2.insert(j);
+            if mark[j] == 0 {
+                mark[j] = RING2;
+                r2.push(j);
             }
         });
     }
-    let mut r1: Vec<usize> = ring1.into_iter().collect();
-    let mut r2: Vec<usize> = ring2.into_iter().collect();
     r1.sort_unstable();
     r2.sort_unstable();
     (r1, r2)
