@@ -807,6 +807,8 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/btf",
         "/api/v1/runs/{id}/btf/data",
         "/api/v1/runs/{id}/btf/mesh/{kind}",
+        "/api/v1/tradeoff",
+        "/api/v1/tradeoff/plot.svg",
     ]
     .into_iter()
     .collect();
@@ -910,7 +912,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 24, "operations checked");
+    assert_eq!(checked, 27, "operations checked");
     s.shutdown().await;
 }
 
@@ -1134,5 +1136,75 @@ async fn viewer_routes_serve_a_processed_run_and_explain_the_rest() {
             .to_string();
         assert!(ct.starts_with(kind), "{path}: {ct}");
     }
+    s.shutdown().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_daemon_computes_and_serves_the_tradeoff_report() {
+    let (dir, mut s) = srv(FAST).await;
+    let (status, v) = s.get("/api/v1/tradeoff").await;
+    assert_eq!(status, 404);
+    assert!(
+        v["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("rigd tradeoff")),
+        "{v}"
+    );
+    for (body, why) in [
+        (json!({"texture": 2}), "texture"),
+        (json!({"scene": "no-such-scene"}), "no-such-scene"),
+        (json!({"render_size": [8, 8]}), "render_size"),
+    ] {
+        let (status, v) = s.post("/api/v1/tradeoff", Some(body)).await;
+        assert_eq!(status, 422, "{v}");
+        assert!(v["detail"].as_str().is_some_and(|d| d.contains(why)), "{v}");
+    }
+    let (status, sse) = SseReader::connect(&s.client, &s.url("/api/v1/events"), None).await;
+    assert_eq!(status, 200);
+    let mut sse = sse.expect("stream");
+    let small = json!({"scene": "corduroy", "texture": 4, "held_out": 4, "render_size": [32, 24]});
+    let (status, v) = s.post("/api/v1/tradeoff", Some(small.clone())).await;
+    assert_eq!(status, 202, "{v}");
+    assert_eq!(v["scene"], "corduroy");
+    let (status, v) = s.post("/api/v1/tradeoff", Some(small)).await;
+    assert_eq!(status, 409, "one at a time: {v}");
+    // Progress, then the end, as events.
+    let mut steps = 0;
+    let end = loop {
+        let (_, ev) = sse
+            .next(Duration::from_secs(600))
+            .await
+            .expect("tradeoff events until it ends");
+        if ev["kind"] != "tradeoff" {
+            continue;
+        }
+        match ev["event"]["state"].as_str() {
+            Some("computing") => steps += 1,
+            Some("done") | Some("failed") => break ev,
+            _ => {}
+        }
+    };
+    assert_eq!(end["event"]["state"], "done", "{end}");
+    assert!(steps >= 5, "{steps} progress events");
+    let (status, report) = s.get("/api/v1/tradeoff").await;
+    assert_eq!(status, 200);
+    assert_eq!(report["scene"], "corduroy");
+    assert!(report["rows"].as_array().is_some_and(|r| r.len() > 20));
+    let r = s
+        .client
+        .get(s.url("/api/v1/tradeoff/plot.svg"))
+        .send()
+        .await
+        .expect("GET plot");
+    assert_eq!(r.status().as_u16(), 200);
+    assert_eq!(
+        r.headers()
+            .get("content-type")
+            .and_then(|v| v.to_str().ok()),
+        Some("image/svg+xml")
+    );
+    let svg = r.text().await.expect("svg");
+    assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+    assert!(dir.path().join("tradeoff").join("tradeoff.csv").is_file());
     s.shutdown().await;
 }

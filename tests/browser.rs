@@ -990,7 +990,7 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
         token.trim(),
         (&run_id, &run),
         &ps_id,
-        &out,
+        (data.path(), &out),
     ))
     .catch_unwind()
     .await;
@@ -1013,7 +1013,7 @@ async fn view_and_compare(
     token: &str,
     (run_id, run): (&str, &Path),
     ps_id: &str,
-    out: &Path,
+    (data, out): (&Path, &Path),
 ) {
     // From the run history to the viewer.
     c.goto(&format!("{base}/"))
@@ -1236,6 +1236,69 @@ async fn view_and_compare(
     assert!((mean_of(&east) - mean_of(&west)).abs() < 3.0);
     let png = c.screenshot().await.expect("screenshot");
     std::fs::write(out.join("viewer-ps.png"), png).expect("write the screenshot");
+
+    // The dashboard shows the trade-off plot the daemon serves.
+    c.goto(&format!("{base}/"))
+        .await
+        .expect("the dashboard again");
+    wait_js(
+        c,
+        "the trade-off card's hint",
+        20,
+        "return document.getElementById('tradeoff-caption').textContent",
+        |v| v.as_str().is_some_and(|t| t.contains("rigd tradeoff")),
+    )
+    .await;
+    write_tradeoff_report(data);
+    c.refresh().await.expect("reload the dashboard");
+    let shown = wait_js(
+        c,
+        "the trade-off plot",
+        20,
+        "const i = document.getElementById('tradeoff-plot'); \
+         return !i.hidden && i.complete && i.naturalWidth > 0 ? \
+           document.getElementById('tradeoff-caption').textContent : null",
+        |v| v.is_string(),
+    )
+    .await;
+    assert!(
+        shown.as_str().is_some_and(|t| t.contains("2 rows")),
+        "{shown}"
+    );
+}
+
+/// A two-row trade-off report where `rigd tradeoff --out DATA/tradeoff`
+/// puts it.
+fn write_tradeoff_report(data: &Path) {
+    use rigd::tradeoff::{svg, Report, Row};
+    let row = |setting: &str, t: f64, e: f64| Row {
+        family: "plans".into(),
+        setting: setting.into(),
+        images: Some(361),
+        physical_s: Some(t),
+        bytes: None,
+        error: Some(e),
+        compute_s: Some(0.1),
+        unit: "relative".into(),
+        detail: None,
+    };
+    let report = Report {
+        profile: "bonn-gonioreflectometer".into(),
+        scene: "corduroy".into(),
+        texture: 4,
+        held_out: 6,
+        components: 16,
+        method: vec![],
+        rows: vec![row("h2, 3 rings", 2079.0, 0.68), row("h2", 34627.0, 0.14)],
+    };
+    let dir = data.join("tradeoff");
+    std::fs::create_dir_all(&dir).expect("tradeoff dir");
+    std::fs::write(
+        dir.join("tradeoff.json"),
+        serde_json::to_vec(&report).expect("json"),
+    )
+    .expect("json");
+    std::fs::write(dir.join("tradeoff.svg"), svg(&report)).expect("svg");
 }
 
 /// Albedo and normals of a field of bumps (32² texels), as

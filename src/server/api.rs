@@ -30,12 +30,14 @@ pub type AppState = Arc<Daemon>;
         health, rig, plans, plan_detail, list_runs, create_run, get_run, run_steps, run_manifest,
         pause_run, resume_run, abort_run, estop, events_sse, frame_raw, frame_preview,
         get_queue, post_queue, delete_queue, sim_render, sim_scenes,
-        super::viewer::btf_manifest, super::viewer::btf_data, super::viewer::btf_mesh
+        super::viewer::btf_manifest, super::viewer::btf_data, super::viewer::btf_mesh,
+        super::tradeoff::get_report, super::tradeoff::get_plot, super::tradeoff::start
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
         RunRequest, PlanSpec, InlinePlan, PairDto, RunView, RunList, CommandAck, RunSteps, RunStep,
-        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent, SceneView
+        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent, SceneView,
+        super::tradeoff::TradeoffRequest, super::tradeoff::TradeoffStarted
     )),
     modifiers(&BearerAuth),
     tags(

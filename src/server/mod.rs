@@ -18,6 +18,7 @@ pub mod frames;
 pub mod model;
 pub mod persist;
 pub mod state;
+pub mod tradeoff;
 pub mod viewer;
 
 use std::net::SocketAddr;
@@ -145,6 +146,8 @@ pub fn router(daemon: Arc<state::Daemon>, token: auth::Token) -> Router {
         .route("/runs/{id}/btf", get(viewer::btf_manifest))
         .route("/runs/{id}/btf/data", get(viewer::btf_data))
         .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh))
+        .route("/tradeoff", get(tradeoff::get_report).post(tradeoff::start))
+        .route("/tradeoff/plot.svg", get(tradeoff::get_plot))
         .route("/sim/render", get(api::sim_render))
         .route("/sim/scenes", get(api::sim_scenes))
         .route_layer(axum::middleware::from_fn_with_state(

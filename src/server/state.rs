@@ -62,6 +62,8 @@ pub struct Daemon {
     supervisor: Mutex<Option<JoinHandle<()>>>,
     pub shutdown_tx: watch::Sender<bool>,
     schedules: Mutex<HashMap<String, Arc<Schedule>>>,
+    /// A trade-off report is being computed (`POST /api/v1/tradeoff`).
+    pub tradeoff_busy: std::sync::atomic::AtomicBool,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -108,6 +110,7 @@ impl Daemon {
             start_gate: tokio::sync::Mutex::new(()),
             supervisor: Mutex::new(None),
             shutdown_tx,
+            tradeoff_busy: std::sync::atomic::AtomicBool::new(false),
             schedules: Mutex::new(HashMap::new()),
         }))
     }

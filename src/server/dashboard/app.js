@@ -248,7 +248,58 @@ async function loadQueue() {
 }
 
 async function loadAll() {
-  await Promise.all([loadRig(), loadRuns(), loadQueue(), state.plans.length ? null : loadPlans()]);
+  await Promise.all([loadRig(), loadRuns(), loadQueue(), state.plans.length ? null : loadPlans(), loadTradeoff()]);
+}
+
+// ------------------------------------------------------ trade-off plot
+
+async function loadTradeoff() {
+  const img = $("tradeoff-plot");
+  try {
+    const r = await api("GET", "/tradeoff");
+    img.src = `${API}/tradeoff/plot.svg?rows=${r.rows.length}&t=${Date.now()}`;
+    img.hidden = false;
+    $("tradeoff-caption").textContent =
+      `${r.profile}, scene ${r.scene}: ${r.rows.length} rows, ${r.texture}² textures, ${r.held_out} held-out pairs`;
+  } catch (e) {
+    img.hidden = true;
+    $("tradeoff-caption").textContent = e.status === 404 ? e.detail : `trade-off: ${errText(e)}`;
+  }
+  const sel = $("tradeoff-scene");
+  if (!sel.options.length) {
+    try {
+      const scenes = await api("GET", "/sim/scenes");
+      for (const sc of scenes.scenes || scenes) sel.append(text("option", sc.name, { value: sc.name }));
+      if ([...sel.options].some((o) => o.value === "corduroy")) sel.value = "corduroy";
+    } catch (_) {
+      /* the select stays empty: the daemon picks its scene */
+    }
+  }
+}
+
+async function startTradeoff() {
+  const btn = $("tradeoff-start");
+  btn.disabled = true;
+  try {
+    const body = $("tradeoff-scene").value ? { scene: $("tradeoff-scene").value } : {};
+    const r = await api("POST", "/tradeoff", body);
+    $("tradeoff-status").textContent = `computing for ${r.scene}…`;
+  } catch (e) {
+    $("tradeoff-status").textContent = errText(e);
+    btn.disabled = false;
+  }
+}
+
+function onTradeoffEvent(e) {
+  const st = $("tradeoff-status");
+  if (e.state === "computing") st.textContent = `computing: ${e.step}`;
+  else if (e.state === "started") st.textContent = `computing for ${e.scene}…`;
+  else if (e.state === "failed") st.textContent = `failed: ${e.error}`;
+  else if (e.state === "done") {
+    st.textContent = `done: ${e.rows} rows`;
+    loadTradeoff();
+  }
+  $("tradeoff-start").disabled = e.state === "started" || e.state === "computing";
 }
 
 function upsertRun(run) {
@@ -510,6 +561,8 @@ function describe(ev) {
       return `${ev.run}: ${e.state}${e.reason ? ` (${e.reason})` : ""}`;
     case "queue_changed":
       return `${(e.items || []).length} queued`;
+    case "tradeoff":
+      return `trade-off report: ${e.state}${e.step ? ` (${e.step})` : ""}${e.error ? `: ${e.error}` : ""}`;
     case "estop":
       return `EMERGENCY STOP: ${e.all_stopped ? "all devices stopped" : "NOT all devices stopped"}${e.latency_s != null ? ` in ${e.latency_s.toFixed(3)} s` : ""}`;
     default:
@@ -561,6 +614,9 @@ function onEvent(ev) {
     case "queue_changed":
       state.queue = e.items || [];
       renderQueue();
+      break;
+    case "tradeoff":
+      onTradeoffEvent(e);
       break;
     case "estop":
       showMessage(describe(ev), e.all_stopped ? "info" : "error");
@@ -755,6 +811,7 @@ function setup() {
   $("resume").addEventListener("click", () => command("resume"));
   $("abort").addEventListener("click", () => command("abort"));
   $("estop").addEventListener("click", estop);
+  $("tradeoff-start").addEventListener("click", startTradeoff);
   drawHemisphere();
   connect();
   if (!token()) askToken("No API token is stored in this browser yet.");

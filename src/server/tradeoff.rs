@@ -1,0 +1,188 @@
+//! The trade-off report over HTTP: the dashboard shows the plot of
+//! `rigd tradeoff` (error against physical capture time, a curve per
+//! family) and can ask the daemon to compute it for its own rig.
+//!
+//! The report lives in `DATA/tradeoff/` (`tradeoff.json`, `.csv`, `.svg`),
+//! where `rigd tradeoff --out DATA/tradeoff` also puts it. Computing takes
+//! minutes of simulated captures and processing on every core, so it is
+//! refused while a run is active (a real rig's device timing must not
+//! compete with it) and only one computes at a time.
+
+use std::sync::atomic::Ordering;
+
+use axum::extract::State;
+use axum::http::header;
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::api::AppState;
+use super::error::{ApiError, ApiJson, ErrorBody};
+use crate::tradeoff::TradeoffConfig;
+
+/// The folder of the data directory the report is kept in.
+pub const TRADEOFF_DIR: &str = "tradeoff";
+
+/// `POST /api/v1/tradeoff`: what to compute (all optional).
+#[derive(Debug, Clone, Default, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TradeoffRequest {
+    /// Scene of the simulated captures (default: the profile's sim scene,
+    /// else corduroy).
+    pub scene: Option<String>,
+    /// Normtexture side, texels (default 8; 4 … 64 here).
+    pub texture: Option<usize>,
+    /// Held-out (light, view) pairs (default 24; 1 … 200).
+    pub held_out: Option<usize>,
+    /// Frame size of the fidelity renders (default [128, 96]; at most 512×512).
+    pub render_size: Option<[u32; 2]>,
+}
+
+/// The answer to a start.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+pub struct TradeoffStarted {
+    pub scene: String,
+    pub texture: usize,
+    pub held_out: usize,
+    pub render_size: [u32; 2],
+}
+
+fn report_path(d: &AppState, file: &str) -> std::path::PathBuf {
+    d.data_dir.join(TRADEOFF_DIR).join(file)
+}
+
+async fn read_report_file(d: &AppState, file: &str) -> Result<Vec<u8>, ApiError> {
+    match tokio::fs::read(report_path(d, file)).await {
+        Ok(bytes) => Ok(bytes),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+            let busy = d.tradeoff_busy.load(Ordering::SeqCst);
+            Err(ApiError::not_found(if busy {
+                "the trade-off report is being computed; it appears here when done".to_string()
+            } else {
+                format!(
+                    "no trade-off report yet: POST /api/v1/tradeoff, or run `rigd tradeoff --out {}`",
+                    d.data_dir.join(TRADEOFF_DIR).display()
+                )
+            }))
+        }
+        Err(e) => Err(ApiError::internal(e.to_string())),
+    }
+}
+
+/// The latest trade-off report (`tradeoff.json`): every row with its
+/// images, physical time, bytes, error and unit, and the method notes.
+#[utoipa::path(get, path = "/api/v1/tradeoff", tag = "rig",
+    responses((status = 200, description = "The report", content_type = "application/json", body = Object),
+              (status = 404, description = "No report yet", body = ErrorBody)))]
+pub async fn get_report(State(d): State<AppState>) -> Result<Response, ApiError> {
+    let bytes = read_report_file(&d, "tradeoff.json").await?;
+    Ok(([(header::CONTENT_TYPE, "application/json")], bytes).into_response())
+}
+
+/// The report's plot: error against physical capture time, a curve per
+/// family (SVG).
+#[utoipa::path(get, path = "/api/v1/tradeoff/plot.svg", tag = "rig",
+    responses((status = 200, description = "The plot", content_type = "image/svg+xml", body = String),
+              (status = 404, description = "No report yet", body = ErrorBody)))]
+pub async fn get_plot(State(d): State<AppState>) -> Result<Response, ApiError> {
+    let bytes = read_report_file(&d, "tradeoff.svg").await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/svg+xml"),
+            (header::CACHE_CONTROL, "no-cache"),
+        ],
+        bytes,
+    )
+        .into_response())
+}
+
+/// Computes the report for the daemon's rig in the background; `tradeoff`
+/// events report progress and the end. Refused while a run is active or
+/// another computation runs.
+#[utoipa::path(post, path = "/api/v1/tradeoff", tag = "rig", request_body = TradeoffRequest,
+    security(("bearer" = [])),
+    responses((status = 202, description = "Started", body = TradeoffStarted),
+              (status = 400, description = "Malformed JSON", body = ErrorBody),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 409, description = "A run is active, or a computation runs", body = ErrorBody),
+              (status = 415, description = "Not `Content-Type: application/json`", body = ErrorBody),
+              (status = 422, description = "Unknown scene or a value out of range", body = ErrorBody)))]
+pub async fn start(
+    State(d): State<AppState>,
+    ApiJson(req): ApiJson<TradeoffRequest>,
+) -> Result<(axum::http::StatusCode, Json<TradeoffStarted>), ApiError> {
+    let scene = req
+        .scene
+        .clone()
+        .or_else(|| d.profile.sim.scene.clone())
+        .unwrap_or_else(|| "corduroy".to_string());
+    rigd_sim::scene::Scene::load(&scene).map_err(|e| ApiError::invalid(e.to_string()))?;
+    let texture = req.texture.unwrap_or(8);
+    let held_out = req.held_out.unwrap_or(24);
+    let render_size = req.render_size.unwrap_or([128, 96]);
+    if !(4..=64).contains(&texture) {
+        return Err(ApiError::invalid(format!(
+            "texture {texture}: expected 4 … 64"
+        )));
+    }
+    if !(1..=200).contains(&held_out) {
+        return Err(ApiError::invalid(format!(
+            "held_out {held_out}: expected 1 … 200"
+        )));
+    }
+    if !(16..=512).contains(&render_size[0]) || !(16..=512).contains(&render_size[1]) {
+        return Err(ApiError::invalid(format!(
+            "render_size {render_size:?}: expected 16 … 512 each way"
+        )));
+    }
+    if d.inner().active.is_some() {
+        return Err(ApiError::conflict(
+            "a run is active: the trade-off report is computed when the rig is idle",
+        ));
+    }
+    if d.tradeoff_busy.swap(true, Ordering::SeqCst) {
+        return Err(ApiError::conflict(
+            "the trade-off report is already being computed",
+        ));
+    }
+    let cfg = TradeoffConfig {
+        texture,
+        held_out,
+        render_size,
+        ..TradeoffConfig::default()
+    };
+    let started = TradeoffStarted {
+        scene: scene.clone(),
+        texture,
+        held_out,
+        render_size,
+    };
+    d.hub.publish(
+        None,
+        "tradeoff",
+        serde_json::json!({"state": "started", "scene": scene}),
+    );
+    let daemon = d.clone();
+    tokio::task::spawn_blocking(move || {
+        let out = daemon.data_dir.join(TRADEOFF_DIR);
+        let hub = &daemon.hub;
+        let result = crate::tradeoff::run(&daemon.profile, &scene, &cfg, &out, &|what| {
+            hub.publish(
+                None,
+                "tradeoff",
+                serde_json::json!({"state": "computing", "step": what}),
+            );
+        });
+        let event = match result {
+            Ok(report) => serde_json::json!({"state": "done", "rows": report.rows.len()}),
+            Err(e) => {
+                tracing::warn!("trade-off report failed: {e}");
+                serde_json::json!({"state": "failed", "error": e.to_string()})
+            }
+        };
+        daemon.tradeoff_busy.store(false, Ordering::SeqCst);
+        hub.publish(None, "tradeoff", event);
+    });
+    Ok((axum::http::StatusCode::ACCEPTED, Json(started)))
+}
