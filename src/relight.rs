@@ -5,7 +5,8 @@
 
 use std::path::{Path, PathBuf};
 
-use rigd_process::btf::{BtfError, BtfStore, HEADER_FILE};
+use rigd_process::btf::{BtfError, BtfHeader, BtfStore, TextureShape, HEADER_FILE};
+use rigd_process::directions::{DirectionError, DirectionTable};
 use rigd_process::mesh::{Mesh, MeshKind};
 use rigd_process::npy::{self, NpyError};
 use rigd_process::render::{self, RenderError, RenderSettings, RgbImage};
@@ -40,6 +41,8 @@ pub enum RelightError {
     NeedsBtf { what: &'static str, run: String },
     #[error(transparent)]
     Btf(#[from] BtfError),
+    #[error(transparent)]
+    Direction(#[from] DirectionError),
     #[error(transparent)]
     Npy(#[from] NpyError),
     #[error(transparent)]
@@ -84,6 +87,37 @@ pub fn open(run: &Path) -> Result<Material, RelightError> {
     })
 }
 
+/// The header of the run's BTF and its tables, without the slot data.
+fn btf_header(
+    run: &Path,
+) -> Result<Option<(BtfHeader, DirectionTable, DirectionTable)>, RelightError> {
+    let dir = btf_dir(run);
+    if !dir.join(HEADER_FILE).is_file() {
+        return Ok(None);
+    }
+    let header = BtfHeader::read(&dir)?;
+    let lights = DirectionTable::new(header.light_directions.clone())?;
+    let views = DirectionTable::new(header.view_directions.clone())?;
+    Ok(Some((header, lights, views)))
+}
+
+/// The manifest of the viewer's blob; for a BTF from `btf.json` alone.
+pub fn manifest(run: &Path, max_components: usize) -> Result<Manifest, RelightError> {
+    match btf_header(run)? {
+        Some((header, lights, views)) => {
+            let shape = TextureShape::new(header.width, header.height, header.channels)?;
+            Ok(webgl::btf_manifest(
+                shape,
+                header.components,
+                &lights,
+                &views,
+                max_components,
+            ))
+        }
+        None => pack(run, max_components).map(|(manifest, _)| manifest),
+    }
+}
+
 /// The viewer's blob and its manifest ([`rigd_process::webgl`]).
 pub fn pack(run: &Path, max_components: usize) -> Result<(Manifest, Vec<u8>), RelightError> {
     match open(run)? {
@@ -114,12 +148,14 @@ pub struct MeshView {
 
 pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, RelightError> {
     let mesh = Mesh::build(kind, density);
-    let (visibility, visibility_directions) = match open(run)? {
-        Material::Btf(store) => {
-            let dirs: Vec<_> = store.lights().directions().to_vec();
-            (mesh.visibility(&dirs), dirs.len())
+    let (visibility, visibility_directions) = match btf_header(run)? {
+        Some((_, lights, _)) => (mesh.visibility(lights.directions()), lights.len()),
+        None => {
+            // Not a BTF: a photometric-stereo result, or the error saying
+            // what is missing.
+            open(run)?;
+            (Vec::new(), 0)
         }
-        Material::PhotometricStereo { .. } => (Vec::new(), 0),
     };
     Ok(MeshView {
         mesh,

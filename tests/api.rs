@@ -1080,15 +1080,8 @@ async fn viewer_routes_serve_a_processed_run_and_explain_the_rest() {
     assert_eq!(m["layers"], 2 * 3);
     assert_eq!(m["light_table"]["rings"][0]["pole"], true);
     let data_url = m["data_url"].as_str().expect("data_url").to_string();
-    let blob = s
-        .client
-        .get(s.url(&data_url))
-        .send()
-        .await
-        .expect("GET data")
-        .bytes()
-        .await
-        .expect("bytes");
+    let (status, _, blob) = s.get_bytes(&data_url).await;
+    assert_eq!(status, 200);
     assert_eq!(Some(blob.len() as u64), m["bytes"].as_u64());
     assert_eq!(
         m["textures"]["bytes"].as_u64(),
@@ -1126,14 +1119,8 @@ async fn viewer_routes_serve_a_processed_run_and_explain_the_rest() {
         (format!("/viewer/{run}"), "text/html"),
         ("/viewer.js".to_string(), "text/javascript"),
     ] {
-        let r = s.client.get(s.url(&path)).send().await.expect("GET");
-        assert_eq!(r.status().as_u16(), 200, "{path}");
-        let ct = r
-            .headers()
-            .get("content-type")
-            .and_then(|v| v.to_str().ok())
-            .unwrap_or("")
-            .to_string();
+        let (status, ct, _) = s.get_bytes(&path).await;
+        assert_eq!(status, 200, "{path}");
         assert!(ct.starts_with(kind), "{path}: {ct}");
     }
     s.shutdown().await;
@@ -1190,20 +1177,10 @@ async fn the_daemon_computes_and_serves_the_tradeoff_report() {
     assert_eq!(status, 200);
     assert_eq!(report["scene"], "corduroy");
     assert!(report["rows"].as_array().is_some_and(|r| r.len() > 20));
-    let r = s
-        .client
-        .get(s.url("/api/v1/tradeoff/plot.svg"))
-        .send()
-        .await
-        .expect("GET plot");
-    assert_eq!(r.status().as_u16(), 200);
-    assert_eq!(
-        r.headers()
-            .get("content-type")
-            .and_then(|v| v.to_str().ok()),
-        Some("image/svg+xml")
-    );
-    let svg = r.text().await.expect("svg");
+    let (status, ct, svg) = s.get_bytes("/api/v1/tradeoff/plot.svg").await;
+    assert_eq!(status, 200);
+    assert_eq!(ct, "image/svg+xml");
+    let svg = String::from_utf8(svg).expect("utf-8 svg");
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
     assert!(dir.path().join("tradeoff").join("tradeoff.csv").is_file());
     s.shutdown().await;

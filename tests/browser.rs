@@ -201,10 +201,21 @@ async fn dashboard_drives_a_run_in_chromium() {
     let result = AssertUnwindSafe(operate(&client, &ctx, &mut procs))
         .catch_unwind()
         .await;
-    // Screenshot of whatever the page shows, also after a failure.
+    end_session(client, procs, result, &out.join("dashboard-failure.png")).await;
+    eprintln!("browser test: {:.1} s", started.elapsed().as_secs_f64());
+}
+
+/// Closes the browser and what the test started; after a failure first
+/// saves a screenshot of whatever the page shows, then fails.
+async fn end_session(
+    client: Client,
+    procs: Procs,
+    result: std::thread::Result<()>,
+    failure_png: &Path,
+) {
     if result.is_err() {
         if let Ok(png) = client.screenshot().await {
-            let _ = std::fs::write(out.join("dashboard-failure.png"), png);
+            let _ = std::fs::write(failure_png, png);
         }
     }
     let _ = tokio::time::timeout(Duration::from_secs(10), client.close()).await;
@@ -212,7 +223,6 @@ async fn dashboard_drives_a_run_in_chromium() {
     if let Err(panic) = result {
         std::panic::resume_unwind(panic);
     }
-    eprintln!("browser test: {:.1} s", started.elapsed().as_secs_f64());
 }
 
 /// Starts chromedriver and a headless Chromium session on it.
@@ -804,6 +814,20 @@ fn viewer_plan() -> Value {
     json!({"name": "viewer", "lights": lights, "views": views})
 }
 
+/// Waits until the viewer has drawn its first frame, and fails on its error.
+async fn wait_viewer(c: &Client) {
+    wait_js(
+        c,
+        "the viewer to load",
+        60,
+        "return window.rigdViewer && (window.rigdViewer.ready || window.rigdViewer.error)",
+        |v| v == &json!(true) || v.is_string(),
+    )
+    .await;
+    let err = js(c, "return window.rigdViewer.error").await;
+    assert_eq!(err, Value::Null, "the viewer failed");
+}
+
 /// The viewer's left half, as RGB rows from the top.
 async fn viewer_pixels(c: &Client) -> Vec<u8> {
     let px = js(c, "return window.rigdViewer.pixels()").await;
@@ -994,16 +1018,7 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
     ))
     .catch_unwind()
     .await;
-    if result.is_err() {
-        if let Ok(png) = client.screenshot().await {
-            let _ = std::fs::write(out.join("viewer-failure.png"), png);
-        }
-    }
-    let _ = tokio::time::timeout(Duration::from_secs(10), client.close()).await;
-    drop(procs);
-    if let Err(panic) = result {
-        std::panic::resume_unwind(panic);
-    }
+    end_session(client, procs, result, &out.join("viewer-failure.png")).await;
     eprintln!("viewer test: {:.1} s", started.elapsed().as_secs_f64());
 }
 
@@ -1035,31 +1050,14 @@ async fn view_and_compare(
         .click()
         .await
         .expect("open the viewer");
-    wait_js(
-        c,
-        "the viewer to load",
-        60,
-        "return window.rigdViewer && (window.rigdViewer.ready || window.rigdViewer.error)",
-        |v| v == &json!(true) || v.is_string(),
-    )
-    .await;
-    let err = js(c, "return window.rigdViewer.error").await;
-    assert_eq!(err, Value::Null, "the viewer failed");
+    wait_viewer(c).await;
     let path = js(c, "return location.pathname").await;
     assert_eq!(path, json!(format!("/viewer/{run_id}")));
     // Fixed size for the comparison.
     c.goto(&format!("{base}/viewer/{run_id}?size={VIEWER_SIZE}"))
         .await
         .expect("viewer at a fixed size");
-    wait_js(
-        c,
-        "the viewer to load",
-        60,
-        "return window.rigdViewer && (window.rigdViewer.ready || window.rigdViewer.error)",
-        |v| v == &json!(true) || v.is_string(),
-    )
-    .await;
-    assert_eq!(js(c, "return window.rigdViewer.error").await, Value::Null);
+    wait_viewer(c).await;
 
     // The viewer agrees with the reference renderer, on every mesh and at
     // the hard cases: the pole view, a grazing light, the φ wrap.
@@ -1211,15 +1209,7 @@ async fn view_and_compare(
     ))
     .await
     .expect("viewer of the photometric-stereo run");
-    wait_js(
-        c,
-        "the viewer to load",
-        60,
-        "return window.rigdViewer && (window.rigdViewer.ready || window.rigdViewer.error)",
-        |v| v == &json!(true) || v.is_string(),
-    )
-    .await;
-    assert_eq!(js(c, "return window.rigdViewer.error").await, Value::Null);
+    wait_viewer(c).await;
     assert_eq!(
         js(c, "return window.rigdViewer.kind").await,
         json!("photometric-stereo")

@@ -11,7 +11,10 @@ fn the_tradeoff_table_is_written_and_ordered() {
         .args([
             "tradeoff",
             "--profile",
-            "bonn-gonioreflectometer",
+            concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/rig-profiles/bonn-gonioreflectometer.toml"
+            ),
             "--scene",
             "corduroy",
             "--texture",

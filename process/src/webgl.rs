@@ -31,7 +31,7 @@
 
 use serde::Serialize;
 
-use crate::btf::BtfStore;
+use crate::btf::{BtfStore, TextureShape};
 use crate::directions::{Direction, DirectionTable, RingLayout};
 
 /// The format version the viewer checks.
@@ -86,17 +86,58 @@ fn push_f16(out: &mut Vec<u8>, values: impl Iterator<Item = f32>) {
 }
 
 fn align4(out: &mut Vec<u8>) {
-    while !out.len().is_multiple_of(4) {
-        out.push(0);
+    out.resize(out.len().next_multiple_of(4), 0);
+}
+
+/// The manifest of a BTF's blob from what `btf.json` holds (no slot data
+/// is read), keeping at most `max_components` per slot.
+pub fn btf_manifest(
+    shape: TextureShape,
+    stored_components: usize,
+    lights: &DirectionTable,
+    views: &DirectionTable,
+    max_components: usize,
+) -> Manifest {
+    let components = stored_components.min(max_components);
+    let layers = views.len() * (components + 1);
+    let texture_bytes = 2 * layers * shape.values();
+    let weights_offset = texture_bytes.next_multiple_of(4);
+    let weights_bytes = 4 * views.len() * lights.len() * components;
+    Manifest {
+        version: PACK_VERSION,
+        kind: "btf",
+        width: shape.width(),
+        height: shape.height(),
+        channels: shape.channels(),
+        components,
+        layers,
+        textures: Section {
+            offset: 0,
+            bytes: texture_bytes,
+            encoding: "f16le",
+        },
+        weights: Some(Section {
+            offset: weights_offset,
+            bytes: weights_bytes,
+            encoding: "f32le",
+        }),
+        light_table: Some(TableLayout::of(lights)),
+        view_table: Some(TableLayout::of(views)),
+        bytes: weights_offset + weights_bytes,
     }
 }
 
 /// Packs `store`, keeping at most `max_components` per slot.
 pub fn pack_btf(store: &BtfStore, max_components: usize) -> (Manifest, Vec<u8>) {
-    let shape = store.shape();
-    let components = store.components().min(max_components);
-    let layers = store.slots().len() * (components + 1);
-    let mut data = Vec::with_capacity(2 * layers * shape.values());
+    let manifest = btf_manifest(
+        store.shape(),
+        store.components(),
+        store.lights(),
+        store.views(),
+        max_components,
+    );
+    let components = manifest.components;
+    let mut data = Vec::with_capacity(manifest.bytes);
     let mut peaks = Vec::with_capacity(store.slots().len() * components);
     for pca in store.slots() {
         push_f16(&mut data, pca.mean().iter().copied());
@@ -108,16 +149,9 @@ pub fn pack_btf(store: &BtfStore, max_components: usize) -> (Manifest, Vec<u8>) 
             peaks.push(peak);
         }
     }
-    let textures = Section {
-        offset: 0,
-        bytes: data.len(),
-        encoding: "f16le",
-    };
     align4(&mut data);
-    let weights_offset = data.len();
-    let lights = store.lights().len();
     for (slot, pca) in store.slots().iter().enumerate() {
-        for light in 0..lights {
+        for light in 0..store.lights().len() {
             let w = pca.light_weights(light).unwrap_or(&[]);
             for k in 0..components {
                 let scaled = w.get(k).copied().unwrap_or(0.0) * peaks[slot * components + k];
@@ -125,24 +159,7 @@ pub fn pack_btf(store: &BtfStore, max_components: usize) -> (Manifest, Vec<u8>) 
             }
         }
     }
-    let manifest = Manifest {
-        version: PACK_VERSION,
-        kind: "btf",
-        width: shape.width(),
-        height: shape.height(),
-        channels: shape.channels(),
-        components,
-        layers,
-        textures,
-        weights: Some(Section {
-            offset: weights_offset,
-            bytes: data.len() - weights_offset,
-            encoding: "f32le",
-        }),
-        light_table: Some(TableLayout::of(store.lights())),
-        view_table: Some(TableLayout::of(store.views())),
-        bytes: data.len(),
-    };
+    debug_assert_eq!(data.len(), manifest.bytes);
     (manifest, data)
 }
 
@@ -189,7 +206,6 @@ pub fn pack_photometric_stereo(
         }),
     );
     push_f16(&mut data, normals.iter().copied());
-    align4(&mut data);
     let manifest = Manifest {
         version: PACK_VERSION,
         kind: "photometric-stereo",

@@ -123,13 +123,44 @@ mod tests {
 
     #[tokio::test(start_paused = true)]
     async fn deadline_fires_in_physical_time() {
+        // 30 s physical at 10× is 3 s of wall time, above the floor.
         let clock = Clock::scaled(10.0);
         let r = clock
-            .deadline(Duration::from_secs(2), clock.sleep(Duration::from_secs(5)))
+            .deadline(
+                Duration::from_secs(30),
+                clock.sleep(Duration::from_secs(50)),
+            )
             .await;
-        assert_eq!(r, Err(DeadlineElapsed(Duration::from_secs(2))));
+        assert_eq!(r, Err(DeadlineElapsed(Duration::from_secs(30))));
         let s = clock.now_s();
-        assert!((2.0..2.1).contains(&s), "{s}");
+        assert!((30.0..30.1).contains(&s), "{s}");
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_sped_up_deadline_leaves_the_software_its_wall_time() {
+        // 5 s physical at 1000× would be 5 ms: the floor keeps 2 s of wall
+        // time, so a loaded machine's scheduling is not a silent device.
+        let clock = Clock::scaled(1000.0);
+        let r = clock
+            .deadline(
+                Duration::from_secs(5),
+                clock.sleep(Duration::from_secs(10_000)),
+            )
+            .await;
+        assert_eq!(r, Err(DeadlineElapsed(Duration::from_secs(5))));
+        let wall = clock.now().div_f64(1000.0);
+        assert!(
+            wall >= MIN_WALL_DEADLINE && wall < MIN_WALL_DEADLINE + Duration::from_millis(50),
+            "{wall:?}"
+        );
+        // Virtual time has no floor: its software costs no physical time.
+        let virt = Clock::virtual_time();
+        let before = virt.now();
+        let r = virt
+            .deadline(Duration::from_millis(5), virt.sleep(Duration::from_secs(1)))
+            .await;
+        assert!(r.is_err());
+        assert!(virt.now() - before < Duration::from_millis(10));
     }
 
     #[test]

@@ -39,19 +39,23 @@ fn relight_error(e: RelightError) -> ApiError {
     }
 }
 
-async fn packed(
+/// Runs `work` on the run's directory off the async threads.
+async fn on_run<T: Send + 'static>(
     d: &AppState,
     id: &str,
-    q: &BtfQuery,
-) -> Result<(rigd_process::webgl::Manifest, Vec<u8>), ApiError> {
+    work: impl FnOnce(&std::path::Path) -> Result<T, RelightError> + Send + 'static,
+) -> Result<T, ApiError> {
     let root = d
         .run_root(id)
         .ok_or_else(|| ApiError::not_found("no such run"))?;
-    let components = q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS);
-    tokio::task::spawn_blocking(move || relight::pack(&root, components))
+    tokio::task::spawn_blocking(move || work(&root))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
         .map_err(relight_error)
+}
+
+fn components(q: &BtfQuery) -> usize {
+    q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS)
 }
 
 /// The processed run's material for the viewer: the manifest of the blob at
@@ -68,7 +72,8 @@ pub async fn btf_manifest(
     q: Result<Query<BtfQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
     let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
-    let (manifest, _) = packed(&d, &id, &q).await?;
+    let max = components(&q);
+    let manifest = on_run(&d, &id, move |root| relight::manifest(root, max)).await?;
     let mut body =
         serde_json::to_value(&manifest).map_err(|e| ApiError::internal(e.to_string()))?;
     body["data_url"] = serde_json::Value::String(format!(
@@ -89,7 +94,8 @@ pub async fn btf_data(
     q: Result<Query<BtfQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
     let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
-    let (_, data) = packed(&d, &id, &q).await?;
+    let max = components(&q);
+    let (_, data) = on_run(&d, &id, move |root| relight::pack(root, max)).await?;
     Ok(([(header::CONTENT_TYPE, "application/octet-stream")], data).into_response())
 }
 
@@ -117,13 +123,7 @@ pub async fn btf_mesh(
             "density {density}: expected more than 0 and at most 64 tiles per unit"
         )));
     }
-    let root = d
-        .run_root(&id)
-        .ok_or_else(|| ApiError::not_found("no such run"))?;
-    let view = tokio::task::spawn_blocking(move || relight::mesh_view(&root, kind, density))
-        .await
-        .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(relight_error)?;
+    let view = on_run(&d, &id, move |root| relight::mesh_view(root, kind, density)).await?;
     Ok(axum::Json(view).into_response())
 }
 

@@ -4,7 +4,8 @@
 // compares the two. Left half: the BTF; right half: a plain texture.
 //
 // URL parameters (all optional): mesh=flat|cylinder|cloth, light=θ,φ,
-// view=θ,φ, size=N (pixels per half), exposure=X, mode=point|env.
+// view=θ,φ, size=N (pixels per half), exposure=X, mode=point|env,
+// components=C (fewer PCA components for a GPU with less room).
 // window.rigdViewer exposes the state for tests and scripts.
 
 const $ = (id) => document.getElementById(id);
@@ -324,7 +325,9 @@ async function fetchJson(url) {
 }
 
 async function loadMaterial() {
-  manifest = await fetchJson(`/api/v1/runs/${encodeURIComponent(run)}/btf`);
+  const comps = Number(params.get("components"));
+  const query = Number.isInteger(comps) && comps > 0 ? `?components=${comps}` : "";
+  manifest = await fetchJson(`/api/v1/runs/${encodeURIComponent(run)}/btf${query}`);
   if (manifest.version !== 1) throw new Error(`unknown pack version ${manifest.version}`);
   viewer.kind = manifest.kind;
   const r = await fetch(manifest.data_url);
@@ -343,6 +346,8 @@ async function loadMaterial() {
     for (const t of [manifest.light_table, manifest.view_table])
       for (const ring of t.rings)
         if (ring.members.length + 2 > MAX_ENTRIES) throw new Error(`a ring of ${ring.members.length} directions: the viewer takes at most ${MAX_ENTRIES - 2}`);
+    const maxSize = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    if (lights * c > maxSize) throw new Error(`${lights} lights × ${c} components exceed this GPU's ${maxSize}-texel rows: ask for fewer components (?components=)`);
     const w = manifest.components > 0
       ? new Float32Array(blob, manifest.weights.offset, manifest.weights.bytes / 4)
       : new Float32Array(lights * slots);
@@ -419,7 +424,7 @@ function toHalf(x) {
   const b = u32[0], sign = (b >>> 16) & 0x8000, e = ((b >>> 23) & 0xff) - 127 + 15, m = b & 0x7fffff;
   if (e <= 0) return sign;
   if (e >= 31) return sign | 0x7c00;
-  return sign | (e << 10) | ((m + 0x1000) >>> 13);
+  return sign | ((e << 10) + ((m + 0x1000) >>> 13)); // a rounding carry may bump the exponent
 }
 
 function setUniforms(shading) {
