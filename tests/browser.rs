@@ -1255,6 +1255,16 @@ async fn view_and_compare(
         shown.as_str().is_some_and(|t| t.contains("2 rows")),
         "{shown}"
     );
+    // The scenes a report can be computed for, corduroy chosen.
+    wait_js(
+        c,
+        "the trade-off scene choice",
+        20,
+        "const s = document.getElementById('tradeoff-scene'); \
+         return s.options.length > 3 ? s.value : null",
+        |v| v == "corduroy",
+    )
+    .await;
 }
 
 /// A two-row trade-off report where `rigd tradeoff --out DATA/tradeoff`

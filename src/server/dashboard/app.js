@@ -271,8 +271,9 @@ async function loadTradeoff() {
       const scenes = await api("GET", "/sim/scenes");
       for (const sc of scenes.scenes || scenes) sel.append(text("option", sc.name, { value: sc.name }));
       if ([...sel.options].some((o) => o.value === "corduroy")) sel.value = "corduroy";
-    } catch (_) {
-      /* the select stays empty: the daemon picks its scene */
+    } catch (e) {
+      // The select stays empty and the daemon picks its scene.
+      $("tradeoff-status").textContent = `scenes: ${errText(e)}`;
     }
   }
 }
