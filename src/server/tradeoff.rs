@@ -165,6 +165,15 @@ pub async fn start(
     );
     let daemon = d.clone();
     tokio::task::spawn_blocking(move || {
+        // Frees the daemon for the next computation however this ends,
+        // a panic included.
+        struct Busy(AppState);
+        impl Drop for Busy {
+            fn drop(&mut self) {
+                self.0.tradeoff_busy.store(false, Ordering::SeqCst);
+            }
+        }
+        let busy = Busy(daemon.clone());
         let out = daemon.data_dir.join(TRADEOFF_DIR);
         let hub = &daemon.hub;
         let result = crate::tradeoff::run(&daemon.profile, &scene, &cfg, &out, &|what| {
@@ -181,7 +190,7 @@ pub async fn start(
                 serde_json::json!({"state": "failed", "error": e.to_string()})
             }
         };
-        daemon.tradeoff_busy.store(false, Ordering::SeqCst);
+        drop(busy);
         hub.publish(None, "tradeoff", event);
     });
     Ok((axum::http::StatusCode::ACCEPTED, Json(started)))
