@@ -182,6 +182,7 @@ async fn dashboard_drives_a_run_in_chromium() {
         data.path(),
         port,
         SIM_SPEED,
+        None,
         &out.join("rigd.log"),
     );
     let http = reqwest::Client::new();
@@ -273,20 +274,30 @@ async fn chromium(procs: &mut Procs, out: &Path, profile: &Path, window: &str) -
     .expect("WebDriver session with Chromium")
 }
 
-fn spawn_daemon(procs: &mut Procs, data: &Path, port: u16, speed: &str, log: &Path) {
-    procs.spawn(
-        "rigd",
-        Command::new(env!("CARGO_BIN_EXE_rigd")).args([
-            "serve",
-            "--data",
-            data.to_str().expect("utf-8 path"),
-            "--listen",
-            &format!("127.0.0.1:{port}"),
-            "--sim-speed",
-            speed,
-        ]),
-        log,
-    );
+/// `rigd serve` on `data` at `speed`: the embedded simulated Bonn rig, or
+/// the simulation of the profile file `profile`.
+fn spawn_daemon(
+    procs: &mut Procs,
+    data: &Path,
+    port: u16,
+    speed: &str,
+    profile: Option<&Path>,
+    log: &Path,
+) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rigd"));
+    cmd.args([
+        "serve",
+        "--data",
+        data.to_str().expect("utf-8 path"),
+        "--listen",
+        &format!("127.0.0.1:{port}"),
+        "--sim-speed",
+        speed,
+    ]);
+    if let Some(profile) = profile {
+        cmd.args(["--sim", "--profile", profile.to_str().expect("utf-8 path")]);
+    }
+    procs.spawn("rigd", &mut cmd, log);
 }
 
 struct Ctx<'a> {
@@ -615,6 +626,7 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         ctx.data,
         ctx.port,
         SIM_SPEED,
+        None,
         &out.join("rigd-restarted.log"),
     );
     wait_http(
@@ -917,20 +929,12 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
     .expect("Bonn profile")
     .replace("[sim]\n", "[sim]\nscene = \"corduroy\"\n");
     std::fs::write(&profile, toml).expect("write the profile");
-    procs.spawn(
-        "rigd",
-        Command::new(env!("CARGO_BIN_EXE_rigd")).args([
-            "serve",
-            "--sim",
-            "--profile",
-            profile.to_str().expect("utf-8 path"),
-            "--data",
-            data.path().to_str().expect("utf-8 path"),
-            "--listen",
-            &format!("127.0.0.1:{port}"),
-            "--sim-speed",
-            "5000",
-        ]),
+    spawn_daemon(
+        &mut procs,
+        data.path(),
+        port,
+        "5000",
+        Some(&profile),
         &out.join("rigd-viewer.log"),
     );
     let http = reqwest::Client::new();

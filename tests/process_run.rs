@@ -1,5 +1,7 @@
 //! `rigd process rectify` and `rigd process btf` on simulated captures.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
@@ -123,20 +125,19 @@ fn a_capture_is_rectified_and_compressed() {
     assert!(rms[4] < 1e-4, "{rms:?}");
     // The reference render of the viewer, also with the light below the horizon.
     for (mesh, light) in [("cloth", "40,30"), ("flat", "100,0")] {
-        let out = rigd()
-            .args([
-                "process", "render", "--mesh", mesh, "--light", light, "--size", "80x60",
-            ])
-            .arg(&run)
-            .arg("--out")
-            .arg(&png)
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        common::run_ok(&[
+            "process",
+            "render",
+            "--mesh",
+            mesh,
+            "--light",
+            light,
+            "--size",
+            "80x60",
+            run.to_str().unwrap(),
+            "--out",
+            png.to_str().unwrap(),
+        ]);
         let img = rigd_process::image_io::load_png(&png).unwrap();
         assert_eq!((img.width, img.height, img.channels), (80, 60, 3));
     }
@@ -240,17 +241,19 @@ fn a_capture_is_rectified_and_compressed() {
     stored_fits_reproduce_the_report(&run, &rows);
 
     // The seed's 16-bit floats and edge blending; the BTF reads them.
-    let out = rigd()
-        .args(["process", "rectify", "--size", "256", "--final", "64"])
-        .args(["--bits", "half", "--blend", "8"])
-        .arg(&run)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    common::run_ok(&[
+        "process",
+        "rectify",
+        "--size",
+        "256",
+        "--final",
+        "64",
+        "--bits",
+        "half",
+        "--blend",
+        "8",
+        run.to_str().unwrap(),
+    ]);
     let index: serde_json::Value = serde_json::from_slice(
         &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
     )

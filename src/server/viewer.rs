@@ -54,8 +54,10 @@ async fn on_run<T: Send + 'static>(
         .map_err(relight_error)
 }
 
-fn components(q: &BtfQuery) -> usize {
-    q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS)
+/// The components asked for, at most [`MAX_COMPONENTS`]; a malformed query is a 400.
+fn components(q: Result<Query<BtfQuery>, QueryRejection>) -> Result<usize, ApiError> {
+    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
+    Ok(q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS))
 }
 
 /// The processed run's material for the viewer: the manifest of the blob at
@@ -71,8 +73,7 @@ pub async fn btf_manifest(
     ApiPath(id): ApiPath<String>,
     q: Result<Query<BtfQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
-    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
-    let max = components(&q);
+    let max = components(q)?;
     let manifest = on_run(&d, &id, move |root| relight::manifest(root, max)).await?;
     let mut body =
         serde_json::to_value(&manifest).map_err(|e| ApiError::internal(e.to_string()))?;
@@ -93,8 +94,7 @@ pub async fn btf_data(
     ApiPath(id): ApiPath<String>,
     q: Result<Query<BtfQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
-    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
-    let max = components(&q);
+    let max = components(q)?;
     let (_, data) = on_run(&d, &id, move |root| relight::pack(root, max)).await?;
     Ok(([(header::CONTENT_TYPE, "application/octet-stream")], data).into_response())
 }
