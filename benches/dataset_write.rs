@@ -9,7 +9,7 @@ use std::io::Write;
 use std::time::Instant;
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use rigd::hal::Frame;
+use rigd::rig::hal::Frame;
 use rigd::store::{FrameEntry, RunDir};
 
 const W: u32 = 1024;

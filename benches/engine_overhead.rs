@@ -15,10 +15,11 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use rigd::engine::{PausePolicy, RunState};
-use rigd::profile::Profile;
-use rigd::runner::{prepare_new, NewRun};
-use rigd::sim::Clock;
+use rigd::engine::launch::{prepare_new, NewRun};
+use rigd::engine::PausePolicy;
+use rigd::model::profile::Profile;
+use rigd::model::run_state::RunState;
+use rigd_core::Clock;
 
 fn scratch_root() -> PathBuf {
     let shm = PathBuf::from("/dev/shm");
@@ -120,7 +121,7 @@ fn one_stop(frames: usize) -> (Duration, f64, usize) {
         assert!(report.all_stopped(), "{report:?}");
         handle
             .commands
-            .send(rigd::engine::Command::Abort)
+            .send(rigd::engine::command::Command::Abort)
             .await
             .expect("abort");
         engine.await.expect("join").expect("engine");

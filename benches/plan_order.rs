@@ -7,8 +7,8 @@
 use std::time::Duration;
 
 use criterion::{criterion_group, criterion_main, Criterion};
-use rigd::ordering::Order;
-use rigd::profile::Profile;
+use rigd::model::profile::Profile;
+use rigd::plan::Order;
 
 fn big_plan(dir: &std::path::Path) -> std::path::PathBuf {
     let dirs = |n: usize, seed: f64| -> Vec<serde_json::Value> {
@@ -44,7 +44,7 @@ fn bench(c: &mut Criterion) {
     g.sample_size(10).measurement_time(Duration::from_secs(20));
     for order in [Order::Naive, Order::Optimised] {
         g.bench_function(format!("h1_6561_{order:?}"), |b| {
-            b.iter(|| rigd::runner::solve_plan(&profile, "h1", Some(order)).expect("solve"))
+            b.iter(|| rigd::engine::launch::solve_plan(&profile, "h1", Some(order)).expect("solve"))
         });
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -52,7 +52,7 @@ fn bench(c: &mut Criterion) {
     let spec = path.to_string_lossy().into_owned();
     let before = rss_kib();
     let (_, _, s) =
-        rigd::runner::solve_plan(&profile, &spec, Some(Order::Optimised)).expect("solve");
+        rigd::engine::launch::solve_plan(&profile, &spec, Some(Order::Optimised)).expect("solve");
     eprintln!(
         "100 000-step plan: {} images, resident memory grew by {} MiB",
         s.images.len(),
@@ -61,7 +61,10 @@ fn bench(c: &mut Criterion) {
     drop(s);
     g.sample_size(10).measurement_time(Duration::from_secs(60));
     g.bench_function("file_100000_Optimised", |b| {
-        b.iter(|| rigd::runner::solve_plan(&profile, &spec, Some(Order::Optimised)).expect("solve"))
+        b.iter(|| {
+            rigd::engine::launch::solve_plan(&profile, &spec, Some(Order::Optimised))
+                .expect("solve")
+        })
     });
     g.finish();
 }

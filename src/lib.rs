@@ -1,29 +1,21 @@
 //! rigd: control daemon for BTF (bidirectional texture function) measurement
-//! rigs. See the README for the commands and `../DESIGN.md`-style notes in
-//! `docs/` for the architecture.
+//! rigs. See the README for the commands and `docs/architecture.md` for the
+//! layers and the rule of what may depend on what.
 //!
-//! Data flows: [`profile`] → [`kinematics`] (poses) and [`plan`] (pairs) →
-//! [`schedule`] (ordered triggers) → [`engine`] (drives the [`hal`] rig) →
-//! [`store`] (the dataset on disk).
+//! The layers, lowest first; a module uses only those above it in this list:
+//! [`model`] (profile, geometry, run state) → [`plan`] and [`kinematics`] →
+//! [`schedule`] (ordered triggers, timing) → [`rig`] (device traits,
+//! drivers, rig assembly) → [`store`] (the dataset on disk) → [`engine`]
+//! (drives the rig through a schedule into the store) → [`postprocess`] →
+//! [`tradeoff`] → [`server`]. The command line (`src/cli/`) sits on top.
 
-pub mod connect;
-pub mod drivers;
 pub mod engine;
-pub mod geometry;
-pub mod hal;
 pub mod kinematics;
-pub mod laser;
-pub mod mdf_run;
-pub mod ordering;
+pub mod model;
 pub mod plan;
 pub mod postprocess;
-pub mod profile;
-pub mod relight;
-pub mod runner;
+pub mod rig;
 pub mod schedule;
 pub mod server;
-pub mod sim_render;
 pub mod store;
 pub mod tradeoff;
-
-pub use rigd_sim as sim;

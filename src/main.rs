@@ -7,13 +7,16 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context};
 use clap::{Args, Parser, Subcommand};
-use rigd::engine::{Command, EventKind, Outcome, PausePolicy, RunState};
-use rigd::geometry::Direction;
-use rigd::ordering::Order;
-use rigd::profile::{Profile, DEFAULT_PROFILE};
-use rigd::runner::{self, NewRun};
-use rigd::schedule::Timing;
-use rigd::sim::{Clock, FaultRule};
+use rigd::engine::command::Command;
+use rigd::engine::launch::{self, NewRun};
+use rigd::engine::{EventKind, Outcome, PausePolicy};
+use rigd::model::geometry::Direction;
+use rigd::model::profile::{Profile, DEFAULT_PROFILE};
+use rigd::model::run_state::RunState;
+use rigd::plan::Order;
+use rigd::schedule::timing::Timing;
+use rigd_core::Clock;
+use rigd_sim::FaultRule;
 
 /// Exit codes, so scripts can tell what happened.
 const EXIT_PAUSED: u8 = 3;
@@ -164,7 +167,7 @@ struct RelightArgs {
     #[arg(long, value_parser = parse_orbit, default_value = "35,270")]
     view: rigd_process::directions::Direction,
     /// Image size WIDTHxHEIGHT.
-    #[arg(long, default_value = "512x512", value_parser = rigd::sim_render::parse_frame_size)]
+    #[arg(long, default_value = "512x512", value_parser = rigd::rig::shot::parse_frame_size)]
     size: [u32; 2],
     /// Multiplies the BTF's values before display.
     #[arg(long, default_value_t = 1.0)]
@@ -177,7 +180,7 @@ struct RelightArgs {
     #[arg(long, value_enum, default_value_t = ShadingArg::Btf)]
     shading: ShadingArg,
     /// Material tiles per world unit (the flat sample is 2 units across).
-    #[arg(long, default_value_t = rigd::relight::DEFAULT_DENSITY)]
+    #[arg(long, default_value_t = rigd::postprocess::viewer::DEFAULT_DENSITY)]
     density: f64,
     /// The PNG to write.
     #[arg(long)]
@@ -191,7 +194,7 @@ enum ShadingArg {
 }
 
 fn parse_angles(s: &str, theta_max: f64) -> Result<rigd_process::directions::Direction, String> {
-    let d = rigd::sim_render::parse_direction_within(s, theta_max)?;
+    let d = rigd::rig::shot::parse_direction_within(s, theta_max)?;
     Ok(rigd_process::directions::Direction::new(
         d.theta_deg,
         d.phi_deg,
@@ -212,8 +215,8 @@ struct MdfArgs {
     run: PathBuf,
     /// calibrated (the seed's: planes of a sweep parallel, at the
     /// calibrated angle) or emitter (planes through the profile's emitter).
-    #[arg(long, value_enum, default_value_t = rigd::mdf_run::PlaneModel::Calibrated)]
-    planes: rigd::mdf_run::PlaneModel,
+    #[arg(long, value_enum, default_value_t = rigd::postprocess::mdf::PlaneModel::Calibrated)]
+    planes: rigd::postprocess::mdf::PlaneModel,
     /// Use this many of the run's source positions, evenly picked [default: all].
     #[arg(long)]
     sources: Option<usize>,
@@ -251,7 +254,7 @@ struct TradeoffArgs {
     #[arg(long, default_value_t = 16)]
     components: usize,
     /// Frame size of the fidelity renders, WIDTHxHEIGHT.
-    #[arg(long, default_value = "256x192", value_parser = rigd::sim_render::parse_frame_size)]
+    #[arg(long, default_value = "256x192", value_parser = rigd::rig::shot::parse_frame_size)]
     render_size: [u32; 2],
 }
 
@@ -369,16 +372,16 @@ struct RenderArgs {
     #[arg(long)]
     scene: Option<String>,
     /// Light direction θ,φ in degrees, sample frame.
-    #[arg(long, value_parser = rigd::sim_render::parse_direction, default_value = "0,0")]
+    #[arg(long, value_parser = rigd::rig::shot::parse_direction, default_value = "0,0")]
     light: Direction,
     /// View direction θ,φ in degrees, sample frame.
-    #[arg(long, value_parser = rigd::sim_render::parse_direction, default_value = "0,0")]
+    #[arg(long, value_parser = rigd::rig::shot::parse_direction, default_value = "0,0")]
     view: Direction,
     /// Camera of the profile [default: its first]
     #[arg(long)]
     camera: Option<String>,
     /// Frame size WIDTHxHEIGHT [default: the profile's [sim] frame_size]
-    #[arg(long, value_parser = rigd::sim_render::parse_frame_size)]
+    #[arg(long, value_parser = rigd::rig::shot::parse_frame_size)]
     size: Option<[u32; 2]>,
     /// Effect switches: `all`, `none`, or a list like `+interreflection,-noise`.
     #[arg(long, default_value = "")]
@@ -489,7 +492,7 @@ struct RunArgs {
     #[arg(long)]
     out: Option<PathBuf>,
     /// Simulated frame size, WIDTHxHEIGHT [default: the profile's [sim] frame_size]
-    #[arg(long, value_parser = rigd::sim_render::parse_frame_size)]
+    #[arg(long, value_parser = rigd::rig::shot::parse_frame_size)]
     frame_size: Option<[u32; 2]>,
     /// Scene the simulated cameras render: a built-in name (`rigd sim
     /// scenes`) or a scene file [default: the profile's [sim] scene, else
@@ -658,7 +661,7 @@ fn profile_cmd(cmd: ProfileCmd) -> anyhow::Result<()> {
             );
         }
         ProfileCmd::List => {
-            for (name, _) in rigd::profile::EMBEDDED {
+            for (name, _) in rigd::model::profile::EMBEDDED {
                 let p = Profile::load(name)?;
                 println!("{name}\t{}", p.description);
             }
@@ -824,7 +827,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         };
         let prepared = match &args.resume {
             Some(dir) => {
-                runner::prepare_resume(dir, args.sim_faults.clone(), clock, PausePolicy::Return)
+                launch::prepare_resume(dir, args.sim_faults.clone(), clock, PausePolicy::Return)
                     .await
                     .with_context(|| format!("cannot resume {}", dir.display()))?
             }
@@ -837,7 +840,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
                 if let Some(scene) = &args.scene {
                     // The run records its profile, so a resume renders
                     // the same scene.
-                    rigd::sim::scene::Scene::load(scene)?;
+                    rigd_sim::scene::Scene::load(scene)?;
                     profile.sim.scene = Some(scene.clone());
                 }
                 let plan = args
@@ -872,7 +875,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
                     simulated,
                     order: args.order,
                 };
-                runner::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)
+                launch::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)
                     .await?
             }
         };
@@ -888,7 +891,7 @@ fn plan_stem(plan: &str) -> String {
 }
 
 /// Runs the engine with a progress display and signal handling; prints the summary.
-async fn drive(p: runner::Prepared, progress: Progress) -> anyhow::Result<ExitCode> {
+async fn drive(p: launch::Prepared, progress: Progress) -> anyhow::Result<ExitCode> {
     let wall = Instant::now();
     let root = p.root.clone();
     let mut events = p.handle.events.subscribe();
@@ -1041,10 +1044,10 @@ fn sim_render(args: RenderArgs) -> anyhow::Result<()> {
     let laser = args
         .laser
         .as_deref()
-        .map(rigd::sim_render::parse_laser)
+        .map(rigd::rig::shot::parse_laser)
         .transpose()
         .map_err(|e| anyhow::anyhow!("--laser {e}"))?;
-    let req = rigd::sim_render::RenderRequest {
+    let req = rigd::rig::shot::RenderRequest {
         scene: args.scene,
         camera: args.camera,
         light: args.light,
@@ -1057,7 +1060,7 @@ fn sim_render(args: RenderArgs) -> anyhow::Result<()> {
         lamp_off: args.lamp_off,
         zoom: args.zoom,
     };
-    let out = rigd::sim_render::render(&profile, &req)?;
+    let out = rigd::rig::shot::render(&profile, &req)?;
     let meta_path = out.write(&args.out)?;
     println!(
         "{}: scene {} from {} at light {:.1},{:.1} view {:.1},{:.1}, {}x{} {}-bit, effects {} ({:.1} ms); metadata in {}",
@@ -1102,7 +1105,7 @@ fn photometric_stereo(args: PsArgs) -> anyhow::Result<()> {
     };
     let out = match (&args.out, &args.run) {
         (Some(out), _) => out.clone(),
-        (None, Some(run)) => rigd::relight::ps_dir(run),
+        (None, Some(run)) => rigd::postprocess::viewer::ps_dir(run),
         (None, None) => bail!("--out DIR is needed with --images"),
     };
     if let Some(mask) = &args.mask {
@@ -1329,7 +1332,7 @@ fn relight(args: RelightArgs) -> anyhow::Result<()> {
         },
     };
     let started = Instant::now();
-    let img = rigd::relight::render_run(&args.run, args.mesh, args.density, &settings)?;
+    let img = rigd::postprocess::viewer::render_run(&args.run, args.mesh, args.density, &settings)?;
     let data = img.pixels.iter().map(|&v| f32::from(v) / 255.0).collect();
     let image = rigd_process::image_io::Image {
         width: img.width,
@@ -1359,14 +1362,14 @@ fn mdf(args: MdfArgs) -> anyhow::Result<()> {
         bail!("--sigma {}: expected 0 ..= 20 pixels", args.sigma);
     }
     let run = rigd::postprocess::RunFrames::open(&args.run)?;
-    let cfg = rigd::mdf_run::MdfConfig {
+    let cfg = rigd::postprocess::mdf::MdfConfig {
         sigma_px: args.sigma,
         threshold: args.threshold,
         line_threshold: args.line_threshold,
         planes: args.planes,
         sources: args.sources,
     };
-    let report = rigd::mdf_run::mdf_run(&run, &cfg, &progress_line("sweeps analysed"))?;
+    let report = rigd::postprocess::mdf::mdf_run(&run, &cfg, &progress_line("sweeps analysed"))?;
     for why in &report.skipped {
         eprintln!("warning: left out: {why}");
     }
@@ -1399,8 +1402,8 @@ fn mdf(args: MdfArgs) -> anyhow::Result<()> {
 }
 
 fn sim_scenes() -> anyhow::Result<()> {
-    for name in rigd::sim::scene::Scene::builtin_names() {
-        let scene = rigd::sim::scene::Scene::load(name)?;
+    for name in rigd_sim::scene::Scene::builtin_names() {
+        let scene = rigd_sim::scene::Scene::load(name)?;
         println!(
             "{name}\t{}\n\t{}",
             scene.description,
@@ -1427,7 +1430,7 @@ fn sim_serve(
         .context("cannot start the runtime")?;
     runtime.block_on(async move {
         let clock = Clock::scaled(speed);
-        let served = rigd::connect::serve::serve(&profile, faults, &clock)
+        let served = rigd::rig::serve::serve(&profile, faults, &clock)
             .await
             .context("cannot serve the simulated rig")?;
         let toml = toml::to_string(&served.profile).context("cannot write the served profile")?;

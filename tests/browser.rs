@@ -905,8 +905,13 @@ async fn viewer_case(
         ..Default::default()
     };
     let kind = mesh.parse().expect("mesh kind");
-    let want = rigd::relight::render_run(run, kind, rigd::relight::DEFAULT_DENSITY, &settings)
-        .expect("reference render");
+    let want = rigd::postprocess::viewer::render_run(
+        run,
+        kind,
+        rigd::postprocess::viewer::DEFAULT_DENSITY,
+        &settings,
+    )
+    .expect("reference render");
     (got, want)
 }
 
@@ -1308,7 +1313,7 @@ fn write_tradeoff_report(data: &Path) {
 /// Albedo and normals of a field of bumps (32² texels), as
 /// `rigd process photometric-stereo` writes them.
 fn write_bump_maps(run: &Path) {
-    let dir = rigd::relight::ps_dir(run);
+    let dir = rigd::postprocess::viewer::ps_dir(run);
     std::fs::create_dir_all(&dir).expect("processed/ps");
     let n = 32usize;
     let mut normals = Vec::with_capacity(n * n * 3);

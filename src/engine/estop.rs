@@ -7,10 +7,10 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use futures::future::join_all;
-use rigd_sim::Clock;
+use rigd_core::Clock;
 use serde::{Deserialize, Serialize};
 
-use crate::hal::EmergencyStop;
+use crate::rig::hal::EmergencyStop;
 
 /// How long one device may take to acknowledge its stop (physical time).
 pub const STOP_DEADLINE_S: f64 = 2.0;

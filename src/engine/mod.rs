@@ -8,8 +8,9 @@
 //! that can be retaken) are retried first. A frame counts as taken once its
 //! journal line is fsynced, so a resumed run repeats and loses nothing.
 
+pub mod command;
 pub mod estop;
-pub mod state;
+pub mod launch;
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::future::Future;
@@ -17,17 +18,21 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use futures::future::join_all;
-use rigd_sim::Clock;
+use rigd_core::Clock;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
+use crate::model::run_state::RunState;
+use command::{check_command, Command};
 pub use estop::{EStop, StopAck, StopReport};
-pub use state::{check_command, Command, Refused, RunState};
 
-use crate::hal::{Arm, Axis, Camera, DeviceError, ErrorKind, Fixture, Frame, Lamp, LaserLine, Rig};
 use crate::kinematics::Setpoints;
-use crate::profile::Profile;
-use crate::schedule::{Schedule, Timing};
+use crate::model::profile::Profile;
+use crate::rig::hal::{
+    Arm, Axis, Camera, DeviceError, ErrorKind, Fixture, Frame, Lamp, LaserLine, Rig,
+};
+use crate::schedule::timing::Timing;
+use crate::schedule::Schedule;
 use crate::store::{
     now_rfc3339, FrameEntry, InfeasibleEntry, Manifest, RunDir, RunMeta, StateRecord, StoreError,
     RUN_FORMAT,
@@ -609,7 +614,7 @@ impl Engine {
     async fn sweep_frames(
         &mut self,
         members: &[usize],
-        run: &crate::laser::LaserRun,
+        run: &crate::schedule::laser::LaserRun,
         t0: f64,
         period: f64,
     ) -> Result<(), StepFault> {

@@ -7,8 +7,8 @@
 
 use std::collections::BTreeMap;
 
-use crate::geometry::{angle_between, Direction};
-use crate::profile::{Profile, RigGeometry};
+use crate::model::geometry::{angle_between, Direction};
+use crate::model::profile::{Profile, RigGeometry};
 
 use super::{reason_from, sanitize, tidy, KinematicsError, PoseSolution, Setpoints, ANGLE_TOL_DEG};
 

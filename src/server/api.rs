@@ -12,10 +12,12 @@ use super::error::{ApiError, ApiJson, ApiPath, ErrorBody};
 use super::events::{self, DaemonEvent};
 use super::model::*;
 use super::state::Daemon;
-use crate::engine::{Command, RunState};
+use crate::engine::command::Command;
+use crate::model::profile::DeviceKind;
+use crate::model::run_state::RunState;
 use crate::plan::BUILTIN_PLANS;
-use crate::profile::DeviceKind;
-use crate::schedule::{Schedule, Timing};
+use crate::schedule::timing::Timing;
+use crate::schedule::Schedule;
 
 pub type AppState = Arc<Daemon>;
 
@@ -209,7 +211,7 @@ async fn builtin_schedule(d: &AppState, name: &str) -> Result<Arc<Schedule>, Api
     let profile = d.profile.clone();
     let n = name.to_string();
     let schedule =
-        tokio::task::spawn_blocking(move || crate::runner::solve_plan(&profile, &n, None))
+        tokio::task::spawn_blocking(move || crate::engine::launch::solve_plan(&profile, &n, None))
             .await
             .map_err(|e| ApiError::internal(e.to_string()))?
             .map_err(|e| ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, e.to_string()))?;
@@ -304,7 +306,7 @@ pub async fn list_runs(State(d): State<AppState>) -> Json<RunList> {
 fn mark_processed(d: &Daemon, run: &mut RunView) {
     run.processed = d
         .run_root(&run.id)
-        .and_then(|root| crate::relight::processed_kind(&root))
+        .and_then(|root| crate::postprocess::viewer::processed_kind(&root))
         .map(str::to_string);
 }
 
@@ -620,7 +622,7 @@ pub async fn sim_render(
     let axum::extract::Query(q) = query.map_err(|e| ApiError::bad_request(e.body_text()))?;
     let req = render_request(&q).map_err(ApiError::bad_request)?;
     let profile = d.profile.clone();
-    let out = tokio::task::spawn_blocking(move || crate::sim_render::render(&profile, &req))
+    let out = tokio::task::spawn_blocking(move || crate::rig::shot::render(&profile, &req))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
         .map_err(|e| ApiError::invalid(e.to_string()))?;
@@ -639,8 +641,8 @@ pub async fn sim_render(
     Ok((headers, png).into_response())
 }
 
-fn render_request(q: &RenderQuery) -> Result<crate::sim_render::RenderRequest, String> {
-    use crate::sim_render::{parse_direction, parse_frame_size, parse_laser, RenderRequest};
+fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, String> {
+    use crate::rig::shot::{parse_direction, parse_frame_size, parse_laser, RenderRequest};
     let dir = |v: &Option<String>, what: &str| match v {
         Some(s) => parse_direction(s)
             .map(Some)

@@ -133,7 +133,7 @@ mod tests {
 
     #[test]
     fn preview_downscales_to_8_bit() {
-        let frame = crate::hal::Frame {
+        let frame = crate::rig::hal::Frame {
             width: 600,
             height: 300,
             bit_depth: 12,

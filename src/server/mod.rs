@@ -35,7 +35,7 @@ use tokio::task::JoinHandle;
 use utoipa::OpenApi;
 use utoipa_swagger_ui::SwaggerUi;
 
-use crate::profile::{Profile, DEFAULT_PROFILE};
+use crate::model::profile::{Profile, DEFAULT_PROFILE};
 
 /// Largest request body accepted.
 pub const BODY_LIMIT: usize = 64 * 1024;
@@ -63,7 +63,7 @@ pub struct ServerConfig {
     pub token_file: Option<PathBuf>,
     /// Faults injected into the simulated rig of every new run (demos and
     /// tests of fault handling).
-    pub sim_faults: Vec<crate::sim::FaultRule>,
+    pub sim_faults: Vec<rigd_sim::FaultRule>,
 }
 
 impl ServerConfig {
@@ -85,7 +85,7 @@ impl ServerConfig {
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
     #[error(transparent)]
-    Profile(#[from] crate::profile::ProfileError),
+    Profile(#[from] crate::model::profile::ProfileError),
     #[error("--sim-speed {0}: expected a positive number")]
     Speed(f64),
     #[error("data directory {path}: {why}")]

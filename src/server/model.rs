@@ -3,7 +3,7 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use crate::geometry::Direction;
+use crate::model::geometry::Direction;
 
 /// A direction in the sample frame, degrees.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
@@ -87,7 +87,7 @@ pub struct RunRequest {
     /// `optimised` (default: the shortest physical time under the motion
     /// model) or `naive` (the plan's nested-loop order).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub order: Option<crate::ordering::Order>,
+    pub order: Option<crate::plan::Order>,
 }
 
 /// A run as the API shows it.

@@ -299,7 +299,7 @@ mod tests {
                 notes: Some("n".into()),
                 exposure_s: Some(0.5),
                 frame_size: Some([8, 8]),
-                order: Some(crate::ordering::Order::Naive),
+                order: Some(crate::plan::Order::Naive),
             },
             created_at: "2026-01-01T00:00:00Z".into(),
         };

@@ -15,16 +15,15 @@ use super::events::EventHub;
 use super::model::{PlanSpec, QueueItem, RunRequest, RunView};
 use super::persist::{self, RUNS_DIR};
 use super::ServerConfig;
-use crate::connect::sim::SimHandle;
-use crate::engine::{
-    check_command, Command, EngineError, EngineHandle, EventKind, Outcome, PausePolicy, RunEvent,
-    RunState,
-};
+use crate::engine::command::{check_command, Command};
+use crate::engine::launch::{self, NewRun, Prepared, RunError};
+use crate::engine::{EngineError, EngineHandle, EventKind, Outcome, PausePolicy, RunEvent};
+use crate::model::profile::Profile;
+use crate::model::run_state::RunState;
 use crate::plan::{self, BUILTIN_PLANS};
-use crate::profile::Profile;
-use crate::runner::{self, NewRun, Prepared, RunError};
+use crate::rig::sim::SimHandle;
 use crate::schedule::Schedule;
-use crate::sim::Clock;
+use rigd_core::Clock;
 
 /// The run an engine drives.
 pub struct Active {
@@ -198,7 +197,7 @@ impl Daemon {
                     )));
                 }
                 let (_, plan, _) =
-                    runner::solve_plan(&self.profile, name, req.order).map_err(run_error)?;
+                    launch::solve_plan(&self.profile, name, req.order).map_err(run_error)?;
                 Ok(plan)
             }
             PlanSpec::Inline(p) => {
@@ -273,8 +272,8 @@ impl Daemon {
         // firmware tasks are spawned onto this runtime from there.
         let rt = tokio::runtime::Handle::current();
         let prepared = tokio::task::spawn_blocking(move || {
-            let solved = runner::solve_given_plan(&profile, plan)?;
-            rt.block_on(runner::prepare_new_solved(
+            let solved = launch::solve_given_plan(&profile, plan)?;
+            rt.block_on(launch::prepare_new_solved(
                 new,
                 solved,
                 faults,
@@ -646,7 +645,7 @@ impl Daemon {
         // Resuming re-checks every frame's checksum: blocking work.
         let rt = tokio::runtime::Handle::current();
         let prepared = tokio::task::spawn_blocking(move || {
-            rt.block_on(runner::prepare_resume(
+            rt.block_on(launch::prepare_resume(
                 &r,
                 Vec::new(),
                 clock,
@@ -707,7 +706,7 @@ impl Daemon {
         let meta: crate::store::RunMeta =
             serde_json::from_slice(&bytes).map_err(|e| ApiError::internal(e.to_string()))?;
         let (_, _, schedule) =
-            runner::solve_given_plan(&meta.profile, meta.plan).map_err(run_error)?;
+            launch::solve_given_plan(&meta.profile, meta.plan).map_err(run_error)?;
         let schedule = Arc::new(schedule);
         let mut cache = lock(&self.schedules);
         if cache.len() >= 16 {

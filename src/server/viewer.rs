@@ -10,7 +10,7 @@ use serde::Deserialize;
 
 use super::api::AppState;
 use super::error::{ApiError, ApiPath};
-use crate::relight::{self, RelightError, DEFAULT_DENSITY};
+use crate::postprocess::viewer::{self, RelightError, DEFAULT_DENSITY};
 
 pub const VIEWER_HTML: &str = include_str!("dashboard/viewer.html");
 pub const VIEWER_JS: &str = include_str!("dashboard/viewer.js");
@@ -74,7 +74,7 @@ pub async fn btf_manifest(
     q: Result<Query<BtfQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
     let max = components(q)?;
-    let manifest = on_run(&d, &id, move |root| relight::manifest(root, max)).await?;
+    let manifest = on_run(&d, &id, move |root| viewer::manifest(root, max)).await?;
     let mut body =
         serde_json::to_value(&manifest).map_err(|e| ApiError::internal(e.to_string()))?;
     body["data_url"] = serde_json::Value::String(format!(
@@ -95,7 +95,7 @@ pub async fn btf_data(
     q: Result<Query<BtfQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
     let max = components(q)?;
-    let (_, data) = on_run(&d, &id, move |root| relight::pack(root, max)).await?;
+    let (_, data) = on_run(&d, &id, move |root| viewer::pack(root, max)).await?;
     Ok(([(header::CONTENT_TYPE, "application/octet-stream")], data).into_response())
 }
 
@@ -123,7 +123,7 @@ pub async fn btf_mesh(
             "density {density}: expected more than 0 and at most 64 tiles per unit"
         )));
     }
-    let view = on_run(&d, &id, move |root| relight::mesh_view(root, kind, density)).await?;
+    let view = on_run(&d, &id, move |root| viewer::mesh_view(root, kind, density)).await?;
     Ok(axum::Json(view).into_response())
 }
 

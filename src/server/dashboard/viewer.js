@@ -1,6 +1,6 @@
 // rigd BTF viewer: relights a processed run on a mesh with WebGL2.
 // The image is computed exactly as `rigd process render` computes it on
-// the CPU (process/src/render.rs documents each step); the browser test
+// the CPU (crates/process/src/render.rs documents each step); the browser test
 // compares the two. Left half: the BTF; right half: a plain texture.
 //
 // URL parameters (all optional): mesh=flat|cylinder|cloth, light=θ,φ,
@@ -12,7 +12,7 @@ const $ = (id) => document.getElementById(id);
 const run = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
 const params = new URLSearchParams(location.search);
 
-// Constants shared with process/src/render.rs.
+// Constants shared with crates/process/src/render.rs.
 const CAMERA_DISTANCE = 4.5, FOV_DEG = 40, NEAR = 0.1, FAR = 20;
 const BACKGROUND = 0.12, SHADOW_SOFTNESS = 0.05, DISPLAY_GAMMA = 2.2;
 const MAX_ENTRIES = 64; // interpolation entries per table in the shader
@@ -103,7 +103,7 @@ void main() {
 }`;
 
 // Eq. 3 / eq. 5 interpolation over a ring table, as
-// process/src/directions.rs does it. Tables live in uTables (RGBA32F):
+// crates/process/src/directions.rs does it. Tables live in uTables (RGBA32F):
 // row 2T holds rings (θ, first member, count, pole), row 2T+1 members
 // (φ, direction index). Entries go to e{L,V}_i / e{L,V}_w.
 const INTERP = (T, row) => `

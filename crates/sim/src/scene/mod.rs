@@ -1,0 +1,559 @@
+//! Scenes for the simulated cameras: a sample (heightfield, albedo, glossy
+//! lobe, subsurface blur, macro folds) on a holder plate with registration
+//! markers, read from `crates/sim/scenes/*.toml`, and the renderer that turns a
+//! frame request into a sensor image computing only the effects the scene
+//! and the request call for ([`effects`]). [`truth`] gives what a perfect
+//! rig would measure, for judging the post-processing.
+
+pub mod effects;
+mod holder;
+mod render;
+pub mod spec;
+mod surface;
+pub mod truth;
+mod visibility;
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+pub use effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
+pub use holder::{Holder, Marker};
+pub use render::{LaserLine, Rendered, Shot, WHITE_LEVEL};
+pub use spec::SceneSpec;
+use spec::{AlbedoSpec, HeightSpec, MacroSpec, SensorSpec};
+pub use surface::{dome, dome_normal, Grid, DOME_FIELD_MM};
+use visibility::VisibilityMaps;
+
+/// The scenes shipped with rigd, by name.
+const BUILTIN: &[(&str, &str)] = &[
+    (
+        "flat-calibration",
+        include_str!("../../scenes/flat-calibration.toml"),
+    ),
+    ("corduroy", include_str!("../../scenes/corduroy.toml")),
+    (
+        "knitted-wool",
+        include_str!("../../scenes/knitted-wool.toml"),
+    ),
+    ("leather", include_str!("../../scenes/leather.toml")),
+    (
+        "folded-cloth",
+        include_str!("../../scenes/folded-cloth.toml"),
+    ),
+    ("ps-target", include_str!("../../scenes/ps-target.toml")),
+];
+
+/// The scene simulated cameras render when a profile names none.
+pub const DEFAULT_SCENE: &str = "flat-calibration";
+
+#[derive(Debug, thiserror::Error)]
+pub enum SceneError {
+    #[error("{origin}: {message}")]
+    Invalid { origin: String, message: String },
+    #[error("unknown scene `{name}` (built in: {known}; or give a path to a .toml file)")]
+    Unknown { name: String, known: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+}
+
+fn invalid(origin: &str, message: impl Into<String>) -> SceneError {
+    SceneError::Invalid {
+        origin: origin.to_string(),
+        message: message.into(),
+    }
+}
+
+/// The glossy lobe in renderer units.
+#[derive(Debug, Clone, Copy)]
+pub struct Specular {
+    pub strength: f64,
+    pub alpha: [f64; 2],
+    /// Unit tangent in the sample plane.
+    pub tangent: [f64; 2],
+}
+
+/// A scene ready to render: grids baked, visibility maps computed.
+#[derive(Debug)]
+pub struct Scene {
+    pub name: String,
+    pub description: String,
+    /// Half the sample's sides, metres.
+    pub sample_half: [f64; 2],
+    pub holder: Holder,
+    pub(crate) relief: Option<Relief>,
+    pub(crate) albedo: Grid,
+    pub(crate) specular: Option<Specular>,
+    /// Subsurface blur standard deviation, metres.
+    pub(crate) subsurface: f64,
+    pub(crate) visibility: Option<VisibilityMaps>,
+    pub(crate) sensor: SensorSpec,
+    pub(crate) want: EffectSet,
+    pub(crate) forbid: EffectSet,
+    /// The heightfield as specified, for analytic checks.
+    pub heightfield: HeightSpec,
+    pub macro_shape: Option<MacroSpec>,
+}
+
+/// The sample's surface when it is not flat: total height (macro folds plus
+/// mesostructure) and its gradient.
+#[derive(Debug)]
+pub(crate) struct Relief {
+    pub height: Grid,
+    pub grad_x: Grid,
+    pub grad_y: Grid,
+    /// Highest point; the reference plane of the BTF and MDF (seed 002 §3).
+    pub top: f64,
+    /// The steepest slope, which bounds how far a ray can safely step.
+    pub max_slope: f64,
+}
+
+impl Scene {
+    /// Names of the built-in scenes.
+    pub fn builtin_names() -> Vec<&'static str> {
+        BUILTIN.iter().map(|(n, _)| *n).collect()
+    }
+
+    /// A built-in scene by name, or a scene file by path. Built-in scenes
+    /// are baked once per process and shared.
+    pub fn load(name_or_path: &str) -> Result<Arc<Scene>, SceneError> {
+        if let Some(i) = BUILTIN.iter().position(|(n, _)| *n == name_or_path) {
+            static CACHE: OnceLock<Vec<OnceLock<Arc<Scene>>>> = OnceLock::new();
+            let cache = CACHE.get_or_init(|| BUILTIN.iter().map(|_| OnceLock::new()).collect());
+            if let Some(s) = cache[i].get() {
+                return Ok(s.clone());
+            }
+            let (name, text) = BUILTIN[i];
+            let scene = Arc::new(Scene::from_toml(text, &format!("scene `{name}`"), None)?);
+            return Ok(cache[i].get_or_init(|| scene).clone());
+        }
+        let path = Path::new(name_or_path);
+        if path.extension().is_some_and(|e| e == "toml") || path.exists() {
+            let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
+                path: path.to_path_buf(),
+                source,
+            })?;
+            return Ok(Arc::new(Scene::from_toml(
+                &text,
+                &path.display().to_string(),
+                path.parent(),
+            )?));
+        }
+        Err(SceneError::Unknown {
+            name: name_or_path.to_string(),
+            known: Scene::builtin_names().join(", "),
+        })
+    }
+
+    /// Parses, validates and bakes a scene. `base_dir` resolves image paths.
+    pub fn from_toml(
+        text: &str,
+        origin: &str,
+        base_dir: Option<&Path>,
+    ) -> Result<Scene, SceneError> {
+        let spec: SceneSpec = toml::from_str(text)
+            .map_err(|e| invalid(origin, e.to_string().trim().replace('\n', " ")))?;
+        Scene::build(spec, origin, base_dir)
+    }
+
+    fn build(spec: SceneSpec, origin: &str, base_dir: Option<&Path>) -> Result<Scene, SceneError> {
+        validate(&spec, origin)?;
+        let (mut want, mut forbid) = (EffectSet::NONE, EffectSet::NONE);
+        for (name, on) in &spec.effects {
+            let e: Effect = name
+                .parse()
+                .map_err(|m: String| invalid(origin, format!("effects.{name}: {m}")))?;
+            if *on {
+                want.insert(e);
+            } else {
+                forbid.insert(e);
+            }
+        }
+        let s = &spec.sample;
+        let half = [s.size_mm[0] * 5e-4, s.size_mm[1] * 5e-4];
+        let texel = 2.0 * half[0].max(half[1]) / s.resolution as f64;
+        let nx = ((2.0 * half[0] / texel).round() as usize).max(2);
+        let ny = ((2.0 * half[1] / texel).round() as usize).max(2);
+        let load_image = |path: &str, key: &str| -> Result<Grid, SceneError> {
+            let full = base_dir.map_or_else(|| PathBuf::from(path), |d| d.join(path));
+            let img = read_grey_png(&full)
+                .map_err(|m| invalid(origin, format!("{key}: {}: {m}", full.display())))?;
+            Ok(img.resample(nx, ny, texel))
+        };
+        let height_image = match &s.heightfield {
+            HeightSpec::Image { path, amplitude_mm } => {
+                let mut g = load_image(path, "sample.heightfield.path")?;
+                for v in &mut g.data {
+                    *v *= (*amplitude_mm * 1e-3) as f32;
+                }
+                Some(g)
+            }
+            _ => None,
+        };
+        let albedo_image = match &s.albedo {
+            AlbedoSpec::Image { path, .. } => Some(load_image(path, "sample.albedo.path")?),
+            _ => None,
+        };
+        let meso = (!matches!(s.heightfield, HeightSpec::None)).then(|| {
+            Grid::bake(nx, ny, texel, |x, y| {
+                surface::height(&s.heightfield, height_image.as_ref(), x, y)
+            })
+        });
+        let meso_max = meso.as_ref().map_or(0.0, Grid::max);
+        let albedo = Grid::bake(nx, ny, texel, |x, y| {
+            let rel = match &meso {
+                Some(m) if meso_max > 0.0 => m.sample(x, y) / meso_max,
+                _ => 1.0,
+            };
+            surface::albedo(&s.albedo, albedo_image.as_ref(), x, y, rel)
+        });
+        let relief = match (&meso, &s.macro_shape) {
+            (None, None) => None,
+            _ => {
+                let height = Grid::bake(nx, ny, texel, |x, y| {
+                    meso.as_ref().map_or(0.0, |m| m.sample(x, y))
+                        + surface::macro_height(s.macro_shape.as_ref(), x, y)
+                });
+                let (grad_x, grad_y) = height.gradient();
+                let max_slope = grad_x
+                    .data
+                    .iter()
+                    .zip(&grad_y.data)
+                    .map(|(a, b)| (*a as f64).hypot(*b as f64))
+                    .fold(0.0, f64::max);
+                let top = height.max();
+                (top > 0.0).then_some(Relief {
+                    height,
+                    grad_x,
+                    grad_y,
+                    top,
+                    max_slope,
+                })
+            }
+        };
+        let specular = s.specular.as_ref().filter(|l| l.strength > 0.0).map(|l| {
+            let a = l.tangent_deg.to_radians();
+            Specular {
+                strength: l.strength,
+                alpha: l.roughness,
+                tangent: [a.cos(), a.sin()],
+            }
+        });
+        let visibility = s
+            .macro_shape
+            .as_ref()
+            .map(|m| VisibilityMaps::compute(m, &m.visibility, half));
+        Ok(Scene {
+            name: spec.name.clone(),
+            description: spec.description.clone(),
+            sample_half: half,
+            holder: Holder::new(&spec.holder, half),
+            relief,
+            albedo,
+            specular,
+            subsurface: s.subsurface_mm * 1e-3,
+            visibility,
+            sensor: spec.sensor.clone(),
+            want,
+            forbid,
+            heightfield: s.heightfield.clone(),
+            macro_shape: s.macro_shape.clone(),
+        })
+    }
+
+    /// Whether (x, y) lies on the sample (else on the holder).
+    pub fn on_sample(&self, x: f64, y: f64) -> bool {
+        x.abs() <= self.sample_half[0] && y.abs() <= self.sample_half[1]
+    }
+
+    /// Height of the surface at (x, y), metres: 0 on the holder.
+    pub fn height(&self, x: f64, y: f64) -> f64 {
+        match &self.relief {
+            Some(r) if self.on_sample(x, y) => r.height.sample(x, y),
+            _ => 0.0,
+        }
+    }
+
+    /// The unit surface normal at (x, y).
+    pub fn normal(&self, x: f64, y: f64) -> [f64; 3] {
+        match &self.relief {
+            Some(r) if self.on_sample(x, y) => {
+                let (gx, gy) = (r.grad_x.sample(x, y), r.grad_y.sample(x, y));
+                let len = (gx * gx + gy * gy + 1.0).sqrt();
+                [-gx / len, -gy / len, 1.0 / len]
+            }
+            _ => [0.0, 0.0, 1.0],
+        }
+    }
+
+    /// Diffuse reflectance at (x, y): the sample's texel or the holder's.
+    pub fn albedo(&self, x: f64, y: f64) -> f64 {
+        if self.on_sample(x, y) {
+            self.albedo.sample(x, y)
+        } else {
+            self.holder.albedo(x, y)
+        }
+    }
+
+    /// The top of the relief: the BTF's and MDF's reference plane.
+    pub fn reference_height(&self) -> f64 {
+        self.relief.as_ref().map_or(0.0, |r| r.top)
+    }
+
+    /// Effects this scene can ever show, before a frame narrows them.
+    pub fn capabilities(&self) -> EffectSet {
+        let mut s = EffectSet::NONE;
+        let relief = self.relief.is_some();
+        if relief {
+            s.insert(Effect::Relief);
+            s.insert(Effect::Interreflection);
+            if self.visibility.is_none() {
+                s.insert(Effect::Shadows);
+            }
+        }
+        if self.specular.is_some() {
+            s.insert(Effect::Specular);
+        }
+        if self.subsurface > 0.0 {
+            s.insert(Effect::Subsurface);
+        }
+        if self.visibility.is_some() {
+            s.insert(Effect::VisibilityMaps);
+        }
+        if self.sensor.vignetting > 0.0 {
+            s.insert(Effect::Vignetting);
+        }
+        if self.sensor.read_noise_dn > 0.0 || self.sensor.electrons_per_dn > 0.0 {
+            s.insert(Effect::Noise);
+        }
+        s.insert(Effect::Laser);
+        s
+    }
+}
+
+fn validate(spec: &SceneSpec, origin: &str) -> Result<(), SceneError> {
+    let s = &spec.sample;
+    let bad = |key: &str, msg: String| Err(invalid(origin, format!("{key}: {msg}")));
+    for (i, v) in s.size_mm.iter().enumerate() {
+        if !(v.is_finite() && *v > 0.0 && *v <= 100.0) {
+            return bad(
+                &format!("sample.size_mm[{i}]"),
+                format!("expected 0 < size ≤ 100 mm, got {v}"),
+            );
+        }
+    }
+    if !(16..=4096).contains(&s.resolution) {
+        return bad(
+            "sample.resolution",
+            format!("expected 16 ..= 4096 texels, got {}", s.resolution),
+        );
+    }
+    let unit = |key: &str, v: f64| -> Result<(), SceneError> {
+        if (0.0..=1.0).contains(&v) {
+            Ok(())
+        } else {
+            bad(key, format!("expected a value in [0, 1], got {v}"))
+        }
+    };
+    let length = |key: &str, v: f64, max: f64| -> Result<(), SceneError> {
+        if v.is_finite() && v > 0.0 && v <= max {
+            Ok(())
+        } else {
+            bad(key, format!("expected 0 < value ≤ {max} mm, got {v}"))
+        }
+    };
+    match &s.albedo {
+        AlbedoSpec::Uniform { value } => unit("sample.albedo.value", *value)?,
+        AlbedoSpec::Checks {
+            dark,
+            light,
+            check_mm,
+            thread_mm,
+        } => {
+            unit("sample.albedo.dark", *dark)?;
+            unit("sample.albedo.light", *light)?;
+            length("sample.albedo.check_mm", *check_mm, 100.0)?;
+            length("sample.albedo.thread_mm", *thread_mm, 100.0)?;
+        }
+        AlbedoSpec::Yarn {
+            base,
+            variation,
+            valley_darkening,
+        } => {
+            unit("sample.albedo.base", *base)?;
+            unit("sample.albedo.variation", *variation)?;
+            unit("sample.albedo.valley_darkening", *valley_darkening)?;
+        }
+        AlbedoSpec::Mottled {
+            base,
+            variation,
+            feature_mm,
+        } => {
+            unit("sample.albedo.base", *base)?;
+            unit("sample.albedo.variation", *variation)?;
+            length("sample.albedo.feature_mm", *feature_mm, 100.0)?;
+        }
+        AlbedoSpec::Image { min, max, .. } => {
+            unit("sample.albedo.min", *min)?;
+            unit("sample.albedo.max", *max)?;
+        }
+    }
+    match &s.heightfield {
+        HeightSpec::None => {}
+        HeightSpec::Ridges {
+            amplitude_mm,
+            period_mm,
+            ..
+        } => {
+            length("sample.heightfield.amplitude_mm", *amplitude_mm, 10.0)?;
+            length("sample.heightfield.period_mm", *period_mm, 100.0)?;
+        }
+        HeightSpec::Knit {
+            amplitude_mm,
+            stitch_width_mm,
+            stitch_height_mm,
+            yarn_radius_mm,
+        } => {
+            length("sample.heightfield.amplitude_mm", *amplitude_mm, 10.0)?;
+            length("sample.heightfield.stitch_width_mm", *stitch_width_mm, 50.0)?;
+            length(
+                "sample.heightfield.stitch_height_mm",
+                *stitch_height_mm,
+                50.0,
+            )?;
+            length("sample.heightfield.yarn_radius_mm", *yarn_radius_mm, 20.0)?;
+        }
+        HeightSpec::Cells {
+            amplitude_mm,
+            cell_mm,
+        } => {
+            length("sample.heightfield.amplitude_mm", *amplitude_mm, 10.0)?;
+            length("sample.heightfield.cell_mm", *cell_mm, 100.0)?;
+        }
+        HeightSpec::Domes {
+            radius_mm,
+            height_mm,
+            count,
+        } => {
+            length("sample.heightfield.radius_mm", *radius_mm, 50.0)?;
+            length(
+                "sample.heightfield.height_mm",
+                *height_mm,
+                radius_mm.min(20.0),
+            )?;
+            if !(1..=20).contains(count) {
+                return bad(
+                    "sample.heightfield.count",
+                    format!("expected 1 ..= 20, got {count}"),
+                );
+            }
+        }
+        HeightSpec::Image { amplitude_mm, .. } => {
+            length("sample.heightfield.amplitude_mm", *amplitude_mm, 10.0)?
+        }
+    }
+    if let Some(l) = &s.specular {
+        if !(0.0..=1.0).contains(&l.strength) {
+            return bad(
+                "sample.specular.strength",
+                format!("expected [0, 1], got {}", l.strength),
+            );
+        }
+        for (i, a) in l.roughness.iter().enumerate() {
+            if !(a.is_finite() && *a >= 0.01 && *a <= 1.0) {
+                return bad(
+                    &format!("sample.specular.roughness[{i}]"),
+                    format!("expected 0.01 ..= 1, got {a}"),
+                );
+            }
+        }
+    }
+    if !(s.subsurface_mm.is_finite() && (0.0..=5.0).contains(&s.subsurface_mm)) {
+        return bad(
+            "sample.subsurface_mm",
+            format!("expected 0 ..= 5 mm, got {}", s.subsurface_mm),
+        );
+    }
+    if let Some(m) = &s.macro_shape {
+        length("sample.macro.fold_height_mm", m.fold_height_mm, 50.0)?;
+        length("sample.macro.wavelength_mm", m.wavelength_mm, 200.0)?;
+        let v = &m.visibility;
+        if !(2..=128).contains(&v.vertices)
+            || !(1..=256).contains(&v.theta_cells)
+            || !(1..=512).contains(&v.phi_cells)
+        {
+            return bad(
+                "sample.macro.visibility",
+                "expected 2..=128 vertices, 1..=256 theta cells, 1..=512 phi cells".into(),
+            );
+        }
+    }
+    let h = &spec.holder;
+    let sample_max = s.size_mm[0].max(s.size_mm[1]);
+    if !(h.size_mm.is_finite()
+        && h.size_mm
+            >= sample_max + 2.0 * (h.border_gap_mm + h.border_line_mm) + 3.0 * h.point_marker_mm
+        && h.size_mm <= 400.0)
+    {
+        return bad("holder.size_mm", format!("expected a plate big enough for the sample, its border lines and markers, and at most 400 mm, got {}", h.size_mm));
+    }
+    unit("holder.colour", h.colour)?;
+    unit("holder.marker_colour", h.marker_colour)?;
+    let sn = &spec.sensor;
+    if !(sn.read_noise_dn.is_finite() && sn.read_noise_dn >= 0.0) {
+        return bad(
+            "sensor.read_noise_dn",
+            format!("expected ≥ 0, got {}", sn.read_noise_dn),
+        );
+    }
+    if !(sn.electrons_per_dn.is_finite() && sn.electrons_per_dn >= 0.0) {
+        return bad(
+            "sensor.electrons_per_dn",
+            format!("expected ≥ 0, got {}", sn.electrons_per_dn),
+        );
+    }
+    unit("sensor.vignetting", sn.vignetting)?;
+    Ok(())
+}
+
+/// A greyscale PNG as values in [0, 1].
+fn read_grey_png(path: &Path) -> Result<Grid, String> {
+    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
+    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    let channels = info.color_type.samples();
+    let (w, h) = (info.width as usize, info.height as usize);
+    let mut data = Vec::with_capacity(w * h);
+    // Rows run top to bottom in the file; the grid's y runs upwards.
+    for j in (0..h).rev() {
+        for i in 0..w {
+            data.push(buf[(j * w + i) * channels] as f32 / 255.0);
+        }
+    }
+    Ok(Grid {
+        nx: w,
+        ny: h,
+        texel: 1.0,
+        data,
+    })
+}
+
+impl Grid {
+    /// This image stretched over an `nx × ny` grid of `texel` metres.
+    fn resample(&self, nx: usize, ny: usize, texel: f64) -> Grid {
+        let (sx, sy) = (self.nx as f64 / nx as f64, self.ny as f64 / ny as f64);
+        Grid::bake(nx, ny, texel, |x, y| {
+            let i = x / texel + nx as f64 / 2.0;
+            let j = y / texel + ny as f64 / 2.0;
+            self.sample(
+                (i * sx) - self.nx as f64 / 2.0,
+                (j * sy) - self.ny as f64 / 2.0,
+            )
+        })
+    }
+}

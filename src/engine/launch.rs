@@ -1,0 +1,320 @@
+//! Wiring one run together: profile, plan, schedule, rig, run directory and
+//! engine, for a new run or a resumed one. The command line and the tests
+//! both start runs through here.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use rigd_core::Clock;
+use rigd_sim::FaultRule;
+
+use crate::engine::{Engine, EngineHandle, PausePolicy};
+use crate::kinematics::{KinematicsError, Solver};
+use crate::model::profile::{Profile, ProfileError};
+use crate::plan::Order;
+use crate::plan::{self, Plan, PlanError};
+use crate::rig::hal::{DeviceError, Rig};
+use crate::rig::{self, sim::SimHandle, sim::SimOptions};
+use crate::schedule::timing::Timing;
+use crate::schedule::{self, Schedule};
+use crate::store::{now_rfc3339, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    #[error(transparent)]
+    Profile(#[from] ProfileError),
+    #[error(transparent)]
+    Plan(#[from] PlanError),
+    #[error("pose solver: {0}")]
+    Kinematics(#[from] KinematicsError),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("connecting the simulated rig: {0}")]
+    Simulator(DeviceError),
+    #[error("connecting the rig's hardware: {0} (add --sim to use the simulated rig)")]
+    Hardware(DeviceError),
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// A new run as asked for on the command line or over the API.
+#[derive(Debug, Clone)]
+pub struct NewRun {
+    pub profile: Profile,
+    pub profile_source: String,
+    pub plan: String,
+    pub sample: String,
+    pub operator: Option<String>,
+    pub notes: Option<String>,
+    pub exposure_s: Option<f64>,
+    pub frame_size: Option<[u32; 2]>,
+    pub out: PathBuf,
+    /// Drive the simulated rig instead of the profile's hardware.
+    pub simulated: bool,
+    /// The trigger order; None: the plan's default (optimised, laser
+    /// plans as planned).
+    pub order: Option<Order>,
+}
+
+/// An engine ready to run, and what a progress display needs to know.
+pub struct Prepared {
+    pub engine: Engine,
+    pub handle: EngineHandle,
+    /// The simulated rig's faults and world (None on hardware).
+    pub sim: Option<SimHandle>,
+    pub root: PathBuf,
+    pub frames_total: usize,
+    pub frames_done: usize,
+    /// Physical time already spent (resumed runs).
+    pub t_offset_s: f64,
+    /// Estimated physical time of what is left.
+    pub estimate_s: f64,
+    /// Frames found damaged or missing on resume, to be retaken.
+    pub retake: Vec<usize>,
+}
+
+/// Resolves a plan for a profile and solves every pose.
+pub fn solve_plan(
+    profile: &Profile,
+    plan_spec: &str,
+    order: Option<Order>,
+) -> Result<(Solver, Plan, Schedule), RunError> {
+    let solver = Solver::new(profile)?;
+    let offer = schedule::rig_offer(profile, &solver);
+    let mut plan = plan::resolve(plan_spec, &offer)?;
+    if let Some(o) = order {
+        plan.order = o;
+    }
+    let schedule = schedule::build(profile, &solver, &plan);
+    Ok((solver, plan, schedule))
+}
+
+fn check_request(req: &NewRun) -> Result<(), RunError> {
+    if let Some(e) = req.exposure_s {
+        if !(e.is_finite() && e > 0.0 && e <= 3600.0) {
+            return Err(RunError::Invalid(format!(
+                "exposure {e} s: expected a positive number of seconds up to 3600"
+            )));
+        }
+    }
+    if req.sample.trim().is_empty() {
+        return Err(RunError::Invalid("the sample name is empty".into()));
+    }
+    Ok(())
+}
+
+/// Connects the rig and creates the run directory and an engine.
+pub async fn prepare_new(
+    req: NewRun,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    check_request(&req)?;
+    let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan, req.order)?;
+    create(req, solver, plan, schedule, faults, clock, policy).await
+}
+
+/// Solves an already resolved plan (e.g. one given inline over the API).
+pub fn solve_given_plan(
+    profile: &Profile,
+    plan: Plan,
+) -> Result<(Solver, Plan, Schedule), RunError> {
+    let solver = Solver::new(profile)?;
+    let schedule = schedule::build(profile, &solver, &plan);
+    Ok((solver, plan, schedule))
+}
+
+/// Like [`prepare_new`], with the plan already solved (`req.plan` is then
+/// only a label).
+pub async fn prepare_new_solved(
+    req: NewRun,
+    solved: (Solver, Plan, Schedule),
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    check_request(&req)?;
+    let (solver, plan, schedule) = solved;
+    create(req, solver, plan, schedule, faults, clock, policy).await
+}
+
+async fn create(
+    req: NewRun,
+    solver: Solver,
+    plan: Plan,
+    schedule: Schedule,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    let meta = RunMeta {
+        format: RUN_FORMAT.into(),
+        software_version: env!("CARGO_PKG_VERSION").into(),
+        profile: req.profile.clone(),
+        profile_source: req.profile_source,
+        plan,
+        sample: req.sample,
+        operator: req.operator,
+        notes: req.notes,
+        exposure_s: req.exposure_s,
+        frame_size: req
+            .simulated
+            .then(|| req.frame_size.unwrap_or(req.profile.sim.frame_size)),
+        simulated: req.simulated,
+        sim_scene: if req.simulated {
+            Some(sim_scene(&req.profile)?)
+        } else {
+            None
+        },
+        started_at: now_rfc3339(),
+    };
+    // The rig first: a rig that does not answer leaves no run directory.
+    let mut faults = faults;
+    if meta.simulated {
+        // The profile's own faults arm when a run starts (a resumed run gets
+        // only those of its command line: the profile's have had their turn).
+        faults.splice(0..0, meta.profile.sim.fault_rules());
+    }
+    let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
+    let dir = RunDir::create(&req.out, &meta)?;
+    Ok(assemble(
+        meta,
+        schedule,
+        dir,
+        Default::default(),
+        0.0,
+        Vec::new(),
+        (rig, sim),
+        clock,
+        policy,
+    ))
+}
+
+/// The scene a simulated run renders and what its lit frames pay for.
+fn sim_scene(profile: &Profile) -> Result<SimScene, RunError> {
+    let scene = rig::sim::load_scene(profile).map_err(RunError::Simulator)?;
+    let lit = rigd_sim::scene::Shot::default();
+    Ok(SimScene {
+        name: scene.name.clone(),
+        effects: scene
+            .plan(&lit)
+            .live
+            .names()
+            .into_iter()
+            .map(String::from)
+            .collect(),
+    })
+}
+
+/// Connects the simulated rig or the profile's hardware, as the run says.
+async fn connect_rig(
+    meta: &RunMeta,
+    solver: &Solver,
+    faults: Vec<FaultRule>,
+    clock: &Clock,
+) -> Result<(Rig, Option<SimHandle>), RunError> {
+    if meta.simulated {
+        let opts = SimOptions {
+            frame_size: meta.frame_size,
+            faults,
+        };
+        let (rig, sim) = rig::sim::connect(&meta.profile, Arc::new(solver.clone()), opts, clock)
+            .await
+            .map_err(RunError::Simulator)?;
+        Ok((rig, Some(sim)))
+    } else {
+        if !faults.is_empty() {
+            return Err(RunError::Invalid(
+                "faults can only be injected into the simulated rig".into(),
+            ));
+        }
+        let rig = rig::hardware::connect(&meta.profile, clock)
+            .await
+            .map_err(RunError::Hardware)?;
+        Ok((rig, None))
+    }
+}
+
+/// Opens a run directory, connects the rig, and prepares an engine for
+/// what is left.
+pub async fn prepare_resume(
+    root: &Path,
+    faults: Vec<FaultRule>,
+    clock: Clock,
+    policy: PausePolicy,
+) -> Result<Prepared, RunError> {
+    let (dir, meta, recovery) = RunDir::open(root)?;
+    let solver = Solver::new(&meta.profile)?;
+    let schedule = schedule::build(&meta.profile, &solver, &meta.plan);
+    if let Some(bad) = recovery.done.keys().find(|&&i| i >= schedule.images.len()) {
+        return Err(RunError::Invalid(format!(
+            "{}: the journal names image {bad}, but the plan has only {} images",
+            root.display(),
+            schedule.images.len()
+        )));
+    }
+    if recovery.torn_bytes > 0 {
+        tracing::warn!(
+            bytes = recovery.torn_bytes,
+            "cut a torn line off the end of the journal (the previous session died mid-write)"
+        );
+    }
+    if !recovery.retake.is_empty() {
+        tracing::warn!(frames = ?recovery.retake, "frames missing or damaged on disk; they will be retaken");
+    }
+    let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
+    Ok(assemble(
+        meta,
+        schedule,
+        dir,
+        recovery.done,
+        recovery.physical_s,
+        recovery.retake,
+        (rig, sim),
+        clock,
+        policy,
+    ))
+}
+
+#[allow(clippy::too_many_arguments)]
+fn assemble(
+    meta: RunMeta,
+    schedule: Schedule,
+    dir: RunDir,
+    done: std::collections::BTreeMap<usize, crate::store::FrameEntry>,
+    t_offset_s: f64,
+    retake: Vec<usize>,
+    (rig, sim): (Rig, Option<SimHandle>),
+    clock: Clock,
+    policy: PausePolicy,
+) -> Prepared {
+    let profile = meta.profile.clone();
+    let estimate_s = {
+        let timing = Timing::new(&profile, meta.exposure_s);
+        let trigger_done = |t: usize| {
+            schedule.triggers[t]
+                .images
+                .iter()
+                .all(|i| done.contains_key(i))
+        };
+        timing.estimate_s(&schedule, trigger_done)
+    };
+    let frames_total = schedule.images.len();
+    let frames_done = done.len();
+    let root = dir.root().to_path_buf();
+    let (engine, handle) = Engine::new(
+        profile, schedule, meta, rig, clock, dir, done, t_offset_s, policy,
+    );
+    Prepared {
+        engine,
+        handle,
+        sim,
+        root,
+        frames_total,
+        frames_done,
+        t_offset_s,
+        estimate_s,
+        retake,
+    }
+}

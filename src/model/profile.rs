@@ -1,0 +1,766 @@
+//! Rig profiles: one TOML file per rig, naming its devices, geometry, limits,
+//! motion model, camera timing and default plan.
+//!
+//! Parsing is strict (unknown keys are errors) and every error names the file,
+//! the key and what was expected, on one line, because an operator reads it
+//! at the terminal before anything moves.
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::model::geometry::Direction;
+
+/// The profiles of the three rigs of the source documents, embedded so the
+/// daemon runs on a fresh machine without any file.
+pub const EMBEDDED: &[(&str, &str)] = &[
+    (
+        "bonn-gonioreflectometer",
+        include_str!("../../rig-profiles/bonn-gonioreflectometer.toml"),
+    ),
+    (
+        "msra-btf-mdf",
+        include_str!("../../rig-profiles/msra-btf-mdf.toml"),
+    ),
+    (
+        "virtex-photometric-stereo",
+        include_str!("../../rig-profiles/virtex-photometric-stereo.toml"),
+    ),
+];
+
+/// The profile used when none is given: the simulated Bonn gonioreflectometer.
+pub const DEFAULT_PROFILE: &str = "bonn-gonioreflectometer";
+
+/// A profile that could not be loaded: where, which key, and what was expected.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub struct ProfileError {
+    pub file: String,
+    pub key: String,
+    pub message: String,
+}
+
+impl fmt::Display for ProfileError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        if self.key.is_empty() {
+            write!(f, "{}: {}", self.file, self.message)
+        } else {
+            write!(f, "{}: {}: {}", self.file, self.key, self.message)
+        }
+    }
+}
+
+/// One rig's description.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Profile {
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    /// Plan used when a run names none (`h1`, `h2`, `grid12x8`, `lamps`).
+    pub default_plan: String,
+    /// Which rig this is and how its devices are arranged.
+    pub rig: RigGeometry,
+    /// Every device by name.
+    pub devices: BTreeMap<String, Device>,
+    /// Settings of the simulated rig.
+    #[serde(default)]
+    pub sim: SimSettings,
+}
+
+/// The arrangement of a rig, by kind. The world frame has its origin at the
+/// sample centre; see each variant for its axes.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum RigGeometry {
+    /// Seed 000: a fixed lamp along world +x, a camera on a circular rail in
+    /// the world xy plane (rail angle measured from the lamp, counter-clockwise
+    /// about +z), and a robot arm orienting the sample at the origin.
+    Gonioreflectometer {
+        lamp: String,
+        camera: String,
+        rail: String,
+        arm: String,
+        lamp_distance_m: f64,
+        rail_radius_m: f64,
+    },
+    /// Seed 002: a turntable (rotation about world +z), a light arc rotating
+    /// about +z carrying lamps at fixed elevations, and a stationary camera
+    /// arc in the world xz plane at azimuth 0.
+    TurntableArcs {
+        turntable: String,
+        light_arc: String,
+        /// Lamps on the light arc, in arc order; each has an `elevation_deg`.
+        lamps: Vec<String>,
+        /// Cameras on the stationary arc; each has a `direction` (φ = 0 in the world).
+        cameras: Vec<String>,
+        #[serde(default)]
+        laser: Option<String>,
+        #[serde(default)]
+        laser_tilt: Option<String>,
+        /// A lamp closer than this to a camera, seen from the sample, is
+        /// blocked by that camera.
+        occlusion_deg: f64,
+        arc_radius_m: f64,
+    },
+    /// Seed 003: one fixed camera and lamps at known slant/tilt.
+    FixedLamps {
+        camera: String,
+        lamps: Vec<String>,
+        /// A requested light direction further than this from every lamp is infeasible.
+        #[serde(default = "default_lamp_tolerance")]
+        lamp_tolerance_deg: f64,
+    },
+}
+
+fn default_lamp_tolerance() -> f64 {
+    0.5
+}
+
+/// What a device is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DeviceKind {
+    Axis,
+    Arm,
+    Lamp,
+    Camera,
+    Laser,
+}
+
+impl DeviceKind {
+    /// "an axis", "a lamp": for messages.
+    pub fn with_article(self) -> String {
+        let article = if self == DeviceKind::Axis || self == DeviceKind::Arm {
+            "an"
+        } else {
+            "a"
+        };
+        format!("{article} {self}")
+    }
+}
+
+impl fmt::Display for DeviceKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let s = match self {
+            DeviceKind::Axis => "axis",
+            DeviceKind::Arm => "arm",
+            DeviceKind::Lamp => "lamp",
+            DeviceKind::Camera => "camera",
+            DeviceKind::Laser => "laser",
+        };
+        f.write_str(s)
+    }
+}
+
+/// One device. Which optional tables are required depends on `kind`; the
+/// validator names any that are missing.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Device {
+    pub kind: DeviceKind,
+    pub transport: Transport,
+    /// Wire protocol: `grbl`, `modbus`, `acl` or `ptp`.
+    pub protocol: String,
+    /// Axis soft limits, in degrees.
+    #[serde(default)]
+    pub limits: Option<Limits>,
+    /// Axis motion model.
+    #[serde(default)]
+    pub motion: Option<Motion>,
+    /// Where an axis stands after homing, in degrees.
+    #[serde(default)]
+    pub home_deg: Option<f64>,
+    /// Arm joints, in the order the arm's protocol expects them.
+    #[serde(default)]
+    pub joints: Option<Vec<Joint>>,
+    /// Fixed lamp or camera direction, seen from the sample centre, in the world frame.
+    #[serde(default)]
+    pub direction: Option<Direction>,
+    /// Elevation (θ) of a lamp on a light arc.
+    #[serde(default)]
+    pub elevation_deg: Option<f64>,
+    /// Distance from the sample centre.
+    #[serde(default)]
+    pub distance_m: Option<f64>,
+    /// Lamp: time from switch-on to stable output.
+    #[serde(default)]
+    pub warm_up_s: Option<f64>,
+    /// Lamp: time a switch takes to settle (relay plus filament).
+    #[serde(default)]
+    pub switch_s: Option<f64>,
+    /// Lamp or laser: the Modbus coil of its relay.
+    #[serde(default)]
+    pub coil: Option<u16>,
+    #[serde(default)]
+    pub intrinsics: Option<Intrinsics>,
+    #[serde(default)]
+    pub timing: Option<CameraTiming>,
+}
+
+/// Soft limits of an axis or joint.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Limits {
+    pub min: f64,
+    pub max: f64,
+}
+
+impl Limits {
+    pub fn contains(&self, x: f64) -> bool {
+        x >= self.min - 1e-9 && x <= self.max + 1e-9
+    }
+}
+
+/// Trapezoidal motion model of one axis (units: degrees, seconds).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Motion {
+    pub max_velocity: f64,
+    pub acceleration: f64,
+    pub settle_s: f64,
+}
+
+/// One joint of an arm.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Joint {
+    pub name: String,
+    pub limits: Limits,
+    pub motion: Motion,
+    #[serde(default)]
+    pub home_deg: f64,
+    /// Encoder counts per degree, as the arm's controller counts.
+    #[serde(default = "default_counts_per_deg")]
+    pub counts_per_deg: f64,
+}
+
+fn default_counts_per_deg() -> f64 {
+    100.0
+}
+
+/// Camera intrinsics.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Intrinsics {
+    /// Sensor size in pixels, `[width, height]`.
+    pub resolution: [u32; 2],
+    pub focal_px: f64,
+    pub bit_depth: u8,
+}
+
+/// What one frame costs the camera, in seconds.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraTiming {
+    pub exposure_s: f64,
+    pub readout_s: f64,
+    pub transfer_s: f64,
+}
+
+/// How the daemon reaches a device.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Transport {
+    Serial {
+        port: String,
+        baud: u32,
+    },
+    ModbusRtu {
+        port: String,
+        baud: u32,
+        #[serde(default = "default_unit")]
+        unit: u8,
+    },
+    ModbusTcp {
+        host: String,
+        port: u16,
+        #[serde(default = "default_unit")]
+        unit: u8,
+    },
+    Usb {
+        vendor_id: u16,
+        product_id: u16,
+        #[serde(default)]
+        serial: Option<String>,
+    },
+    /// A PTP camera's USB transfers carried over TCP, one frame per
+    /// transfer (how `rigd sim serve` offers its simulated cameras).
+    PtpTcp {
+        host: String,
+        port: u16,
+    },
+}
+
+fn default_unit() -> u8 {
+    1
+}
+
+/// Settings of the simulated rig.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimSettings {
+    /// Frame size the simulated cameras render, `[width, height]`; small by
+    /// default so a full capture is quick (the real sensors are far larger).
+    #[serde(default = "default_sim_frame")]
+    pub frame_size: [u32; 2],
+    /// Faults the simulated firmware inject, in `--sim-fault` syntax
+    /// (`DEVICE:OP:N:KIND[:sticky]`), on top of those given on the command
+    /// line.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub faults: Vec<String>,
+    /// What the simulated cameras look at: a built-in scene's name or a
+    /// path to a scene file (`crates/sim/scenes/*.toml`); `flat-calibration` if
+    /// absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<String>,
+    /// The simulated cameras' focal length relative to the profile's
+    /// intrinsics: a longer lens, so a small simulated frame still
+    /// resolves the sample (laser scans need it).
+    #[serde(default = "default_zoom")]
+    pub zoom: f64,
+}
+
+fn default_zoom() -> f64 {
+    1.0
+}
+
+impl SimSettings {
+    /// The profile's fault rules, parsed (validation guarantees they parse).
+    pub fn fault_rules(&self) -> Vec<rigd_sim::FaultRule> {
+        self.faults.iter().filter_map(|f| f.parse().ok()).collect()
+    }
+
+    /// The scene the simulated cameras render.
+    pub fn scene_name(&self) -> &str {
+        self.scene
+            .as_deref()
+            .unwrap_or(rigd_sim::scene::DEFAULT_SCENE)
+    }
+}
+
+fn default_sim_frame() -> [u32; 2] {
+    [96, 64]
+}
+
+impl Default for SimSettings {
+    fn default() -> Self {
+        SimSettings {
+            frame_size: default_sim_frame(),
+            faults: Vec::new(),
+            scene: None,
+            zoom: default_zoom(),
+        }
+    }
+}
+
+impl Profile {
+    /// Loads a profile from a path, or, if no such file exists, from the
+    /// embedded profile of that name (`bonn-gonioreflectometer`, ...).
+    pub fn load(spec: &str) -> Result<Profile, ProfileError> {
+        let path = Path::new(spec);
+        if path.exists() {
+            return Profile::from_file(path);
+        }
+        if let Some((name, text)) = EMBEDDED.iter().find(|(n, _)| *n == spec) {
+            return Profile::parse(text, &format!("<embedded {name}>"));
+        }
+        let names: Vec<&str> = EMBEDDED.iter().map(|(n, _)| *n).collect();
+        Err(ProfileError {
+            file: spec.to_string(),
+            key: String::new(),
+            message: format!(
+                "no such file, and not an embedded profile (expected a path or one of: {})",
+                names.join(", ")
+            ),
+        })
+    }
+
+    /// The embedded default profile.
+    pub fn embedded_default() -> Result<Profile, ProfileError> {
+        Profile::load(DEFAULT_PROFILE)
+    }
+
+    pub fn from_file(path: &Path) -> Result<Profile, ProfileError> {
+        let file = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|e| ProfileError {
+            file: file.clone(),
+            key: String::new(),
+            message: format!("cannot read: {e}"),
+        })?;
+        Profile::parse(&text, &file)
+    }
+
+    /// Parses and validates profile text; `file` names it in errors.
+    pub fn parse(text: &str, file: &str) -> Result<Profile, ProfileError> {
+        let de = toml::Deserializer::new(text);
+        let profile: Profile = serde_path_to_error::deserialize(de).map_err(|e| {
+            let key = e.path().to_string();
+            let inner = e.into_inner();
+            let location = inner
+                .span()
+                .map(|s| {
+                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
+                    format!(" (line {line})")
+                })
+                .unwrap_or_default();
+            ProfileError {
+                file: file.to_string(),
+                key: if key == "." { String::new() } else { key },
+                // toml's messages can span lines; an operator's error is one line.
+                message: format!("{}{location}", inner.message().trim().replace('\n', "; ")),
+            }
+        })?;
+        profile.validate().map_err(|(key, message)| ProfileError {
+            file: file.to_string(),
+            key,
+            message,
+        })?;
+        Ok(profile)
+    }
+
+    /// The device of that name, if it has the expected kind.
+    pub fn device(&self, name: &str) -> Option<&Device> {
+        self.devices.get(name)
+    }
+
+    /// Names of all cameras the rig triggers, in trigger order.
+    pub fn camera_names(&self) -> Vec<String> {
+        match &self.rig {
+            RigGeometry::Gonioreflectometer { camera, .. } => vec![camera.clone()],
+            RigGeometry::TurntableArcs { cameras, .. } => cameras.clone(),
+            RigGeometry::FixedLamps { camera, .. } => vec![camera.clone()],
+        }
+    }
+
+    /// Names of all lamps, in rig order.
+    pub fn lamp_names(&self) -> Vec<String> {
+        match &self.rig {
+            RigGeometry::Gonioreflectometer { lamp, .. } => vec![lamp.clone()],
+            RigGeometry::TurntableArcs { lamps, .. } | RigGeometry::FixedLamps { lamps, .. } => {
+                lamps.clone()
+            }
+        }
+    }
+
+    /// Checks what serde cannot: references between keys, and values.
+    fn validate(&self) -> Result<(), (String, String)> {
+        for (name, dev) in &self.devices {
+            dev.validate(&format!("devices.{name}"))?;
+        }
+        if let Some(scene) = &self.sim.scene {
+            let builtin = rigd_sim::scene::Scene::builtin_names();
+            if !builtin.contains(&scene.as_str()) && !std::path::Path::new(scene).is_file() {
+                return Err((
+                    "sim.scene".into(),
+                    format!(
+                        "no built-in scene or scene file `{scene}` (built in: {})",
+                        builtin.join(", ")
+                    ),
+                ));
+            }
+        }
+        for (i, f) in self.sim.faults.iter().enumerate() {
+            let rule: rigd_sim::FaultRule =
+                f.parse().map_err(|e| (format!("sim.faults[{i}]"), e))?;
+            if !self.devices.contains_key(&rule.device) && !rule.device.starts_with("modbus-") {
+                return Err((
+                    format!("sim.faults[{i}]"),
+                    format!(
+                        "names device `{}`, but there is no [devices.{}]",
+                        rule.device, rule.device
+                    ),
+                ));
+            }
+        }
+        let want = |key: &str, name: &str, kind: DeviceKind| -> Result<(), (String, String)> {
+            match self.devices.get(name) {
+                None => Err((
+                    key.to_string(),
+                    format!(
+                        "names device `{name}`, but there is no [devices.{name}] (expected {})",
+                        kind.with_article()
+                    ),
+                )),
+                Some(d) if d.kind != kind => Err((
+                    key.to_string(),
+                    format!(
+                        "device `{name}` is {}, expected {}",
+                        d.kind.with_article(),
+                        kind.with_article()
+                    ),
+                )),
+                Some(_) => Ok(()),
+            }
+        };
+        let positive = |key: &str, v: f64| -> Result<(), (String, String)> {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err((
+                    key.to_string(),
+                    format!("expected a positive number, got {v}"),
+                ))
+            }
+        };
+        match &self.rig {
+            RigGeometry::Gonioreflectometer {
+                lamp,
+                camera,
+                rail,
+                arm,
+                lamp_distance_m,
+                rail_radius_m,
+            } => {
+                want("rig.lamp", lamp, DeviceKind::Lamp)?;
+                want("rig.camera", camera, DeviceKind::Camera)?;
+                want("rig.rail", rail, DeviceKind::Axis)?;
+                want("rig.arm", arm, DeviceKind::Arm)?;
+                positive("rig.lamp_distance_m", *lamp_distance_m)?;
+                positive("rig.rail_radius_m", *rail_radius_m)?;
+                let joints = self.devices[arm].joints.as_ref().map_or(0, |j| j.len());
+                if joints != 3 {
+                    return Err((
+                        format!("devices.{arm}.joints"),
+                        format!("the gonioreflectometer arm needs 3 wrist joints (roll, pitch, roll), got {joints}"),
+                    ));
+                }
+            }
+            RigGeometry::TurntableArcs {
+                turntable,
+                light_arc,
+                lamps,
+                cameras,
+                laser,
+                laser_tilt,
+                occlusion_deg,
+                arc_radius_m,
+            } => {
+                want("rig.turntable", turntable, DeviceKind::Axis)?;
+                want("rig.light_arc", light_arc, DeviceKind::Axis)?;
+                if lamps.is_empty() {
+                    return Err(("rig.lamps".into(), "expected at least one lamp".into()));
+                }
+                if cameras.is_empty() {
+                    return Err(("rig.cameras".into(), "expected at least one camera".into()));
+                }
+                for (i, l) in lamps.iter().enumerate() {
+                    want(&format!("rig.lamps[{i}]"), l, DeviceKind::Lamp)?;
+                    if self.devices[l].elevation_deg.is_none() {
+                        return Err((
+                            format!("devices.{l}.elevation_deg"),
+                            "a lamp on a light arc needs its elevation in degrees".into(),
+                        ));
+                    }
+                }
+                for (i, c) in cameras.iter().enumerate() {
+                    want(&format!("rig.cameras[{i}]"), c, DeviceKind::Camera)?;
+                    self.need_direction(c)?;
+                }
+                if let Some(l) = laser {
+                    want("rig.laser", l, DeviceKind::Laser)?;
+                }
+                if let Some(t) = laser_tilt {
+                    want("rig.laser_tilt", t, DeviceKind::Axis)?;
+                }
+                positive("rig.occlusion_deg", *occlusion_deg)?;
+                positive("rig.arc_radius_m", *arc_radius_m)?;
+            }
+            RigGeometry::FixedLamps {
+                camera,
+                lamps,
+                lamp_tolerance_deg,
+            } => {
+                want("rig.camera", camera, DeviceKind::Camera)?;
+                self.need_direction(camera)?;
+                if lamps.is_empty() {
+                    return Err(("rig.lamps".into(), "expected at least one lamp".into()));
+                }
+                for (i, l) in lamps.iter().enumerate() {
+                    want(&format!("rig.lamps[{i}]"), l, DeviceKind::Lamp)?;
+                    self.need_direction(l)?;
+                }
+                positive("rig.lamp_tolerance_deg", *lamp_tolerance_deg)?;
+            }
+        }
+        if !crate::plan::BUILTIN_PLANS.contains(&self.default_plan.as_str()) {
+            return Err((
+                "default_plan".into(),
+                format!(
+                    "unknown plan `{}` (expected one of: {})",
+                    self.default_plan,
+                    crate::plan::BUILTIN_PLANS.join(", ")
+                ),
+            ));
+        }
+        let [w, h] = self.sim.frame_size;
+        if w == 0 || h == 0 || w > 8192 || h > 8192 {
+            return Err((
+                "sim.frame_size".into(),
+                format!("expected [width, height] between 1 and 8192, got [{w}, {h}]"),
+            ));
+        }
+        let zoom = self.sim.zoom;
+        if !(zoom.is_finite() && (0.1..=100.0).contains(&zoom)) {
+            return Err((
+                "sim.zoom".into(),
+                format!("expected 0.1 ..= 100, got {zoom}"),
+            ));
+        }
+        Ok(())
+    }
+
+    fn need_direction(&self, name: &str) -> Result<(), (String, String)> {
+        match self.devices[name].direction {
+            Some(d) if d.theta_deg.is_finite() && d.phi_deg.is_finite() => Ok(()),
+            _ => Err((
+                format!("devices.{name}.direction"),
+                "expected {theta_deg, phi_deg}: where the device stands, seen from the sample"
+                    .into(),
+            )),
+        }
+    }
+}
+
+impl Device {
+    fn validate(&self, key: &str) -> Result<(), (String, String)> {
+        let missing = |what: &str, expect: &str| {
+            Err((
+                format!("{key}.{what}"),
+                format!("{} needs `{what}` ({expect})", self.kind.with_article()),
+            ))
+        };
+        match self.kind {
+            DeviceKind::Axis => {
+                let Some(limits) = self.limits else {
+                    return missing("limits", "{min, max} in degrees");
+                };
+                check_limits(&format!("{key}.limits"), limits)?;
+                let Some(motion) = self.motion else {
+                    return missing("motion", "{max_velocity, acceleration, settle_s}");
+                };
+                check_motion(&format!("{key}.motion"), motion)?;
+                if let Some(h) = self.home_deg {
+                    if !limits.contains(h) {
+                        return Err((
+                            format!("{key}.home_deg"),
+                            format!(
+                                "home {h} lies outside the limits [{}, {}]",
+                                limits.min, limits.max
+                            ),
+                        ));
+                    }
+                }
+            }
+            DeviceKind::Arm => {
+                let Some(joints) = &self.joints else {
+                    return missing("joints", "a list of {name, limits, motion}");
+                };
+                for (i, j) in joints.iter().enumerate() {
+                    check_limits(&format!("{key}.joints[{i}].limits"), j.limits)?;
+                    check_motion(&format!("{key}.joints[{i}].motion"), j.motion)?;
+                    if !(j.counts_per_deg.is_finite() && j.counts_per_deg > 0.0) {
+                        return Err((
+                            format!("{key}.joints[{i}].counts_per_deg"),
+                            format!("expected a positive number, got {}", j.counts_per_deg),
+                        ));
+                    }
+                    if !j.limits.contains(j.home_deg) {
+                        return Err((
+                            format!("{key}.joints[{i}].home_deg"),
+                            format!("home {} lies outside the limits", j.home_deg),
+                        ));
+                    }
+                }
+            }
+            DeviceKind::Lamp => {
+                if self.warm_up_s.is_none() {
+                    return missing("warm_up_s", "seconds from switch-on to stable light");
+                }
+                non_negative(&format!("{key}.warm_up_s"), self.warm_up_s)?;
+                non_negative(&format!("{key}.switch_s"), self.switch_s)?;
+            }
+            DeviceKind::Camera => {
+                let Some(intr) = self.intrinsics else {
+                    return missing("intrinsics", "{resolution, focal_px, bit_depth}");
+                };
+                if !(8..=16).contains(&intr.bit_depth) {
+                    return Err((
+                        format!("{key}.intrinsics.bit_depth"),
+                        format!("expected 8 to 16 bits, got {}", intr.bit_depth),
+                    ));
+                }
+                if intr.resolution[0] == 0 || intr.resolution[1] == 0 || intr.focal_px <= 0.0 {
+                    return Err((
+                        format!("{key}.intrinsics"),
+                        "expected a non-zero resolution and a positive focal_px".into(),
+                    ));
+                }
+                let Some(t) = self.timing else {
+                    return missing("timing", "{exposure_s, readout_s, transfer_s}");
+                };
+                if t.exposure_s.is_nan() || t.exposure_s <= 0.0 {
+                    return Err((
+                        format!("{key}.timing.exposure_s"),
+                        format!("expected a positive exposure, got {}", t.exposure_s),
+                    ));
+                }
+                non_negative(&format!("{key}.timing.readout_s"), Some(t.readout_s))?;
+                non_negative(&format!("{key}.timing.transfer_s"), Some(t.transfer_s))?;
+            }
+            DeviceKind::Laser => {}
+        }
+        if let Some(d) = self.direction {
+            if !(0.0..=90.0).contains(&d.theta_deg) {
+                return Err((
+                    format!("{key}.direction.theta_deg"),
+                    format!("expected 0 to 90 degrees, got {}", d.theta_deg),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The motion model of an axis; validation guarantees it for axes.
+    pub fn motion_or_default(&self) -> Motion {
+        self.motion.unwrap_or(Motion {
+            max_velocity: 1.0,
+            acceleration: 1.0,
+            settle_s: 0.0,
+        })
+    }
+}
+
+fn check_limits(key: &str, l: Limits) -> Result<(), (String, String)> {
+    if !(l.min.is_finite() && l.max.is_finite()) || l.min >= l.max {
+        return Err((
+            key.to_string(),
+            format!(
+                "expected min < max, got min = {}, max = {} (inverted or empty)",
+                l.min, l.max
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn check_motion(key: &str, m: Motion) -> Result<(), (String, String)> {
+    if !(m.max_velocity > 0.0 && m.acceleration > 0.0 && m.settle_s >= 0.0) {
+        return Err((
+            key.to_string(),
+            "expected max_velocity > 0, acceleration > 0 and settle_s >= 0".into(),
+        ));
+    }
+    Ok(())
+}
+
+fn non_negative(key: &str, v: Option<f64>) -> Result<(), (String, String)> {
+    match v {
+        Some(x) if !(x >= 0.0 && x.is_finite()) => Err((
+            key.to_string(),
+            format!("expected a non-negative number of seconds, got {x}"),
+        )),
+        _ => Ok(()),
+    }
+}

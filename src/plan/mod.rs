@@ -1,0 +1,367 @@
+//! Sampling plans: which (light, view) pairs to capture.
+//!
+//! The built-in plans are the hemisphere samplings H1 and H2 of seed 000
+//! (Table 1), the 12 × 8 grid of seed 002, and one image per lamp for
+//! photometric stereo (seed 003). Plans can also come from a JSON or TOML file.
+
+pub mod laser;
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use crate::model::geometry::Direction;
+use crate::plan::laser::{LaserPlan, LaserRig};
+
+/// Names accepted for `PLAN` besides a file path.
+pub const BUILTIN_PLANS: &[&str] = &["h1", "h2", "grid12x8", "lamps", "laser"];
+
+/// Largest plan accepted, in images; a typo in a generated file should not
+/// start a capture of a billion frames.
+pub const MAX_PAIRS: usize = 1_000_000;
+
+/// Ring sizes of H1 and H2 (seed 000, Table 1): 1 + 6 + 12 + 18 + 20 + 24 = 81.
+pub const HEMISPHERE_RING_COUNTS: [usize; 6] = [1, 6, 12, 18, 20, 24];
+/// Elevations of H1, degrees.
+pub const H1_THETAS: [f64; 6] = [0.0, 17.0, 34.0, 51.0, 68.0, 85.0];
+/// Elevations of H2, degrees.
+pub const H2_THETAS: [f64; 6] = [0.0, 15.0, 30.0, 45.0, 60.0, 75.0];
+
+/// One image to take: light and view directions in the sample frame.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Pair {
+    pub light: Direction,
+    pub view: Direction,
+}
+
+/// A named list of pairs, in the order a naive nested loop visits them
+/// (view-major: all lights of one view slot, then the next view).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Plan {
+    pub name: String,
+    pub pairs: Vec<Pair>,
+    /// A laser scan (seed 002 §3.2) instead of pairs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<LaserPlan>,
+    /// The order the engine takes the triggers in. Runs recorded before
+    /// orders existed read as `naive`, the order they were taken in.
+    #[serde(default)]
+    pub order: Order,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanError {
+    #[error(
+        "unknown plan `{0}` (expected one of h1, h2, grid12x8, lamps, laser[:key=value,…], or a .json/.toml plan file)"
+    )]
+    Unknown(String),
+    #[error("plan `{plan}` does not fit profile `{profile}`: {why}")]
+    NotForRig {
+        plan: String,
+        profile: String,
+        why: String,
+    },
+    #[error("plan file {file}: {why}")]
+    File { file: String, why: String },
+}
+
+/// Rings of directions: `counts[i]` directions at elevation `thetas[i]`,
+/// evenly spaced in φ from 0 (a single direction at θ = 0 is the pole).
+pub fn rings(thetas: &[f64], counts: &[usize]) -> Vec<Direction> {
+    let mut out = Vec::new();
+    for (&theta, &n) in thetas.iter().zip(counts) {
+        for k in 0..n {
+            out.push(Direction::new(theta, 360.0 * k as f64 / n as f64));
+        }
+    }
+    out
+}
+
+/// The 81 directions of H1.
+pub fn h1() -> Vec<Direction> {
+    rings(&H1_THETAS, &HEMISPHERE_RING_COUNTS)
+}
+
+/// The 81 directions of H2.
+pub fn h2() -> Vec<Direction> {
+    rings(&H2_THETAS, &HEMISPHERE_RING_COUNTS)
+}
+
+/// 12 azimuths 30° apart at each of the given elevations.
+pub fn grid12(elevations: &[f64]) -> Vec<Direction> {
+    let mut out = Vec::new();
+    for &theta in elevations {
+        for k in 0..12 {
+            out.push(Direction::new(theta, 30.0 * k as f64));
+        }
+    }
+    out
+}
+
+/// How the engine orders a plan's triggers.
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    Serialize,
+    Deserialize,
+    clap::ValueEnum,
+    utoipa::ToSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum Order {
+    /// The plan's nested-loop order (view-major).
+    #[default]
+    Naive,
+    /// Minimal physical time under the motion model.
+    Optimised,
+}
+
+/// Every light with every view, view-major.
+pub fn btf(lights: &[Direction], views: &[Direction]) -> Vec<Pair> {
+    let mut out = Vec::with_capacity(lights.len() * views.len());
+    for &view in views {
+        for &light in lights {
+            out.push(Pair { light, view });
+        }
+    }
+    out
+}
+
+/// What the rig offers a plan: its arcs' elevations (turntable rigs), its
+/// fixed lamps and camera (photometric-stereo rigs).
+#[derive(Debug, Clone, Default)]
+pub struct RigOffer {
+    pub profile: String,
+    pub arc_elevations: Option<(Vec<f64>, Vec<f64>)>,
+    pub fixed_lamps: Option<(Vec<Direction>, Direction)>,
+    /// The laser unit, on rigs that have one.
+    pub laser: Option<LaserRig>,
+}
+
+/// Resolves a plan name or file for a rig.
+pub fn resolve(spec: &str, rig: &RigOffer) -> Result<Plan, PlanError> {
+    let named = |pairs: Vec<Pair>| Plan {
+        name: spec.to_string(),
+        pairs,
+        laser: None,
+        order: Order::Optimised,
+    };
+    match spec {
+        "h1" => Ok(named(btf(&h1(), &h1()))),
+        "h2" => Ok(named(btf(&h2(), &h2()))),
+        "grid12x8" => {
+            let (lamps, cams) = rig.arc_elevations.clone().ok_or_else(|| PlanError::NotForRig {
+                plan: spec.into(),
+                profile: rig.profile.clone(),
+                why: "grid12x8 takes its 8 elevations from a rig's lamp and camera arcs, and this rig has none".into(),
+            })?;
+            Ok(named(btf(&grid12(&lamps), &grid12(&cams))))
+        }
+        "lamps" => {
+            let (lamps, camera) = rig
+                .fixed_lamps
+                .clone()
+                .ok_or_else(|| PlanError::NotForRig {
+                    plan: spec.into(),
+                    profile: rig.profile.clone(),
+                    why: "`lamps` takes one image per fixed lamp, and this rig has no fixed lamps"
+                        .into(),
+                })?;
+            Ok(named(btf(&lamps, &[camera])))
+        }
+        _ if spec == "laser" || spec.starts_with("laser:") => {
+            let not_for_rig = |why: String| PlanError::NotForRig {
+                plan: spec.into(),
+                profile: rig.profile.clone(),
+                why,
+            };
+            let laser = LaserPlan::parse(spec).map_err(&not_for_rig)?;
+            let rig_laser = rig.laser.as_ref().ok_or_else(|| {
+                not_for_rig(
+                    "a laser scan needs a turntable rig with a laser, its tilt axis and the laser's `elevation_deg`"
+                        .into(),
+                )
+            })?;
+            rig_laser.check(&laser).map_err(not_for_rig)?;
+            Ok(Plan {
+                name: spec.to_string(),
+                pairs: Vec::new(),
+                laser: Some(laser),
+                order: Order::Naive,
+            })
+        }
+        _ if looks_like_file(spec) => from_file(Path::new(spec)),
+        _ => Err(PlanError::Unknown(spec.to_string())),
+    }
+}
+
+fn looks_like_file(spec: &str) -> bool {
+    spec.contains('/') || spec.ends_with(".json") || spec.ends_with(".toml")
+}
+
+/// A plan file: a list of directions (paired all with all), separate light
+/// and view lists (paired all with all), or explicit pairs.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PlanFile {
+    #[serde(default)]
+    name: Option<String>,
+    #[serde(default)]
+    directions: Option<Vec<Direction>>,
+    #[serde(default)]
+    lights: Option<Vec<Direction>>,
+    #[serde(default)]
+    views: Option<Vec<Direction>>,
+    #[serde(default)]
+    pairs: Option<Vec<Pair>>,
+}
+
+/// Reads a plan file (`.json` or `.toml`).
+pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
+    let file = path.display().to_string();
+    let err = |why: String| PlanError::File {
+        file: file.clone(),
+        why,
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
+    let parsed: PlanFile = if file.ends_with(".toml") {
+        toml::from_str(&text).map_err(|e| err(e.message().to_string()))?
+    } else {
+        serde_json::from_str(&text).map_err(|e| err(e.to_string()))?
+    };
+    let stem = path
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| file.clone());
+    from_parsed(parsed, &file, stem)
+}
+
+/// A plan given inline as JSON (the API's `plan` object): the same shapes
+/// as a plan file. `what` names it in messages; `default_name` is used when
+/// the plan has no `name`.
+pub fn from_json_value(
+    value: serde_json::Value,
+    what: &str,
+    default_name: &str,
+) -> Result<Plan, PlanError> {
+    let parsed: PlanFile = serde_json::from_value(value).map_err(|e| PlanError::File {
+        file: what.to_string(),
+        why: e.to_string(),
+    })?;
+    from_parsed(parsed, what, default_name.to_string())
+}
+
+fn from_parsed(parsed: PlanFile, file: &str, default_name: String) -> Result<Plan, PlanError> {
+    let err = |why: String| PlanError::File {
+        file: file.to_string(),
+        why,
+    };
+    let pairs = match (parsed.directions, parsed.lights, parsed.views, parsed.pairs) {
+        (Some(d), None, None, None) => btf(&d, &d),
+        (None, Some(l), Some(v), None) => btf(&l, &v),
+        (None, None, None, Some(p)) => p,
+        _ => {
+            return Err(err(
+                "expected exactly one of: `directions`, `lights` with `views`, or `pairs`".into(),
+            ))
+        }
+    };
+    if pairs.is_empty() {
+        return Err(err("the plan has no images".into()));
+    }
+    if pairs.len() > MAX_PAIRS {
+        return Err(err(format!(
+            "{} images is more than the {MAX_PAIRS} a plan may hold",
+            pairs.len()
+        )));
+    }
+    for (i, p) in pairs.iter().enumerate() {
+        for (what, d) in [("light", p.light), ("view", p.view)] {
+            let valid = d.phi_deg.is_finite() && (0.0..=90.0).contains(&d.theta_deg);
+            if !valid {
+                return Err(err(format!(
+                    "image {i}: {what} direction θ = {}, φ = {} (expected finite angles with 0 ≤ θ ≤ 90)",
+                    d.theta_deg, d.phi_deg
+                )));
+            }
+        }
+    }
+    let name = parsed.name.unwrap_or(default_name);
+    Ok(Plan {
+        name,
+        pairs,
+        laser: None,
+        order: Order::Optimised,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn h1_has_81_directions_in_the_table_1_rings() {
+        let d = h1();
+        assert_eq!(d.len(), 81);
+        for (theta, n) in H1_THETAS.iter().zip(HEMISPHERE_RING_COUNTS) {
+            let ring: Vec<_> = d.iter().filter(|x| x.theta_deg == *theta).collect();
+            assert_eq!(ring.len(), n, "ring θ = {theta}");
+        }
+        // Δφ of the 68° ring is 18°.
+        let r68: Vec<f64> = d
+            .iter()
+            .filter(|x| x.theta_deg == 68.0)
+            .map(|x| x.phi_deg)
+            .collect();
+        assert!((r68[1] - r68[0] - 18.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn btf_pairs_all_with_all() {
+        assert_eq!(btf(&h2(), &h2()).len(), 6561);
+        assert_eq!(btf(&grid12(&[10.0; 8]), &grid12(&[10.0; 8])).len(), 9216);
+    }
+
+    #[test]
+    fn grid_needs_arcs() {
+        let r = resolve("grid12x8", &RigOffer::default());
+        assert!(matches!(r, Err(PlanError::NotForRig { .. })));
+        assert!(matches!(
+            resolve("h3", &RigOffer::default()),
+            Err(PlanError::Unknown(_))
+        ));
+    }
+
+    #[test]
+    fn plan_files_in_all_three_shapes() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let p = dir.path().join("dirs.json");
+        std::fs::write(
+            &p,
+            r#"{"directions":[{"theta_deg":0,"phi_deg":0},{"theta_deg":45,"phi_deg":90}]}"#,
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(from_file(&p).map(|x| x.pairs.len()), Ok(4));
+        let p = dir.path().join("pairs.toml");
+        std::fs::write(&p, "name = \"one\"\n[[pairs]]\nlight = { theta_deg = 10.0, phi_deg = 0.0 }\nview = { theta_deg = 20.0, phi_deg = 5.0 }\n")
+            .unwrap_or_else(|e| panic!("{e}"));
+        let plan = from_file(&p).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((plan.name.as_str(), plan.pairs.len()), ("one", 1));
+        let p = dir.path().join("bad.json");
+        std::fs::write(&p, r#"{"directions":[{"theta_deg":95,"phi_deg":0}]}"#)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let e = from_file(&p)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains("θ = 95"), "{e}");
+        let p = dir.path().join("both.json");
+        std::fs::write(&p, r#"{"directions":[],"pairs":[]}"#).unwrap_or_else(|e| panic!("{e}"));
+        assert!(from_file(&p).is_err());
+    }
+}

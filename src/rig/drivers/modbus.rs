@@ -1,0 +1,349 @@
+//! Modbus relay-module driver for lamps and a laser line (protocol:
+//! `firmware-protocols/modbus-lamps.md`).
+//!
+//! Why it is built this way:
+//! - All lamps of one module share one bus (one RS-485 line or one TCP
+//!   connection) and Modbus allows one outstanding request per master, so
+//!   they share one `tokio_modbus` [`Context`] behind an async mutex, held
+//!   for one request at a time and never across a sleep.
+//! - A relay reply only says the module accepted the write, so `set` reads
+//!   the coil back before reporting success.
+//! - The relay being closed does not mean the light is usable: arc lamps
+//!   need minutes, so `wait_ready` polls the module's ready bit, and a set
+//!   fault bit ends the wait at once instead of at the deadline.
+//! - Every request runs under a [`Clock`] deadline, so a silent module is a
+//!   `Timeout` in physical time, also under the simulator's paused clock.
+
+use std::io;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use tokio::io::{AsyncRead, AsyncWrite};
+use tokio::sync::Mutex;
+use tokio_modbus::client::{Context, Reader, Writer};
+use tokio_modbus::{ExceptionCode, Slave};
+
+use crate::rig::hal::{DeviceError, ErrorKind, Lamp, LaserLine};
+use rigd_core::Clock;
+
+/// Input register holding the ready bitmask (bit k = lamp on coil k).
+pub const IR_READY: u16 = 0;
+/// Input register holding the fault bitmask (bit k = lamp on coil k).
+pub const IR_FAULT: u16 = 1;
+
+/// One module's bus, shared by the lamps and the laser wired to it.
+pub type SharedBus = Arc<Mutex<Context>>;
+
+/// Attaches to a module over an open Modbus TCP stream (MBAP framing).
+pub fn tcp_bus<T>(stream: T, unit: u8) -> SharedBus
+where
+    T: AsyncRead + AsyncWrite + Send + Unpin + std::fmt::Debug + 'static,
+{
+    Arc::new(Mutex::new(tokio_modbus::client::tcp::attach_slave(
+        stream,
+        Slave(unit),
+    )))
+}
+
+/// Connects to a module at a TCP address, within `timeout` of physical time.
+pub async fn connect_tcp(
+    clock: &Clock,
+    addr: SocketAddr,
+    unit: u8,
+    timeout: Duration,
+) -> Result<SharedBus, ModbusError> {
+    let stream = clock
+        .deadline(timeout, tokio::net::TcpStream::connect(addr))
+        .await
+        .map_err(|_| ModbusError::Timeout {
+            what: format!("connect to {addr}"),
+            timeout,
+        })?
+        .map_err(ModbusError::Io)?;
+    Ok(tcp_bus(stream, unit))
+}
+
+/// Attaches to a module over any byte stream with RTU framing (a serial
+/// port, a transparent RS-485 gateway socket, a test pipe).
+pub fn rtu_bus<T>(transport: T, unit: u8) -> SharedBus
+where
+    T: AsyncRead + AsyncWrite + Send + Unpin + 'static,
+{
+    Arc::new(Mutex::new(tokio_modbus::client::rtu::attach_slave(
+        transport,
+        Slave(unit),
+    )))
+}
+
+/// What went wrong talking to the module, in the driver's own terms.
+#[derive(Debug, thiserror::Error)]
+pub enum ModbusError {
+    #[error("no answer to {what} within {timeout:?}")]
+    Timeout { what: String, timeout: Duration },
+    #[error("link lost: {0}")]
+    Io(io::Error),
+    #[error("{what} refused with Modbus exception {}", exception_name(.code))]
+    Exception { what: String, code: ExceptionCode },
+    #[error("malformed or mismatched reply: {0}")]
+    Protocol(String),
+    #[error("coil {coil} reads {read} after writing {wanted}")]
+    NotConfirmed { coil: u16, wanted: bool, read: bool },
+    #[error("the module reports a fault on this lamp (fault bit {0} set): check ballast and bulb")]
+    LampFault(u16),
+    #[error("lamp not ready {0:?} after switch-on")]
+    NotReady(Duration),
+    #[error("lamp is switched off; switch it on before waiting for it")]
+    Off,
+}
+
+/// Names an exception the way the Modbus specification does.
+pub fn exception_name(code: &ExceptionCode) -> String {
+    match code {
+        ExceptionCode::IllegalFunction => "0x01 illegal function".into(),
+        ExceptionCode::IllegalDataAddress => {
+            "0x02 illegal data address (coil or register not wired)".into()
+        }
+        ExceptionCode::IllegalDataValue => "0x03 illegal data value".into(),
+        ExceptionCode::ServerDeviceFailure => "0x04 slave device failure".into(),
+        ExceptionCode::ServerDeviceBusy => "0x06 slave device busy".into(),
+        other => format!("{other:?}"),
+    }
+}
+
+impl ModbusError {
+    /// The kind the run engine acts on.
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            ModbusError::Timeout { .. } | ModbusError::NotReady(_) => ErrorKind::Timeout,
+            ModbusError::Io(_) => ErrorKind::Disconnected,
+            ModbusError::Exception { .. }
+            | ModbusError::NotConfirmed { .. }
+            | ModbusError::LampFault(_) => ErrorKind::DeviceFault,
+            ModbusError::Protocol(_) => ErrorKind::BadFrame,
+            ModbusError::Off => ErrorKind::NotReady,
+        }
+    }
+
+    pub fn into_device(self, name: &str) -> DeviceError {
+        DeviceError::new(name, self.kind(), self.to_string())
+    }
+}
+
+/// How one coil on a module is driven.
+#[derive(Debug, Clone)]
+pub struct ModbusConfig {
+    /// Device name used in errors.
+    pub name: String,
+    /// The coil (0-based); for a lamp also its bit in the ready/fault masks.
+    pub coil: u16,
+    /// Relay switch time: the module replies to a write after switching.
+    pub switch: Duration,
+    /// Warm-up from switch-on to stable light (lamps only).
+    pub warm_up: Duration,
+    /// Deadline for one request, on top of the switch time for writes.
+    pub request_timeout: Duration,
+    /// Ready-bit poll interval during warm-up.
+    pub poll_interval: Duration,
+}
+
+impl ModbusConfig {
+    /// Defaults: 1 s per request, 250 ms polls.
+    pub fn new(name: &str, coil: u16, warm_up: Duration, switch: Duration) -> ModbusConfig {
+        ModbusConfig {
+            name: name.to_string(),
+            coil,
+            switch,
+            warm_up,
+            request_timeout: Duration::from_secs(1),
+            poll_interval: Duration::from_millis(250),
+        }
+    }
+}
+
+/// One coil on a shared bus: the part lamps and lasers have in common.
+struct Coil {
+    cfg: ModbusConfig,
+    clock: Clock,
+    bus: SharedBus,
+}
+
+/// Unwraps tokio-modbus's nested result into the driver's error.
+fn flatten<T>(what: &str, r: tokio_modbus::Result<T>) -> Result<T, ModbusError> {
+    match r {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(code)) => Err(ModbusError::Exception {
+            what: what.to_string(),
+            code,
+        }),
+        Err(tokio_modbus::Error::Transport(e)) => Err(ModbusError::Io(e)),
+        Err(tokio_modbus::Error::Protocol(e)) => Err(ModbusError::Protocol(e.to_string())),
+    }
+}
+
+impl Coil {
+    async fn request<T, F>(&self, what: &str, timeout: Duration, f: F) -> Result<T, ModbusError>
+    where
+        F: for<'a> FnOnce(
+            &'a mut Context,
+        ) -> std::pin::Pin<
+            Box<dyn std::future::Future<Output = tokio_modbus::Result<T>> + Send + 'a>,
+        >,
+    {
+        let bus = self.bus.clone();
+        let fut = async move {
+            let mut ctx = bus.lock().await;
+            f(&mut ctx).await
+        };
+        let r = self
+            .clock
+            .deadline(timeout, fut)
+            .await
+            .map_err(|_| ModbusError::Timeout {
+                what: what.to_string(),
+                timeout,
+            })?;
+        flatten(what, r)
+    }
+
+    async fn set(&self, on: bool) -> Result<(), ModbusError> {
+        let coil = self.cfg.coil;
+        let t = self.cfg.request_timeout + self.cfg.switch;
+        self.request(&format!("write coil {coil}"), t, move |c| {
+            Box::pin(c.write_single_coil(coil, on))
+        })
+        .await?;
+        let read = self
+            .request(
+                &format!("read coil {coil}"),
+                self.cfg.request_timeout,
+                move |c| Box::pin(c.read_coils(coil, 1)),
+            )
+            .await?;
+        match read.first() {
+            Some(&r) if r == on => Ok(()),
+            Some(&r) => Err(ModbusError::NotConfirmed {
+                coil,
+                wanted: on,
+                read: r,
+            }),
+            None => Err(ModbusError::Protocol("empty coil read-back".into())),
+        }
+    }
+}
+
+/// A lamp switched by a relay coil, with a ready bit for stable output.
+pub struct ModbusLamp {
+    coil: Coil,
+    on: bool,
+}
+
+impl ModbusLamp {
+    pub fn new(cfg: ModbusConfig, clock: Clock, bus: SharedBus) -> ModbusLamp {
+        ModbusLamp {
+            coil: Coil { cfg, clock, bus },
+            on: false,
+        }
+    }
+
+    async fn wait_ready_inner(&mut self) -> Result<(), ModbusError> {
+        if !self.on {
+            return Err(ModbusError::Off);
+        }
+        let cfg = &self.coil.cfg;
+        let bit = 1u16.checked_shl(u32::from(cfg.coil)).unwrap_or(0);
+        // Slack: a few polls and one request beyond the nominal warm-up.
+        let limit = cfg.warm_up + cfg.request_timeout + 4 * cfg.poll_interval;
+        let start = self.coil.clock.now();
+        loop {
+            let regs = self
+                .coil
+                .request("read ready/fault registers", cfg.request_timeout, |c| {
+                    Box::pin(c.read_input_registers(IR_READY, 2))
+                })
+                .await?;
+            let (ready, fault) = match regs.as_slice() {
+                [r, f] => (*r, *f),
+                _ => {
+                    return Err(ModbusError::Protocol(format!(
+                        "{} registers, expected 2",
+                        regs.len()
+                    )))
+                }
+            };
+            if fault & bit != 0 {
+                return Err(ModbusError::LampFault(cfg.coil));
+            }
+            if ready & bit != 0 {
+                return Ok(());
+            }
+            if self.coil.clock.now().saturating_sub(start) >= limit {
+                return Err(ModbusError::NotReady(limit));
+            }
+            self.coil.clock.sleep(cfg.poll_interval).await;
+        }
+    }
+}
+
+#[async_trait]
+impl Lamp for ModbusLamp {
+    async fn set(&mut self, on: bool) -> Result<(), DeviceError> {
+        let r = self.coil.set(on).await;
+        // Whatever happened, the state is unknown until confirmed.
+        self.on = on && r.is_ok();
+        r.map_err(|e| e.into_device(&self.coil.cfg.name))
+    }
+
+    async fn wait_ready(&mut self) -> Result<(), DeviceError> {
+        self.wait_ready_inner()
+            .await
+            .map_err(|e| e.into_device(&self.coil.cfg.name))
+    }
+}
+
+/// A laser line switched by a relay coil (no warm-up, no ready bit).
+pub struct ModbusLaser {
+    coil: Coil,
+}
+
+impl ModbusLaser {
+    pub fn new(cfg: ModbusConfig, clock: Clock, bus: SharedBus) -> ModbusLaser {
+        ModbusLaser {
+            coil: Coil { cfg, clock, bus },
+        }
+    }
+}
+
+#[async_trait]
+impl LaserLine for ModbusLaser {
+    async fn set(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.coil
+            .set(on)
+            .await
+            .map_err(|e| e.into_device(&self.coil.cfg.name))
+    }
+}
+
+/// Emergency stop: every coil 0..`coils` off in one FC0F request, so all
+/// relays drop together instead of one round trip per lamp.
+pub async fn all_off(
+    clock: &Clock,
+    bus: &SharedBus,
+    coils: u16,
+    timeout: Duration,
+) -> Result<(), ModbusError> {
+    let off = vec![false; usize::from(coils)];
+    let fut = async {
+        let mut ctx = bus.lock().await;
+        ctx.write_multiple_coils(0, &off).await
+    };
+    let r = clock
+        .deadline(timeout, fut)
+        .await
+        .map_err(|_| ModbusError::Timeout {
+            what: "write all coils off".into(),
+            timeout,
+        })?;
+    flatten("write all coils off", r)
+}

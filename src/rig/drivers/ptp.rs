@@ -1,0 +1,450 @@
+//! The PTP camera driver (ISO 15740 over USB, `firmware-protocols/ptp-camera.md`):
+//! a [`Camera`] over any [`UsbPipe`], so the same code drives a real camera
+//! through `nusb` and the simulated firmware through the in-memory link.
+//!
+//! Every transaction is command → optional data phase → response, with a
+//! deadline through the [`Clock`]. Exposure is SetDevicePropValue
+//! ExposureTime; `expose` is InitiateCapture plus waiting for ObjectAdded
+//! and CaptureComplete on the interrupt endpoint; `transfer` is
+//! GetObjectInfo, GetObject, DeleteObject.
+
+use std::time::Duration;
+
+use async_trait::async_trait;
+use rigd_core::Clock;
+use rigd_proto::ptp::{
+    exposure_to_prop, CodecError, Container, ContainerKind, DeviceInfo, EventCode, Header,
+    ObjectInfo, OpCode, PropCode, RawFrame, ResponseCode, FORMAT_RIGD_RAW, HEADER_LEN,
+};
+
+use super::usb::{UsbError, UsbPipe};
+use crate::rig::hal::{Camera, DeviceError, ErrorKind, Frame};
+
+/// Bulk-in reads ask for this much: a multiple of every USB packet size, so
+/// a shorter read always means the device ended its transfer.
+pub const BULK_CHUNK: usize = 64 * 1024;
+
+/// The operations the driver cannot work without.
+const REQUIRED_OPS: [OpCode; 6] = [
+    OpCode::OpenSession,
+    OpCode::SetDevicePropValue,
+    OpCode::InitiateCapture,
+    OpCode::GetObjectInfo,
+    OpCode::GetObject,
+    OpCode::DeleteObject,
+];
+
+/// Deadlines and the session id. The defaults suit a USB 2 camera with
+/// frames of tens of megabytes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PtpConfig {
+    /// Deadline of an ordinary transaction (everything but GetObject).
+    pub transaction_timeout: Duration,
+    /// How long after the exposure time the capture events may take
+    /// (readout and storing).
+    pub capture_slack: Duration,
+    /// Deadline of GetObject (the frame transfer).
+    pub transfer_timeout: Duration,
+    /// The session id sent with OpenSession (any non-zero value).
+    pub session_id: u32,
+}
+
+impl Default for PtpConfig {
+    fn default() -> PtpConfig {
+        PtpConfig {
+            transaction_timeout: Duration::from_secs(5),
+            capture_slack: Duration::from_secs(30),
+            transfer_timeout: Duration::from_secs(60),
+            session_id: 1,
+        }
+    }
+}
+
+/// What went wrong, in the driver's words; [`PtpError::kind`] maps it to the
+/// engine's [`ErrorKind`].
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PtpError {
+    #[error("{op} got no answer within {after:?}")]
+    Timeout { op: OpCode, after: Duration },
+    #[error("{0}")]
+    Usb(UsbError),
+    #[error("{op} answered {code} (0x{:04X})", .code.0)]
+    Response { op: OpCode, code: ResponseCode },
+    #[error("{op}: data phase truncated: {got} of {declared} bytes")]
+    Truncated {
+        op: OpCode,
+        got: usize,
+        declared: usize,
+    },
+    #[error("bad frame: {0}")]
+    BadFrame(String),
+    #[error("{op}: protocol error: {message}")]
+    Protocol { op: OpCode, message: String },
+    #[error("the camera does not support {0}")]
+    Unsupported(OpCode),
+    #[error("exposure {0} s cannot be set (0.1 ms to 119 h)")]
+    BadExposure(f64),
+    #[error("no session: connect first")]
+    NotConnected,
+    #[error("nothing was exposed")]
+    NothingExposed,
+}
+
+impl PtpError {
+    pub fn kind(&self) -> ErrorKind {
+        match self {
+            PtpError::Timeout { .. } => ErrorKind::Timeout,
+            PtpError::Usb(UsbError::Disconnected) => ErrorKind::Disconnected,
+            PtpError::Usb(_) => ErrorKind::DeviceFault,
+            PtpError::Response { .. } | PtpError::Protocol { .. } | PtpError::Unsupported(_) => {
+                ErrorKind::DeviceFault
+            }
+            PtpError::Truncated { .. } | PtpError::BadFrame(_) => ErrorKind::BadFrame,
+            PtpError::BadExposure(_) => ErrorKind::OutOfLimits,
+            PtpError::NotConnected | PtpError::NothingExposed => ErrorKind::NotReady,
+        }
+    }
+}
+
+fn protocol(op: OpCode, e: impl std::fmt::Display) -> PtpError {
+    PtpError::Protocol {
+        op,
+        message: e.to_string(),
+    }
+}
+
+/// A PTP camera on a USB pipe.
+#[derive(Debug)]
+pub struct PtpCamera<P: UsbPipe> {
+    name: String,
+    pipe: P,
+    clock: Clock,
+    config: PtpConfig,
+    next_tid: u32,
+    session_open: bool,
+    exposure_s: f64,
+    info: Option<DeviceInfo>,
+    /// The captured object not yet transferred.
+    pending: Option<u32>,
+}
+
+impl<P: UsbPipe> PtpCamera<P> {
+    /// A driver for the camera `name` (the device name in errors). Nothing is
+    /// sent until [`PtpCamera::connect`].
+    pub fn new(name: &str, pipe: P, clock: Clock, config: PtpConfig) -> PtpCamera<P> {
+        PtpCamera {
+            name: name.to_string(),
+            pipe,
+            clock,
+            config,
+            next_tid: 1,
+            session_open: false,
+            exposure_s: 0.0,
+            info: None,
+            pending: None,
+        }
+    }
+
+    /// Identifies the camera (GetDeviceInfo), checks it supports what the
+    /// driver needs, and opens a session.
+    pub async fn connect(&mut self) -> Result<DeviceInfo, PtpError> {
+        let op = OpCode::GetDeviceInfo;
+        let (_, data) = self.transaction(op, &[], None).await?;
+        let data = data.ok_or_else(|| protocol(op, "no DeviceInfo data phase"))?;
+        let info = DeviceInfo::decode(&data).map_err(|e| protocol(op, e))?;
+        if let Some(missing) = REQUIRED_OPS.iter().find(|&&o| !info.supports(o)) {
+            return Err(PtpError::Unsupported(*missing));
+        }
+        let session = self.config.session_id.max(1);
+        match self
+            .transaction(OpCode::OpenSession, &[session], None)
+            .await
+        {
+            // A camera that kept our session across a driver restart: adopt it.
+            Ok(_)
+            | Err(PtpError::Response {
+                code: ResponseCode::SessionAlreadyOpen,
+                ..
+            }) => {}
+            Err(e) => return Err(e),
+        }
+        self.session_open = true;
+        self.next_tid = 1;
+        self.info = Some(info.clone());
+        Ok(info)
+    }
+
+    /// Closes the session (the camera may then power down its sensor).
+    pub async fn close(&mut self) -> Result<(), PtpError> {
+        self.require_session()?;
+        self.transaction(OpCode::CloseSession, &[], None).await?;
+        self.session_open = false;
+        Ok(())
+    }
+
+    /// What the camera said it is, after [`PtpCamera::connect`].
+    pub fn device_info(&self) -> Option<&DeviceInfo> {
+        self.info.as_ref()
+    }
+
+    /// The exposure last set, seconds (0 before any).
+    pub fn exposure_s(&self) -> f64 {
+        self.exposure_s
+    }
+
+    fn require_session(&self) -> Result<(), PtpError> {
+        if self.session_open {
+            Ok(())
+        } else {
+            Err(PtpError::NotConnected)
+        }
+    }
+
+    /// Sets ExposureTime (0.1 ms units).
+    pub async fn set_exposure_s(&mut self, exposure_s: f64) -> Result<(), PtpError> {
+        self.require_session()?;
+        let units = exposure_to_prop(exposure_s).ok_or(PtpError::BadExposure(exposure_s))?;
+        let params = [PropCode::ExposureTime.0 as u32];
+        let data = units.to_le_bytes().to_vec();
+        self.transaction(OpCode::SetDevicePropValue, &params, Some(data))
+            .await?;
+        self.exposure_s = exposure_s;
+        Ok(())
+    }
+
+    /// InitiateCapture, then waits for ObjectAdded and CaptureComplete.
+    pub async fn capture(&mut self) -> Result<u32, PtpError> {
+        self.require_session()?;
+        if let Some(stale) = self.pending.take() {
+            // A frame nobody fetched would fill the card; it is not needed.
+            let _ = self.transaction(OpCode::DeleteObject, &[stale], None).await;
+        }
+        let (tid, _) = self
+            .transaction(OpCode::InitiateCapture, &[0, 0], None)
+            .await?;
+        let budget = Duration::from_secs_f64(self.exposure_s.max(0.0)) + self.config.capture_slack;
+        let clock = self.clock.clone();
+        let handle = clock
+            .deadline(budget, self.wait_capture_events(tid))
+            .await
+            .map_err(|_| PtpError::Timeout {
+                op: OpCode::InitiateCapture,
+                after: budget,
+            })??;
+        self.pending = Some(handle);
+        Ok(handle)
+    }
+
+    async fn wait_capture_events(&mut self, tid: u32) -> Result<u32, PtpError> {
+        let op = OpCode::InitiateCapture;
+        let mut handle = None;
+        loop {
+            let bytes = self.pipe.interrupt_in().await.map_err(PtpError::Usb)?;
+            let ev = Container::decode(&bytes).map_err(|e| protocol(op, e))?;
+            // Events of an abandoned capture (or unrelated ones) are skipped.
+            if ev.kind != ContainerKind::Event || ev.transaction_id != tid {
+                continue;
+            }
+            match EventCode(ev.code) {
+                EventCode::ObjectAdded => {
+                    let h = ev.params().first().copied();
+                    handle = Some(h.ok_or_else(|| protocol(op, "ObjectAdded without a handle"))?);
+                }
+                EventCode::CaptureComplete => {
+                    return handle
+                        .ok_or_else(|| protocol(op, "CaptureComplete before any ObjectAdded"));
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// Fetches the captured frame and deletes it from the camera. On failure
+    /// the object stays pending, so a retried transfer reads it again.
+    pub async fn fetch(&mut self) -> Result<Frame, PtpError> {
+        self.require_session()?;
+        let handle = self.pending.ok_or(PtpError::NothingExposed)?;
+        let op = OpCode::GetObjectInfo;
+        let (_, data) = self.transaction(op, &[handle], None).await?;
+        let data = data.ok_or_else(|| protocol(op, "no ObjectInfo data phase"))?;
+        let info = ObjectInfo::decode(&data).map_err(|e| protocol(op, e))?;
+        if info.object_format != FORMAT_RIGD_RAW {
+            return Err(protocol(
+                op,
+                format!("object format 0x{:04X} is not rigd raw", info.object_format),
+            ));
+        }
+        let op = OpCode::GetObject;
+        let (_, data) = self.transaction(op, &[handle], None).await?;
+        let data = data.ok_or_else(|| PtpError::BadFrame("GetObject sent no data".into()))?;
+        let raw = RawFrame::decode(&data).map_err(|e| PtpError::BadFrame(e.to_string()))?;
+        if (raw.width, raw.height, raw.bit_depth as u32)
+            != (info.image_width, info.image_height, info.image_bit_depth)
+        {
+            return Err(PtpError::BadFrame(format!(
+                "frame is {}x{}@{} but ObjectInfo said {}x{}@{}",
+                raw.width,
+                raw.height,
+                raw.bit_depth,
+                info.image_width,
+                info.image_height,
+                info.image_bit_depth
+            )));
+        }
+        let frame = Frame {
+            width: raw.width,
+            height: raw.height,
+            bit_depth: raw.bit_depth,
+            pixels: raw.pixels,
+        };
+        frame
+            .validate(&self.name)
+            .map_err(|e| PtpError::BadFrame(e.message))?;
+        self.transaction(OpCode::DeleteObject, &[handle], None)
+            .await?;
+        self.pending = None;
+        Ok(frame)
+    }
+
+    /// One transaction under its deadline; returns its id and data-in phase.
+    /// Session-less operations use transaction id 0 (ISO 15740 §9.3.1); in a
+    /// session ids count up from 1.
+    async fn transaction(
+        &mut self,
+        op: OpCode,
+        params: &[u32],
+        data_out: Option<Vec<u8>>,
+    ) -> Result<(u32, Option<Vec<u8>>), PtpError> {
+        let tid = if op == OpCode::OpenSession || !self.session_open {
+            0
+        } else {
+            let t = self.next_tid;
+            // 0 and 0xFFFFFFFF are reserved.
+            self.next_tid = match self.next_tid.wrapping_add(1) {
+                0 | 0xFFFF_FFFF => 1,
+                n => n,
+            };
+            t
+        };
+        let after = if op == OpCode::GetObject {
+            self.config.transfer_timeout
+        } else {
+            self.config.transaction_timeout
+        };
+        let clock = self.clock.clone();
+        let data = clock
+            .deadline(after, self.exchange(op, tid, params, data_out))
+            .await
+            .map_err(|_| PtpError::Timeout { op, after })??;
+        Ok((tid, data))
+    }
+
+    async fn exchange(
+        &mut self,
+        op: OpCode,
+        tid: u32,
+        params: &[u32],
+        data_out: Option<Vec<u8>>,
+    ) -> Result<Option<Vec<u8>>, PtpError> {
+        let codec = |e: CodecError| protocol(op, e);
+        let cmd = Container::with_params(ContainerKind::Command, op.0, tid, params)
+            .and_then(|c| c.encode())
+            .map_err(codec)?;
+        self.pipe.bulk_out(cmd).await.map_err(PtpError::Usb)?;
+        if let Some(d) = data_out {
+            let bytes = Container::data(op.0, tid, d).encode().map_err(codec)?;
+            self.pipe.bulk_out(bytes).await.map_err(PtpError::Usb)?;
+        }
+        let mut data: Option<Vec<u8>> = None;
+        let mut truncated: Option<(usize, usize)> = None;
+        loop {
+            let (header, bytes) = self.read_container(op).await?;
+            if header.transaction_id != tid {
+                // Left over from a transaction that timed out.
+                continue;
+            }
+            match header.kind {
+                ContainerKind::Data => {
+                    if header.code != op.0 {
+                        return Err(protocol(op, format!("data phase of 0x{:04X}", header.code)));
+                    }
+                    if bytes.len() < header.length as usize {
+                        truncated = Some((
+                            bytes.len() - HEADER_LEN,
+                            header.length as usize - HEADER_LEN,
+                        ));
+                    } else {
+                        data = Some(bytes[HEADER_LEN..].to_vec());
+                    }
+                }
+                ContainerKind::Response => {
+                    let resp = Container::decode(&bytes).map_err(codec)?;
+                    let code = ResponseCode(resp.code);
+                    if code != ResponseCode::OK {
+                        return Err(PtpError::Response { op, code });
+                    }
+                    if let Some((got, declared)) = truncated {
+                        return Err(PtpError::Truncated { op, got, declared });
+                    }
+                    return Ok(data);
+                }
+                other => return Err(protocol(op, format!("unexpected {other} container"))),
+            }
+        }
+    }
+
+    /// Reads one bulk-in transfer: the header says how long the container
+    /// is; a short read before that length means the device cut the
+    /// transfer (the returned bytes are then shorter than the header says).
+    async fn read_container(&mut self, op: OpCode) -> Result<(Header, Vec<u8>), PtpError> {
+        let mut buf = Vec::new();
+        // Skip zero-length packets left from a previous transfer.
+        while buf.is_empty() {
+            buf = self.pipe.bulk_in(BULK_CHUNK).await.map_err(PtpError::Usb)?;
+        }
+        let mut ended = buf.len() < BULK_CHUNK;
+        let header = Header::decode(&buf).map_err(|e| protocol(op, e))?;
+        let declared = header.length as usize;
+        while !ended && buf.len() < declared {
+            let chunk = self.pipe.bulk_in(BULK_CHUNK).await.map_err(PtpError::Usb)?;
+            ended = chunk.len() < BULK_CHUNK;
+            buf.extend_from_slice(&chunk);
+        }
+        if !ended {
+            // The transfer filled whole reads: its zero-length packet follows.
+            let zlp = self.pipe.bulk_in(BULK_CHUNK).await.map_err(PtpError::Usb)?;
+            buf.extend_from_slice(&zlp);
+        }
+        if buf.len() > declared {
+            return Err(protocol(
+                op,
+                format!("{} bytes in a {declared}-byte container", buf.len()),
+            ));
+        }
+        Ok((header, buf))
+    }
+
+    fn device_error(&self, e: PtpError) -> DeviceError {
+        DeviceError::new(&self.name, e.kind(), e.to_string())
+    }
+}
+
+#[async_trait]
+impl<P: UsbPipe> Camera for PtpCamera<P> {
+    async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError> {
+        self.set_exposure_s(exposure_s)
+            .await
+            .map_err(|e| self.device_error(e))
+    }
+
+    async fn expose(&mut self) -> Result<(), DeviceError> {
+        self.capture()
+            .await
+            .map(|_| ())
+            .map_err(|e| self.device_error(e))
+    }
+
+    async fn transfer(&mut self) -> Result<Frame, DeviceError> {
+        self.fetch().await.map_err(|e| self.device_error(e))
+    }
+}

@@ -1,0 +1,171 @@
+//! Links to real hardware: serial ports (tokio-serial), Modbus TCP sockets
+//! and USB cameras (nusb), as the profile's `transport` of each device says.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use async_trait::async_trait;
+
+use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
+use crate::model::profile::{DeviceKind, Profile, Transport};
+use crate::rig::drivers::usb::{NusbPipe, UsbError};
+use crate::rig::hal::{DeviceError, Rig};
+use rigd_core::Clock;
+
+/// A serial port (a USB-serial adapter, an RS-485 dongle, a pty).
+pub struct SerialOpener {
+    pub port: String,
+    pub baud: u32,
+}
+
+#[async_trait]
+impl Opener for SerialOpener {
+    fn describe(&self) -> String {
+        format!("serial port {} at {} baud", self.port, self.baud)
+    }
+
+    async fn open(&self) -> std::io::Result<ByteStream> {
+        let builder = tokio_serial::new(&self.port, self.baud);
+        let stream = tokio_serial::SerialStream::open(&builder)?;
+        Ok(Box::new(stream))
+    }
+}
+
+/// A TCP connection (Modbus TCP, or an RS-485 gateway).
+pub struct TcpOpener {
+    pub host: String,
+    pub port: u16,
+}
+
+#[async_trait]
+impl Opener for TcpOpener {
+    fn describe(&self) -> String {
+        format!("TCP {}:{}", self.host, self.port)
+    }
+
+    async fn open(&self) -> std::io::Result<ByteStream> {
+        let stream = tokio::net::TcpStream::connect((self.host.as_str(), self.port)).await?;
+        stream.set_nodelay(true)?;
+        Ok(Box::new(stream))
+    }
+}
+
+/// A USB Still Image camera by vendor, product and (optionally) serial.
+pub struct UsbOpener {
+    pub vendor_id: u16,
+    pub product_id: u16,
+    pub serial: Option<String>,
+}
+
+#[async_trait]
+impl PipeOpener for UsbOpener {
+    fn describe(&self) -> String {
+        match &self.serial {
+            Some(s) => format!(
+                "USB camera {:04x}:{:04x} serial {s}",
+                self.vendor_id, self.product_id
+            ),
+            None => format!("USB camera {:04x}:{:04x}", self.vendor_id, self.product_id),
+        }
+    }
+
+    async fn open(&self) -> Result<BoxPipe, UsbError> {
+        let pipe = NusbPipe::open_serial(self.vendor_id, self.product_id, self.serial.as_deref())?;
+        Ok(Box::new(pipe))
+    }
+}
+
+/// A camera's USB transfers over TCP (see `ptp-camera.md`).
+pub struct PtpTcpOpener {
+    pub host: String,
+    pub port: u16,
+}
+
+#[async_trait]
+impl PipeOpener for PtpTcpOpener {
+    fn describe(&self) -> String {
+        format!("PTP camera link at TCP {}:{}", self.host, self.port)
+    }
+
+    async fn open(&self) -> Result<BoxPipe, UsbError> {
+        let stream = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
+            .await
+            .map_err(|e| UsbError::Io(e.to_string()))?;
+        stream
+            .set_nodelay(true)
+            .map_err(|e| UsbError::Io(e.to_string()))?;
+        Ok(Box::new(rigd_proto::ptp::link::host_over(stream)))
+    }
+}
+
+/// The link of every device, from its transport.
+pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
+    profile
+        .devices
+        .iter()
+        .map(|(name, dev)| {
+            let link = match (&dev.transport, dev.kind) {
+                (
+                    Transport::Usb {
+                        vendor_id,
+                        product_id,
+                        serial,
+                    },
+                    _,
+                ) => Link::Usb(Arc::new(UsbOpener {
+                    vendor_id: *vendor_id,
+                    product_id: *product_id,
+                    serial: serial.clone(),
+                })),
+                (Transport::ModbusRtu { port, baud, unit }, _) => Link::Modbus {
+                    bus: format!("modbus-rtu:{port}#{unit}"),
+                    opener: Arc::new(SerialOpener {
+                        port: port.clone(),
+                        baud: *baud,
+                    }),
+                    framing: Framing::Rtu,
+                    unit: *unit,
+                },
+                (Transport::ModbusTcp { host, port, unit }, _) => Link::Modbus {
+                    bus: format!("modbus-tcp:{host}:{port}#{unit}"),
+                    opener: Arc::new(TcpOpener {
+                        host: host.clone(),
+                        port: *port,
+                    }),
+                    framing: Framing::Tcp,
+                    unit: *unit,
+                },
+                (Transport::Serial { port, baud }, DeviceKind::Lamp | DeviceKind::Laser) => {
+                    // A relay module on a plain serial line speaks RTU.
+                    Link::Modbus {
+                        bus: format!("modbus-rtu:{port}#1"),
+                        opener: Arc::new(SerialOpener {
+                            port: port.clone(),
+                            baud: *baud,
+                        }),
+                        framing: Framing::Rtu,
+                        unit: 1,
+                    }
+                }
+                (Transport::PtpTcp { host, port }, _) => Link::Usb(Arc::new(PtpTcpOpener {
+                    host: host.clone(),
+                    port: *port,
+                })),
+                (Transport::Serial { port, baud }, _) => Link::Line(Arc::new(SerialOpener {
+                    port: port.clone(),
+                    baud: *baud,
+                })),
+            };
+            (name.clone(), link)
+        })
+        .collect()
+}
+
+/// Opens every device of a profile on real hardware.
+pub async fn connect(profile: &Profile, clock: &Clock) -> Result<Rig, DeviceError> {
+    let mut rig = build_rig(profile, &links(profile), clock).await?;
+    if crate::plan::laser::LaserRig::of(profile).is_some() {
+        rig.fixture = Some(Box::new(super::plate::OperatorPlate::default()));
+    }
+    Ok(rig)
+}

@@ -1,0 +1,572 @@
+//! Builds a profile's [`Rig`] from the real protocol drivers, over links an
+//! opener provides: serial ports, TCP and USB on hardware ([`hardware`]),
+//! or in-memory pipes to the simulated firmware ([`sim`]). Either way the
+//! same driver code runs; only the wire differs.
+//!
+//! Every device is wrapped so that a lost link is re-opened (and the
+//! driver re-synchronised from what the device reports) on the next call,
+//! which is how a run resumes after a disconnect once the operator has
+//! fixed the cable.
+
+pub mod drivers;
+pub mod hal;
+pub mod hardware;
+pub mod plate;
+pub mod serve;
+pub mod shot;
+pub mod sim;
+
+use std::collections::BTreeMap;
+use std::fmt;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use tokio::io::{AsyncRead, AsyncWrite};
+use tokio_modbus::client::Context;
+use tokio_modbus::Slave;
+
+use crate::model::profile::{Device, DeviceKind, Profile};
+use crate::rig::drivers::acl::{AclArm, AclConfig, AclJointConfig};
+use crate::rig::drivers::grbl::{GrblAxis, GrblConfig};
+use crate::rig::drivers::modbus::{all_off, ModbusConfig, ModbusLamp, ModbusLaser, SharedBus};
+use crate::rig::drivers::ptp::{PtpCamera, PtpConfig};
+use crate::rig::drivers::usb::{UsbError, UsbPipe};
+use crate::rig::hal::{
+    Arm, Axis, Camera, DeviceError, EmergencyStop, ErrorKind, Frame, Lamp, LaserLine, Rig,
+};
+use rigd_core::Clock;
+
+/// A byte stream a line or Modbus driver can run on.
+pub trait ByteLink: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static {}
+impl<T: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static> ByteLink for T {}
+
+/// A boxed byte stream: a serial port, a TCP socket, an in-memory pipe.
+pub type ByteStream = Box<dyn ByteLink>;
+
+/// A boxed USB pipe: a real camera or the simulated one.
+pub type BoxPipe = Box<dyn UsbPipe>;
+
+/// Opens (and re-opens) the byte stream of one device or bus.
+#[async_trait]
+pub trait Opener: Send + Sync {
+    /// Where the link goes, for error messages.
+    fn describe(&self) -> String;
+    async fn open(&self) -> std::io::Result<ByteStream>;
+}
+
+/// Opens (and re-opens) the USB pipe of one camera.
+#[async_trait]
+pub trait PipeOpener: Send + Sync {
+    fn describe(&self) -> String;
+    async fn open(&self) -> Result<BoxPipe, UsbError>;
+}
+
+/// Modbus framing on a byte stream.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Framing {
+    /// MBAP header (Modbus TCP).
+    Tcp,
+    /// Unit id and CRC-16 (Modbus RTU, RS-485).
+    Rtu,
+}
+
+/// How one device is reached.
+#[derive(Clone)]
+pub enum Link {
+    /// A line-protocol serial device (GRBL, ACL).
+    Line(Arc<dyn Opener>),
+    /// A coil on a Modbus module; devices with the same `bus` share it.
+    Modbus {
+        bus: String,
+        opener: Arc<dyn Opener>,
+        framing: Framing,
+        unit: u8,
+    },
+    /// A USB camera.
+    Usb(Arc<dyn PipeOpener>),
+}
+
+/// Deadline for opening a link (physical time).
+const OPEN_TIMEOUT: Duration = Duration::from_secs(10);
+
+fn link_error(device: &str, what: &str, e: impl fmt::Display) -> DeviceError {
+    DeviceError::new(device, ErrorKind::Disconnected, format!("{what}: {e}"))
+}
+
+async fn open_stream(
+    clock: &Clock,
+    device: &str,
+    opener: &dyn Opener,
+) -> Result<ByteStream, DeviceError> {
+    match clock.deadline(OPEN_TIMEOUT, opener.open()).await {
+        Ok(Ok(s)) => Ok(s),
+        Ok(Err(e)) => Err(link_error(
+            device,
+            &format!("cannot open {}", opener.describe()),
+            e,
+        )),
+        Err(_) => Err(DeviceError::new(
+            device,
+            ErrorKind::Timeout,
+            format!("opening {} took over {OPEN_TIMEOUT:?}", opener.describe()),
+        )),
+    }
+}
+
+async fn open_pipe(
+    clock: &Clock,
+    device: &str,
+    opener: &dyn PipeOpener,
+) -> Result<BoxPipe, DeviceError> {
+    match clock.deadline(OPEN_TIMEOUT, opener.open()).await {
+        Ok(Ok(p)) => Ok(p),
+        Ok(Err(e)) => Err(link_error(
+            device,
+            &format!("cannot open {}", opener.describe()),
+            e,
+        )),
+        Err(_) => Err(DeviceError::new(
+            device,
+            ErrorKind::Timeout,
+            format!("opening {} took over {OPEN_TIMEOUT:?}", opener.describe()),
+        )),
+    }
+}
+
+fn modbus_context(stream: ByteStream, framing: Framing, unit: u8) -> Context {
+    match framing {
+        Framing::Tcp => tokio_modbus::client::tcp::attach_slave(stream, Slave(unit)),
+        Framing::Rtu => tokio_modbus::client::rtu::attach_slave(stream, Slave(unit)),
+    }
+}
+
+/// The ACL joint set-up of an arm device.
+pub fn acl_joints(dev: &Device) -> Vec<AclJointConfig> {
+    dev.joints
+        .iter()
+        .flatten()
+        .map(|j| AclJointConfig {
+            name: j.name.clone(),
+            limits: j.limits,
+            motion: j.motion,
+            counts_per_deg: j.counts_per_deg,
+            home_deg: j.home_deg,
+        })
+        .collect()
+}
+
+/// Connects every device of a profile through its link and returns the rig,
+/// with one emergency stop per line device and per Modbus bus.
+pub async fn build_rig(
+    profile: &Profile,
+    links: &BTreeMap<String, Link>,
+    clock: &Clock,
+) -> Result<Rig, DeviceError> {
+    let mut rig = Rig::default();
+    let mut buses: BTreeMap<String, Arc<Bus>> = BTreeMap::new();
+    for (name, dev) in &profile.devices {
+        let link = links.get(name).cloned().ok_or_else(|| {
+            DeviceError::new(
+                name,
+                ErrorKind::NotReady,
+                "no link configured for this device",
+            )
+        })?;
+        match (dev.kind, link) {
+            (DeviceKind::Axis, Link::Line(opener)) => {
+                let (Some(limits), Some(motion)) = (dev.limits, dev.motion) else {
+                    return Err(DeviceError::new(
+                        name,
+                        ErrorKind::NotReady,
+                        "an axis needs limits and motion",
+                    ));
+                };
+                let stream = open_stream(clock, name, opener.as_ref()).await?;
+                let cfg = GrblConfig::new(name, limits, motion);
+                let axis = GrblAxis::connect(stream, cfg, clock.clone()).await?;
+                tracing::info!(device = %name, version = ?axis.version(), "GRBL axis connected");
+                rig.stops.insert(name.clone(), Arc::new(axis.stopper()));
+                rig.axes.insert(
+                    name.clone(),
+                    Box::new(LinkedAxis {
+                        axis,
+                        link: Relink::new(name, opener, clock),
+                    }),
+                );
+            }
+            (DeviceKind::Arm, Link::Line(opener)) => {
+                let stream = open_stream(clock, name, opener.as_ref()).await?;
+                let cfg = AclConfig::new(name, acl_joints(dev));
+                let arm = AclArm::connect(stream, cfg, clock.clone()).await?;
+                tracing::info!(device = %name, "ACL arm connected");
+                rig.stops.insert(name.clone(), Arc::new(arm.stopper()));
+                rig.arms.insert(
+                    name.clone(),
+                    Box::new(LinkedArm {
+                        arm,
+                        link: Relink::new(name, opener, clock),
+                    }),
+                );
+            }
+            (
+                kind @ (DeviceKind::Lamp | DeviceKind::Laser),
+                Link::Modbus {
+                    bus,
+                    opener,
+                    framing,
+                    unit,
+                },
+            ) => {
+                let coil = dev.coil.unwrap_or(0);
+                let shared = match buses.get(&bus) {
+                    Some(b) => b.clone(),
+                    None => {
+                        let stream = open_stream(clock, name, opener.as_ref()).await?;
+                        let b = Arc::new(Bus {
+                            name: bus.clone(),
+                            bus: Arc::new(tokio::sync::Mutex::new(modbus_context(
+                                stream, framing, unit,
+                            ))),
+                            opener,
+                            framing,
+                            unit,
+                            clock: clock.clone(),
+                            lost: AtomicBool::new(false),
+                            coils: std::sync::atomic::AtomicU16::new(0),
+                        });
+                        buses.insert(bus.clone(), b.clone());
+                        b
+                    }
+                };
+                shared.coils.fetch_max(coil + 1, Ordering::SeqCst);
+                let cfg = ModbusConfig::new(
+                    name,
+                    coil,
+                    Duration::from_secs_f64(dev.warm_up_s.unwrap_or(0.0)),
+                    Duration::from_secs_f64(dev.switch_s.unwrap_or(0.0)),
+                );
+                if kind == DeviceKind::Lamp {
+                    let lamp = ModbusLamp::new(cfg, clock.clone(), shared.bus.clone());
+                    rig.lamps.insert(
+                        name.clone(),
+                        Box::new(LinkedLamp {
+                            lamp,
+                            bus: shared.clone(),
+                        }),
+                    );
+                } else {
+                    let laser = ModbusLaser::new(cfg, clock.clone(), shared.bus.clone());
+                    rig.lasers.insert(
+                        name.clone(),
+                        Box::new(LinkedLaser {
+                            laser,
+                            bus: shared.clone(),
+                        }),
+                    );
+                }
+            }
+            (DeviceKind::Camera, Link::Usb(opener)) => {
+                let pipe = open_pipe(clock, name, opener.as_ref()).await?;
+                let mut cam = PtpCamera::new(name, pipe, clock.clone(), PtpConfig::default());
+                let info = cam
+                    .connect()
+                    .await
+                    .map_err(|e| DeviceError::new(name, e.kind(), e.to_string()))?;
+                tracing::info!(device = %name, model = %info.model, serial = %info.serial_number, "PTP camera connected");
+                rig.cameras.insert(
+                    name.clone(),
+                    Box::new(LinkedCamera {
+                        name: name.clone(),
+                        cam,
+                        opener,
+                        clock: clock.clone(),
+                        lost: false,
+                        exposure_s: None,
+                    }),
+                );
+            }
+            (kind, _) => {
+                return Err(DeviceError::new(
+                    name,
+                    ErrorKind::NotReady,
+                    format!(
+                        "{} cannot use protocol `{}` over this transport",
+                        kind.with_article(),
+                        dev.protocol
+                    ),
+                ))
+            }
+        }
+    }
+    for (name, bus) in buses {
+        rig.stops.insert(name, Arc::new(BusStop(bus)));
+    }
+    Ok(rig)
+}
+
+/// True when a call failed because the link is gone (so the next call
+/// must re-open it).
+fn lost_link<T>(r: &Result<T, DeviceError>) -> bool {
+    matches!(r, Err(e) if e.kind == ErrorKind::Disconnected)
+}
+
+/// Re-opens a line device's link after it was lost.
+struct Relink {
+    name: String,
+    opener: Arc<dyn Opener>,
+    clock: Clock,
+    lost: bool,
+}
+
+impl Relink {
+    fn new(name: &str, opener: Arc<dyn Opener>, clock: &Clock) -> Relink {
+        Relink {
+            name: name.to_string(),
+            opener,
+            clock: clock.clone(),
+            lost: false,
+        }
+    }
+
+    /// A fresh stream if the link was lost, else None.
+    async fn reopen(&mut self) -> Result<Option<ByteStream>, DeviceError> {
+        if !self.lost {
+            return Ok(None);
+        }
+        let s = open_stream(&self.clock, &self.name, self.opener.as_ref()).await?;
+        tracing::info!(device = %self.name, "link re-opened");
+        Ok(Some(s))
+    }
+
+    fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
+        self.lost |= lost_link(&r);
+        r
+    }
+}
+
+struct LinkedAxis {
+    axis: GrblAxis<ByteStream>,
+    link: Relink,
+}
+
+impl LinkedAxis {
+    async fn ready(&mut self) -> Result<(), DeviceError> {
+        if let Some(s) = self.link.reopen().await? {
+            let r = self.axis.reconnect(s).await;
+            self.link.note(r)?;
+            self.link.lost = false;
+        }
+        Ok(())
+    }
+}
+
+#[async_trait]
+impl Axis for LinkedAxis {
+    async fn home(&mut self) -> Result<f64, DeviceError> {
+        self.ready().await?;
+        let r = self.axis.home().await;
+        self.link.note(r)
+    }
+
+    async fn move_to(&mut self, target: f64) -> Result<f64, DeviceError> {
+        self.ready().await?;
+        let r = self.axis.move_to(target).await;
+        self.link.note(r)
+    }
+
+    async fn position(&mut self) -> Result<f64, DeviceError> {
+        self.ready().await?;
+        let r = self.axis.position().await;
+        self.link.note(r)
+    }
+
+    async fn start_sweep(&mut self, target: f64, velocity: f64) -> Result<(), DeviceError> {
+        self.ready().await?;
+        let r = self.axis.start_sweep(target, velocity).await;
+        self.link.note(r)
+    }
+
+    async fn wait_idle(&mut self) -> Result<f64, DeviceError> {
+        self.ready().await?;
+        let r = self.axis.wait_idle().await;
+        self.link.note(r)
+    }
+}
+
+struct LinkedArm {
+    arm: AclArm<ByteStream>,
+    link: Relink,
+}
+
+impl LinkedArm {
+    async fn ready(&mut self) -> Result<(), DeviceError> {
+        if let Some(s) = self.link.reopen().await? {
+            let r = self.arm.reconnect(s).await;
+            self.link.note(r)?;
+            self.link.lost = false;
+        }
+        Ok(())
+    }
+}
+
+#[async_trait]
+impl Arm for LinkedArm {
+    async fn home(&mut self) -> Result<Vec<f64>, DeviceError> {
+        self.ready().await?;
+        let r = self.arm.home().await;
+        self.link.note(r)
+    }
+
+    async fn move_joints(&mut self, joints: &[f64]) -> Result<Vec<f64>, DeviceError> {
+        self.ready().await?;
+        let r = self.arm.move_joints(joints).await;
+        self.link.note(r)
+    }
+
+    async fn joints(&mut self) -> Result<Vec<f64>, DeviceError> {
+        self.ready().await?;
+        let r = self.arm.joints().await;
+        self.link.note(r)
+    }
+}
+
+/// One Modbus module's connection, shared by its lamps and laser.
+struct Bus {
+    name: String,
+    bus: SharedBus,
+    opener: Arc<dyn Opener>,
+    framing: Framing,
+    unit: u8,
+    clock: Clock,
+    lost: AtomicBool,
+    /// Coils in use (highest coil + 1), for the all-off stop.
+    coils: std::sync::atomic::AtomicU16,
+}
+
+impl Bus {
+    async fn ready(&self) -> Result<(), DeviceError> {
+        if self.lost.load(Ordering::SeqCst) {
+            let stream = open_stream(&self.clock, &self.name, self.opener.as_ref()).await?;
+            *self.bus.lock().await = modbus_context(stream, self.framing, self.unit);
+            self.lost.store(false, Ordering::SeqCst);
+            tracing::info!(bus = %self.name, "Modbus link re-opened");
+        }
+        Ok(())
+    }
+
+    fn note<T>(&self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
+        if lost_link(&r) {
+            self.lost.store(true, Ordering::SeqCst);
+        }
+        r
+    }
+}
+
+struct LinkedLamp {
+    lamp: ModbusLamp,
+    bus: Arc<Bus>,
+}
+
+#[async_trait]
+impl Lamp for LinkedLamp {
+    async fn set(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.bus.ready().await?;
+        let r = self.lamp.set(on).await;
+        self.bus.note(r)
+    }
+
+    async fn wait_ready(&mut self) -> Result<(), DeviceError> {
+        self.bus.ready().await?;
+        let r = self.lamp.wait_ready().await;
+        self.bus.note(r)
+    }
+}
+
+struct LinkedLaser {
+    laser: ModbusLaser,
+    bus: Arc<Bus>,
+}
+
+#[async_trait]
+impl LaserLine for LinkedLaser {
+    async fn set(&mut self, on: bool) -> Result<(), DeviceError> {
+        self.bus.ready().await?;
+        let r = self.laser.set(on).await;
+        self.bus.note(r)
+    }
+}
+
+/// Every coil of a module off in one request.
+struct BusStop(Arc<Bus>);
+
+#[async_trait]
+impl EmergencyStop for BusStop {
+    async fn emergency_stop(&self) -> Result<(), DeviceError> {
+        let bus = &self.0;
+        let coils = bus.coils.load(Ordering::SeqCst);
+        all_off(&bus.clock, &bus.bus, coils, Duration::from_secs(1))
+            .await
+            .map_err(|e| e.into_device(&bus.name))
+    }
+}
+
+struct LinkedCamera {
+    name: String,
+    cam: PtpCamera<BoxPipe>,
+    opener: Arc<dyn PipeOpener>,
+    clock: Clock,
+    lost: bool,
+    /// The exposure last set, re-applied after a reconnect.
+    exposure_s: Option<f64>,
+}
+
+impl LinkedCamera {
+    async fn ready(&mut self) -> Result<(), DeviceError> {
+        if !self.lost {
+            return Ok(());
+        }
+        let pipe = open_pipe(&self.clock, &self.name, self.opener.as_ref()).await?;
+        let mut cam = PtpCamera::new(&self.name, pipe, self.clock.clone(), PtpConfig::default());
+        cam.connect()
+            .await
+            .map_err(|e| DeviceError::new(&self.name, e.kind(), e.to_string()))?;
+        if let Some(e) = self.exposure_s {
+            cam.set_exposure(e).await?;
+        }
+        self.cam = cam;
+        self.lost = false;
+        tracing::info!(device = %self.name, "camera re-opened");
+        Ok(())
+    }
+
+    fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
+        self.lost |= lost_link(&r);
+        r
+    }
+}
+
+#[async_trait]
+impl Camera for LinkedCamera {
+    async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError> {
+        self.ready().await?;
+        let r = self.cam.set_exposure(exposure_s).await;
+        if r.is_ok() {
+            self.exposure_s = Some(exposure_s);
+        }
+        self.note(r)
+    }
+
+    async fn expose(&mut self) -> Result<(), DeviceError> {
+        self.ready().await?;
+        let r = self.cam.expose().await;
+        self.note(r)
+    }
+
+    async fn transfer(&mut self) -> Result<Frame, DeviceError> {
+        // A lost link lost the frame with it: re-opening cannot bring it back.
+        let r = self.cam.transfer().await;
+        self.note(r)
+    }
+}

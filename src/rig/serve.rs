@@ -1,0 +1,199 @@
+//! `rigd sim serve`: the simulated firmware of a profile offered the way
+//! hardware is, so anything that talks to real devices can talk to it:
+//! serial devices on pseudo-terminals, relay modules on Modbus TCP on
+//! 127.0.0.1 (and RTU modules also on a pty), cameras as PTP transfers
+//! over a loopback socket. It answers with a copy of the profile whose
+//! transports point at these endpoints.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+
+use rigd_core::Clock;
+use rigd_sim::firmware::modbus::Framing as FirmwareFraming;
+use rigd_sim::FaultRule;
+use tokio::net::TcpListener;
+use tokio_serial::{SerialPort, SerialStream};
+
+use super::sim::{bus_key, firmware};
+use super::{Framing, Link};
+use crate::kinematics::Solver;
+use crate::model::profile::{Profile, Transport};
+use crate::rig::hal::{DeviceError, ErrorKind};
+
+/// Where one device of the served rig can be reached.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Endpoint {
+    pub device: String,
+    /// A pty path or `127.0.0.1:PORT`, with what speaks there.
+    pub address: String,
+    pub protocol: String,
+}
+
+/// A served rig: the endpoints and the profile that points at them.
+#[derive(Debug, Clone)]
+pub struct Served {
+    pub endpoints: Vec<Endpoint>,
+    pub profile: Profile,
+    /// The pty ends the firmware do not use, kept open: a pty whose last
+    /// slave handle closes hangs up its master.
+    _keep: Vec<Arc<SerialStream>>,
+}
+
+fn io_err(device: &str, what: &str, e: impl std::fmt::Display) -> DeviceError {
+    DeviceError::new(device, ErrorKind::Disconnected, format!("{what}: {e}"))
+}
+
+/// A pseudo-terminal pair: the master end (for the firmware) and the path
+/// of the slave end (for clients), whose handle is kept open.
+fn pty(device: &str) -> Result<(SerialStream, String, SerialStream), DeviceError> {
+    let (master, slave) =
+        SerialStream::pair().map_err(|e| io_err(device, "cannot create a pty", e))?;
+    let path = slave
+        .name()
+        .ok_or_else(|| io_err(device, "pty", "the slave end has no path"))?;
+    Ok((master, path, slave))
+}
+
+async fn listen(device: &str) -> Result<(TcpListener, u16), DeviceError> {
+    let l = TcpListener::bind("127.0.0.1:0")
+        .await
+        .map_err(|e| io_err(device, "cannot listen on 127.0.0.1", e))?;
+    let port = l
+        .local_addr()
+        .map_err(|e| io_err(device, "listener", e))?
+        .port();
+    Ok((l, port))
+}
+
+/// Starts every device's simulated firmware on its endpoint. The tasks run
+/// on the current runtime until it shuts down.
+pub async fn serve(
+    profile: &Profile,
+    faults: Vec<FaultRule>,
+    clock: &Clock,
+) -> Result<Served, DeviceError> {
+    let solver = Solver::new(profile)
+        .map_err(|e| DeviceError::new("rig", ErrorKind::NotReady, e.to_string()))?;
+    let mut all = profile.sim.fault_rules();
+    all.extend(faults);
+    let faults = Arc::new(rigd_sim::FaultInjector::new(all));
+    let parts = firmware(profile, Arc::new(solver), None, clock, &faults)?;
+    let mut served = profile.clone();
+    let mut endpoints = Vec::new();
+    let mut keep = Vec::new();
+    let mut tcp_of_bus: BTreeMap<String, u16> = BTreeMap::new();
+
+    for (key, m) in &parts.modules {
+        let (listener, port) = listen(key).await?;
+        let module = m.module.clone();
+        tokio::spawn(async move {
+            while let Ok((stream, _)) = listener.accept().await {
+                let module = module.clone();
+                tokio::spawn(async move {
+                    if let Err(e) = module.serve_stream(stream, FirmwareFraming::Tcp).await {
+                        tracing::debug!("Modbus TCP client gone: {e}");
+                    }
+                });
+            }
+        });
+        tcp_of_bus.insert(key.clone(), port);
+        if m.framing == Framing::Rtu {
+            let (master, path, slave) = pty(key)?;
+            let module = m.module.clone();
+            tokio::spawn(async move {
+                if let Err(e) = module.serve_stream(master, FirmwareFraming::Rtu).await {
+                    tracing::debug!("Modbus RTU pty closed: {e}");
+                }
+            });
+            keep.push(Arc::new(slave));
+            endpoints.push(Endpoint {
+                device: key.clone(),
+                address: path,
+                protocol: "Modbus RTU".into(),
+            });
+        }
+        endpoints.push(Endpoint {
+            device: key.clone(),
+            address: format!("127.0.0.1:{port}"),
+            protocol: "Modbus TCP".into(),
+        });
+    }
+
+    for (name, dev) in served.devices.iter_mut() {
+        let Some(link) = parts.links.get(name) else {
+            continue;
+        };
+        match link {
+            Link::Line(opener) => {
+                let (mut master, path, slave) = pty(name)?;
+                let mut fw = opener
+                    .open()
+                    .await
+                    .map_err(|e| io_err(name, "cannot start the firmware", e))?;
+                tokio::spawn(async move {
+                    // The firmware and the pty exchange bytes until either ends.
+                    let _ = tokio::io::copy_bidirectional(&mut fw, &mut master).await;
+                });
+                keep.push(Arc::new(slave));
+                let baud = match dev.transport {
+                    Transport::Serial { baud, .. } => baud,
+                    _ => 115_200,
+                };
+                dev.transport = Transport::Serial {
+                    port: path.clone(),
+                    baud,
+                };
+                endpoints.push(Endpoint {
+                    device: name.clone(),
+                    address: path,
+                    protocol: dev.protocol.to_uppercase(),
+                });
+            }
+            Link::Modbus { unit, .. } => {
+                let key = bus_key(&dev.transport);
+                if let Some(&port) = tcp_of_bus.get(&key) {
+                    dev.transport = Transport::ModbusTcp {
+                        host: "127.0.0.1".into(),
+                        port,
+                        unit: *unit,
+                    };
+                }
+            }
+            Link::Usb(_) => {
+                let Some(cam) = parts.cameras.get(name).cloned() else {
+                    continue;
+                };
+                let (listener, port) = listen(name).await?;
+                let cam_name = name.clone();
+                tokio::spawn(async move {
+                    while let Ok((stream, _)) = listener.accept().await {
+                        let _ = stream.set_nodelay(true);
+                        tracing::info!(camera = %cam_name, "client connected");
+                        cam.start(rigd_proto::ptp::link::device_over(stream));
+                    }
+                });
+                dev.transport = Transport::PtpTcp {
+                    host: "127.0.0.1".into(),
+                    port,
+                };
+                endpoints.push(Endpoint {
+                    device: name.clone(),
+                    address: format!("127.0.0.1:{port}"),
+                    protocol: "PTP over TCP".into(),
+                });
+            }
+        }
+    }
+    // The faults are the served firmware's business, not the client's.
+    served.sim.faults.clear();
+    served.name = format!("{}-sim-served", profile.name);
+    served.description = format!(
+        "{} (simulated firmware served by `rigd sim serve`)",
+        profile.description
+    );
+    Ok(Served {
+        endpoints,
+        profile: served,
+        _keep: keep,
+    })
+}

@@ -1,0 +1,324 @@
+//! One simulated frame on request: `rigd sim render` and
+//! `GET /api/v1/sim/render`. The camera and lamp geometry come from a
+//! profile exactly as the simulated cameras of a run use them; the scene
+//! and directions from the caller.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use rigd_sim::scene::{EffectPlan, EffectSwitches, LaserLine, Marker, Rendered, Scene, Shot};
+use serde::Serialize;
+
+use crate::model::geometry::Direction;
+use crate::model::profile::Profile;
+use crate::rig::hal::Frame;
+use crate::rig::sim::{camera_geometry, CameraGeometry};
+use crate::store::{encode_png, write_atomic};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError {
+    #[error("{0}")]
+    Invalid(String),
+    #[error(transparent)]
+    Scene(#[from] rigd_sim::scene::SceneError),
+    #[error("writing {path}: {message}")]
+    Write { path: PathBuf, message: String },
+}
+
+/// What to render.
+#[derive(Debug, Clone)]
+pub struct RenderRequest {
+    /// A built-in scene name or a scene file; the profile's `[sim] scene` if None.
+    pub scene: Option<String>,
+    /// Which camera of the profile; its first if None.
+    pub camera: Option<String>,
+    pub light: Direction,
+    pub view: Direction,
+    /// Frame size; the profile's `[sim] frame_size` if None.
+    pub size: Option<[u32; 2]>,
+    pub effects: EffectSwitches,
+    pub seed: u64,
+    /// Exposure relative to the camera's nominal one.
+    pub exposure: f64,
+    /// A laser plane crossing the sample plane at x = this many mm, tilted
+    /// this many degrees from vertical, towards the emitter at +x.
+    pub laser: Option<(f64, f64)>,
+    /// Switch the lamp off (laser-only frames).
+    pub lamp_off: bool,
+    /// Focal length multiplier: a longer lens for a closer look.
+    pub zoom: f64,
+}
+
+impl Default for RenderRequest {
+    fn default() -> Self {
+        RenderRequest {
+            scene: None,
+            camera: None,
+            light: Direction::new(0.0, 0.0),
+            view: Direction::new(0.0, 0.0),
+            size: None,
+            effects: EffectSwitches::default(),
+            seed: 0,
+            exposure: 1.0,
+            laser: None,
+            lamp_off: false,
+            zoom: 1.0,
+        }
+    }
+}
+
+/// A rendered frame with everything needed to judge it.
+#[derive(Debug, Clone)]
+pub struct RenderOutput {
+    pub scene: Arc<Scene>,
+    pub shot: Shot,
+    pub camera: String,
+    pub rendered: Rendered,
+    pub render_ms: f64,
+}
+
+/// The frame's metadata, written next to the PNG.
+#[derive(Debug, Serialize)]
+pub struct RenderMeta<'a> {
+    pub scene: &'a str,
+    pub camera: &'a str,
+    pub light: Direction,
+    pub view: Direction,
+    pub lamp_on: bool,
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+    pub focal_px: Option<f64>,
+    pub camera_distance_m: Option<f64>,
+    pub lamp_distance_m: Option<f64>,
+    pub laser: Option<LaserLine>,
+    pub seed: u64,
+    /// The effects this frame paid for, and those it could have.
+    pub effects: EffectPlan,
+    pub render_ms: f64,
+    /// Where each registration marker lands, pixels (x right, y down).
+    pub markers: Vec<MarkerPixel>,
+}
+
+#[derive(Debug, Serialize)]
+pub struct MarkerPixel {
+    #[serde(flatten)]
+    pub marker: Marker,
+    pub pixel: Option<[f64; 2]>,
+}
+
+/// Renders one frame.
+pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, RenderError> {
+    let scene = Scene::load(req.scene.as_deref().unwrap_or(profile.sim.scene_name()))?;
+    let camera = match &req.camera {
+        Some(c) => c.clone(),
+        None => profile.camera_names().into_iter().next().ok_or_else(|| {
+            RenderError::Invalid(format!("profile `{}` has no camera", profile.name))
+        })?,
+    };
+    let size = req.size.unwrap_or(profile.sim.frame_size);
+    if size[0] == 0 || size[1] == 0 || size[0] > 8192 || size[1] > 8192 {
+        return Err(RenderError::Invalid(format!(
+            "frame size {}x{}: expected 1 ..= 8192 pixels each way",
+            size[0], size[1]
+        )));
+    }
+    if !(req.zoom.is_finite() && (0.1..=100.0).contains(&req.zoom)) {
+        return Err(RenderError::Invalid(format!(
+            "zoom {}: expected 0.1 ..= 100",
+            req.zoom
+        )));
+    }
+    if !(req.exposure.is_finite() && req.exposure > 0.0) {
+        return Err(RenderError::Invalid(format!(
+            "exposure {}: expected a positive factor",
+            req.exposure
+        )));
+    }
+    for (what, d) in [("light", req.light), ("view", req.view)] {
+        if !(d.theta_deg.is_finite()
+            && d.phi_deg.is_finite()
+            && (0.0..=90.0).contains(&d.theta_deg))
+        {
+            return Err(RenderError::Invalid(format!(
+                "{what} θ = {}, φ = {}: expected 0 ≤ θ ≤ 90 degrees and a finite φ",
+                d.theta_deg, d.phi_deg
+            )));
+        }
+    }
+    let CameraGeometry {
+        focal_px,
+        distance_m,
+        bit_depth,
+        lamp_distance_m,
+    } = camera_geometry(profile, &camera, size).ok_or_else(|| {
+        RenderError::Invalid(format!(
+            "profile `{}` has no camera `{camera}`",
+            profile.name
+        ))
+    })?;
+    let laser = match req.laser {
+        None => None,
+        Some((offset_mm, tilt_deg)) => {
+            if !(offset_mm.is_finite() && tilt_deg.is_finite() && tilt_deg.abs() < 80.0) {
+                return Err(RenderError::Invalid(format!(
+                    "laser {offset_mm},{tilt_deg}: expected an offset in mm and a tilt below 80°"
+                )));
+            }
+            Some(laser_plane(offset_mm * 1e-3, tilt_deg))
+        }
+    };
+    let shot = Shot {
+        light: if req.lamp_off {
+            [0.0, 0.0, -1.0]
+        } else {
+            req.light.to_vector()
+        },
+        view: req.view.to_vector(),
+        width: size[0],
+        height: size[1],
+        bit_depth,
+        relative_exposure: req.exposure,
+        focal_px: Some(focal_px * req.zoom),
+        camera_distance_m: distance_m,
+        lamp_distance_m,
+        laser,
+        seed: req.seed,
+        effects: req.effects,
+        ..Shot::default()
+    };
+    let started = Instant::now();
+    let rendered = scene.render(&shot);
+    let render_ms = started.elapsed().as_secs_f64() * 1e3;
+    tracing::debug!(scene = %scene.name, effects = %rendered.plan.live, render_ms, "rendered a frame");
+    Ok(RenderOutput {
+        scene,
+        shot,
+        camera,
+        rendered,
+        render_ms,
+    })
+}
+
+/// A laser plane crossing z = 0 at x = `x0`, tilted about the y axis, its
+/// emitter 30 cm above the sample.
+pub fn laser_plane(x0: f64, tilt_deg: f64) -> LaserLine {
+    let t = tilt_deg.to_radians();
+    let height = 0.3;
+    LaserLine {
+        emitter: [x0 + height * t.tan(), 0.0, height],
+        normal: [t.cos(), 0.0, -t.sin()],
+        width_m: 0.8e-3,
+        power: 1.0,
+    }
+}
+
+impl RenderOutput {
+    pub fn frame(&self) -> Frame {
+        Frame {
+            width: self.rendered.width,
+            height: self.rendered.height,
+            bit_depth: self.rendered.bit_depth,
+            pixels: self.rendered.pixels.clone(),
+        }
+    }
+
+    pub fn png(&self) -> Result<Vec<u8>, String> {
+        encode_png(&self.frame())
+    }
+
+    pub fn meta(&self) -> RenderMeta<'_> {
+        let s = &self.shot;
+        RenderMeta {
+            scene: &self.scene.name,
+            camera: &self.camera,
+            light: Direction::from_vector(s.light),
+            view: Direction::from_vector(s.view),
+            lamp_on: s.lamp_on(),
+            width: s.width,
+            height: s.height,
+            bit_depth: s.bit_depth,
+            focal_px: s.focal_px,
+            camera_distance_m: s.camera_distance_m,
+            lamp_distance_m: s.lamp_distance_m,
+            laser: s.laser,
+            seed: s.seed,
+            effects: self.rendered.plan,
+            render_ms: self.render_ms,
+            markers: self
+                .scene
+                .true_markers(s)
+                .into_iter()
+                .map(|(marker, pixel)| MarkerPixel { marker, pixel })
+                .collect(),
+        }
+    }
+
+    /// Writes the PNG and, beside it, `NAME.json` with the metadata; each
+    /// file appears whole or not at all.
+    pub fn write(&self, out: &Path) -> Result<PathBuf, RenderError> {
+        let werr = |path: &Path, message: String| RenderError::Write {
+            path: path.to_path_buf(),
+            message,
+        };
+        let png = self.png().map_err(|m| werr(out, m))?;
+        let meta_path = out.with_extension("json");
+        let mut json =
+            serde_json::to_vec_pretty(&self.meta()).map_err(|e| werr(&meta_path, e.to_string()))?;
+        json.push(b'\n');
+        write_atomic(out, &png).map_err(|e| werr(out, e.to_string()))?;
+        write_atomic(&meta_path, &json).map_err(|e| werr(&meta_path, e.to_string()))?;
+        Ok(meta_path)
+    }
+}
+
+/// Parses `WIDTHxHEIGHT`, each 1 ..= 8192.
+pub fn parse_frame_size(s: &str) -> Result<[u32; 2], String> {
+    let bad = || format!("`{s}`: expected WIDTHxHEIGHT with each between 1 and 8192, e.g. 64x64");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let w: u32 = w.trim().parse().map_err(|_| bad())?;
+    let h: u32 = h.trim().parse().map_err(|_| bad())?;
+    if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
+        return Err(bad());
+    }
+    Ok([w, h])
+}
+
+/// Parses `θ,φ` in degrees, 0 ≤ θ ≤ 90.
+pub fn parse_direction(s: &str) -> Result<Direction, String> {
+    parse_direction_within(s, 90.0)
+}
+
+/// Parses `θ,φ` in degrees with 0 ≤ θ ≤ `theta_max`.
+pub fn parse_direction_within(s: &str, theta_max: f64) -> Result<Direction, String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [theta, phi] = parts[..] else {
+        return Err(format!("`{s}`: expected θ,φ in degrees, like 45,90"));
+    };
+    let num = |v: &str| {
+        v.parse::<f64>()
+            .ok()
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| format!("`{v}` in `{s}` is not a number"))
+    };
+    let (theta, phi) = (num(theta)?, num(phi)?);
+    if !(0.0..=theta_max).contains(&theta) {
+        return Err(format!("θ = {theta}: expected 0 ..= {theta_max} degrees"));
+    }
+    Ok(Direction::new(theta, phi))
+}
+
+/// Parses a laser spec `X` or `X,TILT` (mm, degrees; tilt 30 by default).
+pub fn parse_laser(s: &str) -> Result<(f64, f64), String> {
+    let bad = || format!("`{s}`: expected X or X,TILT in mm and degrees, like -20,30");
+    let parts: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>().map_err(|_| bad()))
+        .collect::<Result<_, _>>()?;
+    match parts[..] {
+        [x] => Ok((x, 30.0)),
+        [x, tilt] => Ok((x, tilt)),
+        _ => Err(bad()),
+    }
+}

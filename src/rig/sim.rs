@@ -1,0 +1,656 @@
+//! The simulated rig: each device of a profile gets its simulated firmware
+//! (`rigd_sim::firmware`) on the far end of an in-memory pipe, and the real
+//! driver on the near end. Pipes, not sockets: under paused (virtual) time
+//! tokio advances the clock whenever every task waits, which is only sound
+//! when no byte is in flight outside the runtime.
+//!
+//! All firmware of a rig share one [`SharedWorld`] (axis positions, arm
+//! joints) and one [`FaultInjector`]; the cameras render what the world
+//! holds when they expose, by forward kinematics of where the devices
+//! physically are.
+
+use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use async_trait::async_trait;
+use rigd_core::Clock;
+use rigd_core::Trapezoid;
+use rigd_sim::devices::{CameraTimes, SimContext};
+use rigd_sim::firmware::acl::{self as acl_fw, AclJoint, AclParams};
+use rigd_sim::firmware::grbl::{self as grbl_fw, GrblParams};
+use rigd_sim::firmware::modbus::{
+    Framing as FirmwareFraming, LampSpec, ModbusModule, ModuleConfig,
+};
+use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
+use rigd_sim::scene::{LaserLine, Scene as SceneModel, Shot};
+use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
+
+use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
+use crate::kinematics::{Setpoints, Solver};
+use crate::model::profile::{DeviceKind, Motion, Profile, RigGeometry, Transport};
+use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
+use crate::rig::hal::{DeviceError, ErrorKind, Rig};
+
+/// Bytes an in-memory serial pipe buffers each way.
+const PIPE_BUFFER: usize = 64 * 1024;
+/// Width (FWHM) and peak of the simulated laser strip.
+const SIM_LASER_WIDTH_M: f64 = 1.0e-3;
+const SIM_LASER_POWER: f64 = 12.0;
+/// Duration of the simulated arm's homing cycle.
+const ARM_HOME_S: f64 = 12.0;
+
+/// What a test or the command line may set on the simulated rig.
+#[derive(Debug, Clone, Default)]
+pub struct SimOptions {
+    /// Frame size the cameras render; the profile's `[sim] frame_size` if None.
+    pub frame_size: Option<[u32; 2]>,
+    pub faults: Vec<FaultRule>,
+}
+
+/// The scene a profile's simulated cameras render, loaded once.
+pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
+    let name = profile.sim.scene_name();
+    SceneModel::load(name)
+        .map_err(|e| DeviceError::new("sim.scene", ErrorKind::NotReady, e.to_string()))
+}
+
+/// Handles into a running simulated rig: its faults and its world.
+#[derive(Clone)]
+pub struct SimHandle {
+    pub faults: Arc<FaultInjector>,
+    world: SimWorld,
+}
+
+impl std::fmt::Debug for SimHandle {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SimHandle")
+            .field("world", &self.world())
+            .finish()
+    }
+}
+
+impl SimHandle {
+    /// Where every simulated device physically is, and which lamps are lit.
+    pub fn world(&self) -> World {
+        self.world.snapshot()
+    }
+}
+
+/// One simulated relay module and how its bus is framed.
+#[derive(Clone)]
+pub(crate) struct SimModule {
+    pub module: ModbusModule,
+    /// The lamp on each coil (None: a coil no lamp of the profile uses).
+    lamp_names: Vec<Option<String>>,
+    pub framing: Framing,
+    unit: u8,
+}
+
+/// The world the firmware publish, plus the lamp relays read from the
+/// Modbus modules themselves.
+#[derive(Clone)]
+struct SimWorld {
+    shared: SharedWorld,
+    modules: Vec<SimModule>,
+    /// Per arm joint, the angle at zero encoder counts.
+    arm_home_deg: Vec<f64>,
+}
+
+impl SimWorld {
+    fn snapshot(&self) -> World {
+        let mut w = self.shared.snapshot();
+        if let Some(q) = &mut w.arm {
+            for (v, h) in q.iter_mut().zip(&self.arm_home_deg) {
+                *v += h;
+            }
+        }
+        for m in &self.modules {
+            // Lamps, then the laser, in coil order.
+            for (on, name) in m.module.coils().into_iter().zip(&m.lamp_names) {
+                if let Some(n) = name {
+                    w.lamps_on.insert(n.clone(), on);
+                }
+            }
+        }
+        w
+    }
+}
+
+fn trapezoid(m: Motion) -> Trapezoid {
+    Trapezoid {
+        max_velocity: m.max_velocity,
+        acceleration: m.acceleration,
+        settle_s: m.settle_s,
+    }
+}
+
+/// A bus key for devices that share one Modbus module.
+pub(crate) fn bus_key(t: &Transport) -> String {
+    match t {
+        Transport::ModbusRtu { port, unit, .. } => format!("modbus-rtu:{port}#{unit}"),
+        Transport::ModbusTcp { host, port, unit } => format!("modbus-tcp:{host}:{port}#{unit}"),
+        Transport::Serial { port, .. } => format!("serial:{port}"),
+        Transport::Usb { .. } | Transport::PtpTcp { .. } => "usb".into(),
+    }
+}
+
+/// Builds the simulated rig of a profile: firmware behind every device,
+/// real drivers in front.
+pub async fn connect(
+    profile: &Profile,
+    solver: Arc<Solver>,
+    opts: SimOptions,
+    clock: &Clock,
+) -> Result<(Rig, SimHandle), DeviceError> {
+    let faults = Arc::new(FaultInjector::new(opts.faults));
+    let parts = firmware(profile, solver, opts.frame_size, clock, &faults)?;
+    let mut rig = build_rig(profile, &parts.links, clock).await?;
+    if crate::plan::laser::LaserRig::of(profile).is_some() {
+        rig.fixture = Some(Box::new(super::plate::SimPlate {
+            world: parts.world.shared.clone(),
+            clock: clock.clone(),
+        }));
+    }
+    Ok((
+        rig,
+        SimHandle {
+            faults,
+            world: parts.world,
+        },
+    ))
+}
+
+/// The simulated firmware of a profile, ready to be connected: a link per
+/// device, and what `rigd sim serve` needs to offer the same firmware on
+/// ptys and sockets.
+pub(crate) struct SimParts {
+    pub links: BTreeMap<String, Link>,
+    world: SimWorld,
+    /// The relay modules, by bus key.
+    pub modules: BTreeMap<String, SimModule>,
+    /// The cameras' firmware starters, by device name.
+    pub cameras: BTreeMap<String, Arc<PtpOpener>>,
+}
+
+/// Starts nothing yet: returns an opener per device that starts the
+/// device's firmware on a fresh pipe each time the driver opens its link.
+pub(crate) fn firmware(
+    profile: &Profile,
+    solver: Arc<Solver>,
+    frame_size: Option<[u32; 2]>,
+    clock: &Clock,
+    faults: &Arc<FaultInjector>,
+) -> Result<SimParts, DeviceError> {
+    let mut cameras = BTreeMap::new();
+    let shared = SharedWorld::new();
+    let mut links = BTreeMap::new();
+    let mut modules: BTreeMap<String, SimModule> = BTreeMap::new();
+    let mut arm_home_deg = Vec::new();
+
+    // Modbus modules first: cameras read their coils.
+    let mut by_bus: BTreeMap<String, Vec<(&String, &crate::model::profile::Device)>> =
+        BTreeMap::new();
+    for (name, dev) in &profile.devices {
+        if matches!(dev.kind, DeviceKind::Lamp | DeviceKind::Laser) {
+            by_bus
+                .entry(bus_key(&dev.transport))
+                .or_default()
+                .push((name, dev));
+        }
+    }
+    for (key, devs) in by_bus {
+        let lamps: Vec<_> = devs
+            .iter()
+            .filter(|(_, d)| d.kind == DeviceKind::Lamp)
+            .collect();
+        let n = lamps
+            .iter()
+            .map(|(_, d)| usize::from(d.coil.unwrap_or(0)) + 1)
+            .max()
+            .unwrap_or(0);
+        let mut specs: Vec<LampSpec> = (0..n)
+            .map(|k| LampSpec {
+                name: format!("{key}/coil{k}"),
+                warm_up_s: 0.0,
+                switch_s: 0.0,
+            })
+            .collect();
+        let mut names = vec![None; n];
+        for (name, d) in &lamps {
+            let k = usize::from(d.coil.unwrap_or(0));
+            specs[k] = LampSpec {
+                name: (*name).clone(),
+                warm_up_s: d.warm_up_s.unwrap_or(0.0),
+                switch_s: d.switch_s.unwrap_or(0.0),
+            };
+            names[k] = Some((*name).clone());
+        }
+        let laser = devs.iter().find(|(_, d)| d.kind == DeviceKind::Laser);
+        if let Some((lname, ld)) = laser {
+            // The world reports the laser's relay beside the lamps'.
+            names.push(Some((*lname).clone()));
+            let coil = usize::from(ld.coil.unwrap_or(0));
+            if coil != n {
+                return Err(DeviceError::new(
+                    lname,
+                    ErrorKind::NotReady,
+                    format!("the simulated module wires the laser on the coil after the lamps ({n}), not on coil {coil}"),
+                ));
+            }
+        }
+        let (framing, unit) = match devs[0].1.transport {
+            Transport::ModbusTcp { unit, .. } => (Framing::Tcp, unit),
+            Transport::ModbusRtu { unit, .. } => (Framing::Rtu, unit),
+            _ => (Framing::Tcp, 1),
+        };
+        let module = ModbusModule::new(
+            ModuleConfig {
+                unit,
+                lamps: specs,
+                laser: laser.map(|(n, _)| (*n).clone()),
+                laser_switch_s: laser.and_then(|(_, d)| d.switch_s).unwrap_or(0.0),
+            },
+            clock.clone(),
+            faults.clone(),
+        );
+        modules.insert(
+            key,
+            SimModule {
+                module,
+                lamp_names: names,
+                framing,
+                unit,
+            },
+        );
+    }
+
+    for dev in profile.devices.values() {
+        if dev.kind == DeviceKind::Arm {
+            arm_home_deg = dev.joints.iter().flatten().map(|j| j.home_deg).collect();
+        }
+    }
+    let world = SimWorld {
+        shared: shared.clone(),
+        modules: modules.values().cloned().collect(),
+        arm_home_deg,
+    };
+    let size = frame_size.unwrap_or(profile.sim.frame_size);
+    let scene = load_scene(profile)?;
+    tracing::info!("{}", scene.describe_effects());
+
+    for (name, dev) in &profile.devices {
+        let link = match dev.kind {
+            DeviceKind::Axis => {
+                let home = dev.home_deg.unwrap_or(0.0);
+                Link::Line(Arc::new(GrblOpener {
+                    params: GrblParams {
+                        name: name.clone(),
+                        motion: trapezoid(dev.motion_or_default()),
+                        home_position: home,
+                        physical_start: home,
+                        start_homed: false,
+                        world: Some(shared.clone()),
+                    },
+                    clock: clock.clone(),
+                    faults: faults.clone(),
+                    world: shared.clone(),
+                    opened: AtomicBool::new(false),
+                }))
+            }
+            DeviceKind::Arm => {
+                let joints: Vec<AclJoint> = dev
+                    .joints
+                    .iter()
+                    .flatten()
+                    .map(|j| AclJoint {
+                        counts_per_deg: j.counts_per_deg,
+                        min_deg: j.limits.min - j.home_deg,
+                        max_deg: j.limits.max - j.home_deg,
+                        motion: trapezoid(j.motion),
+                    })
+                    .collect();
+                let n = joints.len();
+                Link::Line(Arc::new(AclOpener {
+                    params: AclParams {
+                        name: name.clone(),
+                        joints,
+                        home_s: ARM_HOME_S,
+                        power_up_counts: vec![0; n],
+                        start_homed: false,
+                        world: Some(shared.clone()),
+                    },
+                    clock: clock.clone(),
+                    faults: faults.clone(),
+                    world: shared.clone(),
+                    opened: AtomicBool::new(false),
+                }))
+            }
+            DeviceKind::Lamp | DeviceKind::Laser => {
+                let key = bus_key(&dev.transport);
+                let Some(m) = modules.get(&key) else {
+                    continue;
+                };
+                Link::Modbus {
+                    bus: key.clone(),
+                    opener: Arc::new(ModbusOpener {
+                        module: m.module.clone(),
+                        framing: m.framing,
+                        key: key.clone(),
+                    }),
+                    framing: m.framing,
+                    unit: m.unit,
+                }
+            }
+            DeviceKind::Camera => {
+                let (Some(t), Some(geometry)) = (dev.timing, camera_geometry(profile, name, size))
+                else {
+                    return Err(DeviceError::new(
+                        name,
+                        ErrorKind::NotReady,
+                        "a camera needs timing and intrinsics",
+                    ));
+                };
+                let opener = Arc::new(PtpOpener {
+                    spec: PtpCameraSpec {
+                        name: name.clone(),
+                        manufacturer: "rigd".into(),
+                        model: "simulated PTP camera".into(),
+                        version: env!("CARGO_PKG_VERSION").into(),
+                        serial: name.clone(),
+                        times: CameraTimes {
+                            exposure_s: t.exposure_s,
+                            readout_s: t.readout_s,
+                            transfer_s: t.transfer_s,
+                        },
+                    },
+                    ctx: SimContext::new(clock.clone(), faults.clone()),
+                    view: CameraView {
+                        camera: name.clone(),
+                        solver: solver.clone(),
+                        world: world.clone(),
+                        size,
+                        geometry,
+                        lamp_distance_m: lamp_distances(profile),
+                        laser: crate::plan::laser::LaserRig::of(profile),
+                    },
+                    scene: scene.clone(),
+                });
+                cameras.insert(name.clone(), opener.clone());
+                Link::Usb(opener)
+            }
+        };
+        links.insert(name.clone(), link);
+    }
+    Ok(SimParts {
+        links,
+        world,
+        modules,
+        cameras,
+    })
+}
+
+/// Starts a GRBL controller per open. A re-opened link meets a controller
+/// that reset (as GRBL does when the port opens): it lost its homing but
+/// the axis physically stays where it was.
+struct GrblOpener {
+    params: GrblParams,
+    clock: Clock,
+    faults: Arc<FaultInjector>,
+    world: SharedWorld,
+    opened: AtomicBool,
+}
+
+#[async_trait]
+impl Opener for GrblOpener {
+    fn describe(&self) -> String {
+        format!("simulated GRBL controller `{}`", self.params.name)
+    }
+
+    async fn open(&self) -> std::io::Result<ByteStream> {
+        let mut params = self.params.clone();
+        if self.opened.swap(true, Ordering::SeqCst) {
+            if let Some(&p) = self.world.snapshot().axes.get(&params.name) {
+                params.physical_start = p;
+            }
+        }
+        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
+        let (clock, faults) = (self.clock.clone(), self.faults.clone());
+        tokio::spawn(async move {
+            if let Err(e) = grbl_fw::serve(dev, params, clock, faults).await {
+                tracing::debug!("simulated GRBL link closed: {e}");
+            }
+        });
+        Ok(Box::new(host))
+    }
+}
+
+/// Starts an ACL controller per open. The controller keeps its encoder
+/// counts and homing across a re-opened serial link.
+struct AclOpener {
+    params: AclParams,
+    clock: Clock,
+    faults: Arc<FaultInjector>,
+    world: SharedWorld,
+    opened: AtomicBool,
+}
+
+#[async_trait]
+impl Opener for AclOpener {
+    fn describe(&self) -> String {
+        format!("simulated ACL controller `{}`", self.params.name)
+    }
+
+    async fn open(&self) -> std::io::Result<ByteStream> {
+        let mut params = self.params.clone();
+        if self.opened.swap(true, Ordering::SeqCst) {
+            if let Some(q) = self.world.snapshot().arm {
+                params.power_up_counts = q
+                    .iter()
+                    .zip(&params.joints)
+                    .map(|(deg, j)| (deg * j.counts_per_deg).round() as i64)
+                    .collect();
+                params.start_homed = true;
+            }
+        }
+        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
+        let (clock, faults) = (self.clock.clone(), self.faults.clone());
+        tokio::spawn(async move {
+            if let Err(e) = acl_fw::serve(dev, params, clock, faults).await {
+                tracing::debug!("simulated ACL link closed: {e}");
+            }
+        });
+        Ok(Box::new(host))
+    }
+}
+
+/// Connects to the (one, persistent) simulated Modbus module.
+struct ModbusOpener {
+    module: ModbusModule,
+    framing: Framing,
+    key: String,
+}
+
+#[async_trait]
+impl Opener for ModbusOpener {
+    fn describe(&self) -> String {
+        format!("simulated Modbus module `{}`", self.key)
+    }
+
+    async fn open(&self) -> std::io::Result<ByteStream> {
+        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
+        let module = self.module.clone();
+        let framing = match self.framing {
+            Framing::Tcp => FirmwareFraming::Tcp,
+            Framing::Rtu => FirmwareFraming::Rtu,
+        };
+        tokio::spawn(async move {
+            if let Err(e) = module.serve_stream(dev, framing).await {
+                tracing::debug!("simulated Modbus link closed: {e}");
+            }
+        });
+        Ok(Box::new(host))
+    }
+}
+
+/// What a simulated frame of a profile's camera needs from the profile.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraGeometry {
+    /// The sensor's focal length scaled to the simulated frame's width.
+    pub focal_px: f64,
+    pub distance_m: Option<f64>,
+    pub bit_depth: u8,
+    /// The distance of the profile's first lamp (None: a directional light).
+    pub lamp_distance_m: Option<f64>,
+}
+
+/// A camera's geometry for frames of `size`; None if it is not a camera
+/// with intrinsics.
+pub fn camera_geometry(profile: &Profile, camera: &str, size: [u32; 2]) -> Option<CameraGeometry> {
+    let i = profile.devices.get(camera)?.intrinsics?;
+    Some(CameraGeometry {
+        focal_px: i.focal_px * profile.sim.zoom * f64::from(size[0])
+            / f64::from(i.resolution[0].max(1)),
+        distance_m: camera_distance(profile, camera),
+        bit_depth: i.bit_depth,
+        lamp_distance_m: lamp_distances(profile).into_values().next(),
+    })
+}
+
+/// How far a camera stands from the sample centre.
+fn camera_distance(profile: &Profile, camera: &str) -> Option<f64> {
+    let own = profile.devices.get(camera).and_then(|d| d.distance_m);
+    own.or(match &profile.rig {
+        RigGeometry::Gonioreflectometer { rail_radius_m, .. } => Some(*rail_radius_m),
+        _ => None,
+    })
+}
+
+/// How far each lamp stands from the sample centre.
+fn lamp_distances(profile: &Profile) -> BTreeMap<String, f64> {
+    profile
+        .lamp_names()
+        .into_iter()
+        .filter_map(|lamp| {
+            let own = profile.devices.get(&lamp).and_then(|d| d.distance_m);
+            let d = own.or(match &profile.rig {
+                RigGeometry::Gonioreflectometer {
+                    lamp_distance_m, ..
+                } => Some(*lamp_distance_m),
+                RigGeometry::TurntableArcs { arc_radius_m, .. } => Some(*arc_radius_m),
+                RigGeometry::FixedLamps { .. } => None,
+            })?;
+            Some((lamp, d))
+        })
+        .collect()
+}
+
+/// What a simulated camera sees: where it is and what the lamps do.
+#[derive(Clone)]
+struct CameraView {
+    camera: String,
+    solver: Arc<Solver>,
+    world: SimWorld,
+    size: [u32; 2],
+    geometry: CameraGeometry,
+    /// Per lamp: the geometry's own lamp distance is only the first lamp's.
+    lamp_distance_m: BTreeMap<String, f64>,
+    /// The laser unit, on rigs that have one.
+    laser: Option<crate::plan::laser::LaserRig>,
+}
+
+impl CameraView {
+    /// Light and view in the sample frame, from where the devices really are.
+    fn shot(&self) -> Shot {
+        let world = self.world.snapshot();
+        let laser_name = self.laser.as_ref().map(|l| l.laser.as_str());
+        let lamp = world
+            .lamps_on
+            .iter()
+            .find(|(n, on)| **on && Some(n.as_str()) != laser_name)
+            .map(|(n, _)| n.clone());
+        let laser = self.laser.as_ref().and_then(|rig| {
+            if world.lamps_on.get(&rig.laser) != Some(&true) {
+                return None;
+            }
+            let axis = |n: &str| world.axes.get(n).copied().unwrap_or(0.0);
+            // The source's azimuth in the sample frame, as for a lamp on the arc.
+            let azimuth = axis(&rig.light_arc) - axis(&rig.turntable);
+            let (emitter, normal) = rig.geometry.plane(azimuth, axis(&rig.tilt_axis))?;
+            Some(LaserLine {
+                emitter,
+                normal,
+                width_m: SIM_LASER_WIDTH_M,
+                power: SIM_LASER_POWER,
+            })
+        });
+        // The view does not depend on the lamp, but forward kinematics
+        // needs one: with every lamp dark (laser frames), any lamp will do.
+        let any_lamp = world
+            .lamps_on
+            .keys()
+            .find(|n| Some(n.as_str()) != laser_name)
+            .cloned();
+        let setpoints = Setpoints {
+            axes: world.axes,
+            arm: world.arm,
+            lamp: lamp.clone().or(any_lamp).unwrap_or_default(),
+            plate_mm: None,
+        };
+        let dark = [0.0, 0.0, -1.0];
+        let (light, view) = match self.solver.forward(&setpoints, &self.camera) {
+            Ok((l, v)) => (l.to_vector(), v.to_vector()),
+            // Devices not yet where forward kinematics needs them: render the
+            // holder unlit rather than invent a pose.
+            Err(_) => (dark, [0.0, 0.0, 1.0]),
+        };
+        Shot {
+            light: if lamp.is_some() { light } else { dark },
+            view,
+            width: self.size[0],
+            height: self.size[1],
+            bit_depth: self.geometry.bit_depth,
+            focal_px: Some(self.geometry.focal_px),
+            camera_distance_m: self.geometry.distance_m,
+            lamp_distance_m: lamp.and_then(|l| self.lamp_distance_m.get(&l).copied()),
+            laser,
+            plate_height_m: world.plate_mm.map(|h| h * 1e-3),
+            ..Shot::default()
+        }
+    }
+}
+
+/// Starts the camera's PTP firmware on a fresh in-memory USB link per open.
+pub(crate) struct PtpOpener {
+    spec: PtpCameraSpec,
+    ctx: SimContext,
+    view: CameraView,
+    scene: Arc<SceneModel>,
+}
+
+impl PtpOpener {
+    /// Starts the camera's firmware on the device end of a link.
+    pub(crate) fn start(&self, dev: MemoryDevice) {
+        let view = self.view.clone();
+        let fw = PtpFirmware::new(
+            self.spec.clone(),
+            self.ctx.clone(),
+            Box::new(move || view.shot()),
+        )
+        .with_scene(self.scene.clone());
+        fw.spawn(dev);
+    }
+}
+
+#[async_trait]
+impl PipeOpener for PtpOpener {
+    fn describe(&self) -> String {
+        format!("simulated PTP camera `{}`", self.spec.name)
+    }
+
+    async fn open(&self) -> Result<BoxPipe, UsbError> {
+        let (host, dev) = memory_pair();
+        self.start(dev);
+        Ok(Box::new(host))
+    }
+}

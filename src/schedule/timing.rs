@@ -1,0 +1,182 @@
+//! The one model of physical capture time: per trigger, every axis, the
+//! arm and the lamp change run in parallel and overlap the previous
+//! trigger's transfer; exposure plus readout stand alone; the first lamp's
+//! warm-up comes before anything moves. `rigd plan show` estimates with it,
+//! the trigger order minimises it, and the engine's pipeline follows it.
+
+use crate::kinematics::Setpoints;
+use crate::model::profile::{DeviceKind, Profile};
+use crate::schedule::Schedule;
+
+/// What the estimate allows an operator to place or remove the laser
+/// calibration plate (an estimate: the engine waits for the operator; the
+/// simulated operator takes exactly this).
+pub const PLATE_CHANGE_S: f64 = 30.0;
+
+/// The timing model shared by the estimate and the engine's pipeline.
+#[derive(Debug, Clone)]
+pub struct Timing<'a> {
+    profile: &'a Profile,
+    exposure_override_s: Option<f64>,
+}
+
+impl<'a> Timing<'a> {
+    pub fn new(profile: &'a Profile, exposure_override_s: Option<f64>) -> Timing<'a> {
+        Timing {
+            profile,
+            exposure_override_s,
+        }
+    }
+
+    /// Set-points right after homing: every axis and joint at its home.
+    pub fn home_setpoints(&self) -> Setpoints {
+        let mut s = Setpoints {
+            axes: Default::default(),
+            arm: None,
+            lamp: String::new(),
+            plate_mm: None,
+        };
+        for (name, d) in &self.profile.devices {
+            match d.kind {
+                DeviceKind::Axis => {
+                    s.axes.insert(name.clone(), d.home_deg.unwrap_or(0.0));
+                }
+                DeviceKind::Arm => {
+                    s.arm = Some(d.joints.iter().flatten().map(|j| j.home_deg).collect());
+                }
+                _ => {}
+            }
+        }
+        s
+    }
+
+    /// Time for all axes and joints to reach `to` from `from`, in parallel.
+    pub fn motion_s(&self, from: &Setpoints, to: &Setpoints) -> f64 {
+        let mut t: f64 = 0.0;
+        for (name, &target) in &to.axes {
+            let start = from.axes.get(name).copied().unwrap_or(target);
+            if let Some(d) = self.profile.devices.get(name) {
+                t = t.max(trapezoid(d.motion_or_default()).move_time(target - start));
+            }
+        }
+        if let (Some(a), Some(b)) = (&from.arm, &to.arm) {
+            if let Some(arm) = self
+                .profile
+                .devices
+                .values()
+                .find(|d| d.kind == DeviceKind::Arm)
+            {
+                for ((j, qa), qb) in arm.joints.iter().flatten().zip(a).zip(b) {
+                    t = t.max(trapezoid(j.motion).move_time(qb - qa));
+                }
+            }
+        }
+        t
+    }
+
+    /// Switching from lamp `from` to lamp `to` (either may be none): relay
+    /// off, relay on, then warm-up.
+    pub fn lamp_change_s(&self, from: &str, to: &str) -> f64 {
+        if from == to {
+            return 0.0;
+        }
+        let dev = |n: &str| self.profile.devices.get(n);
+        let off = dev(from).and_then(|d| d.switch_s).unwrap_or(0.0);
+        let on = dev(to)
+            .map(|d| d.switch_s.unwrap_or(0.0) + d.warm_up_s.unwrap_or(0.0))
+            .unwrap_or(0.0);
+        off + on
+    }
+
+    pub fn exposure_s(&self, camera: &str) -> f64 {
+        let nominal = self
+            .profile
+            .devices
+            .get(camera)
+            .and_then(|d| d.timing)
+            .map_or(0.0, |t| t.exposure_s);
+        self.exposure_override_s.unwrap_or(nominal)
+    }
+
+    /// Exposure plus readout of the slowest camera of a trigger.
+    pub fn expose_s(&self, cameras: &[&str]) -> f64 {
+        cameras
+            .iter()
+            .map(|c| {
+                let readout = self
+                    .profile
+                    .devices
+                    .get(*c)
+                    .and_then(|d| d.timing)
+                    .map_or(0.0, |t| t.readout_s);
+                self.exposure_s(c) + readout
+            })
+            .fold(0.0, f64::max)
+    }
+
+    /// Transfer time of the slowest camera of a trigger.
+    pub fn transfer_s(&self, cameras: &[&str]) -> f64 {
+        cameras
+            .iter()
+            .filter_map(|c| self.profile.devices.get(*c).and_then(|d| d.timing))
+            .map(|t| t.transfer_s)
+            .fold(0.0, f64::max)
+    }
+
+    /// Physical time of a schedule, leaving out the triggers `skip` names:
+    /// first the first lamp's warm-up; then per trigger, motion and lamp
+    /// changes run in parallel and overlap the previous transfer, while
+    /// exposure and readout stand alone; last the final transfer.
+    pub fn estimate_s(&self, schedule: &Schedule, skip: impl Fn(usize) -> bool) -> f64 {
+        let mut pos = self.home_setpoints();
+        let mut pending_transfer = 0.0;
+        let mut remaining = schedule
+            .triggers
+            .iter()
+            .filter(|t| !skip(t.index))
+            .peekable();
+        // Preparing: the first lamp is switched on and warmed up before anything moves.
+        let mut total = match remaining.peek() {
+            Some(first) => {
+                pos.lamp = first.setpoints.lamp.clone();
+                self.lamp_change_s("", &pos.lamp)
+            }
+            None => 0.0,
+        };
+        let mut sweep = None;
+        for trig in remaining {
+            let cams: Vec<&str> = trig
+                .images
+                .iter()
+                .map(|&i| schedule.images[i].camera.as_str())
+                .collect();
+            if let (Some(s), Some(laser)) = (trig.sweep, &schedule.laser) {
+                if sweep == Some(s) {
+                    // Inside a sweep the axis runs on and frames follow at video rate.
+                    total += 1.0 / laser.plan.frame_hz;
+                    pos = trig.setpoints.clone();
+                    continue;
+                }
+            }
+            sweep = trig.sweep;
+            if trig.setpoints.plate_mm != pos.plate_mm {
+                total += PLATE_CHANGE_S;
+            }
+            let prep = self
+                .motion_s(&pos, &trig.setpoints)
+                .max(self.lamp_change_s(&pos.lamp, &trig.setpoints.lamp));
+            total += prep.max(pending_transfer) + self.expose_s(&cams);
+            pending_transfer = self.transfer_s(&cams);
+            pos = trig.setpoints.clone();
+        }
+        total + pending_transfer
+    }
+}
+
+fn trapezoid(m: crate::model::profile::Motion) -> rigd_core::Trapezoid {
+    rigd_core::Trapezoid {
+        max_velocity: m.max_velocity,
+        acceleration: m.acceleration,
+        settle_s: m.settle_s,
+    }
+}

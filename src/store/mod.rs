@@ -1,0 +1,601 @@
+//! The dataset on disk: one directory per run.
+//!
+//! ```text
+//! RUN/run.json          what was asked: profile snapshot, plan, sample, operator, versions, start
+//! RUN/journal.ndjson    one line per image written, appended and fsynced: the source of truth
+//! RUN/state.json        the run's last known state (replaced atomically)
+//! RUN/frames/NNNNNN.png the frames, 16-bit grey PNG (8-bit for 8-bit cameras), raw sensor values
+//! RUN/manifest.json     written atomically when the run ends
+//! ```
+//!
+//! Crash safety: a frame is written to a temporary name and renamed into
+//! place; only then is its journal line appended and fsynced. A run killed at
+//! any instant therefore has, for every journal line, a complete frame file
+//! whose sha256 is in that line; a frame without a line (or whose checksum
+//! does not match, after a power loss) is retaken on resume. A torn last
+//! journal line is cut off.
+
+use std::collections::BTreeMap;
+use std::fs::{self, File, OpenOptions};
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::kinematics::Setpoints;
+use crate::model::geometry::Direction;
+use crate::model::profile::Profile;
+use crate::plan::Plan;
+use crate::rig::hal::Frame;
+
+/// Format tag of `run.json` and `manifest.json`.
+pub const RUN_FORMAT: &str = "rigd-run/1";
+pub const RUN_FILE: &str = "run.json";
+pub const JOURNAL_FILE: &str = "journal.ndjson";
+pub const STATE_FILE: &str = "state.json";
+pub const MANIFEST_FILE: &str = "manifest.json";
+pub const FRAMES_DIR: &str = "frames";
+
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The I/O error is part of the message, not a separate cause, so it
+    /// reads once in a one-line report.
+    #[error("{path}: {op}: {error}")]
+    Io {
+        path: PathBuf,
+        op: &'static str,
+        error: std::io::Error,
+    },
+    #[error("{0} already holds run `{1}`; resume it with `rigd run --resume {0}` or choose another --out")]
+    AlreadyRun(String, String),
+    #[error("{0} is not empty and holds no run; choose an empty or new folder for --out")]
+    NotEmpty(String),
+    #[error("{0} holds no run (no run.json)")]
+    NoRun(String),
+    #[error("{path}: {why}")]
+    Corrupt { path: PathBuf, why: String },
+    #[error("{0}: the run is already {1}; nothing to resume")]
+    Finished(String, String),
+}
+
+fn io<'a>(path: &'a Path, op: &'static str) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
+    move |error| StoreError::Io {
+        path: path.to_path_buf(),
+        op,
+        error,
+    }
+}
+
+/// What was asked for, written once at the start.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct RunMeta {
+    pub format: String,
+    pub software_version: String,
+    pub profile: Profile,
+    /// Where the profile came from (a path, or `<embedded NAME>`).
+    pub profile_source: String,
+    pub plan: Plan,
+    pub sample: String,
+    #[serde(default)]
+    pub operator: Option<String>,
+    #[serde(default)]
+    pub notes: Option<String>,
+    /// Exposure override for every camera; the profile's own if None.
+    #[serde(default)]
+    pub exposure_s: Option<f64>,
+    /// Frame size of the simulated cameras (None on real hardware).
+    #[serde(default)]
+    pub frame_size: Option<[u32; 2]>,
+    pub simulated: bool,
+    /// The scene the simulated cameras render and the effects a lit frame
+    /// of it pays for (None on hardware).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sim_scene: Option<SimScene>,
+    /// RFC 3339, UTC.
+    pub started_at: String,
+}
+
+/// What a simulated run's frames show.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SimScene {
+    pub name: String,
+    /// Effects live in a frame lit by a lamp (no laser).
+    pub effects: Vec<String>,
+}
+
+/// One written image: a journal line, and later a manifest entry. The keys
+/// are a contract other tools read.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameEntry {
+    pub index: usize,
+    pub trigger: usize,
+    /// Path relative to the run directory.
+    pub file: String,
+    pub sha256: String,
+    /// Commanded directions, sample frame.
+    pub light: Direction,
+    pub view: Direction,
+    pub achieved_light: Direction,
+    pub achieved_view: Direction,
+    pub camera: String,
+    pub exposure_s: f64,
+    /// Physical time of the exposure's start since the run started, seconds.
+    pub t_s: f64,
+    /// Where the devices stood.
+    pub positions: Setpoints,
+    pub width: u32,
+    pub height: u32,
+    pub bit_depth: u8,
+    /// Laser frames: source, and the tilt measured around the exposure.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub laser: Option<crate::schedule::laser::LaserStep>,
+}
+
+/// The run's last known state, replaced atomically on every change.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StateRecord {
+    pub state: String,
+    #[serde(default)]
+    pub reason: Option<String>,
+    /// Physical time spent so far, over all sessions.
+    pub physical_s: f64,
+    pub updated_at: String,
+}
+
+/// An image that could not be taken as asked.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InfeasibleEntry {
+    pub index: usize,
+    pub light: Direction,
+    pub view: Direction,
+    pub achieved_light: Direction,
+    pub achieved_view: Direction,
+    pub reason: String,
+}
+
+/// Written at the end of a run.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub software_version: String,
+    pub profile: String,
+    pub plan: String,
+    pub sample: String,
+    pub state: String,
+    #[serde(default)]
+    pub reason: Option<String>,
+    pub steps_total: usize,
+    pub triggers_total: usize,
+    pub frames_written: usize,
+    pub physical_duration_s: f64,
+    pub started_at: String,
+    pub finished_at: String,
+    pub infeasible: Vec<InfeasibleEntry>,
+    pub frames: Vec<FrameEntry>,
+}
+
+/// What a resumed run finds on disk.
+#[derive(Debug, Default)]
+pub struct Recovery {
+    /// Valid frames by image index.
+    pub done: BTreeMap<usize, FrameEntry>,
+    /// Physical time already spent.
+    pub physical_s: f64,
+    /// Images whose frame was missing or damaged, to be retaken.
+    pub retake: Vec<usize>,
+    /// Bytes of a torn last journal line that were cut off.
+    pub torn_bytes: u64,
+}
+
+/// An open run directory.
+#[derive(Debug)]
+pub struct RunDir {
+    root: PathBuf,
+    journal: File,
+}
+
+/// Current time as RFC 3339 (UTC, seconds).
+pub fn now_rfc3339() -> String {
+    humantime::format_rfc3339_seconds(std::time::SystemTime::now()).to_string()
+}
+
+/// Writes `bytes` to `path` atomically: a temporary file, fsync, rename, and
+/// an fsync of the directory so the rename itself survives a crash.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
+    // A bare file name has the empty path as its parent.
+    let dir = path
+        .parent()
+        .filter(|d| !d.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let tmp = dir.join(format!(".{name}.tmp"));
+    {
+        let mut f = File::create(&tmp).map_err(io(&tmp, "create"))?;
+        f.write_all(bytes).map_err(io(&tmp, "write"))?;
+        f.sync_all().map_err(io(&tmp, "fsync"))?;
+    }
+    fs::rename(&tmp, path).map_err(io(path, "rename"))?;
+    sync_dir(dir)
+}
+
+fn sync_dir(dir: &Path) -> Result<(), StoreError> {
+    File::open(dir)
+        .and_then(|d| d.sync_all())
+        .map_err(io(dir, "fsync directory"))
+}
+
+/// Encodes a frame as a greyscale PNG: 8-bit for cameras of 8 bits or
+/// fewer, else 16-bit holding the raw sensor values (not rescaled).
+pub fn encode_png(frame: &Frame) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, frame.width, frame.height);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_compression(png::Compression::Fast);
+        let data: Vec<u8> = if frame.bit_depth <= 8 {
+            enc.set_depth(png::BitDepth::Eight);
+            frame.pixels.iter().map(|&v| v.min(255) as u8).collect()
+        } else {
+            enc.set_depth(png::BitDepth::Sixteen);
+            frame.pixels.iter().flat_map(|v| v.to_be_bytes()).collect()
+        };
+        let mut w = enc.write_header().map_err(|e| e.to_string())?;
+        w.write_image_data(&data).map_err(|e| e.to_string())?;
+    }
+    Ok(out)
+}
+
+/// Decodes a frame PNG written by [`encode_png`] back to pixel values.
+pub fn decode_png(bytes: &[u8]) -> Result<(u32, u32, Vec<u16>), String> {
+    let dec = png::Decoder::new(bytes);
+    let mut reader = dec.read_info().map_err(|e| e.to_string())?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    let data = &buf[..info.buffer_size()];
+    let pixels = match info.bit_depth {
+        png::BitDepth::Sixteen => data
+            .chunks_exact(2)
+            .map(|c| u16::from_be_bytes([c[0], c[1]]))
+            .collect(),
+        png::BitDepth::Eight => data.iter().map(|&b| b as u16).collect(),
+        d => return Err(format!("unsupported PNG depth {d:?}")),
+    };
+    Ok((info.width, info.height, pixels))
+}
+
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex::encode(Sha256::digest(bytes))
+}
+
+/// Relative path of image `index`'s frame.
+pub fn frame_file(index: usize) -> String {
+    format!("{FRAMES_DIR}/{index:06}.png")
+}
+
+impl RunDir {
+    /// Creates a new run directory. Refuses a folder that already holds a
+    /// run or anything else.
+    pub fn create(root: &Path, meta: &RunMeta) -> Result<RunDir, StoreError> {
+        let shown = root.display().to_string();
+        if root.join(RUN_FILE).exists() {
+            let sample = fs::read(root.join(RUN_FILE))
+                .ok()
+                .and_then(|b| serde_json::from_slice::<RunMeta>(&b).ok())
+                .map(|m| m.sample)
+                .unwrap_or_else(|| "?".into());
+            return Err(StoreError::AlreadyRun(shown, sample));
+        }
+        if root.exists() {
+            let mut entries = fs::read_dir(root).map_err(io(root, "read directory"))?;
+            if entries.next().is_some() {
+                return Err(StoreError::NotEmpty(shown));
+            }
+        }
+        fs::create_dir_all(root.join(FRAMES_DIR)).map_err(io(root, "create directory"))?;
+        let json = serde_json::to_vec_pretty(meta).map_err(|e| StoreError::Corrupt {
+            path: root.join(RUN_FILE),
+            why: e.to_string(),
+        })?;
+        write_atomic(&root.join(RUN_FILE), &json)?;
+        let journal = open_journal(root)?;
+        Ok(RunDir {
+            root: root.to_path_buf(),
+            journal,
+        })
+    }
+
+    /// Opens an existing run to resume it: reads its metadata, repairs a
+    /// torn journal tail, and checks every journaled frame.
+    pub fn open(root: &Path) -> Result<(RunDir, RunMeta, Recovery), StoreError> {
+        let shown = root.display().to_string();
+        let meta = read_meta(root)?;
+        let state = read_state(root)?;
+        if let Some(s) = &state {
+            if s.state == "completed" || s.state == "aborted" {
+                return Err(StoreError::Finished(shown, s.state.clone()));
+            }
+        }
+        fs::create_dir_all(root.join(FRAMES_DIR)).map_err(io(root, "create directory"))?;
+        let mut recovery = Recovery::default();
+        let journal_path = root.join(JOURNAL_FILE);
+        if journal_path.exists() {
+            let (entries, torn) = read_journal(&journal_path)?;
+            recovery.torn_bytes = torn;
+            for e in entries {
+                recovery.physical_s = recovery.physical_s.max(e.t_s);
+                recovery.done.insert(e.index, e);
+            }
+        }
+        // Verify every frame the journal vouches for.
+        let mut bad = Vec::new();
+        for (index, e) in &recovery.done {
+            let ok = fs::read(root.join(&e.file))
+                .map(|b| sha256_hex(&b) == e.sha256)
+                .unwrap_or(false);
+            if !ok {
+                bad.push(*index);
+            }
+        }
+        for i in &bad {
+            recovery.done.remove(i);
+        }
+        recovery.retake = bad;
+        remove_temporaries(&root.join(FRAMES_DIR))?;
+        if let Some(s) = state {
+            recovery.physical_s = recovery.physical_s.max(s.physical_s);
+        }
+        let journal = open_journal(root)?;
+        Ok((
+            RunDir {
+                root: root.to_path_buf(),
+                journal,
+            },
+            meta,
+            recovery,
+        ))
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Encodes and writes a frame under its final name (via a temporary),
+    /// returning the entry with its file and checksum filled in. Does not
+    /// journal it: see [`RunDir::append_journal`].
+    pub fn write_frame(
+        root: &Path,
+        mut entry: FrameEntry,
+        frame: &Frame,
+    ) -> Result<FrameEntry, StoreError> {
+        let rel = frame_file(entry.index);
+        let path = root.join(&rel);
+        let bytes = encode_png(frame).map_err(|why| StoreError::Corrupt {
+            path: path.clone(),
+            why,
+        })?;
+        let tmp = root
+            .join(FRAMES_DIR)
+            .join(format!(".{:06}.png.tmp", entry.index));
+        {
+            let mut f = File::create(&tmp).map_err(io(&tmp, "create"))?;
+            f.write_all(&bytes).map_err(io(&tmp, "write"))?;
+        }
+        fs::rename(&tmp, &path).map_err(io(&path, "rename"))?;
+        entry.file = rel;
+        entry.sha256 = sha256_hex(&bytes);
+        entry.width = frame.width;
+        entry.height = frame.height;
+        entry.bit_depth = frame.bit_depth;
+        Ok(entry)
+    }
+
+    /// Appends entries to the journal and fsyncs it: once this returns, the
+    /// frames count as taken.
+    pub fn append_journal(&mut self, entries: &[FrameEntry]) -> Result<(), StoreError> {
+        let path = self.root.join(JOURNAL_FILE);
+        let mut buf = Vec::new();
+        for e in entries {
+            serde_json::to_writer(&mut buf, e).map_err(|err| StoreError::Corrupt {
+                path: path.clone(),
+                why: err.to_string(),
+            })?;
+            buf.push(b'\n');
+        }
+        self.journal.write_all(&buf).map_err(io(&path, "append"))?;
+        self.journal.sync_data().map_err(io(&path, "fsync"))
+    }
+
+    pub fn write_state(&self, record: &StateRecord) -> Result<(), StoreError> {
+        let json = serde_json::to_vec_pretty(record).map_err(|e| StoreError::Corrupt {
+            path: self.root.join(STATE_FILE),
+            why: e.to_string(),
+        })?;
+        write_atomic(&self.root.join(STATE_FILE), &json)
+    }
+
+    pub fn write_manifest(&self, manifest: &Manifest) -> Result<(), StoreError> {
+        let json = serde_json::to_vec_pretty(manifest).map_err(|e| StoreError::Corrupt {
+            path: self.root.join(MANIFEST_FILE),
+            why: e.to_string(),
+        })?;
+        write_atomic(&self.root.join(MANIFEST_FILE), &json)
+    }
+}
+
+fn open_journal(root: &Path) -> Result<File, StoreError> {
+    let path = root.join(JOURNAL_FILE);
+    OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&path)
+        .map_err(io(&path, "open"))
+}
+
+/// Reads a run's metadata (`run.json`).
+pub fn read_meta(root: &Path) -> Result<RunMeta, StoreError> {
+    let run_path = root.join(RUN_FILE);
+    if !run_path.exists() {
+        return Err(StoreError::NoRun(root.display().to_string()));
+    }
+    let bytes = fs::read(&run_path).map_err(io(&run_path, "read"))?;
+    serde_json::from_slice(&bytes).map_err(|e| StoreError::Corrupt {
+        path: run_path,
+        why: e.to_string(),
+    })
+}
+
+/// Reads the state record, if any.
+pub fn read_state(root: &Path) -> Result<Option<StateRecord>, StoreError> {
+    let path = root.join(STATE_FILE);
+    if !path.exists() {
+        return Ok(None);
+    }
+    let bytes = fs::read(&path).map_err(io(&path, "read"))?;
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|e| StoreError::Corrupt {
+            path,
+            why: e.to_string(),
+        })
+}
+
+/// Reads the journal; a torn last line (a crash mid-append) is cut off the
+/// file and its length returned. A damaged line elsewhere is an error.
+pub fn read_journal(path: &Path) -> Result<(Vec<FrameEntry>, u64), StoreError> {
+    let file = File::open(path).map_err(io(path, "open"))?;
+    let len = file.metadata().map_err(io(path, "stat"))?.len();
+    let mut reader = BufReader::new(file);
+    let mut entries = Vec::new();
+    let mut good_end: u64 = 0;
+    let mut line = Vec::new();
+    let mut lineno = 0;
+    loop {
+        line.clear();
+        let n = reader
+            .read_until(b'\n', &mut line)
+            .map_err(io(path, "read"))?;
+        if n == 0 {
+            break;
+        }
+        lineno += 1;
+        let complete = line.last() == Some(&b'\n');
+        match serde_json::from_slice::<FrameEntry>(&line) {
+            Ok(e) if complete => {
+                entries.push(e);
+                good_end += n as u64;
+            }
+            _ if good_end + n as u64 >= len => break, // torn tail
+            Err(e) => {
+                return Err(StoreError::Corrupt {
+                    path: path.to_path_buf(),
+                    why: format!("line {lineno}: {e}"),
+                })
+            }
+            Ok(_) => break,
+        }
+    }
+    let torn = len - good_end;
+    if torn > 0 {
+        let f = OpenOptions::new()
+            .write(true)
+            .open(path)
+            .map_err(io(path, "open"))?;
+        f.set_len(good_end).map_err(io(path, "truncate"))?;
+        f.sync_all().map_err(io(path, "fsync"))?;
+    }
+    Ok((entries, torn))
+}
+
+fn remove_temporaries(frames: &Path) -> Result<(), StoreError> {
+    for entry in fs::read_dir(frames).map_err(io(frames, "read directory"))? {
+        let entry = entry.map_err(io(frames, "read directory"))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        if name.starts_with('.') && name.ends_with(".tmp") {
+            fs::remove_file(entry.path()).map_err(io(&entry.path(), "remove"))?;
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(index: usize) -> FrameEntry {
+        let d = Direction::new(0.0, 0.0);
+        FrameEntry {
+            index,
+            trigger: index,
+            file: String::new(),
+            sha256: String::new(),
+            light: d,
+            view: d,
+            achieved_light: d,
+            achieved_view: d,
+            camera: "camera".into(),
+            exposure_s: 0.1,
+            t_s: index as f64,
+            positions: Setpoints {
+                axes: Default::default(),
+                arm: None,
+                lamp: "hmi".into(),
+                plate_mm: None,
+            },
+            width: 0,
+            height: 0,
+            bit_depth: 0,
+            laser: None,
+        }
+    }
+
+    #[test]
+    fn png_round_trips_12_and_8_bit() {
+        for depth in [12u8, 8] {
+            let max = (1u16 << depth) - 1;
+            let f = Frame {
+                width: 3,
+                height: 2,
+                bit_depth: depth,
+                pixels: vec![0, 1, max, 7, 100, max / 2],
+            };
+            let bytes = encode_png(&f).unwrap_or_default();
+            let (w, h, px) = decode_png(&bytes).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!((w, h, px), (3, 2, f.pixels.clone()));
+        }
+    }
+
+    #[test]
+    fn torn_journal_tail_is_cut_and_reported() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.path().join(JOURNAL_FILE);
+        let mut text = String::new();
+        for i in 0..3 {
+            text.push_str(&serde_json::to_string(&entry(i)).unwrap_or_default());
+            text.push('\n');
+        }
+        let good = text.len() as u64;
+        text.push_str("{\"index\":3,\"trig");
+        fs::write(&path, &text).unwrap_or_else(|e| panic!("{e}"));
+        let (entries, torn) = read_journal(&path).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(entries.len(), 3);
+        assert_eq!(torn, text.len() as u64 - good);
+        assert_eq!(fs::metadata(&path).map(|m| m.len()).unwrap_or(0), good);
+    }
+
+    #[test]
+    fn damaged_journal_line_in_the_middle_is_an_error() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let path = dir.path().join(JOURNAL_FILE);
+        let line = serde_json::to_string(&entry(0)).unwrap_or_default();
+        fs::write(&path, format!("{line}\ngarbage\n{line}\n")).unwrap_or_else(|e| panic!("{e}"));
+        let err = read_journal(&path)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(err.contains("line 2"), "{err}");
+    }
+}

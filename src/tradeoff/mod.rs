@@ -1,0 +1,914 @@
+//! `rigd tradeoff`: what accuracy costs in time, for one rig and one
+//! material. Every error figure is measured against the scene simulator's
+//! ground truth; physical times come from the motion model (the same
+//! `Timing` the engine follows, so a simulated capture reports exactly
+//! them) and the table says so.
+//!
+//! Families measured by this version:
+//! - **plans**: H2 and H1, H2's first 3, 4 and 5 rings, a 12 × 8 and a 12 × 5
+//!   grid, and a dense reference of 15° rings. Each plan is solved on the
+//!   profile and ordered; its "capture" is the scene's true BTF, area-averaged
+//!   into normtextures, at the directions the rig really reaches (infeasible
+//!   pairs show up as error). The BTF is compressed with C components and
+//!   reconstructed at held-out (light, view) pairs (eq. 3 and 5 of seed 000).
+//!   The camera, registration and rectification are left out of this family:
+//!   `tests/process_run.rs` and `tests/btf_accuracy.rs` measure them
+//!   (registration residual 0.02–0.09 px).
+//! - **pca**: C = 2, 4, 8, 16, 32 on H2: error, compressed size, compute time.
+//! - **fidelity**: the renderer with every effect the scene can show, then
+//!   with each effect off: render time, and how far the frame moves (the
+//!   accuracy a shortcut costs).
+//! - **laser**: a simulated laser scan on the MSRA rig (the rig with a
+//!   laser unit; one camera at 40°, small frames) with 26 source positions,
+//!   processed with 1, 5, 13 and 26 of them: MDF depth error against the
+//!   scene, and the scan time of a plan with that many sources.
+//! - **photometric stereo**: simulated VirTex captures with 3, 6 and 12
+//!   lamps: mean normal error against the scene, and the capture time.
+
+use std::path::Path;
+use std::time::Instant;
+
+use rayon::prelude::*;
+use rigd_process::btf::{compress_slot, BtfStore, BtfWriter, SlotPca, TextureShape};
+use rigd_process::directions::{Direction as PDir, DirectionTable};
+use rigd_sim::scene::{Effect, EffectSwitches, Scene, Shot};
+use serde::Serialize;
+
+use crate::kinematics::Solver;
+use crate::model::geometry::Direction;
+use crate::model::profile::Profile;
+use crate::plan::{self, Plan, H2_THETAS, HEMISPHERE_RING_COUNTS};
+use crate::postprocess::{true_texture, ProcessError};
+use crate::schedule::{self, Schedule};
+
+/// Settings of a trade-off run.
+#[derive(Debug, Clone, Copy)]
+pub struct TradeoffConfig {
+    /// Side of the normtextures, texels.
+    pub texture: usize,
+    /// Held-out (light, view) pairs the error is measured at.
+    pub held_out: usize,
+    /// PCA components for the plan family.
+    pub components: usize,
+    /// Frame size of the fidelity renders.
+    pub render_size: [u32; 2],
+}
+
+impl Default for TradeoffConfig {
+    fn default() -> TradeoffConfig {
+        TradeoffConfig {
+            texture: 16,
+            held_out: 24,
+            components: 16,
+            render_size: [256, 192],
+        }
+    }
+}
+
+/// One row of the table.
+#[derive(Debug, Clone, Serialize)]
+pub struct Row {
+    pub family: String,
+    pub setting: String,
+    pub images: Option<usize>,
+    /// Physical capture time, seconds (motion-model estimate).
+    pub physical_s: Option<f64>,
+    /// Raw sensor bytes of the capture, or the compressed BTF's bytes.
+    pub bytes: Option<u64>,
+    /// RMS error relative to the truth's RMS (plans, pca), or the RMS
+    /// change of the frame relative to its RMS (fidelity).
+    pub error: Option<f64>,
+    /// Wall time of the computation (compression, render), seconds.
+    pub compute_s: Option<f64>,
+    /// What `error` is: `relative` (plans, pca, fidelity), `mm` (laser:
+    /// mean depth error), `degrees` (photometric stereo: mean normal error).
+    pub unit: String,
+    /// More about the row (coverage, what was measured).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub detail: Option<String>,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    pub profile: String,
+    pub scene: String,
+    pub texture: usize,
+    pub held_out: usize,
+    pub components: usize,
+    pub method: Vec<String>,
+    pub rows: Vec<Row>,
+}
+
+/// A named plan of the plan family.
+struct PlanCase {
+    name: String,
+    plan: Plan,
+}
+
+fn pairs_plan(name: &str, dirs: &[Direction]) -> Plan {
+    Plan {
+        name: name.into(),
+        pairs: plan::btf(dirs, dirs),
+        laser: None,
+        order: crate::plan::Order::Optimised,
+    }
+}
+
+fn plan_cases(profile: &Profile, solver: &Solver) -> Result<Vec<PlanCase>, ProcessError> {
+    let offer = schedule::rig_offer(profile, solver);
+    let resolve =
+        |spec: &str| plan::resolve(spec, &offer).map_err(|e| ProcessError::Invalid(e.to_string()));
+    let mut cases = vec![
+        PlanCase {
+            name: "h2".into(),
+            plan: resolve("h2")?,
+        },
+        PlanCase {
+            name: "h1".into(),
+            plan: resolve("h1")?,
+        },
+    ];
+    for k in [3, 4, 5] {
+        let dirs = plan::rings(&H2_THETAS[..k], &HEMISPHERE_RING_COUNTS[..k]);
+        cases.push(PlanCase {
+            name: format!("h2, {k} rings"),
+            plan: pairs_plan(&format!("h2-{k}rings"), &dirs),
+        });
+    }
+    // The grids: the rig's own arcs where it has them, else evenly spaced
+    // elevations up to 75°.
+    let arcs = offer.arc_elevations.clone();
+    for rows in [8usize, 5] {
+        let elevations: Vec<f64> = match &arcs {
+            Some((lamps, _)) if rows == 8 => lamps.clone(),
+            Some((lamps, _)) => lamps.iter().copied().take(rows).collect(),
+            None => (0..rows)
+                .map(|i| 5.0 + 70.0 * i as f64 / (rows - 1) as f64)
+                .collect(),
+        };
+        let dirs = plan::grid12(&elevations);
+        cases.push(PlanCase {
+            name: format!("grid 12x{rows}"),
+            plan: pairs_plan(&format!("grid12x{rows}"), &dirs),
+        });
+    }
+    let dense_thetas = [0.0, 15.0, 30.0, 45.0, 60.0, 75.0];
+    let dense = plan::rings(&dense_thetas, &[1, 24, 24, 24, 24, 24]);
+    cases.push(PlanCase {
+        name: "dense, 15° rings".into(),
+        plan: pairs_plan("dense15", &dense),
+    });
+    Ok(cases)
+}
+
+/// Held-out (light, view) pairs: a fixed low-discrepancy set, θ ≤ 70°.
+pub fn held_out_pairs(n: usize) -> Vec<(Direction, Direction)> {
+    let at = |k: usize, a: f64, b: f64| {
+        let u = (k as f64 * a).fract();
+        let v = (k as f64 * b).fract();
+        // Uniform in solid angle up to 70°.
+        let cos_max = 70f64.to_radians().cos();
+        let theta = (1.0 - u * (1.0 - cos_max)).acos().to_degrees();
+        Direction::new(theta, 360.0 * v)
+    };
+    (1..=n)
+        .map(|k| (at(k, 0.618_034, 0.414_214), at(k, 0.732_051, 0.236_068)))
+        .collect()
+}
+
+fn pdir(d: Direction) -> PDir {
+    PDir::new(d.theta_deg, d.phi_deg)
+}
+
+/// The schedule's images grouped as a BTF: commanded lights and views (as
+/// tables) and, per view slot and light, the image's achieved directions.
+struct Grid {
+    lights: Vec<Direction>,
+    views: Vec<Direction>,
+    /// `achieved[slot][light]`.
+    achieved: Vec<Vec<(Direction, Direction)>>,
+}
+
+fn grid(schedule: &Schedule) -> Result<Grid, ProcessError> {
+    let mut lights: Vec<Direction> = Vec::new();
+    let mut views: Vec<Direction> = Vec::new();
+    let index = |list: &mut Vec<Direction>, d: Direction| match list.iter().position(|x| *x == d) {
+        Some(i) => i,
+        None => {
+            list.push(d);
+            list.len() - 1
+        }
+    };
+    let mut cells = Vec::with_capacity(schedule.images.len());
+    for img in &schedule.images {
+        let l = index(&mut lights, img.light);
+        let v = index(&mut views, img.view);
+        cells.push((v, l, (img.achieved_light, img.achieved_view)));
+    }
+    let mut achieved = vec![vec![None; lights.len()]; views.len()];
+    for (v, l, a) in cells {
+        achieved[v][l] = Some(a);
+    }
+    let achieved = achieved
+        .into_iter()
+        .map(|row| row.into_iter().collect::<Option<Vec<_>>>())
+        .collect::<Option<Vec<_>>>()
+        .ok_or_else(|| {
+            ProcessError::Invalid("the plan is not every light with every view".into())
+        })?;
+    Ok(Grid {
+        lights,
+        views,
+        achieved,
+    })
+}
+
+/// A grid's "capture": per view slot and light, the scene's true texture
+/// at the achieved directions.
+type Textures = Vec<Vec<Vec<f32>>>;
+
+fn true_textures(scene: &Scene, g: &Grid, size: usize) -> Textures {
+    g.achieved
+        .par_iter()
+        .map(|row| {
+            row.iter()
+                .map(|&(l, v)| true_texture(scene, size, l, v))
+                .collect()
+        })
+        .collect()
+}
+
+/// The grid's light and view tables.
+fn tables(g: &Grid) -> Result<(DirectionTable, DirectionTable), ProcessError> {
+    let table = |d: &[Direction]| {
+        DirectionTable::new(d.iter().map(|&x| pdir(x)).collect())
+            .map_err(|e| ProcessError::Invalid(e.to_string()))
+    };
+    Ok((table(&g.lights)?, table(&g.views)?))
+}
+
+/// Compresses a grid's textures with `components` and returns the store
+/// and the compression's wall time.
+fn compress(
+    textures: &Textures,
+    g: &Grid,
+    size: usize,
+    components: usize,
+) -> Result<(BtfStore, Vec<SlotPca>, f64), ProcessError> {
+    let invalid = |e: rigd_process::btf::BtfError| ProcessError::Invalid(e.to_string());
+    let shape = TextureShape::new(size, size, 1).map_err(invalid)?;
+    let started = Instant::now();
+    let slots = textures
+        .iter()
+        .map(|row| {
+            let refs: Vec<&[f32]> = row.iter().map(Vec::as_slice).collect();
+            compress_slot(&refs, shape, components.min(row.len())).map_err(invalid)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let compress_s = started.elapsed().as_secs_f64();
+    let (lights, views) = tables(g)?;
+    let store = BtfStore::new(shape, lights, views, slots.clone()).map_err(invalid)?;
+    Ok((store, slots, compress_s))
+}
+
+/// RMS error of the store at the held-out pairs, relative to the truth's RMS.
+fn held_out_error(
+    store: &BtfStore,
+    truths: &[(Direction, Direction, Vec<f32>)],
+) -> Result<f64, ProcessError> {
+    let (mut err, mut norm) = (0.0, 0.0);
+    for (l, v, truth) in truths {
+        let tex = store
+            .reconstruct(pdir(*l), pdir(*v))
+            .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+        for (a, b) in tex.iter().zip(truth) {
+            err += f64::from(a - b).powi(2);
+            norm += f64::from(*b).powi(2);
+        }
+    }
+    Ok((err / norm.max(1e-30)).sqrt())
+}
+
+/// Raw bytes of a capture: every image at the camera's resolution, two
+/// bytes a pixel above 8 bits.
+fn raw_bytes(profile: &Profile, schedule: &Schedule) -> u64 {
+    schedule
+        .images
+        .iter()
+        .map(|img| {
+            profile
+                .devices
+                .get(&img.camera)
+                .and_then(|d| d.intrinsics)
+                .map_or(0, |i| {
+                    let px = u64::from(i.resolution[0]) * u64::from(i.resolution[1]);
+                    if i.bit_depth > 8 {
+                        2 * px
+                    } else {
+                        px
+                    }
+                })
+        })
+        .sum()
+}
+
+/// Runs every family and writes `tradeoff.csv`, `tradeoff.json` and
+/// `tradeoff.svg` into `out`.
+pub fn run(
+    profile: &Profile,
+    scene_name: &str,
+    cfg: &TradeoffConfig,
+    out: &Path,
+    progress: &dyn Fn(&str),
+) -> Result<Report, ProcessError> {
+    if cfg.texture < 4 || cfg.texture > 256 || cfg.held_out == 0 || cfg.components == 0 {
+        return Err(ProcessError::Invalid(format!(
+            "texture {} (4..=256), held-out {} and components {} (≥ 1)",
+            cfg.texture, cfg.held_out, cfg.components
+        )));
+    }
+    let scene = Scene::load(scene_name)?;
+    let solver = Solver::new(profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let held = held_out_pairs(cfg.held_out);
+    let truths: Vec<(Direction, Direction, Vec<f32>)> = held
+        .par_iter()
+        .map(|&(l, v)| (l, v, true_texture(&scene, cfg.texture, l, v)))
+        .collect();
+    let mut rows = Vec::new();
+
+    // Plans.
+    let mut h2_grid = None;
+    for case in plan_cases(profile, &solver)? {
+        progress(&format!("plan {}", case.name));
+        let (s, order) = schedule::build_with_report(profile, &solver, &case.plan);
+        let g = grid(&s)?;
+        let textures = true_textures(&scene, &g, cfg.texture);
+        let (store, _, compress_s) = compress(&textures, &g, cfg.texture, cfg.components)?;
+        rows.push(Row {
+            family: "plans".into(),
+            setting: case.name.clone(),
+            images: Some(s.images.len()),
+            physical_s: Some(order.optimised_s),
+            bytes: Some(raw_bytes(profile, &s)),
+            error: Some(held_out_error(&store, &truths)?),
+            compute_s: Some(compress_s),
+            unit: "relative".into(),
+            detail: None,
+        });
+        if case.name == "h2" {
+            // The PCA family reuses H2's textures.
+            h2_grid = Some((g, textures, order.optimised_s, s.images.len()));
+        }
+    }
+
+    // The shortcut above, measured: one plan through the whole chain.
+    progress("plan h2, 3 rings through camera and registration");
+    let mut chain = camera_chain(profile, scene_name, cfg, &truths, out)?;
+    // The same plan at the rig's real camera resolution.
+    chain.bytes = rows
+        .iter()
+        .find(|r| r.family == "plans" && r.setting == "h2, 3 rings")
+        .and_then(|r| r.bytes);
+    rows.push(chain);
+
+    // PCA components, on H2.
+    if let Some((g, textures, physical, images)) = &h2_grid {
+        for c in [2usize, 4, 8, 16, 32] {
+            progress(&format!("pca C = {c}"));
+            let (store, slots, compress_s) = compress(textures, g, cfg.texture, c)?;
+            let dir = out.join(format!(".pca-{c}"));
+            let bytes = stored_bytes(&dir, &slots, g, cfg.texture, c);
+            // Only the size was wanted: the files go either way.
+            let _ = std::fs::remove_dir_all(&dir);
+            let bytes = bytes?;
+            rows.push(Row {
+                family: "pca".into(),
+                setting: format!("C = {c}"),
+                images: Some(*images),
+                physical_s: Some(*physical),
+                bytes: Some(bytes),
+                error: Some(held_out_error(&store, &truths)?),
+                compute_s: Some(compress_s),
+                unit: "relative".into(),
+                detail: None,
+            });
+        }
+    }
+
+    // Simulator fidelity.
+    progress("fidelity");
+    rows.extend(fidelity(&scene, cfg.render_size));
+
+    progress("laser scan (MSRA rig, 26 sources)");
+    rows.extend(laser_family(scene_name, out)?);
+    progress("photometric stereo (VirTex rig)");
+    rows.extend(ps_family(scene_name, out)?);
+
+    let report = Report {
+        profile: profile.name.clone(),
+        scene: scene_name.to_string(),
+        texture: cfg.texture,
+        held_out: cfg.held_out,
+        components: cfg.components,
+        method: vec![
+            "physical_s: motion-model estimate of the optimised order (the engine follows the same model)".into(),
+            "plans: texture-space capture (the scene's true BTF at the achieved directions); camera and registration left out".into(),
+            format!("plans, camera chain: the 3-ring plan captured by the simulated camera ({}×{} frames, every effect of the scene), registered by its markers (rectify to {}² float textures) and compressed; the gap to the texture-space row of the same plan is what that shortcut changes; time: the simulated run's physical duration", CHAIN_FRAME[0], CHAIN_FRAME[1], cfg.texture),
+            "error: RMS over held-out (light, view) pairs relative to the truth's RMS".into(),
+            "fidelity: error is the frame's RMS change with the effect off, relative to the frame's RMS".into(),
+            "laser: one 26-source scan on the MSRA rig (cam3 at 40°, 160×120 frames, 1.5 mm steps) processed with subsets of its sources; time: motion-model estimate of a plan with that many sources; error: mean depth error in mm".into(),
+            "photometric stereo: simulated VirTex captures (128×96 frames); time: the simulated run's physical duration; error: mean normal error in degrees".into(),
+        ],
+        rows,
+    };
+    write_outputs(out, &report)?;
+    Ok(report)
+}
+
+/// Frame size of the camera-chain capture. Smaller frames register too, but
+/// the marker search then wades through the sample's texture (384×256 takes
+/// three times as long).
+const CHAIN_FRAME: [u32; 2] = [512, 384];
+
+/// H2's three inner rings captured through the simulated camera, rectified
+/// and compressed: the plan family's texture-space shortcut, checked.
+fn camera_chain(
+    profile: &Profile,
+    scene_name: &str,
+    cfg: &TradeoffConfig,
+    truths: &[(Direction, Direction, Vec<f32>)],
+    out: &Path,
+) -> Result<Row, ProcessError> {
+    use crate::postprocess::{RectifyConfig, RunFrames, TextureBits};
+    let rings = 3;
+    let dirs = plan::rings(&H2_THETAS[..rings], &HEMISPHERE_RING_COUNTS[..rings]);
+    std::fs::create_dir_all(out)
+        .map_err(|e| ProcessError::Invalid(format!("{}: {e}", out.display())))?;
+    let plan_file = out.join(".tradeoff-chain-plan.json");
+    let body = serde_json::json!({ "name": "h2-3rings", "directions": dirs });
+    std::fs::write(&plan_file, body.to_string())
+        .map_err(|e| ProcessError::Invalid(format!("{}: {e}", plan_file.display())))?;
+    let mut p = profile.clone();
+    p.sim.scene = Some(scene_name.to_string());
+    p.sim.frame_size = CHAIN_FRAME;
+    let dir = out.join(".tradeoff-chain");
+    let plan_spec = plan_file.to_string_lossy().into_owned();
+    let physical = capture(p, &plan_spec, &dir);
+    let _ = std::fs::remove_file(&plan_file);
+    let physical = physical?;
+    let started = Instant::now();
+    let frames = RunFrames::open(&dir)?;
+    let images = frames.entries.len();
+    let rectify = RectifyConfig {
+        size: (4 * cfg.texture).max(64),
+        roi: 1.0,
+        final_size: cfg.texture,
+        blend: 0,
+        bits: TextureBits::Float,
+    };
+    crate::postprocess::rectify_run(&frames, &rectify, &|_, _| {})?;
+    crate::postprocess::btf_run(&dir, cfg.components, &|_, _| {})?;
+    let compute_s = started.elapsed().as_secs_f64();
+    let store = BtfStore::read(&dir.join(crate::postprocess::PROCESSED_DIR).join("btf"))
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let error = held_out_error(&store, truths)?;
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(Row {
+        family: "plans".into(),
+        setting: format!("h2, {rings} rings, camera chain"),
+        images: Some(images),
+        physical_s: Some(physical),
+        bytes: None,
+        error: Some(error),
+        compute_s: Some(compute_s),
+        unit: "relative".into(),
+        detail: Some(format!(
+            "{}×{} simulated frames, registered and compressed",
+            CHAIN_FRAME[0], CHAIN_FRAME[1]
+        )),
+    })
+}
+
+/// One simulated capture in virtual time into `out`; its physical duration.
+fn capture(profile: Profile, plan: &str, out: &Path) -> Result<f64, ProcessError> {
+    use crate::engine::PausePolicy;
+    use crate::model::run_state::RunState;
+    let invalid = |e: String| ProcessError::Invalid(format!("capture of `{plan}`: {e}"));
+    let _ = std::fs::remove_dir_all(out);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(true)
+        .build()
+        .map_err(|e| invalid(e.to_string()))?;
+    runtime.block_on(async {
+        let req = crate::engine::launch::NewRun {
+            profile_source: format!("<tradeoff {}>", profile.name),
+            profile,
+            plan: plan.to_string(),
+            sample: "tradeoff".into(),
+            operator: None,
+            notes: None,
+            exposure_s: None,
+            frame_size: None,
+            out: out.to_path_buf(),
+            simulated: true,
+            order: None,
+        };
+        let p = crate::engine::launch::prepare_new(
+            req,
+            vec![],
+            rigd_core::Clock::virtual_time(),
+            PausePolicy::Return,
+        )
+        .await
+        .map_err(|e| invalid(e.to_string()))?;
+        let outcome = p.engine.run().await.map_err(|e| invalid(e.to_string()))?;
+        if outcome.state != RunState::Completed {
+            return Err(invalid(format!(
+                "ended {} ({})",
+                outcome.state,
+                outcome.reason.unwrap_or_default()
+            )));
+        }
+        Ok(outcome.physical_s)
+    })
+}
+
+/// MDF depth error against the number of laser source positions.
+fn laser_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
+    let mut profile =
+        Profile::load("msra-btf-mdf").map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    if let crate::model::profile::RigGeometry::TurntableArcs { cameras, .. } = &mut profile.rig {
+        *cameras = vec!["cam3".into()];
+    }
+    profile.sim.frame_size = [160, 120];
+    profile.sim.zoom = 2.4;
+    profile.sim.scene = Some(scene_name.to_string());
+    let plan = |n: usize| format!("laser:sources={n},turns=1,step=1.5");
+    let dir = out.join(".tradeoff-laser");
+    capture(profile.clone(), &plan(26), &dir)?;
+    let run = crate::postprocess::RunFrames::open(&dir)?;
+    let solver = Solver::new(&profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let offer = schedule::rig_offer(&profile, &solver);
+    let mut rows = Vec::new();
+    for n in [1usize, 5, 13, 26] {
+        let cfg = crate::postprocess::mdf::MdfConfig {
+            sources: Some(n),
+            ..Default::default()
+        };
+        let started = Instant::now();
+        let report = crate::postprocess::mdf::mdf_run(&run, &cfg, &|_, _| {})?;
+        let compute_s = started.elapsed().as_secs_f64();
+        let truth = report.views.first().and_then(|v| v.truth);
+        let plan_n =
+            plan::resolve(&plan(n), &offer).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+        let s = schedule::build(&profile, &solver, &plan_n);
+        let physical = schedule::timing::Timing::new(&profile, None).estimate_s(&s, |_| false);
+        rows.push(Row {
+            family: "laser".into(),
+            setting: format!("{n} source{}", if n == 1 { "" } else { "s" }),
+            images: Some(s.images.len()),
+            physical_s: Some(physical),
+            bytes: None,
+            error: truth.map(|t| t.mean_mm),
+            compute_s: Some(compute_s),
+            unit: "mm".into(),
+            detail: truth.map(|t| {
+                format!(
+                    "coverage {:.1} % of the sample's pixels",
+                    100.0 * t.coverage
+                )
+            }),
+        });
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(rows)
+}
+
+/// Photometric-stereo normal error against the number of lamps.
+fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
+    use rigd_process::photometric_stereo as ps;
+    let base = Profile::load("virtex-photometric-stereo")
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let mut rows = Vec::new();
+    let layouts: [(&str, Vec<Direction>); 3] = [
+        ("3 lights", vec![]),
+        (
+            "6 lights",
+            (0..6)
+                .map(|k| Direction::new(45.0, 60.0 * k as f64))
+                .collect(),
+        ),
+        (
+            "12 lights",
+            (0..12)
+                .map(|k| {
+                    Direction::new(
+                        if k < 6 { 30.0 } else { 60.0 },
+                        60.0 * (k % 6) as f64 + if k < 6 { 0.0 } else { 30.0 },
+                    )
+                })
+                .collect(),
+        ),
+    ];
+    for (name, lamps) in layouts {
+        let mut profile = base.clone();
+        if !lamps.is_empty() {
+            with_lamps(&mut profile, &lamps)?;
+        }
+        profile.sim.scene = Some(scene_name.to_string());
+        let dir = out.join(".tradeoff-ps");
+        let physical = capture(profile, "lamps", &dir)?;
+        let run = crate::postprocess::RunFrames::open(&dir)?;
+        let dataset = crate::postprocess::ps_dataset_from_run(&run)?;
+        let modes: &[bool] = if name == "3 lights" {
+            &[false]
+        } else {
+            &[false, true]
+        };
+        for &robust in modes {
+            let started = Instant::now();
+            let result = ps::solve(
+                &dataset,
+                &ps::PsOptions {
+                    robust,
+                    ..Default::default()
+                },
+            )
+            .map_err(|e| ProcessError::Invalid(format!("{name}: {e}")))?;
+            let compute_s = started.elapsed().as_secs_f64();
+            let err = crate::postprocess::ps_error_against_truth(&run, &result)?;
+            rows.push(Row {
+                family: "photometric stereo".into(),
+                setting: if robust {
+                    format!("{name}, robust")
+                } else {
+                    name.to_string()
+                },
+                images: Some(run.entries.len()),
+                physical_s: Some(physical),
+                bytes: None,
+                error: err.as_ref().map(|e| e.mean_deg),
+                compute_s: Some(compute_s),
+                unit: "degrees".into(),
+                detail: err.map(|e| {
+                    format!(
+                        "median {:.2}°, 95th percentile {:.2}°",
+                        e.median_deg, e.p95_deg
+                    )
+                }),
+            });
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+    Ok(rows)
+}
+
+/// Replaces a fixed-lamp rig's lamps with ones in `directions`, each a copy
+/// of its first lamp on the next relay coil.
+fn with_lamps(profile: &mut Profile, directions: &[Direction]) -> Result<(), ProcessError> {
+    let crate::model::profile::RigGeometry::FixedLamps { lamps, .. } = &mut profile.rig else {
+        return Err(ProcessError::Invalid("not a fixed-lamp rig".into()));
+    };
+    let template = lamps
+        .first()
+        .and_then(|l| profile.devices.get(l))
+        .cloned()
+        .ok_or_else(|| ProcessError::Invalid("the rig has no lamp".into()))?;
+    for old in lamps.drain(..) {
+        profile.devices.remove(&old);
+    }
+    for (k, d) in directions.iter().enumerate() {
+        let name = format!("lamp{k}");
+        let mut dev = template.clone();
+        dev.direction = Some(*d);
+        dev.coil = Some(k as u16);
+        profile.devices.insert(name.clone(), dev);
+        lamps.push(name);
+    }
+    Ok(())
+}
+
+/// Writes the compressed BTF and returns its size on disk.
+fn stored_bytes(
+    dir: &Path,
+    slots: &[SlotPca],
+    g: &Grid,
+    size: usize,
+    components: usize,
+) -> Result<u64, ProcessError> {
+    let invalid = |e: rigd_process::btf::BtfError| ProcessError::Invalid(e.to_string());
+    let shape = TextureShape::new(size, size, 1).map_err(invalid)?;
+    let (lights, views) = tables(g)?;
+    let mut w = BtfWriter::create(dir, shape, &lights, &views, components).map_err(invalid)?;
+    for (k, pca) in slots.iter().enumerate() {
+        w.write_slot(k, pca).map_err(invalid)?;
+    }
+    w.finish().map_err(invalid)?;
+    let mut total = 0;
+    for e in std::fs::read_dir(dir).map_err(|e| ProcessError::Invalid(e.to_string()))? {
+        let e = e.map_err(|e| ProcessError::Invalid(e.to_string()))?;
+        total += e.metadata().map(|m| m.len()).unwrap_or(0);
+    }
+    Ok(total)
+}
+
+/// Render time with every effect, then each effect off: time and change.
+fn fidelity(scene: &Scene, size: [u32; 2]) -> Vec<Row> {
+    let shot = |effects: EffectSwitches| Shot {
+        light: Direction::new(60.0, 30.0).to_vector(),
+        view: Direction::new(45.0, 180.0).to_vector(),
+        width: size[0],
+        height: size[1],
+        seed: 1,
+        effects,
+        ..Shot::default()
+    };
+    let all: EffectSwitches = "all".parse().unwrap_or_default();
+    let timed = |s: &Shot| {
+        let started = Instant::now();
+        let (pixels, plan) = scene.render_linear(s);
+        (pixels, plan, started.elapsed().as_secs_f64())
+    };
+    let (reference, plan, t_all) = timed(&shot(all));
+    let rms = |v: &[f32]| {
+        (v.iter().map(|x| f64::from(*x).powi(2)).sum::<f64>() / v.len().max(1) as f64).sqrt()
+    };
+    let ref_rms = rms(&reference).max(1e-30);
+    let mut rows = vec![Row {
+        family: "fidelity".into(),
+        setting: format!("all effects ({})", plan.live),
+        images: None,
+        physical_s: None,
+        bytes: None,
+        error: Some(0.0),
+        compute_s: Some(t_all),
+        unit: "relative".into(),
+        detail: None,
+    }];
+    for effect in plan.live.iter().collect::<Vec<Effect>>() {
+        let switches: EffectSwitches = format!("all,-{}", effect.name())
+            .parse()
+            .unwrap_or_default();
+        let (pixels, _, t) = timed(&shot(switches));
+        let diff: Vec<f32> = pixels.iter().zip(&reference).map(|(a, b)| a - b).collect();
+        rows.push(Row {
+            family: "fidelity".into(),
+            setting: format!("without {}", effect.name()),
+            images: None,
+            physical_s: None,
+            bytes: None,
+            error: Some(rms(&diff) / ref_rms),
+            compute_s: Some(t),
+            unit: "relative".into(),
+            detail: None,
+        });
+    }
+    rows
+}
+
+fn write_outputs(out: &Path, report: &Report) -> Result<(), ProcessError> {
+    let io = |e: std::io::Error| ProcessError::Invalid(format!("{}: {e}", out.display()));
+    std::fs::create_dir_all(out).map_err(io)?;
+    let json =
+        serde_json::to_vec_pretty(report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    rigd_process::atomic::write(&out.join("tradeoff.json"), &json).map_err(io)?;
+    let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
+    let mut csv =
+        String::from("family,setting,images,physical_s,bytes,error,unit,compute_s,detail\n");
+    for r in &report.rows {
+        csv.push_str(&format!(
+            "{},\"{}\",{},{},{},{},{},{},\"{}\"\n",
+            r.family,
+            r.setting.replace('"', "'"),
+            r.images.map(|x| x.to_string()).unwrap_or_default(),
+            opt(r.physical_s),
+            r.bytes.map(|x| x.to_string()).unwrap_or_default(),
+            opt(r.error),
+            r.unit,
+            opt(r.compute_s),
+            r.detail.clone().unwrap_or_default().replace('"', "'")
+        ));
+    }
+    rigd_process::atomic::write(&out.join("tradeoff.csv"), csv.as_bytes()).map_err(io)?;
+    rigd_process::atomic::write(&out.join("tradeoff.svg"), svg(report).as_bytes()).map_err(io)?;
+    Ok(())
+}
+
+/// A plotted point: family, setting, physical time, error.
+type Point<'a> = (&'a str, &'a str, f64, f64);
+
+/// Error against physical time, log–log, a polyline per family that has both.
+pub fn svg(report: &Report) -> String {
+    let (w, h, m) = (640.0, 420.0, 60.0);
+    let points: Vec<Point> = report
+        .rows
+        .iter()
+        .filter_map(|r| match (r.physical_s, r.error) {
+            (Some(t), Some(e)) if t > 0.0 && e > 0.0 => {
+                Some((r.family.as_str(), r.setting.as_str(), t, e))
+            }
+            _ => None,
+        })
+        .collect();
+    let range = |f: &dyn Fn(&Point) -> f64| {
+        let lo = points
+            .iter()
+            .map(f)
+            .fold(f64::INFINITY, f64::min)
+            .log10()
+            .floor();
+        let hi = points
+            .iter()
+            .map(f)
+            .fold(f64::NEG_INFINITY, f64::max)
+            .log10()
+            .ceil();
+        if lo.is_finite() && hi.is_finite() {
+            (lo, hi.max(lo + 1.0))
+        } else {
+            (0.0, 1.0)
+        }
+    };
+    let (x0, x1) = range(&|p| p.2);
+    let (y0, y1) = range(&|p| p.3);
+    let px = |t: f64| m + (t.log10() - x0) / (x1 - x0) * (w - 2.0 * m);
+    let py = |e: f64| h - m - (e.log10() - y0) / (y1 - y0) * (h - 2.0 * m);
+    let mut s = format!(
+        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"13\">{} on {}: error vs physical capture time (units per family)</text>\n",
+        w / 2.0,
+        report.scene,
+        report.profile
+    );
+    s.push_str(&format!(
+        "<line x1=\"{m}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"black\"/><line x1=\"{m}\" y1=\"{m}\" x2=\"{m}\" y2=\"{}\" stroke=\"black\"/>\n",
+        h - m, w - m, h - m, h - m
+    ));
+    for k in (x0 as i32)..=(x1 as i32) {
+        let x = px(10f64.powi(k));
+        s.push_str(&format!(
+            "<text x=\"{x}\" y=\"{}\" text-anchor=\"middle\">1e{k} s</text>\n",
+            h - m + 16.0
+        ));
+    }
+    for k in (y0 as i32)..=(y1 as i32) {
+        let y = py(10f64.powi(k));
+        s.push_str(&format!(
+            "<text x=\"{}\" y=\"{y}\" text-anchor=\"end\">1e{k}</text>\n",
+            m - 4.0
+        ));
+    }
+    let colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
+    let mut families: Vec<&str> = points.iter().map(|p| p.0).collect();
+    families.dedup();
+    for (i, fam) in families.iter().enumerate() {
+        let colour = colours[i % colours.len()];
+        let mut pts: Vec<&Point> = points.iter().filter(|p| p.0 == *fam).collect();
+        pts.sort_by(|a, b| a.2.total_cmp(&b.2));
+        let line: Vec<String> = pts
+            .iter()
+            .map(|p| format!("{:.1},{:.1}", px(p.2), py(p.3)))
+            .collect();
+        s.push_str(&format!(
+            "<polyline fill=\"none\" stroke=\"{colour}\" points=\"{}\"/>\n",
+            line.join(" ")
+        ));
+        for p in &pts {
+            s.push_str(&format!(
+                "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3\" fill=\"{colour}\"><title>{}: {} ({:.0} s, {:.4})</title></circle>\n<text x=\"{:.1}\" y=\"{:.1}\" fill=\"{colour}\">{}</text>\n",
+                px(p.2), py(p.3), p.0, p.1, p.2, p.3, px(p.2) + 5.0, py(p.3) - 5.0, p.1
+            ));
+        }
+        let unit = report
+            .rows
+            .iter()
+            .find(|r| r.family == *fam)
+            .map_or("", |r| r.unit.as_str());
+        s.push_str(&format!(
+            "<text x=\"{}\" y=\"{}\" fill=\"{colour}\">{fam} ({unit})</text>\n",
+            w - m - 160.0,
+            m + 14.0 * i as f64
+        ));
+    }
+    s.push_str("</svg>\n");
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn held_out_pairs_are_on_the_hemisphere_and_distinct() {
+        let p = held_out_pairs(24);
+        assert_eq!(p.len(), 24);
+        for (l, v) in &p {
+            for d in [l, v] {
+                assert!((0.0..=70.0 + 1e-9).contains(&d.theta_deg), "{d:?}");
+                assert!((0.0..360.0).contains(&d.phi_deg), "{d:?}");
+            }
+        }
+        assert_ne!(p[0], p[1]);
+    }
+}

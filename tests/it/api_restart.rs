@@ -1,0 +1,208 @@
+//! The daemon as a process: killed (-9) or stopped (SIGTERM) in the middle
+//! of a run, restarted, and the run resumed over the API: the dataset
+//! completes with every frame exactly once and valid checksums.
+
+use crate::common;
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Stdio};
+use std::time::Duration;
+
+use common::assert_complete_run;
+use common::http::{run_body, small_plan};
+use serde_json::Value;
+
+struct Daemon {
+    child: Child,
+    base: String,
+    token: String,
+    client: reqwest::Client,
+}
+
+fn spawn(data: &Path, speed: f64) -> Daemon {
+    let mut child = common::rigd()
+        .args(["serve", "--listen", "127.0.0.1:0", "--sim-speed"])
+        .arg(speed.to_string())
+        .arg("--data")
+        .arg(data)
+        .stdin(Stdio::null())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn rigd serve");
+    let stderr = child.stderr.take().expect("stderr");
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut tx = Some(tx);
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("on http://").nth(1) {
+                if let Some(t) = tx.take() {
+                    let _ = t.send(rest.split('/').next().unwrap_or("").to_string());
+                }
+            }
+        }
+    });
+    let addr = rx
+        .recv_timeout(Duration::from_secs(30))
+        .expect("the daemon says where it listens");
+    let token = std::fs::read_to_string(data.join("token"))
+        .expect("token file")
+        .trim()
+        .to_string();
+    Daemon {
+        child,
+        base: format!("http://{addr}"),
+        token,
+        client: reqwest::Client::new(),
+    }
+}
+
+impl Daemon {
+    async fn get(&self, path: &str) -> Value {
+        let r = self
+            .client
+            .get(format!("{}{path}", self.base))
+            .send()
+            .await
+            .expect("GET");
+        assert_eq!(r.status().as_u16(), 200, "GET {path}");
+        r.json().await.expect("json")
+    }
+
+    async fn post(&self, path: &str, body: Option<Value>) -> (u16, Value) {
+        let mut req = self
+            .client
+            .post(format!("{}{path}", self.base))
+            .bearer_auth(&self.token);
+        if let Some(b) = body {
+            req = req.json(&b);
+        }
+        let r = req.send().await.expect("POST");
+        let status = r.status().as_u16();
+        (status, r.json().await.unwrap_or(Value::Null))
+    }
+
+    async fn wait_run(&self, id: &str, pred: impl Fn(&Value) -> bool) -> Value {
+        let deadline = std::time::Instant::now() + Duration::from_secs(60);
+        loop {
+            let v = self.get(&format!("/api/v1/runs/{id}")).await;
+            if pred(&v) {
+                return v;
+            }
+            assert!(std::time::Instant::now() < deadline, "run {id}: {v}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+const IMAGES: usize = 64;
+
+/// Starts a run, waits for a few frames, stops the daemon with `stop`,
+/// restarts it and resumes the run; returns the state seen after restart.
+async fn cut_and_resume(stop: impl FnOnce(&mut Daemon)) -> String {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut d = spawn(dir.path(), 300.0);
+    let (status, v) = d
+        .post("/api/v1/runs", Some(run_body("cut", small_plan(8))))
+        .await;
+    assert_eq!(status, 201, "{v}");
+    let id = v["id"].as_str().expect("id").to_string();
+    d.wait_run(&id, |v| v["steps_done"].as_u64() >= Some(5))
+        .await;
+    stop(&mut d);
+    drop(d);
+
+    let d = spawn(dir.path(), 20_000.0);
+    let v = d.get(&format!("/api/v1/runs/{id}")).await;
+    let state = v["state"].as_str().unwrap_or("").to_string();
+    assert_eq!(v["resumable"], true, "{v}");
+    assert_eq!(v["active"], false);
+    let done = v["steps_done"].as_u64().unwrap_or(0) as usize;
+    assert!((5..IMAGES).contains(&done), "{v}");
+    // Nothing starts by itself after a cut: the rig is free.
+    let rig = d.get("/api/v1/rig").await;
+    assert_eq!(rig["active_run"], Value::Null);
+    let (status, v) = d.post(&format!("/api/v1/runs/{id}/resume"), None).await;
+    assert_eq!(status, 200, "{v}");
+    let v = d.wait_run(&id, |v| v["state"] == "completed").await;
+    assert_eq!(v["steps_done"], IMAGES);
+    assert_complete_run(&dir.path().join("runs").join(&id), IMAGES);
+    // Completed is final.
+    let (status, _) = d.post(&format!("/api/v1/runs/{id}/resume"), None).await;
+    assert_eq!(status, 409);
+    state
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_mid_run_then_resume_completes() {
+    let state = cut_and_resume(|d| {
+        d.child.kill().expect("kill -9");
+        let _ = d.child.wait();
+    })
+    .await;
+    assert_eq!(state, "interrupted");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_mid_run_pauses_then_resume_completes() {
+    let state = cut_and_resume(|d| {
+        let pid = d.child.id() as libc::pid_t;
+        // SAFETY: signalling our own child process.
+        let rc = unsafe { libc::kill(pid, libc::SIGTERM) };
+        assert_eq!(rc, 0);
+        let status = d.child.wait().expect("wait");
+        assert!(status.success(), "graceful exit: {status:?}");
+    })
+    .await;
+    assert_eq!(state, "paused");
+}
+
+#[test]
+fn serve_help_and_bad_options() {
+    let out = common::run_ok(&["serve", "--help"]);
+    let help = String::from_utf8_lossy(&out.stdout);
+    for want in [
+        "--listen",
+        "127.0.0.1:8080",
+        "--data",
+        "rigd-data",
+        "--sim-speed",
+        "200",
+        "--token-file",
+        "--profile",
+        "3 minutes",
+    ] {
+        assert!(help.contains(want), "`{want}` missing from:\n{help}");
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    for (args, want) in [
+        (vec!["serve", "--sim-speed", "0"], "--sim-speed"),
+        (vec!["serve", "--sim-speed", "-5"], "--sim-speed"),
+        (
+            vec!["serve", "--profile", "no-such-rig", "--sim"],
+            "no-such-rig",
+        ),
+        (
+            vec!["serve", "--listen", "not-an-address"],
+            "not-an-address",
+        ),
+    ] {
+        let out = common::rigd()
+            .args(&args)
+            .arg("--data")
+            .arg(dir.path())
+            .output()
+            .expect("run rigd");
+        assert_eq!(out.status.code(), Some(2), "{args:?}");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+}

@@ -1,0 +1,155 @@
+//! Whole captures on the simulated rig of each profile, through the command line.
+
+use crate::common;
+
+use common::{assert_complete_run, run_ok};
+
+#[test]
+fn bonn_h1_full_run_writes_6561_frames() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("h1");
+    let o = run_ok(&[
+        "run",
+        "--sim",
+        "--plan",
+        "h1",
+        "--sample",
+        "corduroy",
+        "--frame-size",
+        "64x64",
+        "--progress",
+        "log",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(stderr.contains("physical duration"), "{stderr}");
+    assert!(stderr.contains("wall time"), "{stderr}");
+    let m = assert_complete_run(&out, 6561);
+    assert_eq!(m.plan, "h1");
+    assert_eq!(m.profile, "bonn-gonioreflectometer");
+    // The l = v pairs are the ones the rail cannot reach.
+    assert_eq!(m.infeasible.len(), 81);
+    assert!(m
+        .infeasible
+        .iter()
+        .all(|i| i.light == i.view && !i.reason.is_empty()));
+    // Physical time of the gonioreflectometer: hours, not the seconds it took here.
+    assert!(
+        m.physical_duration_s > 3.0 * 3600.0,
+        "{}",
+        m.physical_duration_s
+    );
+    let f = &m.frames[100];
+    assert_eq!((f.width, f.height, f.bit_depth), (64, 64, 12));
+    assert_eq!(f.camera, "camera");
+}
+
+#[test]
+fn bonn_h2_full_run() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("h2");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--plan",
+        "h2",
+        "--frame-size",
+        "16x16",
+        "--progress",
+        "none",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    let m = assert_complete_run(&out, 6561);
+    assert_eq!(m.plan, "h2");
+    assert_estimate_matches("h2", "bonn-gonioreflectometer", m.physical_duration_s);
+}
+
+/// The estimate of `plan show` follows the same timing model as the
+/// simulated firmware. The run through the real drivers takes a little
+/// longer: the drivers learn that a move ended or a lamp warmed up by
+/// polling (GRBL at its recommended 5 Hz, the relay module at 4 Hz), and
+/// the run starts with homing. That overhead must stay within 3 %, and the
+/// run can never be faster than the physics.
+fn assert_estimate_matches(plan: &str, profile: &str, physical_s: f64) {
+    let o = run_ok(&["plan", "show", plan, "--profile", profile, "--json"]);
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).expect("json");
+    let estimate = v["estimated_physical_s"].as_f64().expect("estimate");
+    let overhead = (physical_s - estimate) / estimate;
+    assert!(
+        (0.0..0.03).contains(&overhead),
+        "estimate {estimate} s, simulated {physical_s} s"
+    );
+}
+
+#[test]
+fn msra_grid12x8_full_run_triggers_eight_cameras_together() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("grid");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--profile",
+        common::repo_file("rig-profiles/msra-btf-mdf.toml")
+            .to_str()
+            .expect("utf8"),
+        "--plan",
+        "grid12x8",
+        "--frame-size",
+        "16x12",
+        "--progress",
+        "none",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    let m = assert_complete_run(&out, 9216);
+    assert_eq!(m.triggers_total, 1152);
+    // Images of one trigger share their exposure time and set-points.
+    let mut by_trigger = std::collections::BTreeMap::<usize, Vec<&rigd::store::FrameEntry>>::new();
+    for f in &m.frames {
+        by_trigger.entry(f.trigger).or_default().push(f);
+    }
+    assert_eq!(by_trigger.len(), 1152);
+    for frames in by_trigger.values() {
+        assert_eq!(frames.len(), 8);
+        assert!(frames
+            .iter()
+            .all(|f| f.t_s == frames[0].t_s && f.positions == frames[0].positions));
+    }
+    // The MSRA cameras deliver 8 bits.
+    assert_eq!(m.frames[0].bit_depth, 8);
+    assert_eq!(m.infeasible.len(), 768);
+    assert_estimate_matches("grid12x8", "msra-btf-mdf", m.physical_duration_s);
+}
+
+#[test]
+fn virtex_default_plan_is_one_frame_per_lamp() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("ps");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--profile",
+        "virtex-photometric-stereo",
+        "--progress",
+        "none",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    let m = assert_complete_run(&out, 3);
+    assert_eq!(m.plan, "lamps");
+    assert!(m.infeasible.is_empty());
+    let lamps: Vec<&str> = m.frames.iter().map(|f| f.positions.lamp.as_str()).collect();
+    assert_eq!(lamps, ["lamp0", "lamp1", "lamp2"]);
+    // Each frame is lit: brighter than the unlit holder.
+    for f in &m.frames {
+        let bytes = std::fs::read(out.join(&f.file)).expect("frame");
+        let (_, _, px) = rigd::store::decode_png(&bytes).expect("png");
+        assert!(
+            px.iter().copied().max().unwrap_or(0) > 1000,
+            "{} is dark",
+            f.file
+        );
+    }
+}

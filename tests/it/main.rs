@@ -1,0 +1,32 @@
+//! rigd's integration tests, in one binary: linking all of rigd once instead of
+//! once per test file is most of what a build of the suite costs on two cores.
+//! Each module is one former test file; `common` holds their shared helpers.
+//! The dashboard's browser test is its own binary (`tests/browser.rs`).
+
+#[path = "../common/mod.rs"]
+mod common;
+
+mod acl_e2e;
+mod acl_transcripts;
+mod api;
+mod api_restart;
+mod btf_accuracy;
+mod cli;
+mod crash_resume;
+mod estop;
+mod fault_kinds;
+mod faults;
+mod full_runs;
+mod grbl_e2e;
+mod grbl_transcripts;
+mod laser_mdf;
+mod modbus_e2e;
+mod modbus_transcripts;
+mod pose_solver_hard_cases;
+mod process_run;
+mod ps_accuracy;
+mod ptp_camera;
+mod ptp_transcripts;
+mod sim_serve;
+mod stability;
+mod tradeoff;

@@ -1,0 +1,430 @@
+//! `rigd process rectify` and `rigd process btf` on simulated captures.
+
+use crate::common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn rigd() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_rigd"))
+}
+
+fn plan(dir: &Path) -> PathBuf {
+    let p = dir.join("plan.json");
+    std::fs::write(
+        &p,
+        r#"{
+  "lights": [{"theta_deg": 30, "phi_deg": 0}, {"theta_deg": 30, "phi_deg": 120},
+             {"theta_deg": 30, "phi_deg": 240}, {"theta_deg": 60, "phi_deg": 60},
+             {"theta_deg": 45, "phi_deg": 300}],
+  "views": [{"theta_deg": 0, "phi_deg": 0}, {"theta_deg": 40, "phi_deg": 90}]
+}"#,
+    )
+    .unwrap();
+    p
+}
+
+fn capture(dir: &Path, size: &str) -> PathBuf {
+    let run = dir.join(format!("run-{size}"));
+    let status = rigd()
+        .args([
+            "run",
+            "--sim",
+            "--scene",
+            "corduroy",
+            "--frame-size",
+            size,
+            "--sample",
+            "c",
+            "--progress",
+            "none",
+            "--plan",
+        ])
+        .arg(plan(dir))
+        .arg("--out")
+        .arg(&run)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    run
+}
+
+#[test]
+fn a_capture_is_rectified_and_compressed() {
+    let dir = tempfile::tempdir().unwrap();
+    let run = capture(dir.path(), "512x384");
+    let out = rigd()
+        .args(["process", "rectify", "--size", "256", "--final", "64"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
+    )
+    .unwrap();
+    let frames = index["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 10);
+    assert_eq!(index["views"].as_array().unwrap().len(), 2);
+    assert_eq!(index["lights"].as_array().unwrap().len(), 5);
+    for f in frames {
+        let rms = f["rms_px"].as_f64().unwrap();
+        assert!(rms < 0.5, "frame {}: marker residual {rms} px", f["index"]);
+        assert!(f["markers_used"].as_u64().unwrap() >= 6, "{f}");
+        let file = run
+            .join("processed/normtextures")
+            .join(f["file"].as_str().unwrap());
+        let img = rigd_process::image_io::load_png(&file).unwrap();
+        assert_eq!((img.width, img.height), (64, 64));
+        // The sample fills the texture: no dark holder at its centre.
+        assert!(img.get(32, 32, 0) > 0.02, "{}", file.display());
+    }
+    // Before compression the reference renderer says what is missing.
+    let png = dir.path().join("render.png");
+    let out = rigd()
+        .args(["process", "render"])
+        .arg(&run)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("rigd process btf"), "{err}");
+    assert!(!png.exists());
+    let out = rigd()
+        .args(["process", "btf", "--components", "3"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/btf/report.json")).unwrap())
+            .unwrap();
+    let rms: Vec<f64> = report["mean_rms_by_components"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    assert!(rms.iter().all(|v| v.is_finite()));
+    assert!(rms.windows(2).all(|w| w[1] <= w[0] + 1e-9), "{rms:?}");
+    // Five lights: five components reproduce each slot.
+    assert!(rms[4] < 1e-4, "{rms:?}");
+    // The reference render of the viewer, also with the light below the horizon.
+    for (mesh, light) in [("cloth", "40,30"), ("flat", "100,0")] {
+        common::run_ok(&[
+            "process",
+            "render",
+            "--mesh",
+            mesh,
+            "--light",
+            light,
+            "--size",
+            "80x60",
+            run.to_str().unwrap(),
+            "--out",
+            png.to_str().unwrap(),
+        ]);
+        let img = rigd_process::image_io::load_png(&png).unwrap();
+        assert_eq!((img.width, img.height, img.channels), (80, 60, 3));
+    }
+    for (flag, value, why) in [
+        ("--mesh", "sphere", "flat, cylinder or cloth"),
+        ("--view", "95,0", "0 ..= 89"),
+        ("--light", "45", "θ,φ"),
+    ] {
+        let out = rigd()
+            .args(["process", "render", flag, value])
+            .arg(&run)
+            .arg("--out")
+            .arg(&png)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(why),
+            "{flag} {value}: {err}"
+        );
+    }
+    let store = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).unwrap();
+    let tex = store
+        .reconstruct(
+            rigd_process::directions::Direction::new(35.0, 10.0),
+            rigd_process::directions::Direction::new(20.0, 45.0),
+        )
+        .unwrap();
+    assert!(tex.iter().all(|v| v.is_finite()));
+    // Exported for other tools and read back by rigd's own reader.
+    for (format, out) in [
+        ("utia", dir.path().join("utia")),
+        ("ubo2003", dir.path().join("ubo.zip")),
+    ] {
+        let status = rigd()
+            .args(["export", "--format", format, "--out"])
+            .arg(&out)
+            .arg(&run)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{format}");
+        let back = dir.path().join(format!("import-{format}"));
+        let status = rigd()
+            .args(["import", "--format", format, "--out"])
+            .arg(&back)
+            .arg(&out)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{format}");
+        let index: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(back.join("processed/normtextures/index.json")).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(index["frames"].as_array().unwrap().len(), 10, "{format}");
+        // Same texture under the same directions (JPEG within its loss).
+        let original = texture_at(&run, 60.0, 60.0, 40.0, 90.0);
+        let copy = texture_at(&back, 60.0, 60.0, 40.0, 90.0);
+        let worst = original
+            .data
+            .iter()
+            .zip(&copy.data)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0f32, f32::max);
+        let tolerance = if format == "utia" { 0.0 } else { 0.1 };
+        assert!(worst <= tolerance, "{format}: worst difference {worst}");
+        let status = rigd()
+            .args(["process", "btf", "--components", "2"])
+            .arg(&back)
+            .status()
+            .unwrap();
+        assert!(status.success(), "{format}");
+    }
+    // Five lights allow one lobe (four parameters) per texel.
+    let out = rigd()
+        .args(["process", "fit", "--lobes", "1"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("{stdout}");
+    let rows: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/fit/report.json")).unwrap())
+            .unwrap();
+    let methods: Vec<&str> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|r| r["method"].as_str())
+        .collect();
+    assert_eq!(methods.len(), 2, "{rows}");
+    for r in rows.as_array().unwrap() {
+        let e = r["mean_abs_error"].as_f64().unwrap();
+        assert!(e.is_finite() && (0.0..0.5).contains(&e), "{r}");
+    }
+    // The stored parameters reproduce the reported errors.
+    stored_fits_reproduce_the_report(&run, &rows);
+
+    // The seed's 16-bit floats and edge blending; the BTF reads them.
+    common::run_ok(&[
+        "process",
+        "rectify",
+        "--size",
+        "256",
+        "--final",
+        "64",
+        "--bits",
+        "half",
+        "--blend",
+        "8",
+        run.to_str().unwrap(),
+    ]);
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(index["encoding"], "npy-f16");
+    let file = index["frames"][0]["file"].as_str().unwrap();
+    let tex = rigd_process::npy::read_f32(&run.join("processed/normtextures").join(file)).unwrap();
+    assert_eq!(tex.shape, vec![64, 64]);
+    assert!(tex
+        .data
+        .iter()
+        .all(|v| v.is_finite() && (0.0..=1.0).contains(v)));
+    let status = rigd()
+        .args(["process", "btf", "--components", "2"])
+        .arg(&run)
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let out = rigd()
+        .args(["process", "rectify", "--final", "64", "--blend", "64"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("edge blend"));
+}
+
+/// Evaluates `processed/fit/slot_NNN_{lobes,ptm}.npy` at every light and
+/// compares with the normtextures: the mean |error| over slots must be the
+/// one `report.json` gives.
+fn stored_fits_reproduce_the_report(run: &Path, rows: &serde_json::Value) {
+    use rigd_process::image_io::load_png;
+    use rigd_process::npy::read_f32;
+    use rigd_process::reflectance_fit::{Lobe, LobeModel, PtmFit};
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/normtextures/index.json")).unwrap(),
+    )
+    .unwrap();
+    let dir = |d: &serde_json::Value| {
+        let (t, p) = (
+            d["theta_deg"].as_f64().unwrap().to_radians(),
+            d["phi_deg"].as_f64().unwrap().to_radians(),
+        );
+        [t.sin() * p.cos(), t.sin() * p.sin(), t.cos()]
+    };
+    let lights: Vec<[f64; 3]> = index["lights"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(dir)
+        .collect();
+    let slots = index["views"].as_array().unwrap().len();
+    let (mut ptm_err, mut lobe_err) = (0.0, 0.0);
+    for slot in 0..slots {
+        let lobes = read_f32(&run.join(format!("processed/fit/slot_{slot:03}_lobes.npy"))).unwrap();
+        let ptm = read_f32(&run.join(format!("processed/fit/slot_{slot:03}_ptm.npy"))).unwrap();
+        // (a, b, c, n) per lobe, lobes side by side.
+        assert_eq!(lobes.shape[2] % 4, 0);
+        let k = lobes.shape[2] / 4;
+        assert_eq!(ptm.shape[2], 6);
+        assert!(lobes.data.iter().chain(&ptm.data).all(|v| v.is_finite()));
+        let texels = lobes.shape[0] * lobes.shape[1];
+        let (mut pe, mut le) = (0.0, 0.0);
+        for (l, light) in lights.iter().enumerate() {
+            let file = index["frames"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|f| f["view_slot"] == slot && f["light_index"] == l)
+                .and_then(|f| f["file"].as_str())
+                .unwrap();
+            let img = load_png(&run.join("processed/normtextures").join(file)).unwrap();
+            for t in 0..texels {
+                let value = f64::from(img.data[t]);
+                let c: Vec<f64> = ptm.data[t * 6..t * 6 + 6]
+                    .iter()
+                    .map(|&v| f64::from(v))
+                    .collect();
+                let fit = PtmFit {
+                    coefficients: [c[0], c[1], c[2], c[3], c[4], c[5]],
+                    rms_error: 0.0,
+                    mean_abs_error: 0.0,
+                };
+                pe += (fit.evaluate(*light) - value).abs();
+                let model = LobeModel::new(
+                    (0..k)
+                        .map(|j| {
+                            let p = &lobes.data[(t * k + j) * 4..(t * k + j) * 4 + 4];
+                            let abcn = [p[0], p[1], p[2], p[3]].map(f64::from);
+                            Lobe::from_paper_coefficients(abcn).unwrap()
+                        })
+                        .collect(),
+                )
+                .unwrap();
+                le += (model.evaluate(*light) - value).abs();
+            }
+        }
+        let n = (texels * lights.len()) as f64;
+        ptm_err += pe / n / slots as f64;
+        lobe_err += le / n / slots as f64;
+    }
+    let reported: Vec<f64> = rows
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["mean_abs_error"].as_f64().unwrap())
+        .collect();
+    assert!(
+        (ptm_err - reported[0]).abs() < 1e-4,
+        "PTM {ptm_err} vs {}",
+        reported[0]
+    );
+    assert!(
+        (lobe_err - reported[1]).abs() < 1e-4,
+        "lobes {lobe_err} vs {}",
+        reported[1]
+    );
+}
+
+#[test]
+fn frames_whose_markers_cannot_be_found_are_named() {
+    let dir = tempfile::tempdir().unwrap();
+    // At 40×30 pixels a 6 mm marker is a fraction of a pixel.
+    let run = capture(dir.path(), "40x30");
+    let out = rigd()
+        .args(["process", "rectify"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("could not be registered") && stderr.contains("frame 0"),
+        "{stderr}"
+    );
+    // The BTF step refuses a run with missing textures, naming the slot.
+    let out = rigd().args(["process", "btf"]).arg(&run).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("no registered texture"), "{stderr}");
+}
+
+/// The normtexture of a run directory under light (θl, φl) and view (θv, φv).
+fn texture_at(root: &Path, tl: f64, pl: f64, tv: f64, pv: f64) -> rigd_process::image_io::Image {
+    let dir = root.join("processed/normtextures");
+    let index: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("index.json")).unwrap()).unwrap();
+    let is = |d: &serde_json::Value, t: f64, p: f64| {
+        (d["theta_deg"].as_f64().unwrap() - t).abs() < 1e-6
+            && (d["phi_deg"].as_f64().unwrap() - p).abs() < 1e-6
+    };
+    let f = index["frames"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|f| {
+            is(
+                &index["views"][f["view_slot"].as_u64().unwrap() as usize],
+                tv,
+                pv,
+            ) && is(
+                &index["lights"][f["light_index"].as_u64().unwrap() as usize],
+                tl,
+                pl,
+            )
+        })
+        .unwrap_or_else(|| {
+            panic!(
+                "{}: no texture for light {tl},{pl} view {tv},{pv}",
+                root.display()
+            )
+        });
+    rigd_process::image_io::load_png(&dir.join(f["file"].as_str().unwrap())).unwrap()
+}

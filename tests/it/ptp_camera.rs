@@ -1,0 +1,312 @@
+//! End to end: the real PTP driver over the in-memory USB link to the
+//! simulated camera firmware, under virtual time. Checks the frame, the
+//! physical time each phase takes, and how every injected fault reaches the
+//! engine as an `ErrorKind`.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use rigd::rig::drivers::ptp::{PtpCamera, PtpConfig};
+use rigd::rig::drivers::usb::{memory_pair, MemoryPipe};
+use rigd::rig::hal::{Camera, ErrorKind};
+use rigd_core::Clock;
+use rigd_sim::devices::{CameraTimes, SimContext};
+use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
+use rigd_sim::scene::Shot;
+use rigd_sim::{FaultInjector, FaultRule};
+
+const EXPOSURE_S: f64 = 0.1;
+const READOUT_S: f64 = 0.2;
+const TRANSFER_S: f64 = 0.3;
+
+/// A camera with 320 × 240 frames: larger than one 64 KiB bulk read, so the
+/// driver must join several reads into one data phase.
+fn rig(faults: &[&str], bit_depth: u8) -> (PtpCamera<MemoryPipe>, Clock) {
+    let clock = Clock::virtual_time();
+    let rules: Vec<FaultRule> = faults
+        .iter()
+        .map(|s| s.parse().unwrap_or_else(|e| panic!("{e}")))
+        .collect();
+    let ctx = SimContext::new(clock.clone(), Arc::new(FaultInjector::new(rules)));
+    let spec = PtpCameraSpec {
+        name: "cam".into(),
+        manufacturer: "rigd".into(),
+        model: "SimCam PTP-12".into(),
+        version: "1.0".into(),
+        serial: "SIM0001".into(),
+        times: CameraTimes {
+            exposure_s: EXPOSURE_S,
+            readout_s: READOUT_S,
+            transfer_s: TRANSFER_S,
+        },
+    };
+    let shot = move || Shot {
+        light: [0.0, 0.0, 1.0],
+        view: [0.0, 0.0, 1.0],
+        width: 320,
+        height: 240,
+        bit_depth,
+        ..Shot::default()
+    };
+    let (host, dev) = memory_pair();
+    PtpFirmware::new(spec, ctx, Box::new(shot)).spawn(dev);
+    let cam = PtpCamera::new("cam", host, clock.clone(), PtpConfig::default());
+    (cam, clock)
+}
+
+fn close(a: f64, b: f64) -> bool {
+    (a - b).abs() < 1e-6
+}
+
+#[tokio::test(start_paused = true)]
+async fn capture_end_to_end_takes_the_physical_time() {
+    let (mut cam, clock) = rig(&[], 12);
+    let info = cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(info.model, "SimCam PTP-12");
+    assert_eq!(info.serial_number, "SIM0001");
+    assert_eq!(clock.now_s(), 0.0, "identification costs no time");
+
+    cam.set_exposure(0.25)
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let t0 = clock.now_s();
+    cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+    let t1 = clock.now_s();
+    assert!(close(t1 - t0, 0.25 + READOUT_S), "expose took {}", t1 - t0);
+    let f = cam.transfer().await.unwrap_or_else(|e| panic!("{e}"));
+    let t2 = clock.now_s();
+    assert!(close(t2 - t1, TRANSFER_S), "transfer took {}", t2 - t1);
+    assert_eq!((f.width, f.height, f.bit_depth), (320, 240, 12));
+    assert_eq!(f.pixels.len(), 320 * 240);
+    assert!(f.validate("cam").is_ok());
+    let bright_long = f.pixels.iter().map(|&p| p as u64).sum::<u64>();
+
+    // A shorter exposure gives a darker frame, and a second capture works.
+    cam.set_exposure(0.05)
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+    let f2 = cam.transfer().await.unwrap_or_else(|e| panic!("{e}"));
+    let bright_short = f2.pixels.iter().map(|&p| p as u64).sum::<u64>();
+    assert!(
+        bright_short * 2 < bright_long,
+        "{bright_short} vs {bright_long}"
+    );
+
+    // Transferred frames are gone: nothing is pending.
+    let e = cam.transfer().await.err().map(|e| e.kind);
+    assert_eq!(e, Some(ErrorKind::NotReady));
+}
+
+#[tokio::test(start_paused = true)]
+async fn sixteen_bit_frames_arrive_intact() {
+    let (mut cam, _clock) = rig(&[], 16);
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    cam.set_exposure(0.1)
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+    let f = cam.transfer().await.unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(f.bit_depth, 16);
+    assert!(f.pixels.iter().any(|&p| p > 4095), "16-bit values expected");
+}
+
+#[tokio::test(start_paused = true)]
+async fn calls_out_of_order_are_not_ready_or_out_of_limits() {
+    let (mut cam, _clock) = rig(&[], 12);
+    let e = cam.set_exposure(0.1).await.err().map(|e| e.kind);
+    assert_eq!(e, Some(ErrorKind::NotReady), "before connect");
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    for bad in [0.0, -1.0, f64::NAN, f64::INFINITY, 1e9, 1e-6] {
+        let e = cam.set_exposure(bad).await.err().map(|e| e.kind);
+        assert_eq!(e, Some(ErrorKind::OutOfLimits), "{bad}");
+    }
+    let e = cam.transfer().await.err().map(|e| e.kind);
+    assert_eq!(e, Some(ErrorKind::NotReady), "nothing exposed");
+}
+
+#[tokio::test(start_paused = true)]
+async fn timeout_fault_hits_the_deadline_and_the_camera_recovers() {
+    let (mut cam, clock) = rig(&["cam:expose:1:timeout"], 12);
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    let e = cam
+        .expose()
+        .await
+        .err()
+        .unwrap_or_else(|| panic!("must time out"));
+    assert_eq!(e.kind, ErrorKind::Timeout);
+    assert!(e.message.contains("InitiateCapture"), "{}", e.message);
+    let deadline = PtpConfig::default().transaction_timeout.as_secs_f64();
+    assert!(close(clock.now_s(), deadline), "{}", clock.now_s());
+    // The camera answers the next transaction.
+    cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+    cam.transfer().await.unwrap_or_else(|e| panic!("{e}"));
+}
+
+#[tokio::test(start_paused = true)]
+async fn disconnect_fault_is_disconnected() {
+    let (mut cam, _clock) = rig(&["cam:expose:1:disconnect"], 12);
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    let e = cam.expose().await.err().map(|e| e.kind);
+    assert_eq!(e, Some(ErrorKind::Disconnected));
+    let e = cam.set_exposure(0.1).await.err().map(|e| e.kind);
+    assert_eq!(e, Some(ErrorKind::Disconnected), "the link stays closed");
+}
+
+#[tokio::test(start_paused = true)]
+async fn alarm_fault_is_a_device_fault_naming_the_response() {
+    let (mut cam, _clock) = rig(&["cam:set_exposure:1:alarm=iris stuck"], 12);
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    let e = cam
+        .set_exposure(0.1)
+        .await
+        .err()
+        .unwrap_or_else(|| panic!("alarm"));
+    assert_eq!(e.kind, ErrorKind::DeviceFault);
+    assert!(e.message.contains("GeneralError (0x2002)"), "{}", e.message);
+    assert_eq!(e.device, "cam");
+    cam.set_exposure(0.1)
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+}
+
+#[tokio::test(start_paused = true)]
+async fn bad_frame_fault_is_a_bad_frame_and_the_transfer_can_be_repeated() {
+    let (mut cam, clock) = rig(&["cam:transfer:1:bad-frame"], 12);
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+    let t0 = clock.now_s();
+    let e = cam
+        .transfer()
+        .await
+        .err()
+        .unwrap_or_else(|| panic!("bad frame"));
+    assert_eq!(e.kind, ErrorKind::BadFrame);
+    assert!(e.message.contains("truncated"), "{}", e.message);
+    assert!(close(clock.now_s() - t0, TRANSFER_S));
+    // The object stayed on the camera: the retry reads it whole.
+    let f = cam.transfer().await.unwrap_or_else(|e| panic!("{e}"));
+    assert_eq!(f.pixels.len(), 320 * 240);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_dead_camera_is_noticed_within_the_deadline() {
+    // Nobody serves the device end: every transaction must time out.
+    let clock = Clock::virtual_time();
+    let (host, _dev) = memory_pair();
+    let config = PtpConfig {
+        transaction_timeout: Duration::from_secs(2),
+        ..PtpConfig::default()
+    };
+    let mut cam = PtpCamera::new("cam", host, clock.clone(), config);
+    let e = cam.connect().await.err().map(|e| e.kind());
+    assert_eq!(e, Some(ErrorKind::Timeout));
+    assert!(close(clock.now_s(), 2.0));
+}
+
+/// A scripted camera whose frames disagree with what it announces: the
+/// driver must call that a bad frame, not deliver it.
+fn lying_camera(mut dev: rigd::rig::drivers::usb::MemoryDevice, payload: Vec<u8>) {
+    use rigd_proto::ptp::{
+        Container, ContainerKind, DeviceInfo, EventCode, ObjectInfo, OpCode, ResponseCode,
+        FORMAT_RIGD_RAW,
+    };
+    tokio::spawn(async move {
+        let send = |dev: &rigd::rig::drivers::usb::MemoryDevice, c: Container, int: bool| {
+            let b = c.encode().unwrap_or_else(|e| panic!("{e}"));
+            let r = if int {
+                dev.write_interrupt(b)
+            } else {
+                dev.write_in(b)
+            };
+            r.unwrap_or_else(|e| panic!("{e}"));
+        };
+        let ok = |tid| {
+            Container::with_params(ContainerKind::Response, ResponseCode::OK.0, tid, &[])
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        while let Ok(b) = dev.read_out().await {
+            let c = Container::decode(&b).unwrap_or_else(|e| panic!("{e}"));
+            let tid = c.transaction_id;
+            match OpCode(c.code) {
+                OpCode::GetDeviceInfo => {
+                    let info = DeviceInfo {
+                        operations_supported: OpCode::ALL.iter().map(|o| o.0).collect(),
+                        ..DeviceInfo::default()
+                    };
+                    send(&dev, Container::data(c.code, tid, info.encode()), false);
+                }
+                OpCode::InitiateCapture => {
+                    send(&dev, ok(tid), false);
+                    for (ev, p) in [
+                        (EventCode::ObjectAdded, vec![7]),
+                        (EventCode::CaptureComplete, vec![]),
+                    ] {
+                        let e = Container::with_params(ContainerKind::Event, ev.0, tid, &p)
+                            .unwrap_or_else(|e| panic!("{e}"));
+                        send(&dev, e, true);
+                    }
+                    continue;
+                }
+                OpCode::GetObjectInfo => {
+                    let info = ObjectInfo {
+                        object_format: FORMAT_RIGD_RAW,
+                        image_width: 4,
+                        image_height: 2,
+                        image_bit_depth: 12,
+                        ..ObjectInfo::default()
+                    };
+                    send(&dev, Container::data(c.code, tid, info.encode()), false);
+                }
+                OpCode::GetObject => {
+                    send(&dev, Container::data(c.code, tid, payload.clone()), false);
+                }
+                _ => {}
+            }
+            send(&dev, ok(tid), false);
+        }
+    });
+}
+
+#[tokio::test(start_paused = true)]
+async fn frames_that_disagree_with_their_size_are_bad_frames() {
+    use rigd_proto::ptp::RawFrame;
+    let short = RawFrame {
+        width: 4,
+        height: 2,
+        bit_depth: 12,
+        pixels: vec![1; 7],
+    };
+    let other_size = RawFrame {
+        width: 2,
+        height: 4,
+        bit_depth: 12,
+        pixels: vec![1; 8],
+    };
+    let too_deep = RawFrame {
+        width: 4,
+        height: 2,
+        bit_depth: 12,
+        pixels: vec![4096; 8],
+    };
+    let good = RawFrame {
+        width: 4,
+        height: 2,
+        bit_depth: 12,
+        pixels: vec![4095; 8],
+    };
+    for (frame, expect) in [
+        (short, Some(ErrorKind::BadFrame)),
+        (other_size, Some(ErrorKind::BadFrame)),
+        (too_deep, Some(ErrorKind::BadFrame)),
+        (good, None),
+    ] {
+        let (host, dev) = memory_pair();
+        lying_camera(dev, frame.encode());
+        let mut cam = PtpCamera::new("cam", host, Clock::virtual_time(), PtpConfig::default());
+        cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+        cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+        let r = cam.transfer().await;
+        assert_eq!(r.as_ref().err().map(|e| e.kind), expect, "{frame:?}: {r:?}");
+    }
+}
