@@ -34,7 +34,7 @@ pub fn check_command(state: RunState, command: Command) -> Result<(), Refused> {
         Command::Pause => matches!(state, Preparing | Running),
         Command::Resume => state == Paused,
         Command::Abort => matches!(state, Idle | Preparing | Running | Paused),
-        Command::Detach | Command::EmergencyStop => !state.is_final(),
+        Command::Detach | Command::EmergencyStop => !state.ends_session(),
     };
     if ok {
         Ok(())

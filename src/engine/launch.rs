@@ -15,9 +15,9 @@ use crate::plan::Order;
 use crate::plan::{self, Plan, PlanError};
 use crate::rig::hal::{DeviceError, Rig};
 use crate::rig::{self, sim::SimHandle, sim::SimOptions};
-use crate::schedule::timing::Timing;
+use crate::schedule::timing::{check_exposure_s, Timing};
 use crate::schedule::{self, Schedule};
-use crate::store::{now_rfc3339, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
+use crate::store::{now_rfc3339, Recovery, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
 
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
@@ -91,11 +91,7 @@ pub fn solve_plan(
 
 fn check_request(req: &NewRun) -> Result<(), RunError> {
     if let Some(e) = req.exposure_s {
-        if !(e.is_finite() && e > 0.0 && e <= 3600.0) {
-            return Err(RunError::Invalid(format!(
-                "exposure {e} s: expected a positive number of seconds up to 3600"
-            )));
-        }
+        check_exposure_s(e).map_err(|why| RunError::Invalid(format!("exposure {why}")))?;
     }
     if req.sample.trim().is_empty() {
         return Err(RunError::Invalid("the sample name is empty".into()));
@@ -182,9 +178,7 @@ async fn create(
         meta,
         schedule,
         dir,
-        Default::default(),
-        0.0,
-        Vec::new(),
+        Recovery::default(),
         (rig, sim),
         clock,
         policy,
@@ -268,28 +262,24 @@ pub async fn prepare_resume(
         meta,
         schedule,
         dir,
-        recovery.done,
-        recovery.physical_s,
-        recovery.retake,
+        recovery,
         (rig, sim),
         clock,
         policy,
     ))
 }
 
-#[allow(clippy::too_many_arguments)]
 fn assemble(
     meta: RunMeta,
     schedule: Schedule,
     dir: RunDir,
-    done: std::collections::BTreeMap<usize, crate::store::FrameEntry>,
-    t_offset_s: f64,
-    retake: Vec<usize>,
+    recovery: Recovery,
     (rig, sim): (Rig, Option<SimHandle>),
     clock: Clock,
     policy: PausePolicy,
 ) -> Prepared {
     let profile = meta.profile.clone();
+    let done = &recovery.done;
     let estimate_s = {
         let timing = Timing::new(&profile, meta.exposure_s);
         let trigger_done = |t: usize| {
@@ -303,9 +293,9 @@ fn assemble(
     let frames_total = schedule.images.len();
     let frames_done = done.len();
     let root = dir.root().to_path_buf();
-    let (engine, handle) = Engine::new(
-        profile, schedule, meta, rig, clock, dir, done, t_offset_s, policy,
-    );
+    let t_offset_s = recovery.physical_s;
+    let retake = recovery.retake.clone();
+    let (engine, handle) = Engine::new(profile, schedule, meta, rig, clock, dir, recovery, policy);
     Prepared {
         engine,
         handle,

@@ -22,7 +22,7 @@ use rigd_core::Clock;
 use serde::{Deserialize, Serialize};
 use tokio::sync::{broadcast, mpsc};
 
-use crate::model::run_state::RunState;
+use crate::model::run_state::{IllegalTransition, RunState};
 use command::{check_command, Command};
 pub use estop::{EStop, StopAck, StopReport};
 
@@ -34,8 +34,8 @@ use crate::rig::hal::{
 use crate::schedule::timing::Timing;
 use crate::schedule::Schedule;
 use crate::store::{
-    now_rfc3339, FrameEntry, InfeasibleEntry, Manifest, RunDir, RunMeta, StateRecord, StoreError,
-    RUN_FORMAT,
+    now_rfc3339, storage_fault_reason, FrameEntry, InfeasibleEntry, Manifest, Recovery, RunDir,
+    RunMeta, StateRecord, StoreError, RUN_FORMAT,
 };
 
 /// Slack added to every deadline on top of the physical time a call should
@@ -145,11 +145,19 @@ impl EngineHandle {
     }
 }
 
+/// The name a storage fault goes by where a device's name would be.
+pub const STORAGE_DEVICE: &str = "run directory";
+
 /// Errors that end the engine rather than pause it.
 #[derive(Debug, thiserror::Error)]
 pub enum EngineError {
+    /// The run directory could not record a state change the run cannot
+    /// go on without.
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// The engine asked for a transition the state table refuses: a bug.
+    #[error(transparent)]
+    Transition(#[from] IllegalTransition),
 }
 
 /// Everything one run needs.
@@ -178,6 +186,9 @@ pub struct Engine {
     /// resumed one cannot know what an operator left on the turntable), so
     /// its first move places or removes the plate; other plans never use it.
     plate_known: bool,
+    /// A state change the run directory could not record (disk full): the
+    /// run pauses with this reason before it goes on.
+    storage_fault: Option<String>,
 }
 
 /// A trigger exposed but not yet transferred.
@@ -207,8 +218,9 @@ impl From<DeviceError> for StepFault {
 }
 
 impl Engine {
-    /// Builds an engine for a run directory. `done` holds the frames a
-    /// resumed run already has; `t_offset` the physical time already spent.
+    /// Builds an engine for a run directory. `recovery` holds what a
+    /// resumed run already has (its frames, the physical time spent, the
+    /// state its new session starts from); a new run passes the default.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         profile: Profile,
@@ -217,8 +229,7 @@ impl Engine {
         mut rig: Rig,
         clock: Clock,
         store: RunDir,
-        done: BTreeMap<usize, FrameEntry>,
-        t_offset: f64,
+        recovery: Recovery,
         policy: PausePolicy,
     ) -> (Engine, EngineHandle) {
         if meta.exposure_s.is_none() {
@@ -239,9 +250,9 @@ impl Engine {
             store: Arc::new(Mutex::new(store)),
             events: ev_tx.clone(),
             commands: cmd_rx,
-            done,
-            t_offset,
-            state: RunState::Idle,
+            done: recovery.done,
+            t_offset: recovery.physical_s,
+            state: recovery.state,
             seq: 0,
             policy,
             retry: RetryPolicy::default(),
@@ -254,6 +265,7 @@ impl Engine {
             },
             finished_at_s: None,
             plate_known: !laser_plan,
+            storage_fault: None,
         };
         (
             engine,
@@ -286,23 +298,38 @@ impl Engine {
     }
 
     fn go(&mut self, to: RunState, reason: Option<String>) -> Result<(), EngineError> {
-        debug_assert!(self.state.can_go_to(to), "{} -> {}", self.state, to);
         let from = self.state;
-        self.state = to;
+        self.state = from.transition(to)?;
         self.reason = reason.clone();
         let record = StateRecord {
-            state: to.as_str().into(),
+            state: to,
             reason: reason.clone(),
             physical_s: self.t(),
             updated_at: now_rfc3339(),
         };
-        lock_store(&self.store).write_state(&record)?;
+        let written = lock_store(&self.store).write_state(&record);
+        if let Err(e) = written {
+            // The state lives on in memory and in the events; the file is
+            // stale until the disk takes it. Going on would capture into a
+            // directory that cannot record it, so anything but a pause
+            // pauses first.
+            let why = storage_fault_reason(&self.meta_root(), &e);
+            tracing::error!("cannot record state {to}: {why}");
+            if to != RunState::Paused && !to.ends_session() {
+                self.storage_fault.get_or_insert(why);
+            }
+        }
         match &reason {
             Some(r) => tracing::info!(from = %from, to = %to, reason = %r, "run state"),
             None => tracing::info!(from = %from, to = %to, "run state"),
         }
         self.emit(EventKind::State { from, to, reason });
         Ok(())
+    }
+
+    /// The run directory.
+    fn meta_root(&self) -> std::path::PathBuf {
+        lock_store(&self.store).root().to_path_buf()
     }
 
     fn outcome(&self) -> Outcome {
@@ -350,13 +377,22 @@ impl Engine {
                     return Ok(self.outcome());
                 }
             }
+            if let Some(reason) = self.storage_fault.take() {
+                if let Flow::Stop = self.fault_pause(reason).await? {
+                    return Ok(self.outcome());
+                }
+                continue;
+            }
             if self.state != RunState::Running {
                 // A resume from a fault re-prepared the rig.
                 self.go(RunState::Running, None)?;
             }
             let next = queue.front().copied();
             if next.is_none() && pending.is_none() {
-                break;
+                match self.complete().await? {
+                    Flow::Stop => return Ok(self.outcome()),
+                    Flow::Continue => continue,
+                }
             }
             let sweep_next = next.filter(|&i| self.schedule.triggers[i].sweep.is_some());
             if let (Some(i), None) = (sweep_next, &pending) {
@@ -502,7 +538,6 @@ impl Engine {
                 },
             }
         }
-        self.complete().await
     }
 
     fn cameras_of(&self, trigger: usize) -> Vec<String> {
@@ -902,12 +937,19 @@ impl Engine {
     async fn abort(&mut self) -> Result<(), EngineError> {
         self.lamps_off().await;
         let reason = Some("aborted by operator".to_string());
-        self.write_manifest(RunState::Aborted, reason.clone())?;
+        if let Err(e) = self.write_manifest(RunState::Aborted, reason.clone()) {
+            // The operator's abort stands; the journal still lists every frame.
+            let why = storage_fault_reason(&self.meta_root(), &e);
+            tracing::error!("aborted without a manifest: {why}");
+        }
         self.go(RunState::Aborted, reason)?;
         Ok(())
     }
 
-    async fn complete(mut self) -> Result<Outcome, EngineError> {
+    /// Ends the run once its plan is through: the manifest, then the final
+    /// state. A manifest the disk cannot take pauses the run instead
+    /// ([`Flow::Continue`] after a resume tries again).
+    async fn complete(&mut self) -> Result<Flow, EngineError> {
         let missing = self.schedule.images.len() - self.done.len();
         // The capture ends with its last frame; switching off is not part of it.
         self.finished_at_s = Some(self.t());
@@ -921,9 +963,13 @@ impl Engine {
             (RunState::Completed, None)
         };
         // The manifest first: whoever sees the run end can read it.
-        self.write_manifest(end, reason.clone())?;
+        if let Err(e) = self.write_manifest(end, reason.clone()) {
+            self.finished_at_s = None;
+            let why = storage_fault_reason(&self.meta_root(), &e);
+            return self.fault_pause(why).await;
+        }
         self.go(end, reason)?;
-        Ok(self.outcome())
+        Ok(Flow::Stop)
     }
 
     /// Leaves the lamps dark at the end; a failure here is logged, not fatal.
@@ -941,7 +987,7 @@ impl Engine {
     }
 
     /// Writes the manifest of a run ending in `state`.
-    fn write_manifest(&self, state: RunState, reason: Option<String>) -> Result<(), EngineError> {
+    fn write_manifest(&self, state: RunState, reason: Option<String>) -> Result<(), StoreError> {
         let infeasible = self
             .schedule
             .infeasible()
@@ -960,7 +1006,7 @@ impl Engine {
             profile: self.profile.name.clone(),
             plan: self.schedule.plan.clone(),
             sample: self.meta.sample.clone(),
-            state: state.as_str().into(),
+            state,
             reason,
             steps_total: self.schedule.images.len(),
             triggers_total: self.schedule.triggers.len(),
@@ -1228,6 +1274,7 @@ async fn finish(
         work.push((entry, frame));
     }
     let store = store.clone();
+    let root = lock_store(&store).root().to_path_buf();
     // Encoding and fsync are blocking work; on a paused runtime, tokio does
     // not advance virtual time while it runs.
     let written = tokio::task::spawn_blocking(move || -> Result<Vec<FrameEntry>, StoreError> {
@@ -1244,13 +1291,17 @@ async fn finish(
     match written {
         Ok(Ok(entries)) => Ok(entries),
         Ok(Err(e)) => Err(StepFault {
-            error: DeviceError::new("storage", ErrorKind::DeviceFault, e.to_string()),
+            error: DeviceError::new(
+                STORAGE_DEVICE,
+                ErrorKind::Storage,
+                storage_fault_reason(&root, &e),
+            ),
             retryable: false,
         }),
         Err(e) => Err(StepFault {
             error: DeviceError::new(
-                "storage",
-                ErrorKind::DeviceFault,
+                STORAGE_DEVICE,
+                ErrorKind::Storage,
                 format!("writer task failed: {e}"),
             ),
             retryable: false,

@@ -15,8 +15,8 @@
 
 use std::collections::BTreeMap;
 
-use crate::model::geometry::{angle_between, wrap_deg_180, wrap_deg_360, Direction};
 use crate::model::profile::{Limits, Profile, RigGeometry};
+use rigd_core::geometry::{angle_between, wrap_deg_180, wrap_deg_360, Direction};
 
 use super::{
     axis_limits, axis_value, fit_to_limits, reason_from, sanitize, tidy, KinematicsError,

@@ -7,8 +7,8 @@
 
 use std::collections::BTreeMap;
 
-use crate::model::geometry::{angle_between, Direction};
 use crate::model::profile::{Profile, RigGeometry};
+use rigd_core::geometry::{angle_between, Direction};
 
 use super::{reason_from, sanitize, tidy, KinematicsError, PoseSolution, Setpoints, ANGLE_TOL_DEG};
 

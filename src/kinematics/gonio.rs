@@ -22,11 +22,11 @@
 
 use std::collections::BTreeMap;
 
-use crate::model::geometry::{
+use crate::model::profile::{Limits, Profile, RigGeometry};
+use rigd_core::geometry::{
     angle_between, cross, mat_mul, mat_vec, norm, normalize, rot_x, rot_y, rotate_about, transpose,
     Direction, Mat3, Vec3, POLE_EPS,
 };
-use crate::model::profile::{Limits, Profile, RigGeometry};
 
 use super::{
     axis_limits, axis_value, fit_to_limits, reason_from, sanitize, KinematicsError, PoseSolution,
@@ -325,7 +325,7 @@ mod tests {
         // R0 is a proper rotation.
         let i = mat_mul(&R0, &transpose(&R0));
         assert_eq!(i, [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]);
-        let det = crate::model::geometry::dot(R0[0], cross(R0[1], R0[2]));
+        let det = rigd_core::geometry::dot(R0[0], cross(R0[1], R0[2]));
         assert_eq!(det, 1.0);
     }
 

@@ -25,8 +25,8 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::geometry::{wrap_deg_360, Direction, POLE_EPS};
 use crate::model::profile::{Limits, Profile, RigGeometry};
+use rigd_core::geometry::{wrap_deg_360, Direction, POLE_EPS};
 
 /// Actuator set-points for one trigger of the cameras.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

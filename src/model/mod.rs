@@ -1,6 +1,6 @@
-//! Shared types that depend on nothing else in the crate: rig profiles,
-//! directions and vectors, and where a run stands.
+//! Shared types that depend on nothing else in the crate: rig profiles and
+//! where a run stands. Directions and vectors are `rigd_core::geometry`,
+//! shared with the simulator and the processing crate.
 
-pub mod geometry;
 pub mod profile;
 pub mod run_state;

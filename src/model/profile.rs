@@ -11,7 +11,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::geometry::Direction;
+use rigd_core::geometry::Direction;
 
 /// The profiles of the three rigs of the source documents, embedded so the
 /// daemon runs on a fresh machine without any file.
@@ -583,16 +583,6 @@ impl Profile {
                 }
                 positive("rig.lamp_tolerance_deg", *lamp_tolerance_deg)?;
             }
-        }
-        if !crate::plan::BUILTIN_PLANS.contains(&self.default_plan.as_str()) {
-            return Err((
-                "default_plan".into(),
-                format!(
-                    "unknown plan `{}` (expected one of: {})",
-                    self.default_plan,
-                    crate::plan::BUILTIN_PLANS.join(", ")
-                ),
-            ));
         }
         let [w, h] = self.sim.frame_size;
         if w == 0 || h == 0 || w > 8192 || h > 8192 {

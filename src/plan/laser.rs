@@ -10,8 +10,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::geometry::{Direction, Vec3};
 use crate::model::profile::{Profile, RigGeometry};
+use rigd_core::geometry::{Direction, Vec3};
 
 /// The strip lands at most this many emitter radii from the centre; a
 /// tilt beyond puts it nowhere a turntable is.
@@ -217,7 +217,7 @@ impl LaserGeometry {
             on_plane[1] - emitter[1],
             on_plane[2] - emitter[2],
         ];
-        let n = crate::model::geometry::cross(strip, to);
+        let n = rigd_core::geometry::cross(strip, to);
         let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
         (len > 0.0).then(|| (emitter, n.map(|c| c / len)))
     }

@@ -10,8 +10,9 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::geometry::Direction;
+use crate::model::profile::{Profile, ProfileError};
 use crate::plan::laser::{LaserPlan, LaserRig};
+use rigd_core::geometry::Direction;
 
 /// Names accepted for `PLAN` besides a file path.
 pub const BUILTIN_PLANS: &[&str] = &["h1", "h2", "grid12x8", "lamps", "laser"];
@@ -119,6 +120,32 @@ pub enum Order {
     Naive,
     /// Minimal physical time under the motion model.
     Optimised,
+}
+
+/// Loads a profile ([`Profile::load`]) and checks what only the plans can
+/// check: that its `default_plan` names a built-in plan. Everything that
+/// loads a profile to plan or run with it comes through here.
+pub fn load_profile(spec: &str) -> Result<Profile, ProfileError> {
+    let profile = Profile::load(spec)?;
+    check_default_plan(&profile, spec)?;
+    Ok(profile)
+}
+
+/// The profile's `default_plan` is a built-in plan; `origin` names where
+/// the profile came from in the error.
+pub fn check_default_plan(profile: &Profile, origin: &str) -> Result<(), ProfileError> {
+    if BUILTIN_PLANS.contains(&profile.default_plan.as_str()) {
+        return Ok(());
+    }
+    Err(ProfileError {
+        file: origin.to_string(),
+        key: "default_plan".into(),
+        message: format!(
+            "unknown plan `{}` (expected one of: {})",
+            profile.default_plan,
+            BUILTIN_PLANS.join(", ")
+        ),
+    })
 }
 
 /// Every light with every view, view-major.

@@ -20,12 +20,12 @@ use rigd_process::mdf::{
 };
 use serde::{Deserialize, Serialize};
 
-use crate::model::geometry::Direction;
 use crate::plan::laser::{LaserPlan, LaserRig};
 use crate::postprocess::{ProcessError, RunFrames, PROCESSED_DIR};
 use crate::rig::sim::camera_geometry;
 use crate::schedule::laser::{LaserRole, LaserStep};
 use crate::store::FrameEntry;
+use rigd_core::geometry::Direction;
 
 /// How a scan frame's laser plane is fixed besides its strip.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]

@@ -13,9 +13,9 @@ use rigd_process::photometric_stereo::{PsDataset, PsResult};
 use rigd_sim::scene::{Scene, Shot};
 use serde::Serialize;
 
-use crate::model::geometry::Direction;
 use crate::rig::sim::camera_geometry;
 use crate::store::{decode_png, read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
+use rigd_core::geometry::Direction;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ProcessError {

@@ -28,6 +28,8 @@ pub enum ErrorKind {
     BadFrame,
     /// The device was used out of order (not homed, nothing exposed).
     NotReady,
+    /// The run directory could not take a frame (disk full, permission).
+    Storage,
 }
 
 impl fmt::Display for ErrorKind {
@@ -39,6 +41,7 @@ impl fmt::Display for ErrorKind {
             ErrorKind::OutOfLimits => "out of limits",
             ErrorKind::BadFrame => "bad frame",
             ErrorKind::NotReady => "not ready",
+            ErrorKind::Storage => "storage",
         };
         f.write_str(s)
     }

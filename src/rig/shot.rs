@@ -10,11 +10,11 @@ use std::time::Instant;
 use rigd_sim::scene::{EffectPlan, EffectSwitches, LaserLine, Marker, Rendered, Scene, Shot};
 use serde::Serialize;
 
-use crate::model::geometry::Direction;
 use crate::model::profile::Profile;
 use crate::rig::hal::Frame;
 use crate::rig::sim::{camera_geometry, CameraGeometry};
 use crate::store::{encode_png, write_atomic};
+use rigd_core::geometry::Direction;
 
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {

@@ -5,9 +5,9 @@
 use serde::{Deserialize, Serialize};
 
 use crate::kinematics::Setpoints;
-use crate::model::geometry::Direction;
 use crate::plan::laser::{LaserGeometry, LaserPlan, LaserRig};
 use crate::schedule::{ImageStep, Schedule, Trigger};
+use rigd_core::geometry::Direction;
 
 /// Why an image of a laser plan exists.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

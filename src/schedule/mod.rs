@@ -12,12 +12,12 @@ use std::collections::HashMap;
 use serde::{Deserialize, Serialize};
 
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::geometry::Direction;
 use crate::model::profile::{Profile, RigGeometry};
 use crate::plan::laser::LaserRig;
 use crate::plan::{Plan, RigOffer};
 use crate::schedule::laser::{LaserRun, LaserStep};
 use crate::schedule::timing::Timing;
+use rigd_core::geometry::Direction;
 
 /// One image of the run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -63,6 +63,28 @@ pub struct Schedule {
     /// Laser plans: what the engine needs for the sweeps.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub laser: Option<LaserRun>,
+}
+
+/// One image of a schedule with its trigger's set-points: the one shape
+/// in which `rigd plan show --json` and `GET /api/v1/plans/{name}` list a
+/// plan's steps.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PlanStep<'a> {
+    /// The image.
+    #[serde(flatten)]
+    pub image: &'a ImageStep,
+    /// Axes, arm joints and lamp of the image's trigger.
+    pub setpoints: &'a Setpoints,
+}
+
+impl Schedule {
+    /// Every image in capture order, with its trigger's set-points.
+    pub fn steps(&self) -> impl Iterator<Item = PlanStep<'_>> {
+        self.images.iter().map(|image| PlanStep {
+            image,
+            setpoints: &self.triggers[image.trigger].setpoints,
+        })
+    }
 }
 
 /// What the rig offers plans: arcs for the grid, fixed lamps for photometric stereo.

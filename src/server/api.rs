@@ -183,7 +183,7 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
         sim: d.config.sim,
         sim_speed: d.speed(),
         active_run: active,
-        state: state.map_or("idle", |s| s.as_str()).into(),
+        state: state.unwrap_or(RunState::Idle),
         devices,
         lamps: serde_json::Value::Object(lamps),
     })
@@ -263,22 +263,7 @@ pub async fn plan_detail(
         )));
     }
     let s = builtin_schedule(&d, &name).await?;
-    let steps = s
-        .images
-        .iter()
-        .map(|img| PlanStep {
-            index: img.index,
-            trigger: img.trigger,
-            camera: img.camera.clone(),
-            light: img.light.into(),
-            view: img.view.into(),
-            achieved_light: img.achieved_light.into(),
-            achieved_view: img.achieved_view.into(),
-            feasible: img.feasible,
-            reason: img.reason.clone(),
-            setpoints: serde_json::to_value(&s.triggers[img.trigger].setpoints).unwrap_or_default(),
-        })
-        .collect();
+    let steps = s.steps().map(PlanStep::from).collect();
     Ok(Json(PlanDetail {
         summary: summary(&d, &name, &s),
         steps,

@@ -35,7 +35,8 @@ use tokio::task::JoinHandle;
 use utoipa::OpenApi;
 use utoipa_swagger_ui::SwaggerUi;
 
-use crate::model::profile::{Profile, DEFAULT_PROFILE};
+use crate::model::profile::DEFAULT_PROFILE;
+use crate::model::run_state::RunState;
 
 /// Largest request body accepted.
 pub const BODY_LIMIT: usize = 64 * 1024;
@@ -200,7 +201,7 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         .profile
         .clone()
         .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
-    let profile = Profile::load(&source)?;
+    let profile = crate::plan::load_profile(&source)?;
     let profile_source = if std::path::Path::new(&source).exists() {
         source.clone()
     } else {
@@ -244,7 +245,7 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         .inner()
         .runs
         .values()
-        .any(|v| v.state == "interrupted" || v.state == "paused");
+        .any(|v| matches!(v.state, RunState::Interrupted | RunState::Paused));
     if !interrupted {
         daemon.pump_queue();
     }

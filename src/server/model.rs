@@ -3,7 +3,9 @@
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use crate::model::geometry::Direction;
+use rigd_core::geometry::Direction;
+
+use crate::model::run_state::RunState;
 
 /// A direction in the sample frame, degrees.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
@@ -100,9 +102,9 @@ pub struct RunView {
     pub profile: String,
     pub operator: Option<String>,
     pub notes: Option<String>,
-    /// preparing, running, paused, completed, aborted, failed, or
-    /// interrupted (the daemon died while it was active).
-    pub state: String,
+    /// Where the run stands: `interrupted` means the daemon died while it
+    /// was active.
+    pub state: RunState,
     /// Why it is in its current state (pause reason, failure), if any.
     pub reason: Option<String>,
     /// The last device error or fault seen (kept after a resume clears
@@ -220,8 +222,8 @@ pub struct RigView {
     pub sim: bool,
     pub sim_speed: f64,
     pub active_run: Option<String>,
-    /// idle, preparing, running or paused.
-    pub state: String,
+    /// The active run's state, or `idle` when the rig is free.
+    pub state: RunState,
     pub devices: Vec<DeviceView>,
     /// Lamp name → on.
     #[schema(value_type = Object)]
@@ -263,10 +265,36 @@ pub struct PlanStep {
     pub achieved_light: Dir,
     pub achieved_view: Dir,
     pub feasible: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
+    /// Laser plans: the source and tilt of this frame.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
+    pub laser: Option<serde_json::Value>,
     /// Axes, arm joints and lamp for this image's trigger.
     #[schema(value_type = Object)]
     pub setpoints: serde_json::Value,
+}
+
+impl From<crate::schedule::PlanStep<'_>> for PlanStep {
+    fn from(step: crate::schedule::PlanStep<'_>) -> PlanStep {
+        let img = step.image;
+        PlanStep {
+            index: img.index,
+            trigger: img.trigger,
+            camera: img.camera.clone(),
+            light: img.light.into(),
+            view: img.view.into(),
+            achieved_light: img.achieved_light.into(),
+            achieved_view: img.achieved_view.into(),
+            feasible: img.feasible,
+            reason: img.reason.clone(),
+            laser: img
+                .laser
+                .map(|l| serde_json::to_value(l).unwrap_or_default()),
+            setpoints: serde_json::to_value(step.setpoints).unwrap_or_default(),
+        }
+    }
 }
 
 /// `GET /api/v1/plans/{name}`.
@@ -313,4 +341,28 @@ pub struct EstopAnswer {
     #[schema(value_type = Vec<Object>)]
     pub devices: Vec<serde_json::Value>,
     pub all_stopped: bool,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The API lists a plan's steps in the shape `rigd plan show --json`
+    /// prints them: the same JSON, step for step, laser steps included.
+    #[test]
+    fn api_plan_steps_match_the_command_line_shape() {
+        for (profile, plan) in [("bonn-gonioreflectometer", "h1"), ("msra-btf-mdf", "laser")] {
+            let (_, _, schedule) = crate::engine::launch::solve_plan(
+                &crate::plan::load_profile(profile).unwrap_or_else(|e| panic!("{e}")),
+                plan,
+                None,
+            )
+            .unwrap_or_else(|e| panic!("{e}"));
+            for step in schedule.steps().take(50) {
+                let cli = serde_json::to_value(step).unwrap_or_default();
+                let api = serde_json::to_value(PlanStep::from(step)).unwrap_or_default();
+                assert_eq!(cli, api, "{profile} {plan}");
+            }
+        }
+    }
 }

@@ -9,9 +9,10 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::model::{QueueItem, RunView};
+use crate::model::run_state::RunState;
 use crate::store::{
-    now_rfc3339, read_state, write_atomic, FrameEntry, RunMeta, StateRecord, StoreError,
-    JOURNAL_FILE, MANIFEST_FILE, RUN_FILE,
+    mark_interrupted, read_state, write_atomic, FrameEntry, RunMeta, StoreError, JOURNAL_FILE,
+    MANIFEST_FILE, RUN_FILE,
 };
 
 pub const QUEUE_FILE: &str = "queue.json";
@@ -169,30 +170,18 @@ pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError>
     })?;
     let mut state = read_state(root)?;
     let done = journaled(root);
-    let stale = match &state {
-        None => true,
-        Some(s) => matches!(s.state.as_str(), "idle" | "preparing" | "running"),
-    };
+    let stale = state
+        .as_ref()
+        .is_none_or(|s| s.state.is_active() || s.state == RunState::Idle);
     if stale {
-        let record = StateRecord {
-            state: "interrupted".into(),
-            reason: Some(INTERRUPTED_REASON.replace("{id}", id)),
-            physical_s: state.as_ref().map_or(0.0, |s| s.physical_s),
-            updated_at: now_rfc3339(),
-        };
-        write_atomic(
-            &root.join(crate::store::STATE_FILE),
-            &serde_json::to_vec_pretty(&record).unwrap_or_default(),
-        )?;
-        state = Some(record);
+        let reason = INTERRUPTED_REASON.replace("{id}", id);
+        state = Some(mark_interrupted(root, state.as_ref(), &reason)?);
     }
     let manifest: Option<ManifestHead> = std::fs::read(root.join(MANIFEST_FILE))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok());
-    let state_name = state
-        .as_ref()
-        .map_or("interrupted".to_string(), |s| s.state.clone());
-    let resumable = matches!(state_name.as_str(), "paused" | "interrupted" | "failed");
+    let run_state = state.as_ref().map_or(RunState::Interrupted, |s| s.state);
+    let resumable = run_state.is_resumable();
     let view = RunView {
         id: id.to_string(),
         sample: meta.sample.clone(),
@@ -200,11 +189,11 @@ pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError>
         profile: meta.profile.name.clone(),
         operator: meta.operator.clone(),
         notes: meta.notes.clone(),
-        state: state_name,
+        state: run_state,
         reason: state.as_ref().and_then(|s| s.reason.clone()),
         last_error: state
             .as_ref()
-            .filter(|s| s.state == "failed" || s.state == "paused")
+            .filter(|s| matches!(s.state, RunState::Failed | RunState::Paused))
             .and_then(|s| s.reason.clone())
             .filter(|r| is_error_reason(r)),
         active: false,
@@ -249,7 +238,7 @@ pub fn scan_runs(runs_dir: &Path) -> Vec<(RunView, PathBuf)> {
         }
         match load_run(&path, &name) {
             Ok((view, _)) => {
-                if view.state == "interrupted" {
+                if view.state == RunState::Interrupted {
                     tracing::warn!(run = %name, "run was active when the daemon stopped: marked interrupted (resumable)");
                 }
                 out.push((view, path));

@@ -174,11 +174,8 @@ impl Daemon {
             }
         }
         if let Some(e) = req.exposure_s {
-            if !(e.is_finite() && e > 0.0 && e <= 3600.0) {
-                return Err(ApiError::invalid(format!(
-                    "`exposure_s` {e}: expected a positive number of seconds up to 3600"
-                )));
-            }
+            crate::schedule::timing::check_exposure_s(e)
+                .map_err(|why| ApiError::invalid(format!("`exposure_s` {why}")))?;
         }
         if let Some([w, h]) = req.frame_size {
             if !(1..=4096).contains(&w) || !(1..=4096).contains(&h) {
@@ -293,7 +290,7 @@ impl Daemon {
     /// Makes a prepared engine the active run and spawns its supervisor.
     fn install(self: &Arc<Self>, mut view: RunView, p: Prepared, kind: &str) -> RunView {
         let rx = p.handle.events.subscribe();
-        view.state = RunState::Preparing.as_str().into();
+        view.state = RunState::Preparing;
         view.reason = None;
         view.active = true;
         view.resumable = false;
@@ -353,7 +350,7 @@ impl Daemon {
                 v.updated_at = Some(crate::store::now_rfc3339());
                 match &ev.kind {
                     EventKind::State { to, reason, .. } => {
-                        v.state = to.as_str().into();
+                        v.state = *to;
                         v.reason = reason.clone();
                         if let Some(r) = reason.as_ref().filter(|r| persist::is_error_reason(r)) {
                             v.last_error = Some(r.clone());
@@ -413,8 +410,21 @@ impl Daemon {
                 if let Some(e) = err {
                     v.reason = Some(format!("engine error: {e}"));
                     v.last_error = v.reason.clone();
-                    if !matches!(v.state.as_str(), "completed" | "aborted") {
-                        v.state = "failed".into();
+                    if !v.state.is_terminal() {
+                        // Recorded on disk too (best effort: the error may
+                        // be the disk's), so a restart shows the same.
+                        let root = self.runs_dir.join(id);
+                        let current = crate::store::read_state(&root).ok().flatten();
+                        if let Err(w) = crate::store::transition_state(
+                            &root,
+                            current.as_ref(),
+                            RunState::Failed,
+                            v.reason.clone(),
+                            v.physical_s,
+                        ) {
+                            tracing::warn!(run = %id, "cannot record the failure: {w}");
+                        }
+                        v.state = RunState::Failed;
                         v.resumable = true;
                     }
                 }
@@ -582,20 +592,20 @@ impl Daemon {
             }
             Command::Abort if view.resumable => {
                 let root = self.runs_dir.join(id);
-                let physical_s = view.physical_s;
-                let record = crate::store::StateRecord {
-                    state: "aborted".into(),
-                    reason: Some("aborted by operator (no live engine)".into()),
-                    physical_s,
-                    updated_at: crate::store::now_rfc3339(),
-                };
-                let json = serde_json::to_vec_pretty(&record).unwrap_or_default();
-                crate::store::write_atomic(&root.join(crate::store::STATE_FILE), &json)
+                let current = crate::store::read_state(&root)
                     .map_err(|e| ApiError::internal(e.to_string()))?;
+                let record = crate::store::transition_state(
+                    &root,
+                    current.as_ref(),
+                    RunState::Aborted,
+                    Some("aborted by operator (no live engine)".into()),
+                    view.physical_s,
+                )
+                .map_err(|e| ApiError::internal(e.to_string()))?;
                 let v = {
                     let mut inner = self.inner();
                     let v = inner.runs.get_mut(id).map(|v| {
-                        v.state = "aborted".into();
+                        v.state = RunState::Aborted;
                         v.reason = record.reason.clone();
                         v.resumable = false;
                         v.updated_at = Some(record.updated_at.clone());
@@ -616,7 +626,7 @@ impl Daemon {
                 format!("{cmd:?}").to_lowercase(),
                 id,
                 view.state,
-                if view.state == "paused" || view.state == "interrupted" {
+                if matches!(view.state, RunState::Paused | RunState::Interrupted) {
                     ""
                 } else {
                     " (no live engine)"

@@ -24,10 +24,11 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::kinematics::Setpoints;
-use crate::model::geometry::Direction;
 use crate::model::profile::Profile;
+use crate::model::run_state::{IllegalTransition, RunState};
 use crate::plan::Plan;
 use crate::rig::hal::Frame;
+use rigd_core::geometry::Direction;
 
 /// Format tag of `run.json` and `manifest.json`.
 pub const RUN_FORMAT: &str = "rigd-run/1";
@@ -56,7 +57,12 @@ pub enum StoreError {
     #[error("{path}: {why}")]
     Corrupt { path: PathBuf, why: String },
     #[error("{0}: the run is already {1}; nothing to resume")]
-    Finished(String, String),
+    Finished(String, RunState),
+    #[error("{path}: {error}")]
+    Transition {
+        path: PathBuf,
+        error: IllegalTransition,
+    },
 }
 
 fn io<'a>(path: &'a Path, op: &'static str) -> impl FnOnce(std::io::Error) -> StoreError + 'a {
@@ -135,7 +141,8 @@ pub struct FrameEntry {
 /// The run's last known state, replaced atomically on every change.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StateRecord {
-    pub state: String,
+    /// Where the run stands.
+    pub state: RunState,
     #[serde(default)]
     pub reason: Option<String>,
     /// Physical time spent so far, over all sessions.
@@ -162,7 +169,7 @@ pub struct Manifest {
     pub profile: String,
     pub plan: String,
     pub sample: String,
-    pub state: String,
+    pub state: RunState,
     #[serde(default)]
     pub reason: Option<String>,
     pub steps_total: usize,
@@ -186,6 +193,10 @@ pub struct Recovery {
     pub retake: Vec<usize>,
     /// Bytes of a torn last journal line that were cut off.
     pub torn_bytes: u64,
+    /// The state the run's new session starts from: paused, failed, or
+    /// interrupted (also for a run found preparing or running, which
+    /// nobody drives any more).
+    pub state: RunState,
 }
 
 /// An open run directory.
@@ -314,13 +325,18 @@ impl RunDir {
         let shown = root.display().to_string();
         let meta = read_meta(root)?;
         let state = read_state(root)?;
-        if let Some(s) = &state {
-            if s.state == "completed" || s.state == "aborted" {
-                return Err(StoreError::Finished(shown, s.state.clone()));
+        let start = match &state {
+            Some(s) if s.state.is_terminal() => {
+                return Err(StoreError::Finished(shown, s.state));
             }
-        }
+            Some(s) if s.state.is_resumable() => s.state,
+            _ => mark_interrupted(root, state.as_ref(), INTERRUPTED_REASON)?.state,
+        };
         fs::create_dir_all(root.join(FRAMES_DIR)).map_err(io(root, "create directory"))?;
-        let mut recovery = Recovery::default();
+        let mut recovery = Recovery {
+            state: start,
+            ..Recovery::default()
+        };
         let journal_path = root.join(JOURNAL_FILE);
         if journal_path.exists() {
             let (entries, torn) = read_journal(&journal_path)?;
@@ -446,6 +462,104 @@ pub fn read_meta(root: &Path) -> Result<RunMeta, StoreError> {
         path: run_path,
         why: e.to_string(),
     })
+}
+
+/// Bytes an unprivileged writer may still use on the filesystem holding
+/// `path`; `None` if the system cannot tell.
+pub fn free_bytes(path: &Path) -> Option<u64> {
+    use std::os::unix::ffi::OsStrExt;
+    let c = std::ffi::CString::new(path.as_os_str().as_bytes()).ok()?;
+    let mut st = std::mem::MaybeUninit::<libc::statvfs>::uninit();
+    // SAFETY: `c` is a valid NUL-terminated path and `st` is written by
+    // statvfs before it is read, only when the call succeeds.
+    let rc = unsafe { libc::statvfs(c.as_ptr(), st.as_mut_ptr()) };
+    if rc != 0 {
+        return None;
+    }
+    // SAFETY: statvfs returned 0, so it filled `st`.
+    let st = unsafe { st.assume_init() };
+    Some(st.f_bavail.saturating_mul(st.f_frsize))
+}
+
+/// Why a write into the run at `root` failed, as a pause reason: the
+/// error, and the space left on the run's filesystem, so an operator sees
+/// at once whether freeing space is the fix.
+pub fn storage_fault_reason(root: &Path, error: &StoreError) -> String {
+    match free_bytes(root) {
+        Some(b) => format!(
+            "{error}; {} free on the filesystem of {}",
+            human_bytes(b),
+            root.display()
+        ),
+        None => error.to_string(),
+    }
+}
+
+/// Bytes in binary units, for messages.
+pub fn human_bytes(b: u64) -> String {
+    const UNITS: [&str; 5] = ["B", "KiB", "MiB", "GiB", "TiB"];
+    let mut v = b as f64;
+    let mut unit = 0;
+    while v >= 1024.0 && unit + 1 < UNITS.len() {
+        v /= 1024.0;
+        unit += 1;
+    }
+    if unit == 0 {
+        format!("{b} B")
+    } else {
+        format!("{v:.1} {}", UNITS[unit])
+    }
+}
+
+/// Why a run found preparing or running with nobody driving it is marked
+/// interrupted.
+pub const INTERRUPTED_REASON: &str =
+    "interrupted: the process driving the run stopped while it was active; resume it to go on";
+
+/// Moves the run at `root` from its recorded state (`current`, as read) to
+/// `to`, if the state table allows it, and writes the record.
+pub fn transition_state(
+    root: &Path,
+    current: Option<&StateRecord>,
+    to: RunState,
+    reason: Option<String>,
+    physical_s: f64,
+) -> Result<StateRecord, StoreError> {
+    let path = root.join(STATE_FILE);
+    let from = current.map_or(RunState::Idle, |s| s.state);
+    from.transition(to)
+        .map_err(|error| StoreError::Transition {
+            path: path.clone(),
+            error,
+        })?;
+    let record = StateRecord {
+        state: to,
+        reason,
+        physical_s,
+        updated_at: now_rfc3339(),
+    };
+    let json = serde_json::to_vec_pretty(&record).map_err(|e| StoreError::Corrupt {
+        path: path.clone(),
+        why: e.to_string(),
+    })?;
+    write_atomic(&path, &json)?;
+    Ok(record)
+}
+
+/// Marks a run whose record says it is active (or that has no record) as
+/// interrupted: nobody drives it any more.
+pub fn mark_interrupted(
+    root: &Path,
+    current: Option<&StateRecord>,
+    reason: &str,
+) -> Result<StateRecord, StoreError> {
+    transition_state(
+        root,
+        current,
+        RunState::Interrupted,
+        Some(reason.to_string()),
+        current.map_or(0.0, |s| s.physical_s),
+    )
 }
 
 /// Reads the state record, if any.

@@ -35,11 +35,11 @@ use rigd_sim::scene::{Effect, EffectSwitches, Scene, Shot};
 use serde::Serialize;
 
 use crate::kinematics::Solver;
-use crate::model::geometry::Direction;
 use crate::model::profile::Profile;
 use crate::plan::{self, Plan, H2_THETAS, HEMISPHERE_RING_COUNTS};
 use crate::postprocess::{true_texture, ProcessError};
 use crate::schedule::{self, Schedule};
+use rigd_core::geometry::Direction;
 
 /// Settings of a trade-off run.
 #[derive(Debug, Clone, Copy)]

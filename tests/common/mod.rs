@@ -33,7 +33,7 @@ pub fn repo_file(rel: &str) -> PathBuf {
 pub fn assert_complete_run(dir: &Path, expected_frames: usize) -> Manifest {
     let bytes = std::fs::read(dir.join(MANIFEST_FILE)).expect("manifest.json");
     let m: Manifest = serde_json::from_slice(&bytes).expect("manifest parses");
-    assert_eq!(m.state, "completed");
+    assert_eq!(m.state, rigd::model::run_state::RunState::Completed);
     assert_eq!(m.steps_total, expected_frames);
     assert_eq!(m.frames_written, expected_frames);
     assert_eq!(m.frames.len(), expected_frames);

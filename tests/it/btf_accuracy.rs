@@ -7,7 +7,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use rigd::model::geometry::Direction;
+use rigd_core::geometry::Direction;
 
 fn rigd() -> Command {
     Command::new(env!("CARGO_BIN_EXE_rigd"))

@@ -116,11 +116,16 @@ fn plan_from_a_file() {
     assert_eq!(v["plan"], "ring");
 }
 
-/// Runs rigd expecting failure: exit code 2, one line on stderr, no panic.
+/// Runs rigd expecting bad input: exit code 2, one line on stderr, no panic.
 fn fails_cleanly(args: &[&str]) -> String {
+    fails_with(2, args)
+}
+
+/// Runs rigd expecting exit `code`, one line on stderr, no panic.
+fn fails_with(code: i32, args: &[&str]) -> String {
     let out = rigd().args(args).output().expect("spawn");
     let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-    assert_eq!(out.status.code(), Some(2), "rigd {args:?}: {stderr}");
+    assert_eq!(out.status.code(), Some(code), "rigd {args:?}: {stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
     // clap adds a pointer to --help after argument errors; the error itself is one line.
     let lines = stderr
@@ -290,14 +295,18 @@ fn other_bad_arguments_are_refused() {
     assert!(e.contains("exposure"), "{e}");
     let e = fails_cleanly(&["run", "--resume", "/nonexistent/run"]);
     assert!(e.contains("no run"), "{e}");
-    let e = fails_cleanly(&[
-        "run",
-        "--profile",
-        "rig-profiles/msra-btf-mdf.toml",
-        "--out",
-        "/nonexistent/never",
-    ]);
-    // Without --sim a profile file means hardware, which is not attached.
+    // Without --sim a profile file means hardware, which is not attached:
+    // a device failure (exit 1), not bad input.
+    let e = fails_with(
+        1,
+        &[
+            "run",
+            "--profile",
+            "rig-profiles/msra-btf-mdf.toml",
+            "--out",
+            "/nonexistent/never",
+        ],
+    );
     assert!(
         e.contains("cannot open") && e.contains("--sim") && !e.contains("panick"),
         "{e}"

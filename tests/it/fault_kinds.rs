@@ -58,7 +58,7 @@ async fn run_with_fault(rule: &str) -> Vec<String> {
                     faults.clear(&device);
                     commands.send(Command::Resume).await.expect("resume");
                 }
-                EventKind::State { to, .. } if to.is_final() => break,
+                EventKind::State { to, .. } if to.ends_session() => break,
                 _ => {}
             },
             Err(RecvError::Lagged(_)) => continue,

@@ -121,7 +121,7 @@ async fn alarm_pauses_with_reason_and_resume_completes_after_clearing() {
     let state = rigd::store::read_state(&out)
         .expect("state")
         .expect("state.json");
-    assert_eq!(state.state, "paused");
+    assert_eq!(state.state, RunState::Paused);
     // Resuming before the fault is cleared pauses again with the same reason.
     commands.send(Command::Resume).await.expect("send");
     let again = wait_paused(&mut events).await;
@@ -238,7 +238,7 @@ async fn abort_ends_the_run_with_a_manifest_of_what_was_taken() {
     let m: rigd::store::Manifest =
         serde_json::from_slice(&std::fs::read(out.join("manifest.json")).expect("manifest"))
             .expect("parse");
-    assert_eq!(m.state, "aborted");
+    assert_eq!(m.state, rigd::model::run_state::RunState::Aborted);
     assert_eq!(m.frames.len(), outcome.frames_written);
     assert!(m.frames_written >= 100 && m.frames_written < 6561);
 }

@@ -216,6 +216,7 @@ fn kind_name(k: ErrorKind) -> &'static str {
         ErrorKind::OutOfLimits => "out_of_limits",
         ErrorKind::BadFrame => "bad_frame",
         ErrorKind::NotReady => "not_ready",
+        ErrorKind::Storage => "storage",
     }
 }
 

@@ -3,8 +3,8 @@
 
 use proptest::prelude::*;
 use rigd::kinematics::{PoseSolution, Setpoints, Solver};
-use rigd::model::geometry::{angle_between, wrap_deg_180, Direction};
 use rigd::model::profile::{Profile, EMBEDDED};
+use rigd_core::geometry::{angle_between, wrap_deg_180, Direction};
 use std::sync::LazyLock;
 
 fn solver(name: &str) -> Solver {

@@ -27,7 +27,6 @@ use std::time::Instant;
 
 use proptest::prelude::*;
 use rigd::kinematics::{PoseSolution, Solver};
-use rigd::model::geometry::{Direction, Vec3};
 use rigd::model::profile::Profile;
 use rigd::plan::laser::LaserGeometry;
 use rigd::plan::Order;
@@ -35,6 +34,7 @@ use rigd::plan::{Pair, Plan};
 use rigd::schedule::order::OrderReport;
 use rigd::schedule::timing::Timing;
 use rigd::schedule::{self, Schedule};
+use rigd_core::geometry::{Direction, Vec3};
 use rigd_process::btf::{compress_slot, SlotPca, TextureShape};
 use rigd_process::directions::{self as pdir, DirectionTable, Interpolation};
 use rigd_process::image_io::Image;
@@ -704,7 +704,7 @@ fn laser_plane_nearly_parallel_to_view_ray() {
     // is shifted along `up` so rows ~55 px above the centre triangulate
     // near the reference plane.
     let (o, centre) = cam.ray_at(w as f64 / 2.0, h as f64 / 2.0);
-    let n = rigd::model::geometry::normalize(rigd::model::geometry::cross(centre, cam.right));
+    let n = rigd_core::geometry::normalize(rigd_core::geometry::cross(centre, cam.right));
     let mut frames: Vec<Image> = (0..5).map(|_| Image::new(w, h, 1)).collect();
     frames[2].data.iter_mut().for_each(|v| *v = 0.9);
     let (max_depth, reference) = (0.02, 0.003);

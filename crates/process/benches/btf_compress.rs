@@ -23,7 +23,7 @@ fn slot_images_seeded(shape: TextureShape, seed: u64) -> Vec<Vec<f32>> {
     let mut state = seed;
     h1().iter()
         .map(|light| {
-            let l = light.unit_vector();
+            let l = light.to_vector();
             (0..shape.values())
                 .map(|i| {
                     state ^= state << 13;

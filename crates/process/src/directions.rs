@@ -34,39 +34,15 @@
 //!
 //! Away from the pole cap the result has at most four entries, as in eq. 3.
 
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 
 /// Directions whose θ differ by at most this are on the same ring; two
 /// directions this close in both θ and φ are the same direction.
 pub const RING_THETA_TOLERANCE_DEG: f64 = 0.01;
 
-/// A direction in the sample frame: θ from the normal, φ azimuth, degrees.
-/// Same field names as rigd's plan directions, so tables serialise alike.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Direction {
-    pub theta_deg: f64,
-    pub phi_deg: f64,
-}
-
-impl Direction {
-    pub fn new(theta_deg: f64, phi_deg: f64) -> Self {
-        Direction { theta_deg, phi_deg }
-    }
-
-    /// Unit vector with z along the sample normal and x at φ = 0.
-    pub fn unit_vector(&self) -> [f64; 3] {
-        let (theta, phi) = (self.theta_deg.to_radians(), self.phi_deg.to_radians());
-        [
-            theta.sin() * phi.cos(),
-            theta.sin() * phi.sin(),
-            theta.cos(),
-        ]
-    }
-
-    fn is_finite(&self) -> bool {
-        self.theta_deg.is_finite() && self.phi_deg.is_finite()
-    }
-}
+/// A direction in the sample frame: θ from the normal, φ azimuth, degrees;
+/// the one direction type of rigd, shared with the capture side.
+pub use rigd_core::geometry::Direction;
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DirectionError {

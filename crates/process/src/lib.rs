@@ -15,5 +15,4 @@ pub mod photometric_stereo;
 pub mod rectify;
 pub mod reflectance_fit;
 pub mod render;
-pub mod vec3;
 pub mod webgl;

@@ -61,7 +61,7 @@ use rayon::prelude::*;
 
 use crate::image_io::{write_png, Image, ImageError, PngDepth};
 use crate::npy::{write_f32, NpyError};
-use crate::vec3::{add, cross, dot, norm, scale, sub, unit};
+use rigd_core::geometry::{add, cross, dot, norm, scale, sub, unit};
 
 /// Depth value of a pixel without a measurement (the seed's `−1`).
 pub const NO_DEPTH: f32 = -1.0;

@@ -25,7 +25,7 @@
 use serde::Serialize;
 
 use crate::directions::Direction;
-use crate::vec3::{add, cross, dot, scale, sub, unit};
+use rigd_core::geometry::{add, cross, dot, scale, sub, unit};
 
 /// The shapes the viewer offers.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -239,7 +239,7 @@ impl Mesh {
     /// or it lies below the local horizon. Vertex-major: entry
     /// `vertex · directions.len() + k`.
     pub fn visibility(&self, directions: &[Direction]) -> Vec<u8> {
-        let locals: Vec<[f64; 3]> = directions.iter().map(Direction::unit_vector).collect();
+        let locals: Vec<[f64; 3]> = directions.iter().map(|d| d.to_vector()).collect();
         let mut out = Vec::with_capacity(self.vertex_count() * locals.len());
         for vertex in 0..self.vertex_count() {
             let p = self.position(vertex);
@@ -271,7 +271,7 @@ fn frame(kind: MeshKind, u: f64, v: f64) -> ([f64; 3], [f64; 3]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::vec3::norm;
+    use rigd_core::geometry::norm;
 
     #[test]
     fn frames_are_orthonormal_and_point_up_where_they_should() {

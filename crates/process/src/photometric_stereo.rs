@@ -71,6 +71,7 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
+use rigd_core::geometry::dot;
 use rustfft::num_complex::Complex;
 use rustfft::FftPlanner;
 
@@ -1050,10 +1051,6 @@ fn light_matrix_inverse(
             .collect()
     };
     Ok((condition, pinv))
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
 fn add_outer(m: &mut [[f64; 3]; 3], v: [f64; 3], w: f64) {

@@ -72,6 +72,7 @@ use std::time::{Duration, Instant};
 
 use faer::Mat;
 use rayon::prelude::*;
+use rigd_core::geometry::{cross, dot};
 use serde::{Deserialize, Serialize};
 
 /// Smallest lobe exponent. With `n ≥ 1` the lobe and its derivative stay
@@ -1489,18 +1490,6 @@ fn check_k(k: usize) -> Result<(), FitError> {
     } else {
         Err(FitError::InvalidLobeCount(k))
     }
-}
-
-fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
 }
 
 fn add_scaled(a: [f64; 3], b: [f64; 3], s: f64) -> [f64; 3] {

@@ -40,7 +40,7 @@ use rayon::prelude::*;
 use crate::btf::{BtfError, BtfStore};
 use crate::directions::{Direction, DirectionError, Interpolation};
 use crate::mesh::Mesh;
-use crate::vec3::{cross, dot, scale, sub, unit};
+use rigd_core::geometry::{cross, dot, scale, sub, unit};
 
 pub const CAMERA_DISTANCE: f64 = 4.5;
 pub const FOV_DEG: f64 = 40.0;
@@ -117,7 +117,7 @@ pub struct RgbImage {
 
 /// Unit vector of a world direction.
 fn world(d: Direction) -> [f64; 3] {
-    d.unit_vector()
+    d.to_vector()
 }
 
 /// The camera: eye position and the combined view-projection matrix

@@ -71,8 +71,8 @@ fn all_finite(pca: &SlotPca) -> bool {
 /// Smooth analytic BTF value: texel pattern times functions of the light and
 /// view unit vectors (a few cosine lobes), positive and of order 1.
 fn analytic_value(texel: usize, channel: usize, light: Direction, view: Direction) -> f32 {
-    let l = light.unit_vector();
-    let v = view.unit_vector();
+    let l = light.to_vector();
+    let v = view.to_vector();
     let x = texel as f64;
     let albedo = 0.5 + 0.3 * (0.7 * x + channel as f64).sin();
     let relief = 0.2 * (1.3 * x).cos();
@@ -366,7 +366,7 @@ fn rank_two_btf_is_exact_with_two_components_and_not_with_one() {
         .directions()
         .iter()
         .map(|d| {
-            let l = d.unit_vector();
+            let l = d.to_vector();
             let (f, g) = (l[2], 0.5 * l[0] + 0.2 * l[1] * l[1]);
             a.iter()
                 .zip(&b)

@@ -7,9 +7,9 @@
 //! hit, shadow test), so every figure here can fail.
 
 use proptest::prelude::*;
+use rigd_core::geometry::{self as vec3, add, cross, dot, scale, sub};
 use rigd_process::image_io::Image;
 use rigd_process::mdf::*;
-use rigd_process::vec3::{self, add, cross, dot, scale, sub};
 
 const W: usize = 160;
 const H: usize = 120;

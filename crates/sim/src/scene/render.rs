@@ -9,6 +9,7 @@
 //! maps that to [`WHITE_LEVEL`] of full scale at nominal exposure and gain.
 
 use rayon::prelude::*;
+use rigd_core::geometry::{add, cross, dot, norm, normalize, scale, sub};
 use serde::Serialize;
 
 use super::effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
@@ -119,25 +120,25 @@ pub(crate) struct Camera {
 
 impl Camera {
     pub(crate) fn new(scene: &Scene, shot: &Shot) -> Camera {
-        let v = unit(shot.view);
+        let v = normalize(shot.view);
         // Image axes: `up` is the sample normal projected into the image
         // plane; at the pole that is undefined and the sample's +y is used.
         let (right, up) = if v[0].hypot(v[1]) < 1e-9 {
             ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
         } else {
-            let up = unit([-v[2] * v[0], -v[2] * v[1], 1.0 - v[2] * v[2]]);
+            let up = normalize([-v[2] * v[0], -v[2] * v[1], 1.0 - v[2] * v[2]]);
             (cross(up, v), up)
         };
         let (w, h) = (shot.width.max(1) as f64, shot.height.max(1) as f64);
         let field_half = 1.1 * scene.holder.half;
         let (focal, origin) = match (shot.focal_px, shot.camera_distance_m) {
-            (Some(f), Some(d)) if f > 0.0 && d > 0.0 => (Some(f), scale3(v, d)),
-            _ => (None, scale3(v, 10.0)),
+            (Some(f), Some(d)) if f > 0.0 && d > 0.0 => (Some(f), scale(v, d)),
+            _ => (None, scale(v, 10.0)),
         };
         Camera {
             right,
             up,
-            forward: scale3(v, -1.0),
+            forward: scale(v, -1.0),
             origin,
             focal,
             scale: 2.0 * field_half / w.min(h),
@@ -153,18 +154,18 @@ impl Camera {
         let t = self.half_h - j as f64 - 0.5;
         match self.focal {
             Some(f) => {
-                let d = add3(
-                    scale3(self.forward, f),
-                    add3(scale3(self.right, s), scale3(self.up, t)),
+                let d = add(
+                    scale(self.forward, f),
+                    add(scale(self.right, s), scale(self.up, t)),
                 );
-                (self.origin, unit(d))
+                (self.origin, normalize(d))
             }
             None => {
-                let o = add3(
+                let o = add(
                     self.origin,
-                    add3(
-                        scale3(self.right, s * self.scale),
-                        scale3(self.up, t * self.scale),
+                    add(
+                        scale(self.right, s * self.scale),
+                        scale(self.up, t * self.scale),
                     ),
                 );
                 (o, self.forward)
@@ -175,7 +176,7 @@ impl Camera {
     /// Continuous pixel coordinates (x right, y down; pixel i spans
     /// [i, i+1)) of a point, or None behind the camera.
     pub(crate) fn project(&self, p: [f64; 3]) -> Option<[f64; 2]> {
-        let rel = sub3(p, self.origin);
+        let rel = sub(p, self.origin);
         let (s, t) = match self.focal {
             Some(f) => {
                 let z = dot(rel, self.forward);
@@ -210,7 +211,7 @@ pub(crate) struct Lamp {
 impl Lamp {
     pub(crate) fn new(shot: &Shot) -> Option<Lamp> {
         shot.lamp_on().then(|| Lamp {
-            dir: unit(shot.light),
+            dir: normalize(shot.light),
             distance: shot.lamp_distance_m.filter(|d| *d > 0.0),
         })
     }
@@ -221,9 +222,9 @@ impl Lamp {
         match self.distance {
             None => (self.dir, 1.0, f64::INFINITY),
             Some(d) => {
-                let to = sub3(scale3(self.dir, d), p);
+                let to = sub(scale(self.dir, d), p);
                 let r = norm(to);
-                (scale3(to, 1.0 / r), (d / r).powi(2), r)
+                (scale(to, 1.0 / r), (d / r).powi(2), r)
             }
         }
     }
@@ -295,7 +296,7 @@ impl<'a> Frame<'a> {
             return None;
         }
         let t_floor = (o[2] - self.plate.unwrap_or(0.0)) / -d[2];
-        let floor = add3(o, scale3(d, t_floor));
+        let floor = add(o, scale(d, t_floor));
         let Some(relief) = self.relief() else {
             return Some(floor);
         };
@@ -305,7 +306,7 @@ impl<'a> Frame<'a> {
             return Some(floor);
         };
         match self.march(relief, o, d, ta, tb, -1.0) {
-            Some(t) => Some(add3(o, scale3(d, t))),
+            Some(t) => Some(add(o, scale(d, t))),
             None => Some(floor),
         }
     }
@@ -344,7 +345,7 @@ impl<'a> Frame<'a> {
         let rate = d[2].abs() + relief.max_slope * horizontal;
         let min_step = 0.35 * relief.height.texel / horizontal.max(d[2].abs()).max(1e-6);
         let gap = |t: f64| {
-            let p = add3(o, scale3(d, t));
+            let p = add(o, scale(d, t));
             p[2] - self.scene.height(p[0], p[1])
         };
         let mut t_prev = ta;
@@ -379,7 +380,7 @@ impl<'a> Frame<'a> {
         let Some(relief) = self.relief() else {
             return false;
         };
-        let start = add3(p, scale3(n, 0.5 * relief.height.texel));
+        let start = add(p, scale(n, 0.5 * relief.height.texel));
         let t_max = if to_lamp[2] > 1e-9 {
             ((relief.top - start[2]) / to_lamp[2]).min(lamp_dist)
         } else {
@@ -439,20 +440,20 @@ impl<'a> Frame<'a> {
         let Some(relief) = self.relief() else {
             return 0.0;
         };
-        let t = unit(if n[0].abs() < 0.9 {
+        let t = normalize(if n[0].abs() < 0.9 {
             cross(n, [1.0, 0.0, 0.0])
         } else {
             cross(n, [0.0, 1.0, 0.0])
         });
         let b = cross(n, t);
-        let start = add3(p, scale3(n, 0.5 * relief.height.texel));
+        let start = add(p, scale(n, 0.5 * relief.height.texel));
         let mut sum = 0.0;
         for [u, v] in GATHER {
             let (r, phi) = (u.sqrt(), std::f64::consts::TAU * v);
             let z = (1.0 - u).sqrt();
-            let w = unit(add3(
-                scale3(t, r * phi.cos()),
-                add3(scale3(b, r * phi.sin()), scale3(n, z)),
+            let w = normalize(add(
+                scale(t, r * phi.cos()),
+                add(scale(b, r * phi.sin()), scale(n, z)),
             ));
             let t_max = if w[2] > 1e-9 {
                 (relief.top - start[2]) / w[2]
@@ -463,7 +464,7 @@ impl<'a> Frame<'a> {
                 continue;
             };
             if let Some(th) = self.march(relief, start, w, ta, tb, 1.0) {
-                let q = add3(start, scale3(w, th));
+                let q = add(start, scale(w, th));
                 let nq = self.normal(q[0], q[1]);
                 sum += self.scene.albedo(q[0], q[1]) * self.irradiance(q, nq).0;
             }
@@ -512,13 +513,13 @@ impl<'a> Frame<'a> {
 
     fn laser_radiance(&self, laser: &LaserLine, p: [f64; 3], n: [f64; 3], albedo: f64) -> f64 {
         let sigma = (laser.width_m / 2.355).max(1e-7);
-        let dist = dot(sub3(p, laser.emitter), unit(laser.normal));
+        let dist = dot(sub(p, laser.emitter), normalize(laser.normal));
         if dist.abs() > 3.0 * sigma {
             return 0.0;
         }
-        let to = sub3(laser.emitter, p);
+        let to = sub(laser.emitter, p);
         let r = norm(to);
-        let l = scale3(to, 1.0 / r);
+        let l = scale(to, 1.0 / r);
         let cos = dot(n, l);
         if cos <= 0.0 || self.shadowed(p, n, l, r) {
             return 0.0;
@@ -535,13 +536,13 @@ fn ward(spec: &super::Specular, n: [f64; 3], l: [f64; 3], v: [f64; 3]) -> f64 {
     if cl <= 0.0 || cv <= 0.0 {
         return 0.0;
     }
-    let h = unit(add3(l, v));
+    let h = normalize(add(l, v));
     let hn = dot(h, n);
     if hn <= 1e-6 {
         return 0.0;
     }
     let t0 = [spec.tangent[0], spec.tangent[1], 0.0];
-    let t = unit(sub3(t0, scale3(n, dot(t0, n))));
+    let t = normalize(sub(t0, scale(n, dot(t0, n))));
     let b = cross(n, t);
     let [ax, ay] = spec.alpha;
     let e = ((dot(h, t) / ax).powi(2) + (dot(h, b) / ay).powi(2)) / (hn * hn);
@@ -626,7 +627,7 @@ impl Scene {
                 let Some(p) = frame.intersect(o, d) else {
                     continue;
                 };
-                let mut v = frame.shade(p, scale3(d, -1.0)) * gain;
+                let mut v = frame.shade(p, scale(d, -1.0)) * gain;
                 if let Some(s) = vignette {
                     v *= camera.vignetting(i, j, s);
                 }
@@ -672,41 +673,4 @@ fn splitmix(mut z: u64) -> u64 {
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^ (z >> 31)
-}
-
-pub(crate) fn unit(a: [f64; 3]) -> [f64; 3] {
-    let n = norm(a);
-    if n == 0.0 || !n.is_finite() {
-        [0.0, 0.0, 1.0]
-    } else {
-        scale3(a, 1.0 / n)
-    }
-}
-
-fn norm(a: [f64; 3]) -> f64 {
-    dot(a, a).sqrt()
-}
-
-pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-
-pub(crate) fn add3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-
-pub(crate) fn sub3(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-
-pub(crate) fn scale3(a: [f64; 3], k: f64) -> [f64; 3] {
-    [a[0] * k, a[1] * k, a[2] * k]
-}
-
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
 }

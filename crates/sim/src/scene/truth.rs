@@ -10,7 +10,9 @@
 //! reference surface that lies above the top of mesostructure details").
 
 use super::effects::{Effect, EffectSwitches};
-use super::render::{add3, scale3, unit, Camera, Frame, Shot};
+use rigd_core::geometry::{add, normalize, scale};
+
+use super::render::{Camera, Frame, Shot};
 use super::{Marker, Scene};
 
 impl Scene {
@@ -27,7 +29,7 @@ impl Scene {
         view: [f64; 3],
         effects: EffectSwitches,
     ) -> f64 {
-        let v = unit(view);
+        let v = normalize(view);
         let mut fx = effects;
         fx.forbid.insert(Effect::Noise);
         fx.forbid.insert(Effect::Vignetting);
@@ -42,11 +44,11 @@ impl Scene {
             return 0.0;
         }
         // Back along the ray through (x, y, 0) to above the relief.
-        let above = add3(
+        let above = add(
             [x, y, 0.0],
-            scale3(v, (self.reference_height() + 1e-6) / v[2]),
+            scale(v, (self.reference_height() + 1e-6) / v[2]),
         );
-        match frame.intersect(above, scale3(v, -1.0)) {
+        match frame.intersect(above, scale(v, -1.0)) {
             Some(p) => frame.shade(p, v),
             None => 0.0,
         }
@@ -66,7 +68,7 @@ impl Scene {
     /// reference-plane point (x, y) the ray first meets the surface, metres.
     /// `None` for a view at or below the horizon.
     pub fn true_mdf(&self, x: f64, y: f64, view: [f64; 3]) -> Option<f64> {
-        let v = unit(view);
+        let v = normalize(view);
         if v[2] <= 1e-9 {
             return None;
         }
@@ -76,7 +78,7 @@ impl Scene {
         };
         let frame = Frame::new(self, &shot);
         let start = [x, y, self.reference_height()];
-        let p = frame.intersect(add3(start, scale3(v, 1e-9)), scale3(v, -1.0))?;
+        let p = frame.intersect(add(start, scale(v, 1e-9)), scale(v, -1.0))?;
         let d = [p[0] - start[0], p[1] - start[1], p[2] - start[2]];
         Some((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt())
     }

@@ -20,13 +20,21 @@ pub const POLE_EPS: f64 = 1e-12;
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Direction {
+    /// Polar angle from the sample normal, degrees.
     pub theta_deg: f64,
+    /// Azimuth in the sample plane, counter-clockwise from +x, degrees.
     pub phi_deg: f64,
 }
 
 impl Direction {
+    /// The direction at polar angle `theta_deg` and azimuth `phi_deg`.
     pub fn new(theta_deg: f64, phi_deg: f64) -> Self {
         Direction { theta_deg, phi_deg }
+    }
+
+    /// Both angles are finite numbers.
+    pub fn is_finite(&self) -> bool {
+        self.theta_deg.is_finite() && self.phi_deg.is_finite()
     }
 
     /// The unit vector of this direction in its frame (z is the normal).
@@ -84,10 +92,12 @@ pub fn wrap_deg_180(a: f64) -> f64 {
     }
 }
 
+/// Dot product.
 pub fn dot(a: Vec3, b: Vec3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
+/// Cross product.
 pub fn cross(a: Vec3, b: Vec3) -> Vec3 {
     [
         a[1] * b[2] - a[2] * b[1],
@@ -96,18 +106,22 @@ pub fn cross(a: Vec3, b: Vec3) -> Vec3 {
     ]
 }
 
+/// Euclidean length.
 pub fn norm(a: Vec3) -> f64 {
     dot(a, a).sqrt()
 }
 
+/// `a` times `s`.
 pub fn scale(a: Vec3, s: f64) -> Vec3 {
     [a[0] * s, a[1] * s, a[2] * s]
 }
 
+/// `a + b`.
 pub fn add(a: Vec3, b: Vec3) -> Vec3 {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
 
+/// `a − b`.
 pub fn sub(a: Vec3, b: Vec3) -> Vec3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
@@ -122,16 +136,25 @@ pub fn normalize(a: Vec3) -> Vec3 {
     }
 }
 
+/// `a / |a|`, `None` for a zero or non-finite vector (where
+/// [`normalize`] would answer +z).
+pub fn unit(a: Vec3) -> Option<Vec3> {
+    let n = norm(a);
+    (n.is_finite() && n > 1e-300).then(|| scale(a, 1.0 / n))
+}
+
 /// Angle between two vectors in radians, accurate near 0 and π (atan2 of
 /// |a×b| and a·b instead of acos, which loses half its digits near 0).
 pub fn angle_between(a: Vec3, b: Vec3) -> f64 {
     norm(cross(a, b)).atan2(dot(a, b))
 }
 
+/// `m · v`.
 pub fn mat_vec(m: &Mat3, v: Vec3) -> Vec3 {
     [dot(m[0], v), dot(m[1], v), dot(m[2], v)]
 }
 
+/// `a · b`.
 pub fn mat_mul(a: &Mat3, b: &Mat3) -> Mat3 {
     let mut r = [[0.0; 3]; 3];
     for (i, row) in r.iter_mut().enumerate() {
@@ -142,6 +165,7 @@ pub fn mat_mul(a: &Mat3, b: &Mat3) -> Mat3 {
     r
 }
 
+/// The transpose (the inverse of a rotation).
 pub fn transpose(m: &Mat3) -> Mat3 {
     let mut r = [[0.0; 3]; 3];
     for (i, row) in m.iter().enumerate() {

@@ -1,0 +1,179 @@
+//! Exit codes, so scripts can tell what happened, and how an error is
+//! classed: the caller's input was wrong (2: fix the input), or something
+//! failed while doing what was asked (1: the disk, a device, the system).
+//!
+//! | code | meaning |
+//! |---|---|
+//! | 0 | done |
+//! | 1 | failure: I/O, a device, the disk, an internal error |
+//! | 2 | bad input: arguments, profile, plan, run directory or data unusable |
+//! | 3 | the run paused (a fault); resume it with `rigd run --resume DIR` |
+//! | 4 | the run was aborted or failed |
+//! | 130 | interrupted (Ctrl-C, SIGTERM); the run is resumable |
+
+use std::io::ErrorKind as IoKind;
+
+use rigd::engine::launch::RunError;
+use rigd::postprocess::ProcessError;
+use rigd::rig::hal::DeviceError;
+use rigd::server::ServerError;
+use rigd::store::StoreError;
+
+/// Something failed while doing what was asked.
+pub const EXIT_FAILURE: u8 = 1;
+/// The input was wrong; nothing was done that needs undoing.
+pub const EXIT_BAD_INPUT: u8 = 2;
+/// The run paused on a fault and can be resumed.
+pub const EXIT_PAUSED: u8 = 3;
+/// The run was aborted or ended with frames missing.
+pub const EXIT_ENDED_BADLY: u8 = 4;
+/// A signal stopped the run; it can be resumed.
+pub const EXIT_INTERRUPTED: u8 = 130;
+
+/// The help text's summary of the codes.
+pub const EXIT_CODES_HELP: &str = "Exit codes: 0 done, 1 failure (I/O, a device, the disk), \
+2 bad input, 3 run paused (resume it with `rigd run --resume DIR`), 4 run aborted or failed, \
+130 interrupted (resumable).";
+
+/// An error in what the caller gave: arguments, files, data.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct BadInput(pub String);
+
+/// A bad-input error with this message.
+pub fn bad_input(message: impl Into<String>) -> anyhow::Error {
+    anyhow::Error::new(BadInput(message.into()))
+}
+
+/// The exit code an error ends the process with: the deepest cause in the
+/// chain that rigd can class decides (the root cause is the most specific:
+/// a processing error caused by a full disk is a failure); an error rigd
+/// cannot class at all is a failure.
+pub fn exit_code_of(error: &anyhow::Error) -> u8 {
+    error
+        .chain()
+        .filter_map(class_of)
+        .last()
+        .unwrap_or(EXIT_FAILURE)
+}
+
+fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
+    if cause.is::<BadInput>() {
+        return Some(EXIT_BAD_INPUT);
+    }
+    if let Some(e) = cause.downcast_ref::<std::io::Error>() {
+        return Some(io_class(e));
+    }
+    if let Some(e) = cause.downcast_ref::<StoreError>() {
+        return Some(store_class(e));
+    }
+    if let Some(e) = cause.downcast_ref::<RunError>() {
+        return Some(match e {
+            RunError::Store(s) => store_class(s),
+            RunError::Simulator(_) | RunError::Hardware(_) => EXIT_FAILURE,
+            RunError::Profile(_)
+            | RunError::Plan(_)
+            | RunError::Kinematics(_)
+            | RunError::Invalid(_) => EXIT_BAD_INPUT,
+        });
+    }
+    if let Some(e) = cause.downcast_ref::<ProcessError>() {
+        return match e {
+            ProcessError::Store(s) => Some(store_class(s)),
+            // A frame that cannot be read or registered, an option that
+            // does not fit the run: the data or the request is at fault.
+            _ => Some(EXIT_BAD_INPUT),
+        };
+    }
+    if cause.is::<DeviceError>() {
+        return Some(EXIT_FAILURE);
+    }
+    if let Some(e) = cause.downcast_ref::<ServerError>() {
+        return Some(match e {
+            ServerError::Profile(_) | ServerError::Speed(_) => EXIT_BAD_INPUT,
+            ServerError::DataDir { .. }
+            | ServerError::Token { .. }
+            | ServerError::Listen { .. } => EXIT_FAILURE,
+        });
+    }
+    // Validation errors of rigd's libraries: their I/O variants carry the
+    // I/O error as a deeper cause, which then decides.
+    use rigd_process::*;
+    let bad_input = cause.is::<rigd::model::profile::ProfileError>()
+        || cause.is::<rigd::plan::PlanError>()
+        || cause.is::<rigd::kinematics::KinematicsError>()
+        || cause.is::<rigd::rig::shot::RenderError>()
+        || cause.is::<rigd::postprocess::viewer::RelightError>()
+        || cause.is::<rigd_sim::scene::SceneError>()
+        || cause.is::<btf::BtfError>()
+        || cause.is::<directions::DirectionError>()
+        || cause.is::<export::ExportError>()
+        || cause.is::<image_io::ImageError>()
+        || cause.is::<mdf::MdfError>()
+        || cause.is::<mesh::MeshError>()
+        || cause.is::<npy::NpyError>()
+        || cause.is::<photometric_stereo::PsError>()
+        || cause.is::<rectify::RectifyError>()
+        || cause.is::<reflectance_fit::FitError>()
+        || cause.is::<render::RenderError>()
+        || cause.is::<webgl::PackError>();
+    bad_input.then_some(EXIT_BAD_INPUT)
+}
+
+fn store_class(e: &StoreError) -> u8 {
+    match e {
+        StoreError::Io { error, .. } => io_class(error),
+        // A state change the table refuses is a bug, not the caller's.
+        StoreError::Transition { .. } => EXIT_FAILURE,
+        StoreError::AlreadyRun(..)
+        | StoreError::NotEmpty(_)
+        | StoreError::NoRun(_)
+        | StoreError::Corrupt { .. }
+        | StoreError::Finished(..) => EXIT_BAD_INPUT,
+    }
+}
+
+/// A path that cannot be what the caller said it is (missing, a file where
+/// a folder must go) or data that does not parse was the caller's input;
+/// anything else (a full disk, permissions, a broken pipe) failed.
+fn io_class(e: &std::io::Error) -> u8 {
+    match e.kind() {
+        IoKind::NotFound
+        | IoKind::NotADirectory
+        | IoKind::IsADirectory
+        | IoKind::AlreadyExists
+        | IoKind::InvalidFilename
+        | IoKind::InvalidInput
+        | IoKind::InvalidData => EXIT_BAD_INPUT,
+        _ => EXIT_FAILURE,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_full_disk_is_a_failure_and_a_bad_path_is_bad_input() {
+        let full = StoreError::Io {
+            path: "/x/.state.json.tmp".into(),
+            op: "write",
+            error: std::io::Error::from_raw_os_error(libc::ENOSPC),
+        };
+        assert_eq!(exit_code_of(&anyhow::Error::new(full)), EXIT_FAILURE);
+        let missing = std::io::Error::from(IoKind::NotFound);
+        assert_eq!(exit_code_of(&anyhow::Error::new(missing)), EXIT_BAD_INPUT);
+        let no_run = StoreError::NoRun("/tmp/nothing".into());
+        let wrapped = anyhow::Error::new(no_run).context("cannot resume /tmp/nothing");
+        assert_eq!(exit_code_of(&wrapped), EXIT_BAD_INPUT);
+    }
+
+    #[test]
+    fn explicit_bad_input_and_unknown_errors() {
+        assert_eq!(exit_code_of(&bad_input("--x 3: no")), EXIT_BAD_INPUT);
+        assert_eq!(exit_code_of(&anyhow::anyhow!("who knows")), EXIT_FAILURE);
+        let device = DeviceError::new("turntable", rigd::rig::hal::ErrorKind::Disconnected, "gone");
+        let run = RunError::Hardware(device);
+        assert_eq!(exit_code_of(&anyhow::Error::new(run)), EXIT_FAILURE);
+    }
+}

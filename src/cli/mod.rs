@@ -1,0 +1,15 @@
+//! One module per command of the `rigd` binary; `main.rs` only parses and
+//! dispatches. Each command validates its own arguments (bad input exits 2,
+//! see [`exit`]) and prints its own report.
+
+pub mod dataset;
+pub mod exit;
+pub mod plan;
+pub mod process;
+pub mod profile;
+pub mod progress;
+pub mod run;
+pub mod serve;
+pub mod signal;
+pub mod sim;
+pub mod tradeoff;

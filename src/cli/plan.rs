@@ -1,0 +1,136 @@
+//! `rigd plan show`: every image of a plan with its directions,
+//! feasibility and set-points, and the estimated physical capture time.
+
+use std::process::ExitCode;
+
+use anyhow::Result;
+use clap::Subcommand;
+use rigd::model::profile::DEFAULT_PROFILE;
+use rigd::plan::Order;
+use rigd::schedule::timing::{parse_exposure_s, Timing};
+
+use super::progress::hms;
+
+#[derive(Subcommand)]
+pub enum PlanCmd {
+    /// List every image of a plan with its directions, feasibility and set-points,
+    /// and the totals: image count and estimated physical capture time.
+    Show {
+        /// h1, h2, grid12x8, lamps, or a plan file (.json/.toml)
+        plan: String,
+        /// Rig profile: a TOML file or an embedded profile name.
+        #[arg(long, default_value = DEFAULT_PROFILE)]
+        profile: String,
+        /// Print JSON instead of a table.
+        #[arg(long)]
+        json: bool,
+        /// Exposure time for every camera, seconds, up to 3600 (default:
+        /// the profile's).
+        #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
+        exposure: Option<f64>,
+        /// Trigger order: optimised (the shortest physical time under the
+        /// motion model) or naive (the plan's nested loops).
+        #[arg(long, value_enum, default_value_t = Order::Optimised)]
+        order: Order,
+    },
+}
+
+/// Runs a `rigd plan` command.
+pub fn run(cmd: PlanCmd) -> Result<ExitCode> {
+    match cmd {
+        PlanCmd::Show {
+            plan,
+            profile,
+            json,
+            exposure,
+            order,
+        } => show(&plan, &profile, json, exposure, order)?,
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Order) -> Result<()> {
+    let profile = rigd::plan::load_profile(profile)?;
+    let solver = rigd::kinematics::Solver::new(&profile)?;
+    let offer = rigd::schedule::rig_offer(&profile, &solver);
+    let mut resolved = rigd::plan::resolve(plan, &offer)?;
+    if resolved.laser.is_none() {
+        resolved.order = order;
+    }
+    let (schedule, report) = rigd::schedule::build_with_report(&profile, &solver, &resolved);
+    let estimate = Timing::new(&profile, exposure).estimate_s(&schedule, |_| false);
+    let infeasible = schedule.infeasible().count();
+    if json {
+        let steps: Vec<_> = schedule.steps().collect();
+        let out = serde_json::json!({
+            "plan": schedule.plan,
+            "profile": schedule.profile,
+            "steps_total": schedule.images.len(),
+            "triggers_total": schedule.triggers.len(),
+            "infeasible_total": infeasible,
+            "estimated_physical_s": estimate,
+            "order": resolved.order,
+            "order_report": report,
+            "steps": steps,
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!(
+        "{:>6} {:>6} {:<8} {:>14} {:>14} {:<8} set-points",
+        "image", "trig", "camera", "light θ/φ", "view θ/φ", "feasible"
+    );
+    for img in &schedule.images {
+        let sp = &schedule.triggers[img.trigger].setpoints;
+        let mut points: Vec<String> = sp.axes.iter().map(|(k, v)| format!("{k}={v:.3}")).collect();
+        if let Some(arm) = &sp.arm {
+            points.push(format!(
+                "arm=[{}]",
+                arm.iter()
+                    .map(|q| format!("{q:.3}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ));
+        }
+        points.push(format!("lamp={}", sp.lamp));
+        println!(
+            "{:>6} {:>6} {:<8} {:>6.2}/{:>6.2} {:>6.2}/{:>6.2} {:<8} {}{}",
+            img.index,
+            img.trigger,
+            img.camera,
+            img.light.theta_deg,
+            img.light.phi_deg,
+            img.view.theta_deg,
+            img.view.phi_deg,
+            if img.feasible { "yes" } else { "NO" },
+            points.join(" "),
+            img.reason
+                .as_ref()
+                .map(|r| format!("  ({r})"))
+                .unwrap_or_default()
+        );
+    }
+    match &report.kept {
+        Some(why) => println!("order: as planned ({why})"),
+        None => println!(
+            "order: {:?}; physical time (motion-model estimate, profile exposures): naive {}, optimised {} ({:.1} % shorter), lower bound {} ({}; optimised is within {:.3}×)",
+            resolved.order,
+            hms(report.naive_s),
+            hms(report.optimised_s),
+            100.0 * (1.0 - report.optimised_s / report.naive_s.max(1e-9)),
+            hms(report.lower_bound_s),
+            report.bound,
+            report.gap()
+        ),
+    }
+    println!(
+        "plan {} on {}: {} images in {} triggers, {} infeasible (substituted), estimated physical capture time {}",
+        schedule.plan,
+        schedule.profile,
+        schedule.images.len(),
+        schedule.triggers.len(),
+        infeasible,
+        hms(estimate)
+    );
+    Ok(())
+}

@@ -1,0 +1,493 @@
+//! `rigd process`: turn a run's frames into results (photometric stereo,
+//! rectification, BTF compression, reflectance fits, the MDF, the reference
+//! render).
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::Result;
+use clap::{Args, Subcommand};
+
+use super::exit::bad_input;
+use super::progress::progress_line;
+
+/// Runs a `rigd process` command.
+pub fn run(cmd: ProcessCmd) -> Result<ExitCode> {
+    match cmd {
+        ProcessCmd::PhotometricStereo(args) => photometric_stereo(args)?,
+        ProcessCmd::Rectify(args) => rectify(args)?,
+        ProcessCmd::Btf(args) => btf(args)?,
+        ProcessCmd::Fit(args) => fit(args)?,
+        ProcessCmd::Mdf(args) => mdf(args)?,
+        ProcessCmd::Render(args) => relight(args)?,
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Subcommand)]
+pub enum ProcessCmd {
+    /// Photometric stereo (seed 003 §2): albedo, normals, gradients p and q
+    /// and a Frankot–Chellappa height map, from a VirTex run directory or from
+    /// a folder of images with a light table. Writes normals.npy (H×W×3
+    /// float32, unit, z towards the camera), albedo.npy, height.npy, p.npy,
+    /// q.npy, PNG renderings of each and report.json into --out.
+    PhotometricStereo(PsArgs),
+    /// Register every frame of a run by its holder markers (seed 000 §3.2)
+    /// and resample the sample to frontal textures: RUN/processed/
+    /// normtextures/ with index.json (per frame: the marker residual in
+    /// pixels, the markers used and rejected). Frames whose markers cannot be
+    /// found are named in the error and the index.
+    Rectify(RectifyArgs),
+    /// Compress a rectified run's BTF: a PCA per view slot (seed 000 §4.1)
+    /// into RUN/processed/btf/ (btf.json + slot files), with the eigenvalue
+    /// decay and the RMS error for C = 1 … 32 per slot in report.json.
+    Btf(BtfArgs),
+    /// Fit every texel of every view slot of a rectified run with the
+    /// K-lobe reflectance model by Levenberg–Marquardt and with a PTM
+    /// (seed 001 §4), and print the average error table (seed 001 Table 1);
+    /// also RUN/processed/fit/report.json.
+    Fit(FitArgs),
+    /// The mesostructure distance function of a laser run (seed 002 §3.2):
+    /// each source's laser plane calibrated from the strip on the turntable
+    /// and on the plate, the strip found per frame in the reference region
+    /// outside the sample's box, space-time triangulation per pixel, and
+    /// the sources of each view merged with the seed's weights. Writes
+    /// RUN/processed/mdf/<view>.npy (float32 mm, −1 = none), an 8-bit
+    /// .png per view and report.json; prints the depth error against the
+    /// scene for simulated runs.
+    Mdf(MdfArgs),
+    /// The reference render of a processed run's BTF on a mesh, exactly as
+    /// the viewer (`/viewer/RUN`) draws it: the four nearest view slots, the
+    /// light interpolated from the four nearest measured lights, the smooth
+    /// shadow boundary of seed 000 eq. 6. Writes an 8-bit RGB PNG.
+    Render(RelightArgs),
+}
+
+#[derive(Args)]
+pub struct PsArgs {
+    /// A run directory whose camera looks down on the sample (VirTex).
+    #[arg(conflicts_with_all = ["images", "lights", "names", "intensities"])]
+    pub run: Option<PathBuf>,
+    /// Folder of PNG images (8/16-bit, grey or RGB), one per light.
+    #[arg(long, requires = "lights")]
+    pub images: Option<PathBuf>,
+    /// Light table: one `x y z` direction per line, in image order
+    /// (x right, y up, z towards the camera).
+    #[arg(long, requires = "images")]
+    pub lights: Option<PathBuf>,
+    /// Image file names in light order, one per line [default: sorted names].
+    #[arg(long, requires = "images")]
+    pub names: Option<PathBuf>,
+    /// Light intensities: one `r g b` per line; each image is divided by its own.
+    #[arg(long, requires = "images")]
+    pub intensities: Option<PathBuf>,
+    /// PNG mask: non-zero pixels are solved.
+    #[arg(long)]
+    pub mask: Option<PathBuf>,
+    /// Reject shadowed and specular samples per pixel.
+    #[arg(long)]
+    pub robust: bool,
+    /// Refuse light sets whose matrix has a larger condition number.
+    #[arg(long, default_value_t = rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION)]
+    pub max_condition: f64,
+    /// Output folder (created) [default: RUN/processed/ps for a run; the
+    /// viewer looks there].
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct RectifyArgs {
+    /// The run directory.
+    pub run: PathBuf,
+    /// Side of the frontal normtexture each frame is resampled to first.
+    #[arg(long, default_value_t = 1024)]
+    pub size: usize,
+    /// Fraction of the normtexture kept around its centre.
+    #[arg(long, default_value_t = 1.0)]
+    pub roi: f64,
+    /// Side of the stored textures.
+    #[arg(long = "final", default_value_t = 256)]
+    pub final_size: usize,
+    /// Which 8 bits of the sensor value to keep: `top` (no clipping), a
+    /// shift N for value >> N clipped at 255 (2 = the central 8 bits of 12,
+    /// as seed 000 chose), `float` for linear float32 or `half` for linear
+    /// float16 (the seed's 16-bit floats), both .npy.
+    #[arg(long, default_value = "top")]
+    pub bits: String,
+    /// Linear edge blending (seed 000 §3.2): the ROI is scaled to
+    /// final + N texels and the extra band blended into the opposite edges,
+    /// so the textures tile without seams. 0 = none.
+    #[arg(long, default_value_t = 0)]
+    pub blend: usize,
+}
+
+#[derive(Args)]
+pub struct BtfArgs {
+    /// The run directory (after `rigd process rectify`).
+    pub run: PathBuf,
+    /// Components kept per view slot.
+    #[arg(long, default_value_t = 16)]
+    pub components: usize,
+}
+
+#[derive(Args)]
+pub struct FitArgs {
+    /// The run directory (after `rigd process rectify`).
+    pub run: PathBuf,
+    /// Lobes of the non-linear model.
+    #[arg(long, default_value_t = 2)]
+    pub lobes: usize,
+}
+
+#[derive(Args)]
+pub struct MdfArgs {
+    /// The run directory of a `--plan laser` capture.
+    pub run: PathBuf,
+    /// calibrated (the seed's: planes of a sweep parallel, at the
+    /// calibrated angle) or emitter (planes through the profile's emitter).
+    #[arg(long, value_enum, default_value_t = rigd::postprocess::mdf::PlaneModel::Calibrated)]
+    pub planes: rigd::postprocess::mdf::PlaneModel,
+    /// Use this many of the run's source positions, evenly picked [default: all].
+    #[arg(long)]
+    pub sources: Option<usize>,
+    /// Grey level (0–1) each pixel's brightest frame must exceed to be
+    /// triangulated; darker pixels are occluded (−1).
+    #[arg(long, default_value_t = 0.15)]
+    pub threshold: f64,
+    /// Grey level (0–1) of the strip in the reference region, after the
+    /// filter (the holder is dark, so the strip is dim there).
+    #[arg(long, default_value_t = 0.02)]
+    pub line_threshold: f64,
+    /// Gaussian filter before the strip search, pixels.
+    #[arg(long, default_value_t = 1.0)]
+    pub sigma: f64,
+}
+
+#[derive(Args)]
+pub struct RelightArgs {
+    /// The run directory (after `rigd process btf`).
+    pub run: PathBuf,
+    /// flat, cylinder or cloth.
+    #[arg(long, default_value = "flat")]
+    pub mesh: rigd_process::mesh::MeshKind,
+    /// Directional light θ,φ in degrees, world frame (z up); θ up to 180
+    /// (below the horizon: no light).
+    #[arg(long, value_parser = parse_world_light, default_value = "30,45")]
+    pub light: rigd_process::directions::Direction,
+    /// Orbit camera θ,φ in degrees (θ 0 … 89).
+    #[arg(long, value_parser = parse_orbit, default_value = "35,270")]
+    pub view: rigd_process::directions::Direction,
+    /// Image size WIDTHxHEIGHT.
+    #[arg(long, default_value = "512x512", value_parser = rigd::rig::shot::parse_frame_size)]
+    pub size: [u32; 2],
+    /// Multiplies the BTF's values before display.
+    #[arg(long, default_value_t = 1.0)]
+    pub exposure: f64,
+    /// Eq. 6's offset α in degrees (the seed used 15 for a coarse mesh).
+    #[arg(long, default_value_t = 0.0)]
+    pub shadow_alpha: f64,
+    /// btf, or plain: one frontal texture with Lambert's cosine (the
+    /// comparison of seed 000 figures 13–14).
+    #[arg(long, value_enum, default_value_t = ShadingArg::Btf)]
+    pub shading: ShadingArg,
+    /// Material tiles per world unit (the flat sample is 2 units across).
+    #[arg(long, default_value_t = rigd::postprocess::viewer::DEFAULT_DENSITY)]
+    pub density: f64,
+    /// The PNG to write.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+pub enum ShadingArg {
+    Btf,
+    Plain,
+}
+
+fn parse_angles(s: &str, theta_max: f64) -> Result<rigd_process::directions::Direction, String> {
+    let d = rigd::rig::shot::parse_direction_within(s, theta_max)?;
+    Ok(rigd_process::directions::Direction::new(
+        d.theta_deg,
+        d.phi_deg,
+    ))
+}
+
+fn parse_world_light(s: &str) -> Result<rigd_process::directions::Direction, String> {
+    parse_angles(s, 180.0)
+}
+
+fn parse_orbit(s: &str) -> Result<rigd_process::directions::Direction, String> {
+    parse_angles(s, 89.0)
+}
+
+fn photometric_stereo(args: PsArgs) -> Result<()> {
+    use rigd_process::photometric_stereo as ps;
+    let (mut dataset, run) = match (&args.run, &args.images, &args.lights) {
+        (Some(run), _, _) => {
+            let frames = rigd::postprocess::RunFrames::open(run)?;
+            (
+                rigd::postprocess::ps_dataset_from_run(&frames)?,
+                Some(frames),
+            )
+        }
+        (None, Some(images), Some(lights)) => {
+            let inputs = ps::PsInputs {
+                images_dir: images.clone(),
+                lights_file: lights.clone(),
+                names_file: args.names.clone(),
+                intensities_file: args.intensities.clone(),
+                mask_file: None,
+            };
+            (ps::load_inputs(&inputs)?, None)
+        }
+        _ => {
+            return Err(bad_input(
+                "give a run directory, or --images DIR --lights FILE",
+            ))
+        }
+    };
+    let out = match (&args.out, &args.run) {
+        (Some(out), _) => out.clone(),
+        (None, Some(run)) => rigd::postprocess::viewer::ps_dir(run),
+        (None, None) => return Err(bad_input("--out DIR is needed with --images")),
+    };
+    if let Some(mask) = &args.mask {
+        let m = rigd_process::image_io::load_png(mask)?;
+        dataset.mask = Some(
+            m.data
+                .chunks(m.channels)
+                .map(|px| px.iter().any(|&v| v > 0.0))
+                .collect(),
+        );
+    }
+    let rows_done = progress_line("solving rows");
+    let opts = ps::PsOptions {
+        robust: args.robust,
+        max_condition: args.max_condition,
+        progress: Some(&rows_done),
+        ..Default::default()
+    };
+    let started = Instant::now();
+    let result = ps::solve(&dataset, &opts)?;
+    let written = ps::write_outputs(&result, &out)?;
+    let r = &result.report;
+    println!(
+        "{} images, {}x{}, light matrix condition number {:.3}, {} of {} pixels solved, mean residual {:.4}, {:.2} s",
+        dataset.images.len(),
+        result.width,
+        result.height,
+        r.condition_number,
+        result.valid.iter().filter(|v| **v).count(),
+        result.width * result.height,
+        r.mean_residual,
+        started.elapsed().as_secs_f64()
+    );
+    if let Some(run) = &run {
+        if let Some(err) = rigd::postprocess::ps_error_against_truth(run, &result)? {
+            println!(
+                "against the scene `{}`: mean angular error {:.2}°, median {:.2}°, 95th percentile {:.2}° over {} sample pixels",
+                err.scene, err.mean_deg, err.median_deg, err.p95_deg, err.pixels
+            );
+            let path = out.join("truth.json");
+            let mut json = serde_json::to_vec_pretty(&err)?;
+            json.push(b'\n');
+            rigd::store::write_atomic(&path, &json)?;
+        }
+    }
+    println!("wrote {} files into {}", written.len(), out.display());
+    Ok(())
+}
+
+fn rectify(args: RectifyArgs) -> Result<()> {
+    use rigd::postprocess::TextureBits;
+    let bits = match args.bits.as_str() {
+        "top" => TextureBits::Top8,
+        "float" => TextureBits::Float,
+        "half" => TextureBits::Half,
+        s => match s.parse::<u8>() {
+            Ok(shift) if shift <= 8 => TextureBits::Shift(shift),
+            _ => {
+                return Err(bad_input(format!(
+                    "--bits {s}: expected `top`, a shift 0 ..= 8, `float` or `half`"
+                )))
+            }
+        },
+    };
+    let cfg = rigd::postprocess::RectifyConfig {
+        size: args.size,
+        roi: args.roi,
+        final_size: args.final_size,
+        blend: args.blend,
+        bits,
+    };
+    let run = rigd::postprocess::RunFrames::open(&args.run)?;
+    let started = Instant::now();
+    let index = rigd::postprocess::rectify_run(&run, &cfg, &progress_line("registering"))?;
+    let rms: Vec<f64> = index.frames.iter().filter_map(|f| f.rms_px).collect();
+    let worst = index
+        .frames
+        .iter()
+        .filter_map(|f| f.max_px)
+        .fold(0.0, f64::max);
+    let rejected: usize = index.frames.iter().map(|f| f.markers_rejected.len()).sum();
+    println!(
+        "{} frames registered ({} views × {} lights): marker residual RMS mean {:.3} px, worst marker {:.3} px, {} markers rejected as outliers; {}² textures in {} ({:.1} s)",
+        rms.len(),
+        index.views.len(),
+        index.lights.len(),
+        rms.iter().sum::<f64>() / rms.len().max(1) as f64,
+        worst,
+        rejected,
+        index.size,
+        args.run.join("processed/normtextures").display(),
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+fn btf(args: BtfArgs) -> Result<()> {
+    if args.components == 0 {
+        return Err(bad_input("--components 0: expected at least 1"));
+    }
+    let report = rigd::postprocess::btf_run(
+        &args.run,
+        args.components,
+        &progress_line("compressing view slots"),
+    )?;
+    println!(
+        "{} view slots × {} lights, C = {}: {:.1} MB in {} ({:.1} s)",
+        report.slots,
+        report.lights,
+        report.components,
+        report.bytes as f64 / 1e6,
+        args.run.join("processed/btf").display(),
+        report.compress_s
+    );
+    println!("C\tmean RMS error over slots (1 = full scale)");
+    for (c, rms) in report.mean_rms_by_components.iter().enumerate() {
+        if [1, 2, 4, 8, 16, 32].contains(&(c + 1)) {
+            println!("{}\t{:.5}", c + 1, rms);
+        }
+    }
+    Ok(())
+}
+
+fn fit(args: FitArgs) -> Result<()> {
+    if !(1..=8).contains(&args.lobes) {
+        return Err(bad_input(format!(
+            "--lobes {}: expected 1 ..= 8",
+            args.lobes
+        )));
+    }
+    let rows =
+        rigd::postprocess::fit_run(&args.run, args.lobes, &progress_line("fitting view slots"))?;
+    println!("method\tmean |error|\tRMS error\tfit time\tconverged texels");
+    for r in rows {
+        println!(
+            "{}\t{:.5}\t{:.5}\t{:.2} s\t{}",
+            r.method, r.mean_abs_error, r.rms_error, r.fit_s, r.converged_texels
+        );
+    }
+    Ok(())
+}
+
+fn mdf(args: MdfArgs) -> Result<()> {
+    if !(args.sigma.is_finite() && (0.0..=20.0).contains(&args.sigma)) {
+        return Err(bad_input(format!(
+            "--sigma {}: expected 0 ..= 20 pixels",
+            args.sigma
+        )));
+    }
+    let run = rigd::postprocess::RunFrames::open(&args.run)?;
+    let cfg = rigd::postprocess::mdf::MdfConfig {
+        sigma_px: args.sigma,
+        threshold: args.threshold,
+        line_threshold: args.line_threshold,
+        planes: args.planes,
+        sources: args.sources,
+    };
+    let report = rigd::postprocess::mdf::mdf_run(&run, &cfg, &progress_line("sweeps analysed"))?;
+    for why in &report.skipped {
+        eprintln!("warning: left out: {why}");
+    }
+    println!("view	sources	valid	mean error	median	95th pct	coverage");
+    for v in &report.views {
+        match v.truth.filter(|t| t.pixels > 0) {
+            Some(t) => println!(
+                "{}	{}	{:.1}%	{:.3} mm	{:.3} mm	{:.3} mm	{:.1}%",
+                v.name,
+                v.sources,
+                100.0 * v.valid_fraction,
+                t.mean_mm,
+                t.median_mm,
+                t.p95_mm,
+                100.0 * t.coverage
+            ),
+            None => println!(
+                "{}	{}	{:.1}%	-	-	-	-",
+                v.name,
+                v.sources,
+                100.0 * v.valid_fraction
+            ),
+        }
+    }
+    if let Some(e) = report.mean_error_mm {
+        println!("mean depth error over views: {e:.3} mm");
+    }
+    println!("wrote {}", args.run.join("processed").join("mdf").display());
+    Ok(())
+}
+
+fn relight(args: RelightArgs) -> Result<()> {
+    use rigd_process::render::{RenderSettings, Shading};
+    if !(args.density.is_finite() && args.density > 0.0 && args.density <= 64.0) {
+        return Err(bad_input(format!(
+            "--density {}: expected more than 0 and at most 64 tiles per unit",
+            args.density
+        )));
+    }
+    if !(args.shadow_alpha.is_finite() && (0.0..=45.0).contains(&args.shadow_alpha)) {
+        return Err(bad_input(format!(
+            "--shadow-alpha {}: expected 0 ..= 45 degrees",
+            args.shadow_alpha
+        )));
+    }
+    let settings = RenderSettings {
+        width: args.size[0] as usize,
+        height: args.size[1] as usize,
+        light: args.light,
+        view: args.view,
+        exposure: args.exposure,
+        shadow_alpha_deg: args.shadow_alpha,
+        shading: match args.shading {
+            ShadingArg::Btf => Shading::Btf,
+            ShadingArg::Plain => Shading::Plain,
+        },
+    };
+    let started = Instant::now();
+    let img = rigd::postprocess::viewer::render_run(&args.run, args.mesh, args.density, &settings)?;
+    let data = img.pixels.iter().map(|&v| f32::from(v) / 255.0).collect();
+    let image = rigd_process::image_io::Image {
+        width: img.width,
+        height: img.height,
+        channels: 3,
+        data,
+    };
+    rigd_process::image_io::write_png(&args.out, &image, rigd_process::image_io::PngDepth::Eight)?;
+    println!(
+        "{} on a {} mesh, light {},{} view {},{}: {}x{} in {:.2} s -> {}",
+        args.run.display(),
+        args.mesh.name(),
+        args.light.theta_deg,
+        args.light.phi_deg,
+        args.view.theta_deg,
+        args.view.phi_deg,
+        img.width,
+        img.height,
+        started.elapsed().as_secs_f64(),
+        args.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,236 @@
+//! `rigd run`: capture a plan into a run directory, or resume one, with a
+//! progress display; Ctrl-C leaves the run resumable.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use rigd::engine::launch::{self, NewRun};
+use rigd::engine::{Outcome, PausePolicy};
+use rigd::model::profile::DEFAULT_PROFILE;
+use rigd::model::run_state::RunState;
+use rigd::plan::Order;
+use rigd::schedule::timing::parse_exposure_s;
+use rigd_core::Clock;
+use rigd_sim::FaultRule;
+
+use super::exit::{bad_input, EXIT_ENDED_BADLY, EXIT_INTERRUPTED, EXIT_PAUSED};
+use super::progress::{hms, Progress};
+
+#[derive(Args)]
+pub struct RunArgs {
+    /// Rig profile: a TOML file or an embedded profile name
+    /// [default: the simulated bonn-gonioreflectometer]
+    #[arg(long)]
+    pub profile: Option<String>,
+    /// Drive the simulated rig (virtual time) instead of hardware.
+    #[arg(long)]
+    pub sim: bool,
+    /// h1, h2, grid12x8, lamps, or a plan file [default: the profile's default plan]
+    #[arg(long)]
+    pub plan: Option<String>,
+    /// Sample name, recorded in the dataset.
+    #[arg(long, default_value = "sample")]
+    pub sample: String,
+    /// Run directory to create (must not exist or be empty)
+    /// [default: runs/SAMPLE-PLAN-TIMESTAMP]
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Simulated frame size, WIDTHxHEIGHT [default: the profile's [sim] frame_size]
+    #[arg(long, value_parser = rigd::rig::shot::parse_frame_size)]
+    pub frame_size: Option<[u32; 2]>,
+    /// Scene the simulated cameras render: a built-in name (`rigd sim
+    /// scenes`) or a scene file [default: the profile's [sim] scene, else
+    /// flat-calibration]
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Operator name, recorded in the dataset.
+    #[arg(long)]
+    pub operator: Option<String>,
+    /// Free-text notes, recorded in the dataset.
+    #[arg(long)]
+    pub notes: Option<String>,
+    /// Exposure time for every camera, seconds, up to 3600 (default: the
+    /// profile's).
+    #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
+    pub exposure: Option<f64>,
+    /// Trigger order: optimised (the shortest physical time under the
+    /// motion model) or naive (the plan's nested loops) [default:
+    /// optimised; laser plans keep theirs].
+    #[arg(long, value_enum)]
+    pub order: Option<Order>,
+    /// Resume the run in this directory (all other run options come from it).
+    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure", "order"])]
+    pub resume: Option<PathBuf>,
+    /// Inject a fault into the simulated firmware: DEVICE:OP:N:KIND[:sticky], fired on
+    /// the Nth OP command the device receives. OP: GRBL axes home, move, info;
+    /// ACL arm home, move, define, query; Modbus lamps set, ready; PTP cameras
+    /// expose, transfer, set_exposure; or * for any. KIND: timeout (no answer),
+    /// disconnect, bad-frame (garbled reply or frame), alarm=TEXT (the device's
+    /// own fault: GRBL ALARM, Modbus exception, PTP GeneralError). Repeatable.
+    /// See firmware-protocols/README.md.
+    #[arg(long = "sim-fault", value_name = "SPEC")]
+    pub sim_faults: Vec<FaultRule>,
+    /// Progress display: a bar on a terminal, log lines otherwise.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub progress: Progress,
+}
+
+/// Runs `rigd run`.
+pub fn run(args: RunArgs) -> Result<ExitCode> {
+    // The embedded default is the simulated rig; a profile file names real
+    // hardware unless --sim says otherwise.
+    let simulated = match &args.resume {
+        Some(dir) => {
+            rigd::store::read_meta(dir)
+                .with_context(|| format!("cannot resume {}", dir.display()))?
+                .simulated
+        }
+        None => args.sim || args.profile.is_none(),
+    };
+    if !simulated && !args.sim_faults.is_empty() {
+        return Err(bad_input("--sim-fault needs the simulated rig (--sim)"));
+    }
+    // The simulated rig runs in virtual time: a paused runtime whose clock
+    // jumps whenever every task waits. Hardware runs on the wall clock.
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .start_paused(simulated)
+        .build()
+        .context("cannot start the runtime")?;
+    runtime.block_on(async move {
+        let clock = if simulated {
+            Clock::virtual_time()
+        } else {
+            Clock::real()
+        };
+        let prepared = match &args.resume {
+            Some(dir) => {
+                launch::prepare_resume(dir, args.sim_faults.clone(), clock, PausePolicy::Return)
+                    .await
+                    .with_context(|| format!("cannot resume {}", dir.display()))?
+            }
+            None => {
+                let source = args
+                    .profile
+                    .clone()
+                    .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
+                let mut profile = rigd::plan::load_profile(&source)?;
+                if let Some(scene) = &args.scene {
+                    // The run records its profile, so a resume renders
+                    // the same scene.
+                    rigd_sim::scene::Scene::load(scene)?;
+                    profile.sim.scene = Some(scene.clone());
+                }
+                let plan = args
+                    .plan
+                    .clone()
+                    .unwrap_or_else(|| profile.default_plan.clone());
+                let out = args.out.clone().unwrap_or_else(|| {
+                    let stamp = humantime::format_rfc3339_seconds(std::time::SystemTime::now())
+                        .to_string()
+                        .replace(':', "");
+                    PathBuf::from("runs").join(format!(
+                        "{}-{}-{}",
+                        args.sample,
+                        plan_stem(&plan),
+                        stamp
+                    ))
+                });
+                let req = NewRun {
+                    profile_source: if std::path::Path::new(&source).exists() {
+                        source.clone()
+                    } else {
+                        format!("<embedded {source}>")
+                    },
+                    profile,
+                    plan,
+                    sample: args.sample.clone(),
+                    operator: args.operator.clone(),
+                    notes: args.notes.clone(),
+                    exposure_s: args.exposure,
+                    frame_size: args.frame_size,
+                    out,
+                    simulated,
+                    order: args.order,
+                };
+                launch::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)
+                    .await?
+            }
+        };
+        drive(prepared, args.progress).await
+    })
+}
+
+fn plan_stem(plan: &str) -> String {
+    std::path::Path::new(plan)
+        .file_stem()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "plan".into())
+}
+
+/// Runs the engine with a progress display and signal handling; prints the summary.
+async fn drive(p: launch::Prepared, progress: Progress) -> Result<ExitCode> {
+    let wall = Instant::now();
+    let root = p.root.clone();
+    let events = p.handle.events.subscribe();
+    let commands = p.handle.commands.clone();
+    // The reporter ends when the engine drops the last event sender.
+    drop(p.handle);
+    eprintln!(
+        "run {}: {} images, {} already taken; estimated physical time {}",
+        root.display(),
+        p.frames_total,
+        p.frames_done,
+        hms(p.estimate_s)
+    );
+    if !p.retake.is_empty() {
+        eprintln!(
+            "retaking {} frames found missing or damaged",
+            p.retake.len()
+        );
+    }
+    let reporter = super::progress::report_run(
+        events,
+        progress,
+        p.frames_total,
+        p.frames_done,
+        p.t_offset_s + p.estimate_s,
+    );
+    let engine = tokio::spawn(p.engine.run());
+    let interrupted = super::signal::detach_on_signal(commands);
+    let outcome: Outcome = engine.await.context("engine task failed")??;
+    interrupted.stop_listening();
+    let _ = reporter.await;
+    let wall_s = wall.elapsed().as_secs_f64();
+    eprintln!(
+        "{}: {} of {} frames; physical duration {} ({:.1} s); wall time {:.1} s",
+        outcome.state,
+        outcome.frames_written,
+        outcome.frames_total,
+        hms(outcome.physical_s),
+        outcome.physical_s,
+        wall_s
+    );
+    Ok(match outcome.state {
+        RunState::Completed => {
+            println!("{}", root.display());
+            ExitCode::SUCCESS
+        }
+        RunState::Paused if interrupted.fired() => ExitCode::from(EXIT_INTERRUPTED),
+        RunState::Paused => {
+            eprintln!(
+                "paused: {}; fix the cause, then `rigd run --resume {}`",
+                outcome.reason.unwrap_or_default(),
+                root.display()
+            );
+            ExitCode::from(EXIT_PAUSED)
+        }
+        _ => {
+            eprintln!("{}", outcome.reason.unwrap_or_default());
+            ExitCode::from(EXIT_ENDED_BADLY)
+        }
+    })
+}
