@@ -13,6 +13,7 @@ mod api_restart;
 mod btf_accuracy;
 mod cli;
 mod crash_resume;
+mod disk_full;
 mod estop;
 mod fault_kinds;
 mod faults;
