@@ -335,7 +335,9 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         |v| v.as_u64() == Some(4),
     )
     .await;
-    // The plan select holds the built-in plans (h1 fits the Bonn rig).
+    // The plan select holds the built-in plans (h1 fits the Bonn rig); the
+    // daemon solves them in the background and the page asks again until
+    // each shows its size.
     wait_js(
         c,
         "the plan list",
@@ -345,6 +347,14 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
             v.as_array()
                 .is_some_and(|a| a.contains(&json!("h1")) && a.contains(&json!("__custom")))
         },
+    )
+    .await;
+    wait_js(
+        c,
+        "h1 solved and sized in the plan list",
+        60,
+        "return document.querySelector('#plan option[value=h1]').textContent",
+        |v| v.as_str().is_some_and(|t| t.contains("6561 images")),
     )
     .await;
 

@@ -72,6 +72,19 @@ impl ApiError {
     }
 }
 
+impl From<crate::server::supervisor::SupervisorError> for ApiError {
+    fn from(e: crate::server::supervisor::SupervisorError) -> ApiError {
+        use crate::server::supervisor::SupervisorError as S;
+        match e {
+            S::NotFound(d) => ApiError::not_found(d),
+            S::Invalid(d) => ApiError::invalid(d),
+            S::Conflict(d) => ApiError::conflict(d),
+            S::Unavailable(d) => ApiError::new(StatusCode::SERVICE_UNAVAILABLE, d),
+            S::Internal(d) => ApiError::internal(d),
+        }
+    }
+}
+
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let body = ErrorBody {

@@ -14,12 +14,10 @@ pub mod api;
 pub mod auth;
 pub mod error;
 pub mod events;
-pub mod frames;
 pub mod model;
 pub mod persist;
-pub mod state;
-pub mod tradeoff;
-pub mod viewer;
+pub mod plan_cache;
+pub mod supervisor;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -34,6 +32,8 @@ use axum::Router;
 use tokio::task::JoinHandle;
 use utoipa::OpenApi;
 use utoipa_swagger_ui::SwaggerUi;
+
+use api::{daemon, frames, plans, queue, rig, runs, sim, tradeoff, viewer};
 
 use crate::model::profile::DEFAULT_PROFILE;
 use crate::model::run_state::RunState;
@@ -99,7 +99,7 @@ pub enum ServerError {
 
 /// A running daemon.
 pub struct ServerHandle {
-    pub daemon: Arc<state::Daemon>,
+    pub daemon: Arc<supervisor::Daemon>,
     pub token: auth::Token,
     server: JoinHandle<()>,
 }
@@ -126,36 +126,39 @@ const HEMISPHERE_JS: &str = include_str!("dashboard/hemisphere.js");
 const STYLE_CSS: &str = include_str!("dashboard/style.css");
 
 /// The router of a daemon (the token is needed for the auth layer).
-pub fn router(daemon: Arc<state::Daemon>, token: auth::Token) -> Router {
+pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
     let v1 = Router::new()
-        .route("/rig", get(api::rig))
-        .route("/plans", get(api::plans))
-        .route("/plans/{name}", get(api::plan_detail))
-        .route("/runs", get(api::list_runs).post(api::create_run))
-        .route("/runs/{id}", get(api::get_run))
-        .route("/runs/{id}/steps", get(api::run_steps))
-        .route("/runs/{id}/manifest", get(api::run_manifest))
-        .route("/runs/{id}/pause", post(api::pause_run))
-        .route("/runs/{id}/resume", post(api::resume_run))
-        .route("/runs/{id}/abort", post(api::abort_run))
-        .route("/runs/{id}/frames/{index}", get(api::frame_raw))
-        .route("/runs/{id}/frames/{index}/preview", get(api::frame_preview))
-        .route("/estop", post(api::estop))
-        .route("/events", get(api::events_sse))
-        .route("/queue", get(api::get_queue).post(api::post_queue))
-        .route("/queue/{item}", delete(api::delete_queue))
+        .route("/rig", get(rig::rig))
+        .route("/plans", get(plans::plans))
+        .route("/plans/{name}", get(plans::plan_detail))
+        .route("/runs", get(runs::list_runs).post(runs::create_run))
+        .route("/runs/{id}", get(runs::get_run))
+        .route("/runs/{id}/steps", get(runs::run_steps))
+        .route("/runs/{id}/manifest", get(runs::run_manifest))
+        .route("/runs/{id}/pause", post(runs::pause_run))
+        .route("/runs/{id}/resume", post(runs::resume_run))
+        .route("/runs/{id}/abort", post(runs::abort_run))
+        .route("/runs/{id}/frames/{index}", get(frames::frame_raw))
+        .route(
+            "/runs/{id}/frames/{index}/preview",
+            get(frames::frame_preview),
+        )
+        .route("/estop", post(rig::estop))
+        .route("/events", get(daemon::events_sse))
+        .route("/queue", get(queue::get_queue).post(queue::post_queue))
+        .route("/queue/{item}", delete(queue::delete_queue))
         .route("/runs/{id}/btf", get(viewer::btf_manifest))
         .route("/runs/{id}/btf/data", get(viewer::btf_data))
         .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh))
         .route("/tradeoff", get(tradeoff::get_report).post(tradeoff::start))
         .route("/tradeoff/plot.svg", get(tradeoff::get_plot))
-        .route("/sim/render", get(api::sim_render))
-        .route("/sim/scenes", get(api::sim_scenes))
+        .route("/sim/render", get(sim::sim_render))
+        .route("/sim/scenes", get(sim::sim_scenes))
         .route_layer(axum::middleware::from_fn_with_state(
             token,
             auth::require_token,
         ))
-        .route("/health", get(api::health))
+        .route("/health", get(daemon::health))
         .method_not_allowed_fallback(error::method_not_allowed)
         .with_state(daemon);
     Router::new()
@@ -223,7 +226,7 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         addr: config.listen,
         why: e.to_string(),
     })?;
-    let daemon = state::Daemon::new(config, profile, profile_source)?;
+    let daemon = supervisor::Daemon::new(config, profile, profile_source)?;
     let app = router(daemon.clone(), token.clone());
     let mut stop = daemon.shutdown_tx.subscribe();
     let server = tokio::spawn(async move {

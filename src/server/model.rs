@@ -234,6 +234,9 @@ pub struct RigView {
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct PlanSummary {
     pub name: String,
+    /// Solved for this rig; while `false` (the daemon has just started) the
+    /// other fields say nothing yet: ask again in a moment.
+    pub ready: bool,
     /// The plan fits this rig.
     pub fits: bool,
     /// Why not, when it does not fit.

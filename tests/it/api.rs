@@ -84,8 +84,28 @@ async fn rig_and_plans() {
         .is_some_and(|e| e > 0.0));
     assert_eq!(rig["lamps"]["hmi"], false);
 
+    // The plans are solved in the background: the list answers at once,
+    // each entry saying whether it is ready, and fills in.
     let (status, v) = s.get("/api/v1/plans").await;
     assert_eq!(status, 200);
+    let listed = v["plans"].as_array().expect("plans");
+    assert!(listed.iter().all(|p| p["ready"].is_boolean()), "{v}");
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    let v = loop {
+        let (status, v) = s.get("/api/v1/plans").await;
+        assert_eq!(status, 200);
+        let all_ready = v["plans"]
+            .as_array()
+            .is_some_and(|ps| ps.iter().all(|p| p["ready"] == true));
+        if all_ready {
+            break v;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "plans never ready: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
     let plans = v["plans"].as_array().expect("plans");
     let h1 = plans.iter().find(|p| p["name"] == "h1").expect("h1");
     assert_eq!(h1["fits"], true);

@@ -184,6 +184,8 @@ async function loadPlans() {
     const list = await api("GET", "/plans");
     state.plans = list.plans;
     renderPlans();
+    // The daemon solves its plans in the background after it starts.
+    if (state.plans.some((p) => !p.ready)) setTimeout(loadPlans, 1000);
   } catch (e) {
     showMessage(`plans: ${errText(e)}`);
   }
@@ -381,16 +383,21 @@ function renderPlans() {
   const prev = sel.value;
   sel.replaceChildren();
   for (const p of state.plans) {
-    const o = text("option", p.fits ? `${p.name} (${p.steps_total} images)` : `${p.name} — does not fit`, { value: p.name });
-    if (!p.fits) {
+    const label = !p.ready
+      ? `${p.name} (computing…)`
+      : p.fits ? `${p.name} (${p.steps_total} images)` : `${p.name} — does not fit`;
+    const o = text("option", label, { value: p.name });
+    if (!p.ready || !p.fits) {
       o.disabled = true;
       o.title = p.error || "";
     }
     sel.append(o);
   }
   sel.append(text("option", "custom directions…", { value: "__custom" }));
-  const firstFit = state.plans.find((p) => p.fits);
-  sel.value = prev || (firstFit ? firstFit.name : "__custom");
+  const firstFit = state.plans.find((p) => p.ready && p.fits);
+  // Keep the operator's choice; until they make one, the first plan that fits.
+  const prevUsable = state.planChosen && (prev === "__custom" || state.plans.some((p) => p.name === prev && p.ready && p.fits));
+  sel.value = prevUsable ? prev : firstFit ? firstFit.name : "__custom";
   planChanged();
 }
 
@@ -807,7 +814,10 @@ function setup() {
     submitRun(false);
   });
   $("queue-add").addEventListener("click", () => submitRun(true));
-  $("plan").addEventListener("change", planChanged);
+  $("plan").addEventListener("change", () => {
+    state.planChosen = true;
+    planChanged();
+  });
   $("pause").addEventListener("click", () => command("pause"));
   $("resume").addEventListener("click", () => command("resume"));
   $("abort").addEventListener("click", () => command("abort"));

@@ -6,14 +6,13 @@ use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
 
-use axum::http::StatusCode;
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
 
-use super::error::ApiError;
 use super::events::EventHub;
 use super::model::{PlanSpec, QueueItem, RunRequest, RunView};
 use super::persist::{self, RUNS_DIR};
+use super::plan_cache::PlanCache;
 use super::ServerConfig;
 use crate::engine::command::{check_command, Command};
 use crate::engine::launch::{self, NewRun, Prepared, RunError};
@@ -61,6 +60,8 @@ pub struct Daemon {
     supervisor: Mutex<Option<JoinHandle<()>>>,
     pub shutdown_tx: watch::Sender<bool>,
     schedules: Mutex<HashMap<String, Arc<Schedule>>>,
+    /// The built-in plans solved for this rig, in the background.
+    pub plans: Arc<PlanCache>,
     /// A trade-off report is being computed (`POST /api/v1/tradeoff`).
     pub tradeoff_busy: std::sync::atomic::AtomicBool,
 }
@@ -69,14 +70,58 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
+/// Why the supervisor refused or failed a request; the HTTP layer maps each
+/// kind to its status ([`super::error::ApiError`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SupervisorError {
+    /// No such run or queue item.
+    #[error("{0}")]
+    NotFound(String),
+    /// The request is malformed or does not fit the rig.
+    #[error("{0}")]
+    Invalid(String),
+    /// The request conflicts with the rig's or the run's state.
+    #[error("{0}")]
+    Conflict(String),
+    /// The daemon cannot take it now (shutting down, the engine busy).
+    #[error("{0}")]
+    Unavailable(String),
+    /// Something failed inside the daemon (a run directory, the disk).
+    #[error("{0}")]
+    Internal(String),
+}
+
+impl SupervisorError {
+    /// [`SupervisorError::NotFound`].
+    pub fn not_found(detail: impl Into<String>) -> Self {
+        SupervisorError::NotFound(detail.into())
+    }
+    /// [`SupervisorError::Invalid`].
+    pub fn invalid(detail: impl Into<String>) -> Self {
+        SupervisorError::Invalid(detail.into())
+    }
+    /// [`SupervisorError::Conflict`].
+    pub fn conflict(detail: impl Into<String>) -> Self {
+        SupervisorError::Conflict(detail.into())
+    }
+    /// [`SupervisorError::Unavailable`].
+    pub fn unavailable(detail: impl Into<String>) -> Self {
+        SupervisorError::Unavailable(detail.into())
+    }
+    /// [`SupervisorError::Internal`].
+    pub fn internal(detail: impl Into<String>) -> Self {
+        SupervisorError::Internal(detail.into())
+    }
+}
+
 /// Most characters a sample, operator name or plan name may have.
 const MAX_NAME: usize = 128;
 const MAX_NOTES: usize = 8192;
 
-fn run_error(e: RunError) -> ApiError {
+fn run_error(e: RunError) -> SupervisorError {
     match e {
-        RunError::Store(s) => ApiError::internal(s.to_string()),
-        other => ApiError::invalid(other.to_string()),
+        RunError::Store(s) => SupervisorError::internal(s.to_string()),
+        other => SupervisorError::invalid(other.to_string()),
     }
 }
 
@@ -98,6 +143,8 @@ impl Daemon {
         }
         inner.queue = persist::load_queue(&data_dir);
         let (shutdown_tx, _) = watch::channel(false);
+        let plans = PlanCache::new(profile.clone());
+        plans.start();
         Ok(Arc::new(Daemon {
             config,
             profile,
@@ -111,6 +158,7 @@ impl Daemon {
             shutdown_tx,
             tradeoff_busy: std::sync::atomic::AtomicBool::new(false),
             schedules: Mutex::new(HashMap::new()),
+            plans,
         }))
     }
 
@@ -149,37 +197,39 @@ impl Daemon {
     }
 
     /// Checks a request and resolves its plan (built-in names or inline only).
-    pub fn validate(&self, req: &RunRequest) -> Result<plan::Plan, ApiError> {
+    pub fn validate(&self, req: &RunRequest) -> Result<plan::Plan, SupervisorError> {
         let sample = req.sample.trim();
         if sample.is_empty() || req.sample.chars().count() > MAX_NAME {
-            return Err(ApiError::invalid(format!(
+            return Err(SupervisorError::invalid(format!(
                 "`sample` must have 1 to {MAX_NAME} characters"
             )));
         }
         if req.sample.chars().any(char::is_control) {
-            return Err(ApiError::invalid("`sample` holds control characters"));
+            return Err(SupervisorError::invalid(
+                "`sample` holds control characters",
+            ));
         }
         if let Some(op) = &req.operator {
             if op.chars().count() > MAX_NAME || op.chars().any(char::is_control) {
-                return Err(ApiError::invalid(format!(
+                return Err(SupervisorError::invalid(format!(
                     "`operator`: at most {MAX_NAME} characters, no control characters"
                 )));
             }
         }
         if let Some(n) = &req.notes {
             if n.chars().count() > MAX_NOTES {
-                return Err(ApiError::invalid(format!(
+                return Err(SupervisorError::invalid(format!(
                     "`notes`: at most {MAX_NOTES} characters"
                 )));
             }
         }
         if let Some(e) = req.exposure_s {
             crate::schedule::timing::check_exposure_s(e)
-                .map_err(|why| ApiError::invalid(format!("`exposure_s` {why}")))?;
+                .map_err(|why| SupervisorError::invalid(format!("`exposure_s` {why}")))?;
         }
         if let Some([w, h]) = req.frame_size {
             if !(1..=4096).contains(&w) || !(1..=4096).contains(&h) {
-                return Err(ApiError::invalid(
+                return Err(SupervisorError::invalid(
                     "`frame_size`: [width, height], each between 1 and 4096",
                 ));
             }
@@ -187,7 +237,7 @@ impl Daemon {
         match &req.plan {
             PlanSpec::Name(name) => {
                 if !BUILTIN_PLANS.contains(&name.as_str()) && !name.starts_with("laser:") {
-                    return Err(ApiError::invalid(format!(
+                    return Err(SupervisorError::invalid(format!(
                         "unknown plan `{}` (expected one of {}, or an inline plan object)",
                         name.chars().take(64).collect::<String>(),
                         BUILTIN_PLANS.join(", ")
@@ -200,15 +250,15 @@ impl Daemon {
             PlanSpec::Inline(p) => {
                 if let Some(n) = &p.name {
                     if n.is_empty() || n.chars().count() > MAX_NAME {
-                        return Err(ApiError::invalid(format!(
+                        return Err(SupervisorError::invalid(format!(
                             "plan `name` must have 1 to {MAX_NAME} characters"
                         )));
                     }
                 }
-                let value =
-                    serde_json::to_value(p).map_err(|e| ApiError::internal(e.to_string()))?;
+                let value = serde_json::to_value(p)
+                    .map_err(|e| SupervisorError::internal(e.to_string()))?;
                 let mut plan = plan::from_json_value(value, "inline plan", "custom")
-                    .map_err(|e| ApiError::invalid(e.to_string()))?;
+                    .map_err(|e| SupervisorError::invalid(e.to_string()))?;
                 if let Some(o) = req.order {
                     plan.order = o;
                 }
@@ -217,9 +267,9 @@ impl Daemon {
         }
     }
 
-    fn conflict_active(inner: &Inner) -> Option<ApiError> {
+    fn conflict_active(inner: &Inner) -> Option<SupervisorError> {
         inner.active.as_ref().map(|a| {
-            ApiError::conflict(format!(
+            SupervisorError::conflict(format!(
                 "run {} is active ({}); pause/abort it or queue this run with POST /api/v1/queue",
                 a.id, a.state
             ))
@@ -227,16 +277,13 @@ impl Daemon {
     }
 
     /// Starts a new run now; 409 if one is active.
-    pub async fn start_run(self: &Arc<Self>, req: RunRequest) -> Result<RunView, ApiError> {
+    pub async fn start_run(self: &Arc<Self>, req: RunRequest) -> Result<RunView, SupervisorError> {
         let plan = self.validate(&req)?;
         let _gate = self.start_gate.lock().await;
         {
             let inner = self.inner();
             if inner.shutting_down {
-                return Err(ApiError::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    "the daemon is shutting down",
-                ));
+                return Err(SupervisorError::unavailable("the daemon is shutting down"));
             }
             if let Some(e) = Self::conflict_active(&inner) {
                 return Err(e);
@@ -279,10 +326,10 @@ impl Daemon {
             ))
         })
         .await
-        .map_err(|e| ApiError::internal(format!("preparing the run failed: {e}")))?
+        .map_err(|e| SupervisorError::internal(format!("preparing the run failed: {e}")))?
         .map_err(run_error)?;
         let (view, _) =
-            persist::load_run(&root, &id).map_err(|e| ApiError::internal(e.to_string()))?;
+            persist::load_run(&root, &id).map_err(|e| SupervisorError::internal(e.to_string()))?;
         let view = self.install(view, prepared, "run_created");
         Ok(view)
     }
@@ -470,10 +517,7 @@ impl Daemon {
                     tracing::info!(item = %item.id, run = %v.id, "queued run started");
                     return Some(v);
                 }
-                Err(e)
-                    if e.status == StatusCode::CONFLICT
-                        || e.status == StatusCode::SERVICE_UNAVAILABLE =>
-                {
+                Err(SupervisorError::Conflict(_) | SupervisorError::Unavailable(_)) => {
                     // Someone else took the rig meanwhile, or the daemon is
                     // stopping: put it back.
                     let mut inner = self.inner();
@@ -482,11 +526,11 @@ impl Daemon {
                     return None;
                 }
                 Err(e) => {
-                    tracing::warn!(item = %item.id, "queued run could not start: {}", e.detail);
+                    tracing::warn!(item = %item.id, "queued run could not start: {}", e);
                     self.hub.publish(
                         None,
                         "queue_item_failed",
-                        serde_json::json!({"item": item, "error": e.detail}),
+                        serde_json::json!({"item": item, "error": e.to_string()}),
                     );
                 }
             }
@@ -509,18 +553,15 @@ impl Daemon {
     pub async fn enqueue(
         self: &Arc<Self>,
         req: RunRequest,
-    ) -> Result<(QueueItem, Option<RunView>), ApiError> {
+    ) -> Result<(QueueItem, Option<RunView>), SupervisorError> {
         self.validate(&req)?;
         let item = {
             let mut inner = self.inner();
             if inner.shutting_down {
-                return Err(ApiError::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    "the daemon is shutting down",
-                ));
+                return Err(SupervisorError::unavailable("the daemon is shutting down"));
             }
             if inner.queue.len() >= 1000 {
-                return Err(ApiError::conflict("the queue is full (1000 items)"));
+                return Err(SupervisorError::conflict("the queue is full (1000 items)"));
             }
             inner.queue_seq += 1;
             let ms = std::time::SystemTime::now()
@@ -534,7 +575,7 @@ impl Daemon {
             };
             inner.queue.push(item.clone());
             persist::save_queue(&self.data_dir, &inner.queue)
-                .map_err(|e| ApiError::internal(format!("cannot save the queue: {e}")))?;
+                .map_err(|e| SupervisorError::internal(format!("cannot save the queue: {e}")))?;
             item
         };
         self.publish_queue();
@@ -543,15 +584,15 @@ impl Daemon {
         Ok((item, started))
     }
 
-    pub fn dequeue(&self, item: &str) -> Result<(), ApiError> {
+    pub fn dequeue(&self, item: &str) -> Result<(), SupervisorError> {
         {
             let mut inner = self.inner();
             let Some(pos) = inner.queue.iter().position(|q| q.id == item) else {
-                return Err(ApiError::not_found("no such queue item"));
+                return Err(SupervisorError::not_found("no such queue item"));
             };
             inner.queue.remove(pos);
             persist::save_queue(&self.data_dir, &inner.queue)
-                .map_err(|e| ApiError::internal(format!("cannot save the queue: {e}")))?;
+                .map_err(|e| SupervisorError::internal(format!("cannot save the queue: {e}")))?;
         }
         self.publish_queue();
         Ok(())
@@ -562,10 +603,10 @@ impl Daemon {
         self: &Arc<Self>,
         id: &str,
         cmd: Command,
-    ) -> Result<(bool, RunView), ApiError> {
+    ) -> Result<(bool, RunView), SupervisorError> {
         let view = self
             .view(id)
-            .ok_or_else(|| ApiError::not_found(format!("no run `{}`", short(id))))?;
+            .ok_or_else(|| SupervisorError::not_found(format!("no run `{}`", short(id))))?;
         let live = {
             let inner = self.inner();
             inner
@@ -575,13 +616,9 @@ impl Daemon {
                 .map(|a| (a.state, a.handle.commands.clone()))
         };
         if let Some((state, tx)) = live {
-            check_command(state, cmd).map_err(|r| ApiError::conflict(r.to_string()))?;
-            tx.try_send(cmd).map_err(|e| {
-                ApiError::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    format!("the engine is busy: {e}"),
-                )
-            })?;
+            check_command(state, cmd).map_err(|r| SupervisorError::conflict(r.to_string()))?;
+            tx.try_send(cmd)
+                .map_err(|e| SupervisorError::unavailable(format!("the engine is busy: {e}")))?;
             return Ok((true, self.view(id).unwrap_or(view)));
         }
         // No live engine.
@@ -593,7 +630,7 @@ impl Daemon {
             Command::Abort if view.resumable => {
                 let root = self.runs_dir.join(id);
                 let current = crate::store::read_state(&root)
-                    .map_err(|e| ApiError::internal(e.to_string()))?;
+                    .map_err(|e| SupervisorError::internal(e.to_string()))?;
                 let record = crate::store::transition_state(
                     &root,
                     current.as_ref(),
@@ -601,7 +638,7 @@ impl Daemon {
                     Some("aborted by operator (no live engine)".into()),
                     view.physical_s,
                 )
-                .map_err(|e| ApiError::internal(e.to_string()))?;
+                .map_err(|e| SupervisorError::internal(e.to_string()))?;
                 let v = {
                     let mut inner = self.inner();
                     let v = inner.runs.get_mut(id).map(|v| {
@@ -621,7 +658,7 @@ impl Daemon {
                 self.pump_queue();
                 Ok((false, v))
             }
-            _ => Err(ApiError::conflict(format!(
+            _ => Err(SupervisorError::conflict(format!(
                 "cannot {} run {} in state {}{}",
                 format!("{cmd:?}").to_lowercase(),
                 id,
@@ -635,15 +672,12 @@ impl Daemon {
         }
     }
 
-    async fn resume_from_disk(self: &Arc<Self>, id: &str) -> Result<RunView, ApiError> {
+    async fn resume_from_disk(self: &Arc<Self>, id: &str) -> Result<RunView, SupervisorError> {
         let _gate = self.start_gate.lock().await;
         {
             let inner = self.inner();
             if inner.shutting_down {
-                return Err(ApiError::new(
-                    StatusCode::SERVICE_UNAVAILABLE,
-                    "the daemon is shutting down",
-                ));
+                return Err(SupervisorError::unavailable("the daemon is shutting down"));
             }
             if let Some(e) = Self::conflict_active(&inner) {
                 return Err(e);
@@ -663,16 +697,16 @@ impl Daemon {
             ))
         })
         .await
-        .map_err(|e| ApiError::internal(format!("resuming failed: {e}")))?
+        .map_err(|e| SupervisorError::internal(format!("resuming failed: {e}")))?
         .map_err(|e| match e {
             RunError::Store(crate::store::StoreError::Finished(..)) => {
-                ApiError::conflict(e.to_string())
+                SupervisorError::conflict(e.to_string())
             }
             other => run_error(other),
         })?;
         let view = self
             .view(id)
-            .ok_or_else(|| ApiError::not_found("no such run"))?;
+            .ok_or_else(|| SupervisorError::not_found("no such run"))?;
         Ok(self.install(view, prepared, "run_resumed"))
     }
 
@@ -704,17 +738,17 @@ impl Daemon {
     }
 
     /// The schedule of a run (solved from its run.json, cached).
-    pub fn run_schedule(&self, id: &str) -> Result<Arc<Schedule>, ApiError> {
+    pub fn run_schedule(&self, id: &str) -> Result<Arc<Schedule>, SupervisorError> {
         if let Some(s) = lock(&self.schedules).get(id) {
             return Ok(s.clone());
         }
         let root = self
             .run_root(id)
-            .ok_or_else(|| ApiError::not_found(format!("no run `{}`", short(id))))?;
+            .ok_or_else(|| SupervisorError::not_found(format!("no run `{}`", short(id))))?;
         let bytes = std::fs::read(root.join(crate::store::RUN_FILE))
-            .map_err(|e| ApiError::internal(e.to_string()))?;
+            .map_err(|e| SupervisorError::internal(e.to_string()))?;
         let meta: crate::store::RunMeta =
-            serde_json::from_slice(&bytes).map_err(|e| ApiError::internal(e.to_string()))?;
+            serde_json::from_slice(&bytes).map_err(|e| SupervisorError::internal(e.to_string()))?;
         let (_, _, schedule) =
             launch::solve_given_plan(&meta.profile, meta.plan).map_err(run_error)?;
         let schedule = Arc::new(schedule);
@@ -724,18 +758,6 @@ impl Daemon {
         }
         cache.insert(id.to_string(), schedule.clone());
         Ok(schedule)
-    }
-
-    pub fn cached_schedule(&self, key: &str) -> Option<Arc<Schedule>> {
-        lock(&self.schedules).get(key).cloned()
-    }
-
-    pub fn cache_schedule(&self, key: &str, s: Arc<Schedule>) {
-        let mut cache = lock(&self.schedules);
-        if cache.len() >= 32 {
-            cache.clear();
-        }
-        cache.insert(key.to_string(), s);
     }
 
     /// Stops taking work, detaches the active run (it is left paused and

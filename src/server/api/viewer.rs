@@ -8,12 +8,12 @@ use axum::response::{IntoResponse, Response};
 use rigd_process::mesh::MeshKind;
 use serde::Deserialize;
 
-use super::api::AppState;
-use super::error::{ApiError, ApiPath};
+use super::AppState;
 use crate::postprocess::viewer::{self, RelightError, DEFAULT_DENSITY};
+use crate::server::error::{ApiError, ApiPath};
 
-pub const VIEWER_HTML: &str = include_str!("dashboard/viewer.html");
-pub const VIEWER_JS: &str = include_str!("dashboard/viewer.js");
+pub const VIEWER_HTML: &str = include_str!("../dashboard/viewer.html");
+pub const VIEWER_JS: &str = include_str!("../dashboard/viewer.js");
 
 /// Most components the viewer is sent per slot unless it asks for fewer.
 const MAX_COMPONENTS: usize = 64;
@@ -67,7 +67,7 @@ fn components(q: Result<Query<BtfQuery>, QueryRejection>) -> Result<usize, ApiEr
 #[utoipa::path(get, path = "/api/v1/runs/{id}/btf", tag = "runs",
     params(("id" = String, Path, description = "Run id"), BtfQuery),
     responses((status = 200, description = "The manifest", content_type = "application/json", body = Object),
-              (status = 404, description = "No such run, or not processed yet", body = super::error::ErrorBody)))]
+              (status = 404, description = "No such run, or not processed yet", body = crate::server::error::ErrorBody)))]
 pub async fn btf_manifest(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
@@ -88,7 +88,7 @@ pub async fn btf_manifest(
 #[utoipa::path(get, path = "/api/v1/runs/{id}/btf/data", tag = "runs",
     params(("id" = String, Path, description = "Run id"), BtfQuery),
     responses((status = 200, description = "The packed material", content_type = "application/octet-stream", body = Vec<u8>),
-              (status = 404, description = "No such run, or not processed yet", body = super::error::ErrorBody)))]
+              (status = 404, description = "No such run, or not processed yet", body = crate::server::error::ErrorBody)))]
 pub async fn btf_data(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
@@ -106,8 +106,8 @@ pub async fn btf_data(
     params(("id" = String, Path, description = "Run id"),
            ("kind" = String, Path, description = "flat, cylinder or cloth"), MeshQuery),
     responses((status = 200, description = "The mesh", content_type = "application/json", body = Object),
-              (status = 404, description = "No such run or mesh, or not processed yet", body = super::error::ErrorBody),
-              (status = 422, description = "Density out of range", body = super::error::ErrorBody)))]
+              (status = 404, description = "No such run or mesh, or not processed yet", body = crate::server::error::ErrorBody),
+              (status = 422, description = "Density out of range", body = crate::server::error::ErrorBody)))]
 pub async fn btf_mesh(
     State(d): State<AppState>,
     ApiPath((id, kind)): ApiPath<(String, String)>,

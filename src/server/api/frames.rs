@@ -5,8 +5,11 @@
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
 
-use super::error::ApiError;
-use super::state::Daemon;
+use axum::extract::State;
+
+use super::AppState;
+use crate::server::error::{ApiError, ApiPath, ErrorBody};
+use crate::server::supervisor::Daemon;
 use crate::store::{decode_png, frame_file};
 
 /// Longest side of a preview, pixels.
@@ -147,4 +150,31 @@ mod tests {
         assert_eq!((info.width, info.height), (256, 128));
         assert_eq!(info.bit_depth, png::BitDepth::Eight);
     }
+}
+
+/// The raw frame: a greyscale PNG holding the sensor values (16-bit for >8-bit cameras).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/frames/{index}", tag = "runs",
+    params(("id" = String, Path, description = "Run id"), ("index" = u64, Path, description = "Image index")),
+    responses((status = 200, description = "The frame", content_type = "image/png", body = Vec<u8>),
+              (status = 400, description = "Index not a non-negative integer", body = ErrorBody),
+              (status = 404, description = "No such run or frame not taken", body = ErrorBody)))]
+pub async fn frame_raw(
+    State(d): State<AppState>,
+    ApiPath((id, index)): ApiPath<(String, String)>,
+) -> Result<Response, ApiError> {
+    super::frames::raw(&d, &id, &index).await
+}
+
+/// An 8-bit preview PNG of a frame, downscaled to at most 256 px on its longer side
+/// and stretched to the frame's own maximum.
+#[utoipa::path(get, path = "/api/v1/runs/{id}/frames/{index}/preview", tag = "runs",
+    params(("id" = String, Path, description = "Run id"), ("index" = u64, Path, description = "Image index")),
+    responses((status = 200, description = "The preview", content_type = "image/png", body = Vec<u8>),
+              (status = 400, description = "Index not a non-negative integer", body = ErrorBody),
+              (status = 404, description = "No such run or frame not taken", body = ErrorBody)))]
+pub async fn frame_preview(
+    State(d): State<AppState>,
+    ApiPath((id, index)): ApiPath<(String, String)>,
+) -> Result<Response, ApiError> {
+    super::frames::preview(&d, &id, &index).await
 }

@@ -17,8 +17,8 @@ use axum::Json;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::api::AppState;
-use super::error::{ApiError, ApiJson, ErrorBody};
+use super::AppState;
+use crate::server::error::{ApiError, ApiJson, ErrorBody};
 use crate::tradeoff::TradeoffConfig;
 
 /// The folder of the data directory the report is kept in.

@@ -1,0 +1,79 @@
+//! The `/api/v1` handlers, one module per resource, and their OpenAPI
+//! description.
+
+pub mod daemon;
+pub mod frames;
+pub mod plans;
+pub mod queue;
+pub mod rig;
+pub mod runs;
+pub mod sim;
+pub mod tradeoff;
+pub mod viewer;
+
+use std::sync::Arc;
+
+use utoipa::OpenApi;
+
+use super::error::{ApiError, ErrorBody};
+use super::events::DaemonEvent;
+use super::model::*;
+use super::supervisor::Daemon;
+use sim::SceneView;
+
+/// What every handler gets: the daemon.
+pub type AppState = Arc<Daemon>;
+
+#[derive(OpenApi)]
+#[openapi(
+    info(
+        title = "rigd API",
+        description = "Control daemon for BTF measurement rigs. Mutating routes need \
+`Authorization: Bearer <token>`; reads are open to loopback clients. Errors are JSON `{error, detail}`.",
+    ),
+    paths(
+        daemon::health, rig::rig, plans::plans, plans::plan_detail, runs::list_runs,
+        runs::create_run, runs::get_run, runs::run_steps, runs::run_manifest, runs::pause_run,
+        runs::resume_run, runs::abort_run, rig::estop, daemon::events_sse, frames::frame_raw,
+        frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
+        sim::sim_render, sim::sim_scenes, viewer::btf_manifest, viewer::btf_data,
+        viewer::btf_mesh, tradeoff::get_report, tradeoff::get_plot, tradeoff::start
+    ),
+    components(schemas(
+        ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
+        RunRequest, PlanSpec, InlinePlan, PairDto, RunView, RunList, CommandAck, RunSteps, RunStep,
+        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent, SceneView,
+        tradeoff::TradeoffRequest, tradeoff::TradeoffStarted
+    )),
+    modifiers(&BearerAuth),
+    tags(
+        (name = "daemon", description = "Health and the event stream"),
+        (name = "rig", description = "The rig and its plans"),
+        (name = "runs", description = "Runs, their steps, frames and manifests"),
+        (name = "queue", description = "Runs waiting for the rig"),
+        (name = "sim", description = "The scene simulator: one frame on request"),
+    )
+)]
+/// The OpenAPI description, served at `/api/v1/openapi.json`.
+pub struct ApiDoc;
+
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+        );
+    }
+}
+
+/// 404 for a run id, shortened so a hostile id cannot flood the answer.
+fn not_found_run(id: &str) -> ApiError {
+    ApiError::not_found(format!(
+        "no run `{}`",
+        id.chars().take(64).collect::<String>()
+    ))
+}

@@ -1,0 +1,89 @@
+//! `/plans`: the built-in plans on this rig. Their schedules are solved in
+//! the background when the daemon starts ([`crate::server::plan_cache`]),
+//! so listing them never waits: a plan still being solved is listed with
+//! `ready: false`.
+
+use axum::extract::State;
+use axum::Json;
+
+use super::AppState;
+use crate::plan::BUILTIN_PLANS;
+use crate::schedule::timing::Timing;
+use crate::schedule::Schedule;
+use crate::server::error::{ApiError, ApiPath, ErrorBody};
+use crate::server::model::*;
+use crate::server::supervisor::Daemon;
+
+fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
+    let est = Timing::new(&d.profile, None).estimate_s(schedule, |_| false);
+    PlanSummary {
+        name: name.into(),
+        ready: true,
+        fits: true,
+        error: None,
+        steps_total: schedule.images.len(),
+        triggers_total: schedule.triggers.len(),
+        infeasible_total: schedule.infeasible().count(),
+        estimated_physical_s: est,
+        estimated_wall_s: est / d.speed(),
+    }
+}
+
+fn unsized_summary(name: &str, ready: bool, error: Option<String>) -> PlanSummary {
+    PlanSummary {
+        name: name.into(),
+        ready,
+        fits: false,
+        error,
+        steps_total: 0,
+        triggers_total: 0,
+        infeasible_total: 0,
+        estimated_physical_s: 0.0,
+        estimated_wall_s: 0.0,
+    }
+}
+
+/// The built-in plans on this rig: size, feasibility and estimated physical
+/// duration. Answers at once; a plan still being solved has `ready: false`
+/// (ask again in a moment).
+#[utoipa::path(get, path = "/api/v1/plans", tag = "rig",
+    responses((status = 200, description = "Every built-in plan", body = PlanList)))]
+pub async fn plans(State(d): State<AppState>) -> Json<PlanList> {
+    let plans = BUILTIN_PLANS
+        .iter()
+        .map(|&name| match d.plans.ready(name) {
+            Some(Ok(s)) => summary(&d, name, &s),
+            Some(Err(why)) => unsized_summary(name, true, Some(why)),
+            None => unsized_summary(name, false, None),
+        })
+        .collect();
+    Json(PlanList {
+        profile: d.profile.name.clone(),
+        plans,
+    })
+}
+
+/// One built-in plan with every step: directions, feasibility, set-points.
+/// Waits for the plan if it is still being solved.
+#[utoipa::path(get, path = "/api/v1/plans/{name}", tag = "rig",
+    params(("name" = String, Path, description = "h1, h2, grid12x8, lamps or laser")),
+    responses((status = 200, description = "The plan", body = PlanDetail),
+              (status = 404, description = "No such plan", body = ErrorBody),
+              (status = 422, description = "The plan does not fit this rig", body = ErrorBody)))]
+pub async fn plan_detail(
+    State(d): State<AppState>,
+    ApiPath(name): ApiPath<String>,
+) -> Result<Json<PlanDetail>, ApiError> {
+    let solved = d.plans.get(&name).await.ok_or_else(|| {
+        ApiError::not_found(format!(
+            "no built-in plan of that name (expected one of {})",
+            BUILTIN_PLANS.join(", ")
+        ))
+    })?;
+    let s = solved.map_err(ApiError::invalid)?;
+    let steps = s.steps().map(PlanStep::from).collect();
+    Ok(Json(PlanDetail {
+        summary: summary(&d, &name, &s),
+        steps,
+    }))
+}

@@ -1,0 +1,135 @@
+//! `/rig` and `/estop`: the rig's devices and state, and the emergency stop.
+
+use axum::extract::State;
+use axum::Json;
+
+use super::AppState;
+use crate::model::profile::DeviceKind;
+use crate::model::run_state::RunState;
+use crate::server::error::ErrorBody;
+use crate::server::model::*;
+
+/// The rig: every device with its live state, lamp states and camera settings.
+#[utoipa::path(get, path = "/api/v1/rig", tag = "rig",
+    responses((status = 200, description = "The rig", body = RigView),
+              (status = 401, description = "Token needed (non-loopback client)", body = ErrorBody)))]
+pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
+    let (active, state, reason, sim, exposure) = {
+        let inner = d.inner();
+        let a = inner.active.as_ref();
+        let exposure = a
+            .and_then(|a| inner.runs.get(&a.id))
+            .and_then(|v| v.exposure_s);
+        let reason = a
+            .and_then(|a| inner.runs.get(&a.id))
+            .and_then(|v| v.reason.clone());
+        (
+            a.map(|a| a.id.clone()),
+            a.map(|a| a.state),
+            reason,
+            a.and_then(|a| a.sim.clone())
+                .or_else(|| inner.last_sim.clone()),
+            exposure,
+        )
+    };
+    let world = sim.map(|s| s.world());
+    let busy = matches!(state, Some(RunState::Running | RunState::Preparing));
+    let fault_for = |name: &str| {
+        (state == Some(RunState::Paused))
+            .then(|| reason.clone())
+            .flatten()
+            .filter(|r| r.contains(name))
+    };
+    let mut lamps = serde_json::Map::new();
+    let mut devices = Vec::new();
+    for (name, dev) in &d.profile.devices {
+        let mut v = DeviceView {
+            name: name.clone(),
+            kind: serde_json::to_value(dev.kind)
+                .ok()
+                .and_then(|k| k.as_str().map(str::to_string))
+                .unwrap_or_default(),
+            protocol: dev.protocol.clone(),
+            connected: d.config.sim,
+            homed: None,
+            busy,
+            fault: fault_for(name),
+            position_deg: None,
+            joints: None,
+            on: None,
+            camera: None,
+        };
+        match dev.kind {
+            DeviceKind::Axis => {
+                let p = world.as_ref().and_then(|w| w.axes.get(name).copied());
+                v.homed = Some(p.is_some());
+                v.position_deg = p;
+            }
+            DeviceKind::Arm => {
+                let q = world.as_ref().and_then(|w| w.arm.clone());
+                v.homed = Some(q.is_some());
+                if let (Some(q), Some(joints)) = (q, &dev.joints) {
+                    let m: serde_json::Map<String, serde_json::Value> = joints
+                        .iter()
+                        .zip(q)
+                        .map(|(j, x)| (j.name.clone(), serde_json::json!(x)))
+                        .collect();
+                    v.joints = Some(serde_json::Value::Object(m));
+                }
+            }
+            DeviceKind::Lamp => {
+                let on = world
+                    .as_ref()
+                    .and_then(|w| w.lamps_on.get(name).copied())
+                    .unwrap_or(false);
+                v.on = Some(on);
+                lamps.insert(name.clone(), serde_json::json!(on));
+            }
+            DeviceKind::Camera => {
+                let timing = dev.timing.as_ref();
+                v.camera = Some(serde_json::json!({
+                    "resolution": dev.intrinsics.as_ref().map(|i| i.resolution),
+                    "bit_depth": dev.intrinsics.as_ref().map(|i| i.bit_depth),
+                    "focal_px": dev.intrinsics.as_ref().map(|i| i.focal_px),
+                    "exposure_s": exposure.or(timing.map(|t| t.exposure_s)),
+                    "readout_s": timing.map(|t| t.readout_s),
+                    "transfer_s": timing.map(|t| t.transfer_s),
+                    "sim_frame_size": d.profile.sim.frame_size,
+                }));
+            }
+            DeviceKind::Laser => {}
+        }
+        devices.push(v);
+    }
+    Json(RigView {
+        profile: d.profile.name.clone(),
+        description: d.profile.description.clone(),
+        sim: d.config.sim,
+        sim_speed: d.speed(),
+        active_run: active,
+        state: state.unwrap_or(RunState::Idle),
+        devices,
+        lamps: serde_json::Value::Object(lamps),
+    })
+}
+
+/// Emergency stop: every device stops at once; the active run pauses and re-homes on resume.
+#[utoipa::path(post, path = "/api/v1/estop", tag = "rig", security(("bearer" = [])),
+    responses((status = 200, description = "What stopped", body = EstopAnswer),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody)))]
+pub async fn estop(State(d): State<AppState>) -> Json<EstopAnswer> {
+    let (run, report) = d.estop().await;
+    Json(EstopAnswer {
+        run,
+        latency_s: report.as_ref().map(|r| r.latency_s),
+        all_stopped: report.as_ref().is_none_or(|r| r.all_stopped()),
+        devices: report
+            .map(|r| {
+                r.devices
+                    .iter()
+                    .map(|a| serde_json::to_value(a).unwrap_or_default())
+                    .collect()
+            })
+            .unwrap_or_default(),
+    })
+}

@@ -1,0 +1,198 @@
+//! `/runs`: the run history, new runs, a run's steps and manifest, and the
+//! operator's commands (pause, resume, abort).
+
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+
+use super::not_found_run;
+use super::AppState;
+use crate::engine::command::Command;
+use crate::server::error::{ApiError, ApiJson, ApiPath, ErrorBody};
+use crate::server::model::*;
+use crate::server::supervisor::Daemon;
+
+/// Every run in the data directory, newest first.
+#[utoipa::path(get, path = "/api/v1/runs", tag = "runs",
+    responses((status = 200, description = "The run history", body = RunList)))]
+pub async fn list_runs(State(d): State<AppState>) -> Json<RunList> {
+    let (mut runs, active) = {
+        let inner = d.inner();
+        let runs: Vec<RunView> = inner.runs.values().cloned().collect();
+        (runs, inner.active.as_ref().map(|a| a.id.clone()))
+    };
+    runs.sort_by(|a, b| b.started_at.cmp(&a.started_at).then(b.id.cmp(&a.id)));
+    for run in &mut runs {
+        mark_processed(&d, run);
+    }
+    Json(RunList { runs, active })
+}
+
+/// Fills `processed` from what lies on disk now (`rigd process` runs
+/// outside the daemon).
+fn mark_processed(d: &Daemon, run: &mut RunView) {
+    run.processed = d
+        .run_root(&run.id)
+        .and_then(|root| crate::postprocess::viewer::processed_kind(&root))
+        .map(str::to_string);
+}
+
+/// Starts a run now.
+#[utoipa::path(post, path = "/api/v1/runs", tag = "runs", request_body = RunRequest,
+    security(("bearer" = [])),
+    responses((status = 201, description = "The run started", body = RunView),
+              (status = 400, description = "Malformed JSON", body = ErrorBody),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 409, description = "Another run is active (named in `detail`)", body = ErrorBody),
+              (status = 413, description = "Body over 64 KiB", body = ErrorBody),
+              (status = 415, description = "Not `Content-Type: application/json`", body = ErrorBody),
+              (status = 422, description = "Invalid fields, unknown plan", body = ErrorBody)))]
+pub async fn create_run(
+    State(d): State<AppState>,
+    ApiJson(req): ApiJson<RunRequest>,
+) -> Result<(StatusCode, Json<RunView>), ApiError> {
+    let v = d.start_run(req).await?;
+    Ok((StatusCode::CREATED, Json(v)))
+}
+
+/// One run: state, steps done/total, physical ETA, last error, timestamps.
+#[utoipa::path(get, path = "/api/v1/runs/{id}", tag = "runs",
+    params(("id" = String, Path, description = "Run id")),
+    responses((status = 200, description = "The run", body = RunView),
+              (status = 404, description = "No such run", body = ErrorBody)))]
+pub async fn get_run(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Json<RunView>, ApiError> {
+    let mut run = d.view(&id).ok_or_else(|| not_found_run(&id))?;
+    mark_processed(&d, &mut run);
+    Ok(Json(run))
+}
+
+/// Every image of the run's plan, planned and captured (for hemisphere plots).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/steps", tag = "runs",
+    params(("id" = String, Path, description = "Run id")),
+    responses((status = 200, description = "The steps", body = RunSteps),
+              (status = 404, description = "No such run", body = ErrorBody)))]
+pub async fn run_steps(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Json<RunSteps>, ApiError> {
+    let root = d.run_root(&id).ok_or_else(|| not_found_run(&id))?;
+    let dd = d.clone();
+    let id2 = id.clone();
+    let (schedule, done) = tokio::task::spawn_blocking(move || {
+        let s = dd.run_schedule(&id2)?;
+        Ok::<_, ApiError>((s, crate::server::persist::journaled(&root)))
+    })
+    .await
+    .map_err(|e| ApiError::internal(e.to_string()))??;
+    let steps: Vec<RunStep> = schedule
+        .images
+        .iter()
+        .map(|img| RunStep {
+            index: img.index,
+            trigger: img.trigger,
+            camera: img.camera.clone(),
+            light: img.light.into(),
+            view: img.view.into(),
+            achieved_light: img.achieved_light.into(),
+            achieved_view: img.achieved_view.into(),
+            feasible: img.feasible,
+            reason: img.reason.clone(),
+            done: done.contains(&img.index),
+        })
+        .collect();
+    Ok(Json(RunSteps {
+        run: id,
+        steps_total: steps.len(),
+        steps_done: steps.iter().filter(|s| s.done).count(),
+        steps,
+    }))
+}
+
+/// The run's manifest.json, once written (at completion or abort).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/manifest", tag = "runs",
+    params(("id" = String, Path, description = "Run id")),
+    responses((status = 200, description = "manifest.json", content_type = "application/json", body = Object),
+              (status = 404, description = "No such run, or no manifest yet", body = ErrorBody)))]
+pub async fn run_manifest(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Response, ApiError> {
+    let root = d.run_root(&id).ok_or_else(|| not_found_run(&id))?;
+    match tokio::fs::read(root.join(crate::store::MANIFEST_FILE)).await {
+        Ok(bytes) => Ok((
+            [(axum::http::header::CONTENT_TYPE, "application/json")],
+            bytes,
+        )
+            .into_response()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(ApiError::not_found(
+            "no manifest yet: it is written when the run completes or is aborted",
+        )),
+        Err(e) => Err(ApiError::internal(e.to_string())),
+    }
+}
+
+async fn command(d: AppState, id: String, cmd: Command) -> Result<Response, ApiError> {
+    let (sent, run) = d.command(&id, cmd).await?;
+    let status = if sent {
+        StatusCode::ACCEPTED
+    } else {
+        StatusCode::OK
+    };
+    Ok((
+        status,
+        Json(CommandAck {
+            command: format!("{cmd:?}").to_lowercase(),
+            sent_to_engine: sent,
+            run,
+        }),
+    )
+        .into_response())
+}
+
+/// Pauses the active run between steps.
+#[utoipa::path(post, path = "/api/v1/runs/{id}/pause", tag = "runs",
+    params(("id" = String, Path, description = "Run id")), security(("bearer" = [])),
+    responses((status = 202, description = "Sent to the engine", body = CommandAck),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 404, description = "No such run", body = ErrorBody),
+              (status = 409, description = "Not pausable in its state", body = ErrorBody)))]
+pub async fn pause_run(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Response, ApiError> {
+    command(d, id, Command::Pause).await
+}
+
+/// Resumes a paused run, or an interrupted/detached one from its directory.
+#[utoipa::path(post, path = "/api/v1/runs/{id}/resume", tag = "runs",
+    params(("id" = String, Path, description = "Run id")), security(("bearer" = [])),
+    responses((status = 200, description = "Restarted from its run directory (a new engine)", body = CommandAck),
+              (status = 202, description = "Sent to the live engine", body = CommandAck),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 404, description = "No such run", body = ErrorBody),
+              (status = 409, description = "Not resumable, or another run is active", body = ErrorBody)))]
+pub async fn resume_run(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Response, ApiError> {
+    command(d, id, Command::Resume).await
+}
+
+/// Aborts a run (the live engine writes the manifest; a run with no live engine is marked aborted).
+#[utoipa::path(post, path = "/api/v1/runs/{id}/abort", tag = "runs",
+    params(("id" = String, Path, description = "Run id")), security(("bearer" = [])),
+    responses((status = 200, description = "Marked aborted on disk", body = CommandAck),
+              (status = 202, description = "Sent to the live engine", body = CommandAck),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 404, description = "No such run", body = ErrorBody),
+              (status = 409, description = "Already final", body = ErrorBody)))]
+pub async fn abort_run(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Response, ApiError> {
+    command(d, id, Command::Abort).await
+}

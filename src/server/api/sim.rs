@@ -1,0 +1,149 @@
+//! `/sim`: the scene simulator, one frame on request, and its scenes.
+
+use axum::extract::State;
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+
+use super::AppState;
+use crate::server::error::{ApiError, ErrorBody};
+
+/// What `GET /api/v1/sim/render` takes.
+#[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct RenderQuery {
+    /// A built-in scene (see /api/v1/sim/scenes); the profile's default if absent.
+    pub scene: Option<String>,
+    /// Light θ,φ in degrees, sample frame (default 0,0).
+    pub light: Option<String>,
+    /// View θ,φ in degrees, sample frame (default 0,0).
+    pub view: Option<String>,
+    /// WIDTHxHEIGHT, at most 2048 each way (default: the profile's sim frame size).
+    pub size: Option<String>,
+    /// Which camera of the daemon's profile (default: its first).
+    pub camera: Option<String>,
+    /// Effect switches: `all`, `none`, or `+interreflection,-noise`.
+    pub effects: Option<String>,
+    pub seed: Option<u64>,
+    /// Exposure relative to nominal.
+    pub exposure: Option<f64>,
+    /// Laser plane: `X` or `X,TILT` (mm, degrees).
+    pub laser: Option<String>,
+    /// Lamp off (laser-only frame).
+    pub lamp_off: Option<bool>,
+    /// Focal length multiplier (default 1).
+    pub zoom: Option<f64>,
+}
+
+/// Renders one frame of a scene as the daemon's rig's camera sees it: a
+/// greyscale PNG at the camera's bit depth. `X-Rigd-Effects` lists the
+/// effects the frame paid for, `X-Rigd-Render-Ms` what it cost.
+#[utoipa::path(get, path = "/api/v1/sim/render", tag = "sim", params(RenderQuery),
+    responses((status = 200, description = "The frame", content_type = "image/png", body = Vec<u8>),
+              (status = 400, description = "A parameter is malformed", body = ErrorBody),
+              (status = 422, description = "Unknown scene or camera, or a value out of range", body = ErrorBody)))]
+pub async fn sim_render(
+    State(d): State<AppState>,
+    query: Result<axum::extract::Query<RenderQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Response, ApiError> {
+    let axum::extract::Query(q) = query.map_err(|e| ApiError::bad_request(e.body_text()))?;
+    let req = render_request(&q).map_err(ApiError::bad_request)?;
+    let profile = d.profile.clone();
+    let out = tokio::task::spawn_blocking(move || crate::rig::shot::render(&profile, &req))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))?
+        .map_err(|e| ApiError::invalid(e.to_string()))?;
+    let png = out.png().map_err(ApiError::internal)?;
+    let headers = [
+        (axum::http::header::CONTENT_TYPE, "image/png".to_string()),
+        (
+            axum::http::header::HeaderName::from_static("x-rigd-effects"),
+            out.rendered.plan.live.to_string(),
+        ),
+        (
+            axum::http::header::HeaderName::from_static("x-rigd-render-ms"),
+            format!("{:.2}", out.render_ms),
+        ),
+    ];
+    Ok((headers, png).into_response())
+}
+
+fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, String> {
+    use crate::rig::shot::{parse_direction, parse_frame_size, parse_laser, RenderRequest};
+    let dir = |v: &Option<String>, what: &str| match v {
+        Some(s) => parse_direction(s)
+            .map(Some)
+            .map_err(|e| format!("{what}: {e}")),
+        None => Ok(None),
+    };
+    let size = match &q.size {
+        Some(s) => {
+            let size = parse_frame_size(s).map_err(|e| format!("size: {e}"))?;
+            if size[0] > 2048 || size[1] > 2048 {
+                return Err(format!("size: `{s}`: the API renders at most 2048x2048"));
+            }
+            Some(size)
+        }
+        None => None,
+    };
+    let defaults = RenderRequest::default();
+    Ok(RenderRequest {
+        scene: q.scene.clone(),
+        camera: q.camera.clone(),
+        light: dir(&q.light, "light")?.unwrap_or(defaults.light),
+        view: dir(&q.view, "view")?.unwrap_or(defaults.view),
+        size,
+        effects: q
+            .effects
+            .as_deref()
+            .unwrap_or("")
+            .parse()
+            .map_err(|e| format!("effects: {e}"))?,
+        seed: q.seed.unwrap_or(0),
+        exposure: q.exposure.unwrap_or(1.0),
+        laser: q
+            .laser
+            .as_deref()
+            .map(parse_laser)
+            .transpose()
+            .map_err(|e| format!("laser: {e}"))?,
+        lamp_off: q.lamp_off.unwrap_or(false),
+        zoom: q.zoom.unwrap_or(1.0),
+    })
+}
+
+/// A built-in scene and the effects it can show.
+#[derive(Debug, serde::Serialize, utoipa::ToSchema)]
+pub struct SceneView {
+    pub name: String,
+    pub description: String,
+    /// Effects frames of this scene can pay for.
+    pub effects: Vec<String>,
+}
+
+/// The built-in scenes.
+#[utoipa::path(get, path = "/api/v1/sim/scenes", tag = "sim",
+    responses((status = 200, description = "The scenes", body = Vec<SceneView>)))]
+pub async fn sim_scenes() -> Result<Json<Vec<SceneView>>, ApiError> {
+    let views = tokio::task::spawn_blocking(|| {
+        rigd_sim::scene::Scene::builtin_names()
+            .into_iter()
+            .map(|name| {
+                let s = rigd_sim::scene::Scene::load(name)
+                    .map_err(|e| ApiError::internal(e.to_string()))?;
+                Ok(SceneView {
+                    name: s.name.clone(),
+                    description: s.description.clone(),
+                    effects: s
+                        .capabilities()
+                        .names()
+                        .into_iter()
+                        .map(String::from)
+                        .collect(),
+                })
+            })
+            .collect::<Result<Vec<_>, ApiError>>()
+    })
+    .await
+    .map_err(|e| ApiError::internal(e.to_string()))??;
+    Ok(Json(views))
+}
