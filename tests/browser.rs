@@ -886,7 +886,7 @@ async fn viewer_case(
     mesh: &str,
     light: (f64, f64),
     view: (f64, f64),
-) -> (Vec<u8>, rigd_process::render::RgbImage) {
+) -> (Vec<u8>, rigd_process::relight::RgbImage) {
     use rigd_process::directions::Direction;
     js(
         c,
@@ -907,7 +907,7 @@ async fn viewer_case(
     )
     .await;
     let got = viewer_pixels(c).await;
-    let settings = rigd_process::render::RenderSettings {
+    let settings = rigd_process::relight::RelightSettings {
         width: VIEWER_SIZE,
         height: VIEWER_SIZE,
         light: Direction::new(light.0, light.1),
@@ -915,7 +915,7 @@ async fn viewer_case(
         ..Default::default()
     };
     let kind = mesh.parse().expect("mesh kind");
-    let want = rigd::postprocess::viewer::render_run(
+    let want = rigd::postprocess::viewer::relight_run(
         run,
         kind,
         rigd::postprocess::viewer::DEFAULT_DENSITY,

@@ -103,7 +103,7 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<rigd::plan::PlanError>()
         || cause.is::<rigd::kinematics::KinematicsError>()
         || cause.is::<rigd::rig::shot::RenderError>()
-        || cause.is::<rigd::postprocess::viewer::RelightError>()
+        || cause.is::<rigd::postprocess::viewer::ViewerError>()
         || cause.is::<rigd_sim::scene::SceneError>()
         || cause.is::<btf::BtfError>()
         || cause.is::<directions::DirectionError>()
@@ -115,7 +115,7 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<photometric_stereo::PsError>()
         || cause.is::<rectify::RectifyError>()
         || cause.is::<reflectance_fit::FitError>()
-        || cause.is::<render::RenderError>()
+        || cause.is::<relight::RelightError>()
         || cause.is::<webgl::PackError>();
     bad_input.then_some(EXIT_BAD_INPUT)
 }

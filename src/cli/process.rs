@@ -441,7 +441,7 @@ fn mdf(args: MdfArgs) -> Result<()> {
 }
 
 fn relight(args: RelightArgs) -> Result<()> {
-    use rigd_process::render::{RenderSettings, Shading};
+    use rigd_process::relight::{RelightSettings, Shading};
     if !(args.density.is_finite() && args.density > 0.0 && args.density <= 64.0) {
         return Err(bad_input(format!(
             "--density {}: expected more than 0 and at most 64 tiles per unit",
@@ -454,7 +454,7 @@ fn relight(args: RelightArgs) -> Result<()> {
             args.shadow_alpha
         )));
     }
-    let settings = RenderSettings {
+    let settings = RelightSettings {
         width: args.size[0] as usize,
         height: args.size[1] as usize,
         light: args.light,
@@ -467,7 +467,8 @@ fn relight(args: RelightArgs) -> Result<()> {
         },
     };
     let started = Instant::now();
-    let img = rigd::postprocess::viewer::render_run(&args.run, args.mesh, args.density, &settings)?;
+    let img =
+        rigd::postprocess::viewer::relight_run(&args.run, args.mesh, args.density, &settings)?;
     let data = img.pixels.iter().map(|&v| f32::from(v) / 255.0).collect();
     let image = rigd_process::image_io::Image {
         width: img.width,

@@ -9,8 +9,8 @@ use rigd_process::btf::{BtfError, BtfHeader, BtfStore, TextureShape, HEADER_FILE
 use rigd_process::directions::{DirectionError, DirectionTable};
 use rigd_process::mesh::{Mesh, MeshKind};
 use rigd_process::npy::{self, NpyError};
-use rigd_process::render::{self, RenderError, RenderSettings, RgbImage};
-use rigd_process::webgl::{self, Manifest, PackError};
+use rigd_process::relight::{self, RelightError, RelightSettings, RgbImage};
+use rigd_process::webgl::{self, BlobManifest, PackError};
 use serde::Serialize;
 
 /// Where `rigd process btf` writes, inside a run.
@@ -28,7 +28,7 @@ pub fn ps_dir(run: &Path) -> PathBuf {
 pub const DEFAULT_DENSITY: f64 = 1.0;
 
 #[derive(Debug, thiserror::Error)]
-pub enum RelightError {
+pub enum ViewerError {
     #[error(
         "{run} has no processed BTF ({btf}) and no photometric-stereo result ({ps}): run `rigd process rectify` then `rigd process btf`, or `rigd process photometric-stereo`"
     )]
@@ -48,7 +48,7 @@ pub enum RelightError {
     #[error(transparent)]
     Pack(#[from] PackError),
     #[error(transparent)]
-    Render(#[from] RenderError),
+    Render(#[from] RelightError),
 }
 
 /// `btf` or `photometric-stereo` when the run holds what the viewer shows.
@@ -71,7 +71,7 @@ pub enum Material {
 
 /// Opens what the run holds: the BTF if there is one, else the
 /// photometric-stereo maps.
-pub fn open(run: &Path) -> Result<Material, RelightError> {
+pub fn open(run: &Path) -> Result<Material, ViewerError> {
     let btf = btf_dir(run);
     if btf.join(HEADER_FILE).is_file() {
         return Ok(Material::Btf(BtfStore::read(&btf)?));
@@ -80,7 +80,7 @@ pub fn open(run: &Path) -> Result<Material, RelightError> {
     if ps.join("normals.npy").is_file() && ps.join("albedo.npy").is_file() {
         return Ok(Material::PhotometricStereo { dir: ps });
     }
-    Err(RelightError::NotProcessed {
+    Err(ViewerError::NotProcessed {
         run: run.display().to_string(),
         btf: btf.join(HEADER_FILE).display().to_string(),
         ps: ps.join("normals.npy").display().to_string(),
@@ -90,7 +90,7 @@ pub fn open(run: &Path) -> Result<Material, RelightError> {
 /// The header of the run's BTF and its tables, without the slot data.
 fn btf_header(
     run: &Path,
-) -> Result<Option<(BtfHeader, DirectionTable, DirectionTable)>, RelightError> {
+) -> Result<Option<(BtfHeader, DirectionTable, DirectionTable)>, ViewerError> {
     let dir = btf_dir(run);
     if !dir.join(HEADER_FILE).is_file() {
         return Ok(None);
@@ -102,7 +102,7 @@ fn btf_header(
 }
 
 /// The manifest of the viewer's blob; for a BTF from `btf.json` alone.
-pub fn manifest(run: &Path, max_components: usize) -> Result<Manifest, RelightError> {
+pub fn manifest(run: &Path, max_components: usize) -> Result<BlobManifest, ViewerError> {
     match btf_header(run)? {
         Some((header, lights, views)) => {
             let shape = TextureShape::new(header.width, header.height, header.channels)?;
@@ -119,7 +119,7 @@ pub fn manifest(run: &Path, max_components: usize) -> Result<Manifest, RelightEr
 }
 
 /// The viewer's blob and its manifest ([`rigd_process::webgl`]).
-pub fn pack(run: &Path, max_components: usize) -> Result<(Manifest, Vec<u8>), RelightError> {
+pub fn pack(run: &Path, max_components: usize) -> Result<(BlobManifest, Vec<u8>), ViewerError> {
     match open(run)? {
         Material::Btf(store) => Ok(webgl::pack_btf(&store, max_components)),
         Material::PhotometricStereo { dir } => {
@@ -146,7 +146,7 @@ pub struct MeshView {
     pub visibility_directions: usize,
 }
 
-pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, RelightError> {
+pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, ViewerError> {
     let mesh = Mesh::build(kind, density);
     let (visibility, visibility_directions) = match btf_header(run)? {
         Some((_, lights, _)) => (mesh.visibility(lights.directions()), lights.len()),
@@ -166,18 +166,18 @@ pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, R
 }
 
 /// The reference render of a BTF run (`rigd process render`).
-pub fn render_run(
+pub fn relight_run(
     run: &Path,
     kind: MeshKind,
     density: f64,
-    settings: &RenderSettings,
-) -> Result<RgbImage, RelightError> {
+    settings: &RelightSettings,
+) -> Result<RgbImage, ViewerError> {
     let Material::Btf(store) = open(run)? else {
-        return Err(RelightError::NeedsBtf {
+        return Err(ViewerError::NeedsBtf {
             what: "the reference renderer",
             run: run.display().to_string(),
         });
     };
     let mesh = Mesh::build(kind, density);
-    Ok(render::render(&store, &mesh, settings)?)
+    Ok(relight::relight(&store, &mesh, settings)?)
 }

@@ -63,14 +63,8 @@ pub trait PipeOpener: Send + Sync {
     async fn open(&self) -> Result<BoxPipe, UsbError>;
 }
 
-/// Modbus framing on a byte stream.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Framing {
-    /// MBAP header (Modbus TCP).
-    Tcp,
-    /// Unit id and CRC-16 (Modbus RTU, RS-485).
-    Rtu,
-}
+/// Modbus framing on a byte stream: the wire codecs' own type.
+pub use rigd_proto::modbus::Framing;
 
 /// How one device is reached.
 #[derive(Clone)]

@@ -9,7 +9,6 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use rigd_core::Clock;
-use rigd_sim::firmware::modbus::Framing as FirmwareFraming;
 use rigd_sim::FaultRule;
 use tokio::net::TcpListener;
 use tokio_serial::{SerialPort, SerialStream};
@@ -90,7 +89,7 @@ pub async fn serve(
             while let Ok((stream, _)) = listener.accept().await {
                 let module = module.clone();
                 tokio::spawn(async move {
-                    if let Err(e) = module.serve_stream(stream, FirmwareFraming::Tcp).await {
+                    if let Err(e) = module.serve_stream(stream, Framing::Tcp).await {
                         tracing::debug!("Modbus TCP client gone: {e}");
                     }
                 });
@@ -101,7 +100,7 @@ pub async fn serve(
             let (master, path, slave) = pty(key)?;
             let module = m.module.clone();
             tokio::spawn(async move {
-                if let Err(e) = module.serve_stream(master, FirmwareFraming::Rtu).await {
+                if let Err(e) = module.serve_stream(master, Framing::Rtu).await {
                     tracing::debug!("Modbus RTU pty closed: {e}");
                 }
             });

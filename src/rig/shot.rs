@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Instant;
 
-use rigd_sim::scene::{EffectPlan, EffectSwitches, LaserLine, Marker, Rendered, Scene, Shot};
+use rigd_sim::scene::{EffectPlan, EffectSwitches, LaserSheet, Marker, Rendered, Scene, Shot};
 use serde::Serialize;
 
 use crate::model::profile::Profile;
@@ -92,7 +92,7 @@ pub struct RenderMeta<'a> {
     pub focal_px: Option<f64>,
     pub camera_distance_m: Option<f64>,
     pub lamp_distance_m: Option<f64>,
-    pub laser: Option<LaserLine>,
+    pub laser: Option<LaserSheet>,
     pub seed: u64,
     /// The effects this frame paid for, and those it could have.
     pub effects: EffectPlan,
@@ -203,10 +203,10 @@ pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, Re
 
 /// A laser plane crossing z = 0 at x = `x0`, tilted about the y axis, its
 /// emitter 30 cm above the sample.
-pub fn laser_plane(x0: f64, tilt_deg: f64) -> LaserLine {
+pub fn laser_plane(x0: f64, tilt_deg: f64) -> LaserSheet {
     let t = tilt_deg.to_radians();
     let height = 0.3;
-    LaserLine {
+    LaserSheet {
         emitter: [x0 + height * t.tan(), 0.0, height],
         normal: [t.cos(), 0.0, -t.sin()],
         width_m: 0.8e-3,

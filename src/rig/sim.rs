@@ -19,11 +19,9 @@ use rigd_core::Trapezoid;
 use rigd_sim::devices::{CameraTimes, SimContext};
 use rigd_sim::firmware::acl::{self as acl_fw, AclJoint, AclParams};
 use rigd_sim::firmware::grbl::{self as grbl_fw, GrblParams};
-use rigd_sim::firmware::modbus::{
-    Framing as FirmwareFraming, LampSpec, ModbusModule, ModuleConfig,
-};
+use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
-use rigd_sim::scene::{LaserLine, Scene as SceneModel, Shot};
+use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
 use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
@@ -480,10 +478,7 @@ impl Opener for ModbusOpener {
     async fn open(&self) -> std::io::Result<ByteStream> {
         let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
         let module = self.module.clone();
-        let framing = match self.framing {
-            Framing::Tcp => FirmwareFraming::Tcp,
-            Framing::Rtu => FirmwareFraming::Rtu,
-        };
+        let framing = self.framing;
         tokio::spawn(async move {
             if let Err(e) = module.serve_stream(dev, framing).await {
                 tracing::debug!("simulated Modbus link closed: {e}");
@@ -577,7 +572,7 @@ impl CameraView {
             // The source's azimuth in the sample frame, as for a lamp on the arc.
             let azimuth = axis(&rig.light_arc) - axis(&rig.turntable);
             let (emitter, normal) = rig.geometry.plane(azimuth, axis(&rig.tilt_axis))?;
-            Some(LaserLine {
+            Some(LaserSheet {
                 emitter,
                 normal,
                 width_m: SIM_LASER_WIDTH_M,

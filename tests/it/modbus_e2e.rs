@@ -13,7 +13,8 @@ use rigd::rig::drivers::modbus::{
 };
 use rigd::rig::hal::{ErrorKind, Lamp, LaserLine};
 use rigd_core::Clock;
-use rigd_sim::firmware::modbus::{Framing, LampSpec, ModbusModule, ModuleConfig};
+use rigd_proto::modbus::Framing;
+use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::FaultInjector;
 use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
 use tokio_modbus::client::{Reader, Writer};

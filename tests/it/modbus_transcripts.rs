@@ -11,7 +11,8 @@ use std::time::Duration;
 use rigd::rig::drivers::modbus::{all_off, rtu_bus, tcp_bus, ModbusConfig, ModbusLamp, SharedBus};
 use rigd::rig::hal::{DeviceError, ErrorKind, Lamp};
 use rigd_core::Clock;
-use rigd_sim::firmware::modbus::{Framing, LampSpec, ModbusModule, ModuleConfig};
+use rigd_proto::modbus::Framing;
+use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::{FaultInjector, FaultRule};
 use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
 

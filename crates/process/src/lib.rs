@@ -14,5 +14,5 @@ pub mod npy;
 pub mod photometric_stereo;
 pub mod rectify;
 pub mod reflectance_fit;
-pub mod render;
+pub mod relight;
 pub mod webgl;

@@ -62,7 +62,7 @@ impl TableLayout {
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Manifest {
+pub struct BlobManifest {
     pub version: u32,
     pub kind: &'static str,
     pub width: usize,
@@ -97,13 +97,13 @@ pub fn btf_manifest(
     lights: &DirectionTable,
     views: &DirectionTable,
     max_components: usize,
-) -> Manifest {
+) -> BlobManifest {
     let components = stored_components.min(max_components);
     let layers = views.len() * (components + 1);
     let texture_bytes = 2 * layers * shape.values();
     let weights_offset = texture_bytes.next_multiple_of(4);
     let weights_bytes = 4 * views.len() * lights.len() * components;
-    Manifest {
+    BlobManifest {
         version: PACK_VERSION,
         kind: "btf",
         width: shape.width(),
@@ -128,7 +128,7 @@ pub fn btf_manifest(
 }
 
 /// Packs `store`, keeping at most `max_components` per slot.
-pub fn pack_btf(store: &BtfStore, max_components: usize) -> (Manifest, Vec<u8>) {
+pub fn pack_btf(store: &BtfStore, max_components: usize) -> (BlobManifest, Vec<u8>) {
     let manifest = btf_manifest(
         store.shape(),
         store.components(),
@@ -181,7 +181,7 @@ pub fn pack_photometric_stereo(
     albedo: &[f32],
     normals_shape: &[usize],
     normals: &[f32],
-) -> Result<(Manifest, Vec<u8>), PackError> {
+) -> Result<(BlobManifest, Vec<u8>), PackError> {
     let bad = || PackError::Shapes {
         albedo: albedo_shape.to_vec(),
         normals: normals_shape.to_vec(),
@@ -206,7 +206,7 @@ pub fn pack_photometric_stereo(
         }),
     );
     push_f16(&mut data, normals.iter().copied());
-    let manifest = Manifest {
+    let manifest = BlobManifest {
         version: PACK_VERSION,
         kind: "photometric-stereo",
         width: w,

@@ -6,7 +6,7 @@
 //! effect forbidden at a time: the difference is that effect's cost.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
-use rigd_sim::scene::{Effect, EffectSwitches, LaserLine, Scene, Shot};
+use rigd_sim::scene::{Effect, EffectSwitches, LaserSheet, Scene, Shot};
 
 fn dir(theta_deg: f64, phi_deg: f64) -> [f64; 3] {
     let (t, p) = (theta_deg.to_radians(), phi_deg.to_radians());
@@ -24,7 +24,7 @@ fn shot(w: u32, h: u32, effects: EffectSwitches, laser: bool) -> Shot {
         focal_px: Some(2600.0 * f64::from(w) / 1024.0 * 2.0),
         camera_distance_m: Some(0.9),
         lamp_distance_m: Some(0.8),
-        laser: laser.then_some(LaserLine {
+        laser: laser.then_some(LaserSheet {
             emitter: [0.17, 0.0, 0.3],
             normal: [0.866, 0.0, -0.5],
             width_m: 0.4e-3,

@@ -4,7 +4,7 @@
 use std::f64::consts::PI;
 
 use rigd_sim::scene::{
-    dome, dome_normal, Effect, EffectSwitches, LaserLine, Scene, Shot, DOME_FIELD_MM, WHITE_LEVEL,
+    dome, dome_normal, Effect, EffectSwitches, LaserSheet, Scene, Shot, DOME_FIELD_MM, WHITE_LEVEL,
 };
 
 fn dir(theta_deg: f64, phi_deg: f64) -> [f64; 3] {
@@ -351,10 +351,10 @@ fn corduroy_ridges_shadow_each_other_at_grazing_light_across_them() {
     assert!(along < 0.02 && steep < 0.02, "{along} {steep}");
 }
 
-fn laser_across_x(x0: f64) -> LaserLine {
+fn laser_across_x(x0: f64) -> LaserSheet {
     // An emitter high over +x... whose plane x = x0 + z·tan(30°) sweeps the sample.
     let tilt = 30f64.to_radians();
-    LaserLine {
+    LaserSheet {
         emitter: [x0 + 0.3 * tilt.tan(), 0.0, 0.3],
         normal: [tilt.cos(), 0.0, -tilt.sin()],
         width_m: 0.4e-3,

@@ -9,7 +9,7 @@ use rigd_process::mesh::MeshKind;
 use serde::Deserialize;
 
 use super::AppState;
-use crate::postprocess::viewer::{self, RelightError, DEFAULT_DENSITY};
+use crate::postprocess::viewer::{self, ViewerError, DEFAULT_DENSITY};
 use crate::server::error::{ApiError, ApiPath};
 
 pub const VIEWER_HTML: &str = include_str!("../dashboard/viewer.html");
@@ -30,9 +30,9 @@ pub struct MeshQuery {
     pub density: Option<f64>,
 }
 
-fn relight_error(e: RelightError) -> ApiError {
+fn viewer_error(e: ViewerError) -> ApiError {
     match e {
-        RelightError::NotProcessed { .. } | RelightError::NeedsBtf { .. } => {
+        ViewerError::NotProcessed { .. } | ViewerError::NeedsBtf { .. } => {
             ApiError::not_found(e.to_string())
         }
         other => ApiError::internal(other.to_string()),
@@ -43,7 +43,7 @@ fn relight_error(e: RelightError) -> ApiError {
 async fn on_run<T: Send + 'static>(
     d: &AppState,
     id: &str,
-    work: impl FnOnce(&std::path::Path) -> Result<T, RelightError> + Send + 'static,
+    work: impl FnOnce(&std::path::Path) -> Result<T, ViewerError> + Send + 'static,
 ) -> Result<T, ApiError> {
     let root = d
         .run_root(id)
@@ -51,7 +51,7 @@ async fn on_run<T: Send + 'static>(
     tokio::task::spawn_blocking(move || work(&root))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(relight_error)
+        .map_err(viewer_error)
 }
 
 /// The components asked for, at most [`MAX_COMPONENTS`]; a malformed query is a 400.

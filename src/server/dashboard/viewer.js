@@ -1,6 +1,6 @@
 // rigd BTF viewer: relights a processed run on a mesh with WebGL2.
 // The image is computed exactly as `rigd process render` computes it on
-// the CPU (crates/process/src/render.rs documents each step); the browser test
+// the CPU (crates/process/src/relight.rs documents each step); the browser test
 // compares the two. Left half: the BTF; right half: a plain texture.
 //
 // URL parameters (all optional): mesh=flat|cylinder|cloth, light=θ,φ,
@@ -12,7 +12,7 @@ const $ = (id) => document.getElementById(id);
 const run = decodeURIComponent(location.pathname.split("/").filter(Boolean).pop() || "");
 const params = new URLSearchParams(location.search);
 
-// Constants shared with crates/process/src/render.rs.
+// Constants shared with crates/process/src/relight.rs.
 const CAMERA_DISTANCE = 4.5, FOV_DEG = 40, NEAR = 0.1, FAR = 20;
 const BACKGROUND = 0.12, SHADOW_SOFTNESS = 0.05, DISPLAY_GAMMA = 2.2;
 const MAX_ENTRIES = 64; // interpolation entries per table in the shader

@@ -121,20 +121,20 @@ fn finite3(a: [f64; 3]) -> bool {
     a.iter().all(|v| v.is_finite())
 }
 
+mod calibration;
 mod camera;
 mod laser_plane;
 mod line_detection;
-mod calibration;
-mod space_time;
 mod merge;
 mod output;
+mod space_time;
+pub use calibration::*;
 pub use camera::*;
 pub use laser_plane::*;
 pub use line_detection::*;
-pub use calibration::*;
-pub use space_time::*;
 pub use merge::*;
 pub use output::*;
+pub use space_time::*;
 
 #[cfg(test)]
 mod tests {

@@ -92,7 +92,11 @@ pub(super) fn content_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
 /// Reads one vector per line with one of `arities` components. Lights
 /// (`directions`) must be non-zero and are normalised; intensities must be
 /// positive. A single intensity applies to all three channels.
-pub(super) fn read_table(path: &Path, arities: &[usize], directions: bool) -> Result<Vec<[f64; 3]>, PsError> {
+pub(super) fn read_table(
+    path: &Path,
+    arities: &[usize],
+    directions: bool,
+) -> Result<Vec<[f64; 3]>, PsError> {
     let text = read_text(path)?;
     let parse_err = |line: usize, reason: String| PsError::Parse {
         path: path.to_path_buf(),

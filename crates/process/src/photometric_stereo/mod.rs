@@ -260,14 +260,14 @@ pub enum PsError {
     },
 }
 
-mod loading;
-mod solving;
 mod integration;
+mod loading;
 mod output;
-pub use loading::*;
-pub use solving::*;
+mod solving;
 pub use integration::*;
+pub use loading::*;
 pub use output::*;
+pub use solving::*;
 
 #[cfg(test)]
 // Index loops read like the matrix algebra they check.

@@ -398,7 +398,11 @@ impl Solver<'_> {
 
     /// Robust fit (module doc); `None` means "use the plain solution".
     /// Leaves the chosen samples in `s.used`.
-    pub(super) fn robust_fit(&self, s: &mut Scratch, rejected: &mut Rejections) -> Option<[f64; 3]> {
+    pub(super) fn robust_fit(
+        &self,
+        s: &mut Scratch,
+        rejected: &mut Rejections,
+    ) -> Option<[f64; 3]> {
         let n = self.lights.len();
         let opts = &self.opts;
         for use_relative in [true, false] {

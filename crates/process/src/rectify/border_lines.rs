@@ -248,7 +248,10 @@ pub(super) fn fit_border_line(
 
 /// Centre (image point) and contrast of the bright run around a profile's
 /// peak; `None` when implausible (see [`detect_border_corners`]).
-pub(super) fn profile_centre(prof: &[([f64; 2], f64)], opts: &DetectOptions) -> Option<([f64; 2], f64)> {
+pub(super) fn profile_centre(
+    prof: &[([f64; 2], f64)],
+    opts: &DetectOptions,
+) -> Option<([f64; 2], f64)> {
     let n = prof.len();
     if n < 8 {
         return None;

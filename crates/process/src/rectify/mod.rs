@@ -99,17 +99,17 @@ pub enum RectifyError {
     },
 }
 
-mod layout;
-mod detection;
 mod border_lines;
-mod registration;
+mod detection;
+mod layout;
 mod rectification;
+mod registration;
 mod roi_and_bits;
-pub use layout::*;
-pub use detection::*;
 pub use border_lines::*;
-pub use registration::*;
+pub use detection::*;
+pub use layout::*;
 pub use rectification::*;
+pub use registration::*;
 pub use roi_and_bits::*;
 
 #[cfg(test)]

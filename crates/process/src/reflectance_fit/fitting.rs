@@ -17,7 +17,12 @@ pub(super) struct TexelPlan {
 }
 
 /// Fallbacks and principal-direction initialisation for one texel.
-pub(super) fn plan_texel(lights: &[[f64; 3]], values: &[f64], k: usize, opts: &FitOptions) -> TexelPlan {
+pub(super) fn plan_texel(
+    lights: &[[f64; 3]],
+    values: &[f64],
+    k: usize,
+    opts: &FitOptions,
+) -> TexelPlan {
     let peak = values.iter().fold(0.0f64, |acc, &v| acc.max(v));
     let bounds = Bounds {
         max_amplitude: (opts.max_amplitude_ratio * peak).min(MAX_AMPLITUDE),
@@ -209,7 +214,12 @@ pub(super) const EXPONENT_LADDER: [f64; 6] = [2.0, 5.0, 10.0, 20.0, 50.0, 100.0]
 /// Non-negative least squares for the amplitudes with axes and exponents
 /// fixed, by cyclic coordinate descent (a convex problem of ≤ MAX_LOBES
 /// unknowns).
-pub(super) fn fit_amplitudes(lights: &[[f64; 3]], values: &[f64], lobes: &mut [Lobe], bounds: &Bounds) {
+pub(super) fn fit_amplitudes(
+    lights: &[[f64; 3]],
+    values: &[f64],
+    lobes: &mut [Lobe],
+    bounds: &Bounds,
+) {
     let k = lobes.len();
     let shapes: Vec<Vec<f64>> = lobes
         .iter()
@@ -253,7 +263,12 @@ pub(super) fn fit_amplitudes(lights: &[[f64; 3]], values: &[f64], lobes: &mut [L
     }
 }
 
-pub(super) fn fit_checked(lights: &[[f64; 3]], values: &[f32], k: usize, opts: &FitOptions) -> TexelFit {
+pub(super) fn fit_checked(
+    lights: &[[f64; 3]],
+    values: &[f32],
+    k: usize,
+    opts: &FitOptions,
+) -> TexelFit {
     let values: Vec<f64> = values.iter().map(|&v| f64::from(v)).collect();
     let plan = plan_texel(lights, &values, k, opts);
     let mut lobes = plan.lobes;
@@ -562,7 +577,11 @@ pub(super) fn errors64(lights: &[[f64; 3]], values: &[f64], lobes: &[Lobe]) -> (
 }
 
 /// (RMS, mean absolute) error of any model against f32 values.
-pub(super) fn errors(lights: &[[f64; 3]], values: &[f32], model: impl Fn([f64; 3]) -> f64) -> (f64, f64) {
+pub(super) fn errors(
+    lights: &[[f64; 3]],
+    values: &[f32],
+    model: impl Fn([f64; 3]) -> f64,
+) -> (f64, f64) {
     let mut sum_sq = 0.0;
     let mut sum_abs = 0.0;
     for (l, &v) in lights.iter().zip(values) {

@@ -590,11 +590,11 @@ pub fn fit_texel_rgb(
     })
 }
 
-mod ptm;
 mod error_table;
 mod fitting;
 mod helpers;
-pub use ptm::*;
+mod ptm;
 pub use error_table::*;
 use fitting::*;
 use helpers::*;
+pub use ptm::*;

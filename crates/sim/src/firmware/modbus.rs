@@ -38,7 +38,7 @@ use tokio::task::JoinHandle;
 use crate::faults::{FaultInjector, FaultKind};
 use rigd_core::clock::Clock;
 
-pub use rigd_proto::modbus::Framing;
+use rigd_proto::modbus::Framing;
 
 /// Input register holding the ready bitmask (bit k = lamp on coil k).
 pub const IR_READY: u16 = 0;

@@ -18,7 +18,7 @@ use std::sync::{Arc, OnceLock};
 
 pub use effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
 pub use holder::{Holder, Marker};
-pub use render::{LaserLine, Rendered, Shot, WHITE_LEVEL};
+pub use render::{LaserSheet, Rendered, Shot, WHITE_LEVEL};
 pub use spec::SceneSpec;
 use spec::{AlbedoSpec, HeightSpec, MacroSpec, SensorSpec};
 pub use surface::{dome, dome_normal, Grid, DOME_FIELD_MM};

@@ -19,9 +19,11 @@ use super::{Relief, Scene};
 /// exposure and gain.
 pub const WHITE_LEVEL: f64 = 0.8;
 
-/// A laser line: the plane through `emitter` with unit normal `normal`.
+/// The sheet of light a laser line emitter fans out: the plane through
+/// `emitter` with unit normal `normal`; where it meets a surface it draws
+/// the laser line.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct LaserLine {
+pub struct LaserSheet {
     /// Where the emitter is, metres, sample frame.
     pub emitter: [f64; 3],
     pub normal: [f64; 3],
@@ -54,7 +56,7 @@ pub struct Shot {
     /// A point lamp at this distance (irradiance falls off with the square
     /// of the distance); `None` a directional light.
     pub lamp_distance_m: Option<f64>,
-    pub laser: Option<LaserLine>,
+    pub laser: Option<LaserSheet>,
     /// A flat matte plate at this height over the holder hides the sample:
     /// the laser calibration plate of seed 002 §3.2.
     pub plate_height_m: Option<f64>,
@@ -235,7 +237,7 @@ pub(crate) struct Frame<'a> {
     pub scene: &'a Scene,
     pub plan: EffectPlan,
     pub lamp: Option<Lamp>,
-    pub laser: Option<LaserLine>,
+    pub laser: Option<LaserSheet>,
     plate: Option<f64>,
 }
 
@@ -511,7 +513,7 @@ impl<'a> Frame<'a> {
         radiance
     }
 
-    fn laser_radiance(&self, laser: &LaserLine, p: [f64; 3], n: [f64; 3], albedo: f64) -> f64 {
+    fn laser_radiance(&self, laser: &LaserSheet, p: [f64; 3], n: [f64; 3], albedo: f64) -> f64 {
         let sigma = (laser.width_m / 2.355).max(1e-7);
         let dist = dot(sub(p, laser.emitter), normalize(laser.normal));
         if dist.abs() > 3.0 * sigma {

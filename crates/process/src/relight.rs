@@ -1,4 +1,4 @@
-//! The reference renderer: a compressed BTF relit on a [`Mesh`] on the CPU,
+//! The reference relighting: a compressed BTF relit on a [`Mesh`] on the CPU,
 //! exactly as the browser viewer (`/viewer/{run}`) does it on the GPU, so it
 //! is the ground truth of the viewer's test (issue 8).
 //!
@@ -55,7 +55,7 @@ pub const DISPLAY_GAMMA: f64 = 2.2;
 pub const MAX_SIDE: usize = 4096;
 
 #[derive(Debug, thiserror::Error)]
-pub enum RenderError {
+pub enum RelightError {
     #[error(transparent)]
     Btf(#[from] BtfError),
     #[error(transparent)]
@@ -78,7 +78,7 @@ pub enum Shading {
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RenderSettings {
+pub struct RelightSettings {
     pub width: usize,
     pub height: usize,
     /// Directional light, world frame (θ from +z, φ from +x).
@@ -91,9 +91,9 @@ pub struct RenderSettings {
     pub shading: Shading,
 }
 
-impl Default for RenderSettings {
+impl Default for RelightSettings {
     fn default() -> Self {
-        RenderSettings {
+        RelightSettings {
             width: 512,
             height: 512,
             light: Direction::new(30.0, 45.0),
@@ -328,24 +328,24 @@ fn rasterise(mesh: &Mesh, camera: &Camera, width: usize, height: usize) -> Vec<O
 }
 
 /// Renders `store` on `mesh`; see the module documentation for each step.
-pub fn render(
+pub fn relight(
     store: &BtfStore,
     mesh: &Mesh,
-    settings: &RenderSettings,
-) -> Result<RgbImage, RenderError> {
+    settings: &RelightSettings,
+) -> Result<RgbImage, RelightError> {
     let (width, height) = (settings.width, settings.height);
     if !(1..=MAX_SIDE).contains(&width) || !(1..=MAX_SIDE).contains(&height) {
-        return Err(RenderError::Size { width, height });
+        return Err(RelightError::Size { width, height });
     }
     if !(settings.exposure.is_finite() && settings.exposure > 0.0) {
-        return Err(RenderError::Exposure(settings.exposure));
+        return Err(RelightError::Exposure(settings.exposure));
     }
     let view_theta = settings.view.theta_deg;
     if !(view_theta.is_finite()
         && (0.0..=89.0).contains(&view_theta)
         && settings.view.phi_deg.is_finite())
     {
-        return Err(RenderError::ViewElevation(view_theta));
+        return Err(RelightError::ViewElevation(view_theta));
     }
     if !(settings.light.theta_deg.is_finite() && settings.light.phi_deg.is_finite()) {
         return Err(DirectionError::NonFiniteQuery {
@@ -366,7 +366,7 @@ pub fn render(
         store.lights().interpolate(frontal)?,
     );
     let background = (BACKGROUND * 255.0).round() as u8;
-    let shaded: Vec<Result<Option<[u8; 3]>, RenderError>> = frags
+    let shaded: Vec<Result<Option<[u8; 3]>, RelightError>> = frags
         .par_iter()
         .map(|frag| {
             let Some(frag) = frag else {
@@ -484,13 +484,13 @@ mod tests {
         BtfStore::new(shape, lights, views, slots).unwrap()
     }
 
-    fn settings(light: Direction, view: Direction) -> RenderSettings {
-        RenderSettings {
+    fn settings(light: Direction, view: Direction) -> RelightSettings {
+        RelightSettings {
             width: 96,
             height: 96,
             light,
             view,
-            ..RenderSettings::default()
+            ..RelightSettings::default()
         }
     }
 
@@ -507,13 +507,13 @@ mod tests {
     fn the_flat_sample_fills_the_middle_and_follows_the_light() {
         let store = lambert_store(8);
         let mesh = Mesh::build(MeshKind::Flat, 1.0);
-        let high = render(
+        let high = relight(
             &store,
             &mesh,
             &settings(Direction::new(0.0, 0.0), Direction::new(0.0, 0.0)),
         )
         .unwrap();
-        let low = render(
+        let low = relight(
             &store,
             &mesh,
             &settings(Direction::new(70.0, 0.0), Direction::new(0.0, 0.0)),
@@ -536,7 +536,7 @@ mod tests {
                 (Direction::new(85.0, 0.0), Direction::new(30.0, 200.0)),
                 (Direction::new(40.0, 359.9), Direction::new(40.0, 0.1)),
             ] {
-                let img = render(&store, &mesh, &settings(light, view)).unwrap();
+                let img = relight(&store, &mesh, &settings(light, view)).unwrap();
                 let lit = mesh_pixels(&img);
                 assert!(!lit.is_empty());
                 if kind == MeshKind::Flat {
@@ -544,7 +544,7 @@ mod tests {
                 }
             }
             // Below the horizon: the flat sample gets nothing at all.
-            let below = render(
+            let below = relight(
                 &store,
                 &mesh,
                 &settings(Direction::new(100.0, 0.0), Direction::new(30.0, 0.0)),
@@ -562,13 +562,13 @@ mod tests {
         let mesh = Mesh::build(MeshKind::Flat, 1.0);
         // φ only turns the camera about the axis; the overhead light keeps
         // every texel's value, so the count of lit pixels is unchanged.
-        let a = render(
+        let a = relight(
             &store,
             &mesh,
             &settings(Direction::new(0.0, 0.0), Direction::new(0.0, 0.0)),
         )
         .unwrap();
-        let b = render(
+        let b = relight(
             &store,
             &mesh,
             &settings(Direction::new(0.0, 0.0), Direction::new(0.0, 90.0)),
@@ -583,9 +583,9 @@ mod tests {
         let store = lambert_store(8);
         let mesh = Mesh::build(MeshKind::Cylinder, 1.0);
         let mut s = settings(Direction::new(20.0, 0.0), Direction::new(30.0, 0.0));
-        let btf = render(&store, &mesh, &s).unwrap();
+        let btf = relight(&store, &mesh, &s).unwrap();
         s.shading = Shading::Plain;
-        let plain = render(&store, &mesh, &s).unwrap();
+        let plain = relight(&store, &mesh, &s).unwrap();
         assert_eq!(btf.covered, plain.covered);
         // Lambert's material is what a plain texture models: close images.
         let diff: f64 = btf
@@ -605,22 +605,22 @@ mod tests {
         let mut s = settings(Direction::new(0.0, 0.0), Direction::new(0.0, 0.0));
         s.width = 0;
         assert!(matches!(
-            render(&store, &mesh, &s),
-            Err(RenderError::Size { .. })
+            relight(&store, &mesh, &s),
+            Err(RelightError::Size { .. })
         ));
         let mut s = settings(Direction::new(f64::NAN, 0.0), Direction::new(0.0, 0.0));
-        assert!(render(&store, &mesh, &s).is_err());
+        assert!(relight(&store, &mesh, &s).is_err());
         s.light = Direction::new(0.0, 0.0);
         s.view = Direction::new(90.0, 0.0);
         assert!(matches!(
-            render(&store, &mesh, &s),
-            Err(RenderError::ViewElevation(_))
+            relight(&store, &mesh, &s),
+            Err(RelightError::ViewElevation(_))
         ));
         s.view = Direction::new(0.0, 0.0);
         s.exposure = 0.0;
         assert!(matches!(
-            render(&store, &mesh, &s),
-            Err(RenderError::Exposure(_))
+            relight(&store, &mesh, &s),
+            Err(RelightError::Exposure(_))
         ));
     }
 }
