@@ -222,6 +222,16 @@ pub struct Motion {
     pub settle_s: f64,
 }
 
+impl From<Motion> for rigd_core::Trapezoid {
+    fn from(m: Motion) -> rigd_core::Trapezoid {
+        rigd_core::Trapezoid {
+            max_velocity: m.max_velocity,
+            acceleration: m.acceleration,
+            settle_s: m.settle_s,
+        }
+    }
+}
+
 /// One joint of an arm.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

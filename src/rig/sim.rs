@@ -26,7 +26,7 @@ use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{DeviceKind, Motion, Profile, RigGeometry, Transport};
+use crate::model::profile::{DeviceKind, Profile, RigGeometry, Transport};
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Rig};
 
@@ -112,14 +112,6 @@ impl SimWorld {
             }
         }
         w
-    }
-}
-
-fn trapezoid(m: Motion) -> Trapezoid {
-    Trapezoid {
-        max_velocity: m.max_velocity,
-        acceleration: m.acceleration,
-        settle_s: m.settle_s,
     }
 }
 
@@ -284,7 +276,7 @@ pub(crate) fn firmware(
                 Link::Line(Arc::new(GrblOpener {
                     params: GrblParams {
                         name: name.clone(),
-                        motion: trapezoid(dev.motion_or_default()),
+                        motion: Trapezoid::from(dev.motion_or_default()),
                         home_position: home,
                         physical_start: home,
                         start_homed: false,
@@ -305,7 +297,7 @@ pub(crate) fn firmware(
                         counts_per_deg: j.counts_per_deg,
                         min_deg: j.limits.min - j.home_deg,
                         max_deg: j.limits.max - j.home_deg,
-                        motion: trapezoid(j.motion),
+                        motion: Trapezoid::from(j.motion),
                     })
                     .collect();
                 let n = joints.len();

@@ -102,18 +102,13 @@ impl Costs {
         if !schedule.triggers.iter().all(|t| same_shape(&t.setpoints)) {
             return Err("its triggers do not all move the same axes".into());
         }
-        let trapezoid = |m: crate::model::profile::Motion| rigd_core::Trapezoid {
-            max_velocity: m.max_velocity,
-            acceleration: m.acceleration,
-            settle_s: m.settle_s,
-        };
         let mut motion = Vec::new();
         for name in &axis_names {
             let d = profile
                 .devices
                 .get(*name)
                 .ok_or_else(|| format!("axis `{name}` is not in the profile"))?;
-            motion.push(trapezoid(d.motion_or_default()));
+            motion.push(rigd_core::Trapezoid::from(d.motion_or_default()));
         }
         if joints > 0 {
             let arm = profile
@@ -125,7 +120,7 @@ impl Costs {
             if arm.len() != joints {
                 return Err("arm set-points do not match the arm's joints".into());
             }
-            motion.extend(arm.iter().map(|j| trapezoid(j.motion)));
+            motion.extend(arm.iter().map(|j| rigd_core::Trapezoid::from(j.motion)));
         }
         let k = motion.len();
         let flat = |s: &Setpoints| -> Vec<f64> {

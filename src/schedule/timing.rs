@@ -81,7 +81,9 @@ impl<'a> Timing<'a> {
         for (name, &target) in &to.axes {
             let start = from.axes.get(name).copied().unwrap_or(target);
             if let Some(d) = self.profile.devices.get(name) {
-                t = t.max(trapezoid(d.motion_or_default()).move_time(target - start));
+                t = t.max(
+                    rigd_core::Trapezoid::from(d.motion_or_default()).move_time(target - start),
+                );
             }
         }
         if let (Some(a), Some(b)) = (&from.arm, &to.arm) {
@@ -92,7 +94,7 @@ impl<'a> Timing<'a> {
                 .find(|d| d.kind == DeviceKind::Arm)
             {
                 for ((j, qa), qb) in arm.joints.iter().flatten().zip(a).zip(b) {
-                    t = t.max(trapezoid(j.motion).move_time(qb - qa));
+                    t = t.max(rigd_core::Trapezoid::from(j.motion).move_time(qb - qa));
                 }
             }
         }
@@ -195,13 +197,5 @@ impl<'a> Timing<'a> {
             pos = trig.setpoints.clone();
         }
         total + pending_transfer
-    }
-}
-
-fn trapezoid(m: crate::model::profile::Motion) -> rigd_core::Trapezoid {
-    rigd_core::Trapezoid {
-        max_velocity: m.max_velocity,
-        acceleration: m.acceleration,
-        settle_s: m.settle_s,
     }
 }

@@ -92,14 +92,7 @@ impl AclConfig {
             .joints
             .iter()
             .zip(from.iter().zip(to))
-            .map(|(j, (f, t))| {
-                rigd_core::Trapezoid {
-                    max_velocity: j.motion.max_velocity,
-                    acceleration: j.motion.acceleration,
-                    settle_s: j.motion.settle_s,
-                }
-                .move_time(t - f)
-            })
+            .map(|(j, (f, t))| rigd_core::Trapezoid::from(j.motion).move_time(t - f))
             .filter(|t| t.is_finite())
             .fold(0.0, f64::max);
         Duration::from_secs_f64(2.0 * t) + self.command_timeout + self.poll_interval

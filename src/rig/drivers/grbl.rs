@@ -69,12 +69,7 @@ impl GrblConfig {
     /// twice the modelled time plus one command timeout of slack.
     fn motion_deadline(&self, distance: f64) -> Duration {
         let m = self.motion;
-        let travel = rigd_core::Trapezoid {
-            max_velocity: m.max_velocity,
-            acceleration: m.acceleration,
-            settle_s: m.settle_s,
-        }
-        .move_time(distance);
+        let travel = rigd_core::Trapezoid::from(m).move_time(distance);
         let t = if travel.is_finite() && travel >= 0.0 {
             travel
         } else {
