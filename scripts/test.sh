@@ -31,6 +31,9 @@ echo "== cargo fmt --check"
 cargo fmt --all -- --check
 echo "== cargo clippy"
 cargo clippy --workspace --all-targets --locked -- -D warnings
+# The hardware path builds without the simulator (no rigd-sim in the build).
+echo "== cargo clippy --no-default-features (rigd without the simulator)"
+cargo clippy -p rigd --no-default-features --lib --bins --locked -- -D warnings
 echo "== cargo test"
 log="$(mktemp)"
 trap 'rm -f "$log"' EXIT

@@ -18,4 +18,5 @@ pub mod rig;
 pub mod schedule;
 pub mod server;
 pub mod store;
+#[cfg(feature = "sim")]
 pub mod tradeoff;

@@ -9,7 +9,9 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use cli::{dataset, exit, plan, process, profile, run, serve, sim, tradeoff};
+use cli::{dataset, exit, plan, process, profile, run, serve};
+#[cfg(feature = "sim")]
+use cli::{sim, tradeoff};
 
 #[derive(Parser)]
 #[command(
@@ -52,6 +54,7 @@ enum Cmd {
     /// error, PCA components, and the simulator's effects against render
     /// time; prints the table and writes tradeoff.csv, tradeoff.json and
     /// tradeoff.svg (error against physical time) into --out.
+    #[cfg(feature = "sim")]
     Tradeoff(tradeoff::TradeoffArgs),
     /// Read textures in an export format (ours or a database's) into
     /// OUT/processed/normtextures/, ready for `rigd process btf OUT`.
@@ -63,6 +66,7 @@ enum Cmd {
         command: process::ProcessCmd,
     },
     /// The simulated rig's firmware, for tools outside rigd.
+    #[cfg(feature = "sim")]
     Sim {
         #[command(subcommand)]
         command: sim::SimCmd,
@@ -84,8 +88,10 @@ fn main() -> ExitCode {
         Cmd::Serve(args) => serve::run(args),
         Cmd::Export(args) => dataset::export(args),
         Cmd::Import(args) => dataset::import(args),
+        #[cfg(feature = "sim")]
         Cmd::Tradeoff(args) => tradeoff::run(args),
         Cmd::Process { command } => process::run(command),
+        #[cfg(feature = "sim")]
         Cmd::Sim { command } => sim::run(command),
     };
     match result {

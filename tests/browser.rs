@@ -1323,7 +1323,7 @@ fn write_tradeoff_report(data: &Path) {
 /// Albedo and normals of a field of bumps (32² texels), as
 /// `rigd process photometric-stereo` writes them.
 fn write_bump_maps(run: &Path) {
-    let dir = rigd::postprocess::viewer::ps_dir(run);
+    let dir = rigd::store::processed::ps_dir(run);
     std::fs::create_dir_all(&dir).expect("processed/ps");
     let n = 32usize;
     let mut normals = Vec::with_capacity(n * n * 3);

@@ -45,14 +45,15 @@ pub fn export(args: ExportArgs) -> Result<ExitCode> {
             args.quality
         )));
     }
-    let n = rigd::postprocess::export_run(&args.run, args.format, &args.out, args.quality)?;
+    let n =
+        rigd::postprocess::dataset::export_run(&args.run, args.format, &args.out, args.quality)?;
     println!("{n} textures written to {}", args.out.display());
     Ok(ExitCode::SUCCESS)
 }
 
 /// Runs `rigd import`.
 pub fn import(args: ImportArgs) -> Result<ExitCode> {
-    let index = rigd::postprocess::import_textures(args.format, &args.path, &args.out)?;
+    let index = rigd::postprocess::dataset::import_textures(args.format, &args.path, &args.out)?;
     println!(
         "{} textures ({} views × {} lights, {}²) in {}",
         index.frames.len(),

@@ -102,9 +102,7 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
     let bad_input = cause.is::<rigd::model::profile::ProfileError>()
         || cause.is::<rigd::plan::PlanError>()
         || cause.is::<rigd::kinematics::KinematicsError>()
-        || cause.is::<rigd::rig::shot::RenderError>()
         || cause.is::<rigd::postprocess::viewer::ViewerError>()
-        || cause.is::<rigd_sim::scene::SceneError>()
         || cause.is::<btf::BtfError>()
         || cause.is::<directions::DirectionError>()
         || cause.is::<export::ExportError>()
@@ -117,6 +115,10 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<reflectance_fit::FitError>()
         || cause.is::<relight::RelightError>()
         || cause.is::<webgl::PackError>();
+    #[cfg(feature = "sim")]
+    let bad_input = bad_input
+        || cause.is::<rigd::rig::shot::RenderError>()
+        || cause.is::<rigd_sim::scene::SceneError>();
     bad_input.then_some(EXIT_BAD_INPUT)
 }
 

@@ -11,5 +11,7 @@ pub mod progress;
 pub mod run;
 pub mod serve;
 pub mod signal;
+#[cfg(feature = "sim")]
 pub mod sim;
+#[cfg(feature = "sim")]
 pub mod tradeoff;

@@ -180,7 +180,7 @@ pub struct RelightArgs {
     #[arg(long, value_parser = parse_orbit, default_value = "35,270")]
     pub view: rigd_process::directions::Direction,
     /// Image size WIDTHxHEIGHT.
-    #[arg(long, default_value = "512x512", value_parser = rigd::rig::shot::parse_frame_size)]
+    #[arg(long, default_value = "512x512", value_parser = rigd::model::text::parse_frame_size)]
     pub size: [u32; 2],
     /// Multiplies the BTF's values before display.
     #[arg(long, default_value_t = 1.0)]
@@ -207,7 +207,7 @@ pub enum ShadingArg {
 }
 
 fn parse_angles(s: &str, theta_max: f64) -> Result<rigd_process::directions::Direction, String> {
-    let d = rigd::rig::shot::parse_direction_within(s, theta_max)?;
+    let d = rigd::model::text::parse_direction_within(s, theta_max)?;
     Ok(rigd_process::directions::Direction::new(
         d.theta_deg,
         d.phi_deg,
@@ -224,11 +224,12 @@ fn parse_orbit(s: &str) -> Result<rigd_process::directions::Direction, String> {
 
 fn photometric_stereo(args: PsArgs) -> Result<()> {
     use rigd_process::photometric_stereo as ps;
+    #[cfg_attr(not(feature = "sim"), allow(unused_variables))]
     let (mut dataset, run) = match (&args.run, &args.images, &args.lights) {
         (Some(run), _, _) => {
-            let frames = rigd::postprocess::RunFrames::open(run)?;
+            let frames = rigd::postprocess::frames::RunFrames::open(run)?;
             (
-                rigd::postprocess::ps_dataset_from_run(&frames)?,
+                rigd::postprocess::ps::ps_dataset_from_run(&frames)?,
                 Some(frames),
             )
         }
@@ -250,7 +251,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
     };
     let out = match (&args.out, &args.run) {
         (Some(out), _) => out.clone(),
-        (None, Some(run)) => rigd::postprocess::viewer::ps_dir(run),
+        (None, Some(run)) => rigd::store::processed::ps_dir(run),
         (None, None) => return Err(bad_input("--out DIR is needed with --images")),
     };
     if let Some(mask) = &args.mask {
@@ -284,8 +285,9 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
         r.mean_residual,
         started.elapsed().as_secs_f64()
     );
+    #[cfg(feature = "sim")]
     if let Some(run) = &run {
-        if let Some(err) = rigd::postprocess::ps_error_against_truth(run, &result)? {
+        if let Some(err) = rigd::postprocess::truth::ps_error_against_truth(run, &result)? {
             println!(
                 "against the scene `{}`: mean angular error {:.2}°, median {:.2}°, 95th percentile {:.2}° over {} sample pixels",
                 err.scene, err.mean_deg, err.median_deg, err.p95_deg, err.pixels
@@ -301,7 +303,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
 }
 
 fn rectify(args: RectifyArgs) -> Result<()> {
-    use rigd::postprocess::TextureBits;
+    use rigd::postprocess::rectify::TextureBits;
     let bits = match args.bits.as_str() {
         "top" => TextureBits::Top8,
         "float" => TextureBits::Float,
@@ -315,16 +317,16 @@ fn rectify(args: RectifyArgs) -> Result<()> {
             }
         },
     };
-    let cfg = rigd::postprocess::RectifyConfig {
+    let cfg = rigd::postprocess::rectify::RectifyConfig {
         size: args.size,
         roi: args.roi,
         final_size: args.final_size,
         blend: args.blend,
         bits,
     };
-    let run = rigd::postprocess::RunFrames::open(&args.run)?;
+    let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
     let started = Instant::now();
-    let index = rigd::postprocess::rectify_run(&run, &cfg, &progress_line("registering"))?;
+    let index = rigd::postprocess::rectify::rectify_run(&run, &cfg, &progress_line("registering"))?;
     let rms: Vec<f64> = index.frames.iter().filter_map(|f| f.rms_px).collect();
     let worst = index
         .frames
@@ -351,7 +353,7 @@ fn btf(args: BtfArgs) -> Result<()> {
     if args.components == 0 {
         return Err(bad_input("--components 0: expected at least 1"));
     }
-    let report = rigd::postprocess::btf_run(
+    let report = rigd::postprocess::btf::btf_run(
         &args.run,
         args.components,
         &progress_line("compressing view slots"),
@@ -381,8 +383,11 @@ fn fit(args: FitArgs) -> Result<()> {
             args.lobes
         )));
     }
-    let rows =
-        rigd::postprocess::fit_run(&args.run, args.lobes, &progress_line("fitting view slots"))?;
+    let rows = rigd::postprocess::fit::fit_run(
+        &args.run,
+        args.lobes,
+        &progress_line("fitting view slots"),
+    )?;
     println!("method\tmean |error|\tRMS error\tfit time\tconverged texels");
     for r in rows {
         println!(
@@ -400,7 +405,7 @@ fn mdf(args: MdfArgs) -> Result<()> {
             args.sigma
         )));
     }
-    let run = rigd::postprocess::RunFrames::open(&args.run)?;
+    let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
     let cfg = rigd::postprocess::mdf::MdfConfig {
         sigma_px: args.sigma,
         threshold: args.threshold,
@@ -436,7 +441,10 @@ fn mdf(args: MdfArgs) -> Result<()> {
     if let Some(e) = report.mean_error_mm {
         println!("mean depth error over views: {e:.3} mm");
     }
-    println!("wrote {}", args.run.join("processed").join("mdf").display());
+    println!(
+        "wrote {}",
+        rigd::store::processed::mdf_dir(&args.run).display()
+    );
     Ok(())
 }
 

@@ -12,9 +12,9 @@ use rigd::engine::{Outcome, PausePolicy};
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
 use rigd::plan::Order;
+use rigd::rig::FaultRule;
 use rigd::schedule::timing::parse_exposure_s;
 use rigd_core::Clock;
-use rigd_sim::FaultRule;
 
 use super::exit::{bad_input, EXIT_ENDED_BADLY, EXIT_INTERRUPTED, EXIT_PAUSED};
 use super::progress::{hms, Progress};
@@ -39,11 +39,12 @@ pub struct RunArgs {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Simulated frame size, WIDTHxHEIGHT [default: the profile's [sim] frame_size]
-    #[arg(long, value_parser = rigd::rig::shot::parse_frame_size)]
+    #[arg(long, value_parser = rigd::model::text::parse_frame_size)]
     pub frame_size: Option<[u32; 2]>,
     /// Scene the simulated cameras render: a built-in name (`rigd sim
     /// scenes`) or a scene file [default: the profile's [sim] scene, else
     /// flat-calibration]
+    #[cfg(feature = "sim")]
     #[arg(long)]
     pub scene: Option<String>,
     /// Operator name, recorded in the dataset.
@@ -62,7 +63,8 @@ pub struct RunArgs {
     #[arg(long, value_enum)]
     pub order: Option<Order>,
     /// Resume the run in this directory (all other run options come from it).
-    #[arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure", "order"])]
+    #[cfg_attr(feature = "sim", arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure", "order"]))]
+    #[cfg_attr(not(feature = "sim"), arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "operator", "notes", "exposure", "order"]))]
     pub resume: Option<PathBuf>,
     /// Inject a fault into the simulated firmware: DEVICE:OP:N:KIND[:sticky], fired on
     /// the Nth OP command the device receives. OP: GRBL axes home, move, info;
@@ -71,11 +73,22 @@ pub struct RunArgs {
     /// disconnect, bad-frame (garbled reply or frame), alarm=TEXT (the device's
     /// own fault: GRBL ALARM, Modbus exception, PTP GeneralError). Repeatable.
     /// See firmware-protocols/README.md.
+    #[cfg(feature = "sim")]
     #[arg(long = "sim-fault", value_name = "SPEC")]
     pub sim_faults: Vec<FaultRule>,
     /// Progress display: a bar on a terminal, log lines otherwise.
     #[arg(long, value_enum, default_value = "auto")]
     pub progress: Progress,
+}
+
+impl RunArgs {
+    /// The faults to inject (none in a build without the simulator).
+    fn faults(&self) -> Vec<FaultRule> {
+        #[cfg(feature = "sim")]
+        return self.sim_faults.clone();
+        #[cfg(not(feature = "sim"))]
+        return Vec::new();
+    }
 }
 
 /// Runs `rigd run`.
@@ -90,7 +103,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
         }
         None => args.sim || args.profile.is_none(),
     };
-    if !simulated && !args.sim_faults.is_empty() {
+    if !simulated && !args.faults().is_empty() {
         return Err(bad_input("--sim-fault needs the simulated rig (--sim)"));
     }
     // The simulated rig runs in virtual time: a paused runtime whose clock
@@ -107,17 +120,17 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
             Clock::real()
         };
         let prepared = match &args.resume {
-            Some(dir) => {
-                launch::prepare_resume(dir, args.sim_faults.clone(), clock, PausePolicy::Return)
-                    .await
-                    .with_context(|| format!("cannot resume {}", dir.display()))?
-            }
+            Some(dir) => launch::prepare_resume(dir, args.faults(), clock, PausePolicy::Return)
+                .await
+                .with_context(|| format!("cannot resume {}", dir.display()))?,
             None => {
                 let source = args
                     .profile
                     .clone()
                     .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
+                #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
                 let mut profile = rigd::plan::load_profile(&source)?;
+                #[cfg(feature = "sim")]
                 if let Some(scene) = &args.scene {
                     // The run records its profile, so a resume renders
                     // the same scene.
@@ -156,8 +169,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     simulated,
                     order: args.order,
                 };
-                launch::prepare_new(req, args.sim_faults.clone(), clock, PausePolicy::Return)
-                    .await?
+                launch::prepare_new(req, args.faults(), clock, PausePolicy::Return).await?
             }
         };
         drive(prepared, args.progress).await

@@ -5,7 +5,7 @@ use std::process::ExitCode;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use rigd_sim::FaultRule;
+use rigd::rig::FaultRule;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -34,6 +34,7 @@ pub struct ServeArgs {
     pub token_file: Option<PathBuf>,
     /// Inject a fault into the simulated rig of every new run (same SPEC as
     /// `rigd run --sim-fault`, e.g. camera:transfer:3:disconnect). Repeatable.
+    #[cfg(feature = "sim")]
     #[arg(long = "sim-fault", value_name = "SPEC")]
     pub sim_faults: Vec<FaultRule>,
 }
@@ -47,7 +48,10 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         data_dir: args.data,
         sim_speed: args.sim_speed,
         token_file: args.token_file,
+        #[cfg(feature = "sim")]
         sim_faults: args.sim_faults,
+        #[cfg(not(feature = "sim"))]
+        sim_faults: Vec::<FaultRule>::new(),
     };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -67,16 +67,16 @@ pub struct RenderArgs {
     #[arg(long)]
     pub scene: Option<String>,
     /// Light direction θ,φ in degrees, sample frame.
-    #[arg(long, value_parser = rigd::rig::shot::parse_direction, default_value = "0,0")]
+    #[arg(long, value_parser = rigd::model::text::parse_direction, default_value = "0,0")]
     pub light: Direction,
     /// View direction θ,φ in degrees, sample frame.
-    #[arg(long, value_parser = rigd::rig::shot::parse_direction, default_value = "0,0")]
+    #[arg(long, value_parser = rigd::model::text::parse_direction, default_value = "0,0")]
     pub view: Direction,
     /// Camera of the profile [default: its first]
     #[arg(long)]
     pub camera: Option<String>,
     /// Frame size WIDTHxHEIGHT [default: the profile's [sim] frame_size]
-    #[arg(long, value_parser = rigd::rig::shot::parse_frame_size)]
+    #[arg(long, value_parser = rigd::model::text::parse_frame_size)]
     pub size: Option<[u32; 2]>,
     /// Effect switches: `all`, `none`, or a list like `+interreflection,-noise`.
     #[arg(long, default_value = "")]

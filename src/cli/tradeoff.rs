@@ -31,7 +31,7 @@ pub struct TradeoffArgs {
     #[arg(long, default_value_t = 16)]
     pub components: usize,
     /// Frame size of the fidelity renders, WIDTHxHEIGHT.
-    #[arg(long, default_value = "256x192", value_parser = rigd::rig::shot::parse_frame_size)]
+    #[arg(long, default_value = "256x192", value_parser = rigd::model::text::parse_frame_size)]
     pub render_size: [u32; 2],
 }
 

@@ -3,10 +3,10 @@
 //! both start runs through here.
 
 use std::path::{Path, PathBuf};
+#[cfg(feature = "sim")]
 use std::sync::Arc;
 
 use rigd_core::Clock;
-use rigd_sim::FaultRule;
 
 use crate::engine::{Engine, EngineHandle, PausePolicy};
 use crate::kinematics::{KinematicsError, Solver};
@@ -14,7 +14,7 @@ use crate::model::profile::{Profile, ProfileError};
 use crate::plan::Order;
 use crate::plan::{self, Plan, PlanError};
 use crate::rig::hal::{DeviceError, Rig};
-use crate::rig::{self, sim::SimHandle, sim::SimOptions};
+use crate::rig::{self, FaultRule, SimHandle};
 use crate::schedule::timing::{check_exposure_s, Timing};
 use crate::schedule::{self, Schedule};
 use crate::store::{now_rfc3339, Recovery, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
@@ -166,7 +166,9 @@ async fn create(
         started_at: now_rfc3339(),
     };
     // The rig first: a rig that does not answer leaves no run directory.
+    #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
     let mut faults = faults;
+    #[cfg(feature = "sim")]
     if meta.simulated {
         // The profile's own faults arm when a run starts (a resumed run gets
         // only those of its command line: the profile's have had their turn).
@@ -186,6 +188,7 @@ async fn create(
 }
 
 /// The scene a simulated run renders and what its lit frames pay for.
+#[cfg(feature = "sim")]
 fn sim_scene(profile: &Profile) -> Result<SimScene, RunError> {
     let scene = rig::sim::load_scene(profile).map_err(RunError::Simulator)?;
     let lit = rigd_sim::scene::Shot::default();
@@ -201,6 +204,20 @@ fn sim_scene(profile: &Profile) -> Result<SimScene, RunError> {
     })
 }
 
+#[cfg(not(feature = "sim"))]
+fn sim_scene(_: &Profile) -> Result<SimScene, RunError> {
+    Err(no_simulator())
+}
+
+/// Why a simulated run cannot start in a build without the simulator.
+#[cfg(not(feature = "sim"))]
+fn no_simulator() -> RunError {
+    RunError::Invalid(
+        "this rigd was built without the simulator (cargo feature `sim`): it drives hardware only"
+            .into(),
+    )
+}
+
 /// Connects the simulated rig or the profile's hardware, as the run says.
 async fn connect_rig(
     meta: &RunMeta,
@@ -209,14 +226,23 @@ async fn connect_rig(
     clock: &Clock,
 ) -> Result<(Rig, Option<SimHandle>), RunError> {
     if meta.simulated {
-        let opts = SimOptions {
-            frame_size: meta.frame_size,
-            faults,
-        };
-        let (rig, sim) = rig::sim::connect(&meta.profile, Arc::new(solver.clone()), opts, clock)
-            .await
-            .map_err(RunError::Simulator)?;
-        Ok((rig, Some(sim)))
+        #[cfg(feature = "sim")]
+        {
+            let opts = rig::sim::SimOptions {
+                frame_size: meta.frame_size,
+                faults,
+            };
+            let (rig, sim) =
+                rig::sim::connect(&meta.profile, Arc::new(solver.clone()), opts, clock)
+                    .await
+                    .map_err(RunError::Simulator)?;
+            Ok((rig, Some(sim)))
+        }
+        #[cfg(not(feature = "sim"))]
+        {
+            let _ = solver;
+            Err(no_simulator())
+        }
     } else {
         if !faults.is_empty() {
             return Err(RunError::Invalid(

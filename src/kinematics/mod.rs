@@ -18,6 +18,7 @@
 //!   its soft limits ([`fit_to_limits`]).
 
 pub mod arcs;
+pub mod camera;
 pub mod fixed;
 pub mod gonio;
 

@@ -4,3 +4,4 @@
 
 pub mod profile;
 pub mod run_state;
+pub mod text;

@@ -336,6 +336,7 @@ fn default_zoom() -> f64 {
     1.0
 }
 
+#[cfg(feature = "sim")]
 impl SimSettings {
     /// The profile's fault rules, parsed (validation guarantees they parse).
     pub fn fault_rules(&self) -> Vec<rigd_sim::FaultRule> {
@@ -455,10 +456,10 @@ impl Profile {
     }
 
     /// Checks what serde cannot: references between keys, and values.
-    fn validate(&self) -> Result<(), (String, String)> {
-        for (name, dev) in &self.devices {
-            dev.validate(&format!("devices.{name}"))?;
-        }
+    /// The `[sim]` section names a scene that exists and faults that parse
+    /// and name devices of this profile.
+    #[cfg(feature = "sim")]
+    fn validate_sim(&self) -> Result<(), (String, String)> {
         if let Some(scene) = &self.sim.scene {
             let builtin = rigd_sim::scene::Scene::builtin_names();
             if !builtin.contains(&scene.as_str()) && !std::path::Path::new(scene).is_file() {
@@ -484,6 +485,17 @@ impl Profile {
                 ));
             }
         }
+        Ok(())
+    }
+
+    fn validate(&self) -> Result<(), (String, String)> {
+        for (name, dev) in &self.devices {
+            dev.validate(&format!("devices.{name}"))?;
+        }
+        // Without the simulator the [sim] section is kept as written: it is
+        // checked where it can be used.
+        #[cfg(feature = "sim")]
+        self.validate_sim()?;
         let want = |key: &str, name: &str, kind: DeviceKind| -> Result<(), (String, String)> {
             match self.devices.get(name) {
                 None => Err((

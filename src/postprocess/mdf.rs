@@ -20,9 +20,10 @@ use rigd_process::mdf::{
 };
 use serde::{Deserialize, Serialize};
 
+use crate::kinematics::camera::camera_geometry;
 use crate::plan::laser::{LaserPlan, LaserRig};
-use crate::postprocess::{ProcessError, RunFrames, PROCESSED_DIR};
-use crate::rig::sim::camera_geometry;
+use crate::postprocess::frames::RunFrames;
+use crate::postprocess::ProcessError;
 use crate::schedule::laser::{LaserRole, LaserStep};
 use crate::store::FrameEntry;
 use rigd_core::geometry::Direction;
@@ -355,9 +356,10 @@ pub fn mdf_run(
             .or_default()
             .push(i);
     }
-    let out = run.root.join(PROCESSED_DIR).join("mdf");
+    let out = crate::store::processed::mdf_dir(&run.root);
     std::fs::create_dir_all(&out).map_err(|e| io_error(&out, e))?;
-    let scene = truth_scene(run)?;
+    #[cfg(feature = "sim")]
+    let scene = super::truth::mdf_truth_scene(run)?;
     let mut views = Vec::new();
     for ((_, camera), members) in &by_view {
         let first = jobs[members[0]];
@@ -378,9 +380,13 @@ pub fn mdf_run(
             &merged,
             max_depth_m(plan.reference_mm * 1e-3, view),
         )?;
-        let truth = scene
-            .as_ref()
-            .map(|s| depth_error(s, &cam, &merged, plan.reference_mm * 1e-3, box_half));
+        #[cfg(feature = "sim")]
+        let truth = scene.as_ref().map(|s| {
+            super::truth::depth_error(s, &cam, &merged, plan.reference_mm * 1e-3, box_half)
+        });
+        // Ground truth needs the simulator's scene.
+        #[cfg(not(feature = "sim"))]
+        let truth = None;
         views.push(ViewSummary {
             turntable_deg: first.turntable_deg,
             camera: camera.clone(),
@@ -578,87 +584,6 @@ fn write_view(
     let png = dir.join(format!("{name}.png"));
     rigd_process::image_io::write_png(&png, &img, rigd_process::image_io::PngDepth::Eight)
         .map_err(|e| ProcessError::Invalid(format!("{}: {e}", png.display())))
-}
-
-/// The scene of a simulated run, for the truth; `None` for hardware runs.
-fn truth_scene(
-    run: &RunFrames,
-) -> Result<Option<std::sync::Arc<rigd_sim::scene::Scene>>, ProcessError> {
-    if !run.meta.simulated {
-        return Ok(None);
-    }
-    let name = run
-        .meta
-        .sim_scene
-        .as_ref()
-        .map(|s| s.name.clone())
-        .unwrap_or_else(|| run.meta.profile.sim.scene_name().to_string());
-    Ok(Some(rigd_sim::scene::Scene::load(&name)?))
-}
-
-/// The measured displacement against the true one, over pixels whose true
-/// surface point lies in the sample's bounding box: the distance along the
-/// pixel's ray from the reference plane to the first surface hit.
-fn depth_error(
-    scene: &rigd_sim::scene::Scene,
-    cam: &PinholeCamera,
-    d: &DisplacementImage,
-    reference_m: f64,
-    box_half: f64,
-) -> DepthError {
-    let shot = rigd_sim::scene::Shot {
-        view: cam.centre,
-        width: cam.width as u32,
-        height: cam.height as u32,
-        focal_px: Some(cam.focal_px),
-        camera_distance_m: Some(
-            (cam.centre[0].powi(2) + cam.centre[1].powi(2) + cam.centre[2].powi(2)).sqrt(),
-        ),
-        ..rigd_sim::scene::Shot::default()
-    };
-    let mut errors = Vec::new();
-    let mut sample_pixels = 0usize;
-    for j in 0..d.height {
-        for i in 0..d.width {
-            let Some(p) = scene.true_surface_point(&shot, i, j) else {
-                continue;
-            };
-            if p[0].abs() > box_half || p[1].abs() > box_half {
-                continue;
-            }
-            sample_pixels += 1;
-            let measured = d.depth[j * d.width + i];
-            if measured < 0.0 {
-                continue;
-            }
-            let (o, dir) = cam.ray(i, j);
-            if dir[2] >= 0.0 {
-                continue;
-            }
-            let t_ref = (o[2] - reference_m) / -dir[2];
-            let t_hit = (0..3).map(|k| (p[k] - o[k]) * dir[k]).sum::<f64>();
-            let truth = t_hit - t_ref;
-            errors.push((f64::from(measured) - truth).abs() * 1e3);
-        }
-    }
-    errors.sort_by(f64::total_cmp);
-    let pick = |q: f64| {
-        errors
-            .get(((errors.len() as f64 - 1.0) * q).round() as usize)
-            .copied()
-            .unwrap_or(f64::NAN)
-    };
-    DepthError {
-        pixels: errors.len(),
-        coverage: errors.len() as f64 / sample_pixels.max(1) as f64,
-        mean_mm: if errors.is_empty() {
-            f64::NAN
-        } else {
-            errors.iter().sum::<f64>() / errors.len() as f64
-        },
-        median_mm: pick(0.5),
-        p95_mm: pick(0.95),
-    }
 }
 
 fn io_error(path: &Path, e: std::io::Error) -> ProcessError {

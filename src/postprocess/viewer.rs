@@ -13,16 +13,6 @@ use rigd_process::relight::{self, RelightError, RelightSettings, RgbImage};
 use rigd_process::webgl::{self, BlobManifest, PackError};
 use serde::Serialize;
 
-/// Where `rigd process btf` writes, inside a run.
-pub fn btf_dir(run: &Path) -> PathBuf {
-    run.join("processed").join("btf")
-}
-
-/// Where `rigd process photometric-stereo RUN` writes by default.
-pub fn ps_dir(run: &Path) -> PathBuf {
-    run.join("processed").join("ps")
-}
-
 /// Material tiles per world unit on the viewer's meshes (two across the
 /// flat sample).
 pub const DEFAULT_DENSITY: f64 = 1.0;
@@ -53,9 +43,17 @@ pub enum ViewerError {
 
 /// `btf` or `photometric-stereo` when the run holds what the viewer shows.
 pub fn processed_kind(run: &Path) -> Option<&'static str> {
-    if btf_dir(run).join(HEADER_FILE).is_file() {
+    if crate::store::processed::btf_dir(run)
+        .join(HEADER_FILE)
+        .is_file()
+    {
         Some("btf")
-    } else if ps_dir(run).join("normals.npy").is_file() && ps_dir(run).join("albedo.npy").is_file()
+    } else if crate::store::processed::ps_dir(run)
+        .join("normals.npy")
+        .is_file()
+        && crate::store::processed::ps_dir(run)
+            .join("albedo.npy")
+            .is_file()
     {
         Some("photometric-stereo")
     } else {
@@ -72,11 +70,11 @@ pub enum Material {
 /// Opens what the run holds: the BTF if there is one, else the
 /// photometric-stereo maps.
 pub fn open(run: &Path) -> Result<Material, ViewerError> {
-    let btf = btf_dir(run);
+    let btf = crate::store::processed::btf_dir(run);
     if btf.join(HEADER_FILE).is_file() {
         return Ok(Material::Btf(BtfStore::read(&btf)?));
     }
-    let ps = ps_dir(run);
+    let ps = crate::store::processed::ps_dir(run);
     if ps.join("normals.npy").is_file() && ps.join("albedo.npy").is_file() {
         return Ok(Material::PhotometricStereo { dir: ps });
     }
@@ -91,7 +89,7 @@ pub fn open(run: &Path) -> Result<Material, ViewerError> {
 fn btf_header(
     run: &Path,
 ) -> Result<Option<(BtfHeader, DirectionTable, DirectionTable)>, ViewerError> {
-    let dir = btf_dir(run);
+    let dir = crate::store::processed::btf_dir(run);
     if !dir.join(HEADER_FILE).is_file() {
         return Ok(None);
     }

@@ -12,9 +12,28 @@ pub mod drivers;
 pub mod hal;
 pub mod hardware;
 pub mod plate;
+#[cfg(feature = "sim")]
 pub mod serve;
+#[cfg(feature = "sim")]
 pub mod shot;
+#[cfg(feature = "sim")]
 pub mod sim;
+
+#[cfg(feature = "sim")]
+pub use rigd_sim::FaultRule;
+#[cfg(feature = "sim")]
+pub use sim::SimHandle;
+
+/// A fault to inject into the simulated firmware; a build without the
+/// simulator has none to inject.
+#[cfg(not(feature = "sim"))]
+#[derive(Debug, Clone)]
+pub enum FaultRule {}
+
+/// The simulated rig of a run; a build without the simulator has none.
+#[cfg(not(feature = "sim"))]
+#[derive(Debug, Clone)]
+pub enum SimHandle {}
 
 use std::collections::BTreeMap;
 use std::fmt;

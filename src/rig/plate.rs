@@ -2,11 +2,9 @@
 //! lays over the turntable at a known height, so the strip falls on two
 //! planes of different heights. On a real rig the run pauses with the
 //! instruction and goes on when the operator resumes; the simulated rig
-//! places the plate itself, after the time an operator would take.
+//! places the plate itself ([`crate::rig::sim::SimPlate`]).
 
 use async_trait::async_trait;
-use rigd_core::Clock;
-use rigd_sim::SharedWorld;
 
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture};
 
@@ -38,27 +36,6 @@ impl Fixture for OperatorPlate {
             ErrorKind::NotReady,
             format!("operator: {what}, then resume the run"),
         ))
-    }
-}
-
-/// The simulated operator: moves the plate in the simulated world.
-pub struct SimPlate {
-    pub world: SharedWorld,
-    pub clock: Clock,
-}
-
-#[async_trait]
-impl Fixture for SimPlate {
-    async fn place(&mut self, height_mm: Option<f64>) -> Result<(), DeviceError> {
-        if self.world.snapshot().plate_mm == height_mm {
-            return Ok(());
-        }
-        // The operator takes the time the estimate allows.
-        self.clock
-            .sleep_s(crate::schedule::timing::PLATE_CHANGE_S)
-            .await;
-        self.world.set_plate(height_mm);
-        Ok(())
     }
 }
 

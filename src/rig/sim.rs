@@ -25,10 +25,11 @@ use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
 use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
+use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{DeviceKind, Profile, RigGeometry, Transport};
+use crate::model::profile::{DeviceKind, Profile, Transport};
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
-use crate::rig::hal::{DeviceError, ErrorKind, Rig};
+use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
 
 /// Bytes an in-memory serial pipe buffers each way.
 const PIPE_BUFFER: usize = 64 * 1024;
@@ -137,7 +138,7 @@ pub async fn connect(
     let parts = firmware(profile, solver, opts.frame_size, clock, &faults)?;
     let mut rig = build_rig(profile, &parts.links, clock).await?;
     if crate::plan::laser::LaserRig::of(profile).is_some() {
-        rig.fixture = Some(Box::new(super::plate::SimPlate {
+        rig.fixture = Some(Box::new(SimPlate {
             world: parts.world.shared.clone(),
             clock: clock.clone(),
         }));
@@ -480,58 +481,6 @@ impl Opener for ModbusOpener {
     }
 }
 
-/// What a simulated frame of a profile's camera needs from the profile.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CameraGeometry {
-    /// The sensor's focal length scaled to the simulated frame's width.
-    pub focal_px: f64,
-    pub distance_m: Option<f64>,
-    pub bit_depth: u8,
-    /// The distance of the profile's first lamp (None: a directional light).
-    pub lamp_distance_m: Option<f64>,
-}
-
-/// A camera's geometry for frames of `size`; None if it is not a camera
-/// with intrinsics.
-pub fn camera_geometry(profile: &Profile, camera: &str, size: [u32; 2]) -> Option<CameraGeometry> {
-    let i = profile.devices.get(camera)?.intrinsics?;
-    Some(CameraGeometry {
-        focal_px: i.focal_px * profile.sim.zoom * f64::from(size[0])
-            / f64::from(i.resolution[0].max(1)),
-        distance_m: camera_distance(profile, camera),
-        bit_depth: i.bit_depth,
-        lamp_distance_m: lamp_distances(profile).into_values().next(),
-    })
-}
-
-/// How far a camera stands from the sample centre.
-fn camera_distance(profile: &Profile, camera: &str) -> Option<f64> {
-    let own = profile.devices.get(camera).and_then(|d| d.distance_m);
-    own.or(match &profile.rig {
-        RigGeometry::Gonioreflectometer { rail_radius_m, .. } => Some(*rail_radius_m),
-        _ => None,
-    })
-}
-
-/// How far each lamp stands from the sample centre.
-fn lamp_distances(profile: &Profile) -> BTreeMap<String, f64> {
-    profile
-        .lamp_names()
-        .into_iter()
-        .filter_map(|lamp| {
-            let own = profile.devices.get(&lamp).and_then(|d| d.distance_m);
-            let d = own.or(match &profile.rig {
-                RigGeometry::Gonioreflectometer {
-                    lamp_distance_m, ..
-                } => Some(*lamp_distance_m),
-                RigGeometry::TurntableArcs { arc_radius_m, .. } => Some(*arc_radius_m),
-                RigGeometry::FixedLamps { .. } => None,
-            })?;
-            Some((lamp, d))
-        })
-        .collect()
-}
-
 /// What a simulated camera sees: where it is and what the lamps do.
 #[derive(Clone)]
 struct CameraView {
@@ -639,5 +588,28 @@ impl PipeOpener for PtpOpener {
         let (host, dev) = memory_pair();
         self.start(dev);
         Ok(Box::new(host))
+    }
+}
+
+/// The simulated operator: moves the plate in the simulated world.
+pub struct SimPlate {
+    /// The world the plate is placed in.
+    pub world: SharedWorld,
+    /// The clock the operator's time passes on.
+    pub clock: Clock,
+}
+
+#[async_trait]
+impl Fixture for SimPlate {
+    async fn place(&mut self, height_mm: Option<f64>) -> Result<(), DeviceError> {
+        if self.world.snapshot().plate_mm == height_mm {
+            return Ok(());
+        }
+        // The operator takes the time the estimate allows.
+        self.clock
+            .sleep_s(crate::schedule::timing::PLATE_CHANGE_S)
+            .await;
+        self.world.set_plate(height_mm);
+        Ok(())
     }
 }

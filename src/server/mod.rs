@@ -30,10 +30,12 @@ use axum::response::IntoResponse;
 use axum::routing::{delete, get, post};
 use axum::Router;
 use tokio::task::JoinHandle;
-use utoipa::OpenApi;
+
 use utoipa_swagger_ui::SwaggerUi;
 
-use api::{daemon, frames, plans, queue, rig, runs, sim, tradeoff, viewer};
+use api::{daemon, frames, plans, queue, rig, runs, viewer};
+#[cfg(feature = "sim")]
+use api::{sim, tradeoff};
 
 use crate::model::profile::DEFAULT_PROFILE;
 use crate::model::run_state::RunState;
@@ -64,7 +66,7 @@ pub struct ServerConfig {
     pub token_file: Option<PathBuf>,
     /// Faults injected into the simulated rig of every new run (demos and
     /// tests of fault handling).
-    pub sim_faults: Vec<rigd_sim::FaultRule>,
+    pub sim_faults: Vec<crate::rig::FaultRule>,
 }
 
 impl ServerConfig {
@@ -149,11 +151,14 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
         .route("/queue/{item}", delete(queue::delete_queue))
         .route("/runs/{id}/btf", get(viewer::btf_manifest))
         .route("/runs/{id}/btf/data", get(viewer::btf_data))
-        .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh))
+        .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh));
+    #[cfg(feature = "sim")]
+    let v1 = v1
         .route("/tradeoff", get(tradeoff::get_report).post(tradeoff::start))
         .route("/tradeoff/plot.svg", get(tradeoff::get_plot))
         .route("/sim/render", get(sim::sim_render))
-        .route("/sim/scenes", get(sim::sim_scenes))
+        .route("/sim/scenes", get(sim::sim_scenes));
+    let v1 = v1
         .route_layer(axum::middleware::from_fn_with_state(
             token,
             auth::require_token,
@@ -163,7 +168,7 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
         .with_state(daemon);
     Router::new()
         .nest("/api/v1", v1)
-        .merge(SwaggerUi::new("/api/docs").url("/api/v1/openapi.json", api::ApiDoc::openapi()))
+        .merge(SwaggerUi::new("/api/docs").url("/api/v1/openapi.json", api::openapi()))
         .route(
             "/",
             get(|| async { static_file("text/html; charset=utf-8", INDEX_HTML) }),

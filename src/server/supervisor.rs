@@ -20,7 +20,7 @@ use crate::engine::{EngineError, EngineHandle, EventKind, Outcome, PausePolicy, 
 use crate::model::profile::Profile;
 use crate::model::run_state::RunState;
 use crate::plan::{self, BUILTIN_PLANS};
-use crate::rig::sim::SimHandle;
+use crate::rig::SimHandle;
 use crate::schedule::Schedule;
 use rigd_core::Clock;
 

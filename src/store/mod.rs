@@ -15,6 +15,8 @@
 //! does not match, after a power loss) is retaken on resume. A torn last
 //! journal line is cut off.
 
+pub mod processed;
+
 use std::collections::BTreeMap;
 use std::fs::{self, File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};

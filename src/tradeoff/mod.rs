@@ -37,7 +37,8 @@ use serde::Serialize;
 use crate::kinematics::Solver;
 use crate::model::profile::Profile;
 use crate::plan::{self, Plan, H2_THETAS, HEMISPHERE_RING_COUNTS};
-use crate::postprocess::{true_texture, ProcessError};
+use crate::postprocess::truth::true_texture;
+use crate::postprocess::ProcessError;
 use crate::schedule::{self, Schedule};
 use rigd_core::geometry::Direction;
 
@@ -440,7 +441,9 @@ fn camera_chain(
     truths: &[(Direction, Direction, Vec<f32>)],
     out: &Path,
 ) -> Result<Row, ProcessError> {
-    use crate::postprocess::{RectifyConfig, RunFrames, TextureBits};
+    use crate::postprocess::frames::RunFrames;
+    use crate::postprocess::rectify::RectifyConfig;
+    use crate::postprocess::rectify::TextureBits;
     let rings = 3;
     let dirs = plan::rings(&H2_THETAS[..rings], &HEMISPHERE_RING_COUNTS[..rings]);
     std::fs::create_dir_all(out)
@@ -467,10 +470,10 @@ fn camera_chain(
         blend: 0,
         bits: TextureBits::Float,
     };
-    crate::postprocess::rectify_run(&frames, &rectify, &|_, _| {})?;
-    crate::postprocess::btf_run(&dir, cfg.components, &|_, _| {})?;
+    crate::postprocess::rectify::rectify_run(&frames, &rectify, &|_, _| {})?;
+    crate::postprocess::btf::btf_run(&dir, cfg.components, &|_, _| {})?;
     let compute_s = started.elapsed().as_secs_f64();
-    let store = BtfStore::read(&dir.join(crate::postprocess::PROCESSED_DIR).join("btf"))
+    let store = BtfStore::read(&crate::store::processed::btf_dir(&dir))
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let error = held_out_error(&store, truths)?;
     let _ = std::fs::remove_dir_all(&dir);
@@ -548,7 +551,7 @@ fn laser_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> 
     let plan = |n: usize| format!("laser:sources={n},turns=1,step=1.5");
     let dir = out.join(".tradeoff-laser");
     capture(profile.clone(), &plan(26), &dir)?;
-    let run = crate::postprocess::RunFrames::open(&dir)?;
+    let run = crate::postprocess::frames::RunFrames::open(&dir)?;
     let solver = Solver::new(&profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let offer = schedule::rig_offer(&profile, &solver);
     let mut rows = Vec::new();
@@ -620,8 +623,8 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
         profile.sim.scene = Some(scene_name.to_string());
         let dir = out.join(".tradeoff-ps");
         let physical = capture(profile, "lamps", &dir)?;
-        let run = crate::postprocess::RunFrames::open(&dir)?;
-        let dataset = crate::postprocess::ps_dataset_from_run(&run)?;
+        let run = crate::postprocess::frames::RunFrames::open(&dir)?;
+        let dataset = crate::postprocess::ps::ps_dataset_from_run(&run)?;
         let modes: &[bool] = if name == "3 lights" {
             &[false]
         } else {
@@ -638,7 +641,7 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
             )
             .map_err(|e| ProcessError::Invalid(format!("{name}: {e}")))?;
             let compute_s = started.elapsed().as_secs_f64();
-            let err = crate::postprocess::ps_error_against_truth(&run, &result)?;
+            let err = crate::postprocess::truth::ps_error_against_truth(&run, &result)?;
             rows.push(Row {
                 family: "photometric stereo".into(),
                 setting: if robust {

@@ -1066,7 +1066,7 @@ fn write_tiny_btf(run_dir: &std::path::Path) -> usize {
         .collect();
     let store = BtfStore::new(shape, lights, views, slots).expect("store");
     store
-        .write(&rigd::postprocess::viewer::btf_dir(run_dir))
+        .write(&rigd::store::processed::btf_dir(run_dir))
         .expect("write the BTF");
     store.lights().len()
 }

@@ -82,7 +82,7 @@ fn held_out_reconstruction_error_against_the_true_btf() {
     let scene = rigd_sim::scene::Scene::load("ps-target").unwrap();
     let truths: Vec<Vec<f32>> = pairs
         .iter()
-        .map(|&(l, v)| rigd::postprocess::true_texture(&scene, 48, l, v))
+        .map(|&(l, v)| rigd::postprocess::truth::true_texture(&scene, 48, l, v))
         .collect();
     let mut by_c = Vec::new();
     for c in [1, 2, 4, 8, 15] {
@@ -96,7 +96,7 @@ fn held_out_reconstruction_error_against_the_true_btf() {
             "{}",
             String::from_utf8_lossy(&status.stderr)
         );
-        let errs = rigd::postprocess::btf_error(&run, &pairs, &truths).unwrap();
+        let errs = rigd::postprocess::btf::btf_error(&run, &pairs, &truths).unwrap();
         assert!(errs.iter().all(|e| e.rms.is_finite()));
         let held_out = &errs[1..];
         let mean = held_out.iter().map(|e| e.rms).sum::<f64>() / held_out.len() as f64;

@@ -1,14 +1,18 @@
 //! What every part of rigd shares, and nothing else: the one clock every
 //! wait goes through ([`clock`]), the trapezoidal motion model of a stepper
-//! axis or robot joint ([`motion`]), and directions on the hemisphere with
-//! the vector and rotation helpers around them ([`geometry`]).
+//! axis or robot joint ([`motion`]), directions on the hemisphere with the
+//! vector and rotation helpers around them ([`geometry`]), and the physical
+//! things both the simulator and the processing model: the camera
+//! ([`camera`]) and the sample holder with its markers ([`holder`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
 #![warn(missing_docs)]
 
+pub mod camera;
 pub mod clock;
 pub mod geometry;
+pub mod holder;
 pub mod motion;
 
 pub use clock::{Clock, DeadlineElapsed};

@@ -505,3 +505,16 @@ heightfield = { kind = "image", path = "ramp.png", amplitude_mm = 2.0 }
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A hardware run is rectified against the standard holder plate
+/// (`rigd_core::holder::Holder::standard`); the default scene shows that
+/// same plate, so simulated and real runs register alike.
+#[test]
+fn the_default_scene_shows_the_standard_holder() {
+    let scene = Scene::load(rigd_sim::scene::DEFAULT_SCENE).unwrap();
+    let standard = rigd_core::holder::Holder::standard();
+    assert_eq!(scene.holder.markers(), standard.markers());
+    assert_eq!(scene.holder.point_radius, standard.point_radius);
+    let half = rigd_core::holder::STANDARD_SAMPLE_MM * 1e-3 / 2.0;
+    assert_eq!(scene.sample_half, [half, half]);
+}

@@ -7,7 +7,9 @@ pub mod plans;
 pub mod queue;
 pub mod rig;
 pub mod runs;
+#[cfg(feature = "sim")]
 pub mod sim;
+#[cfg(feature = "sim")]
 pub mod tradeoff;
 pub mod viewer;
 
@@ -19,7 +21,6 @@ use super::error::{ApiError, ErrorBody};
 use super::events::DaemonEvent;
 use super::model::*;
 use super::supervisor::Daemon;
-use sim::SceneView;
 
 /// What every handler gets: the daemon.
 pub type AppState = Arc<Daemon>;
@@ -36,14 +37,12 @@ pub type AppState = Arc<Daemon>;
         runs::create_run, runs::get_run, runs::run_steps, runs::run_manifest, runs::pause_run,
         runs::resume_run, runs::abort_run, rig::estop, daemon::events_sse, frames::frame_raw,
         frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
-        sim::sim_render, sim::sim_scenes, viewer::btf_manifest, viewer::btf_data,
-        viewer::btf_mesh, tradeoff::get_report, tradeoff::get_plot, tradeoff::start
+        viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
         RunRequest, PlanSpec, InlinePlan, PairDto, RunView, RunList, CommandAck, RunSteps, RunStep,
-        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent, SceneView,
-        tradeoff::TradeoffRequest, tradeoff::TradeoffStarted
+        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent
     )),
     modifiers(&BearerAuth),
     tags(
@@ -54,8 +53,33 @@ pub type AppState = Arc<Daemon>;
         (name = "sim", description = "The scene simulator: one frame on request"),
     )
 )]
-/// The OpenAPI description, served at `/api/v1/openapi.json`.
+/// The routes every build serves; [`openapi`] adds the simulator's.
 pub struct ApiDoc;
+
+/// The routes that need the simulator (`sim` feature): one rendered frame,
+/// the scenes, and the trade-off report.
+#[cfg(feature = "sim")]
+#[derive(OpenApi)]
+#[openapi(
+    paths(
+        sim::sim_render,
+        sim::sim_scenes,
+        tradeoff::get_report,
+        tradeoff::get_plot,
+        tradeoff::start
+    ),
+    components(schemas(sim::SceneView, tradeoff::TradeoffRequest, tradeoff::TradeoffStarted))
+)]
+pub struct SimApiDoc;
+
+/// The OpenAPI description this build serves at `/api/v1/openapi.json`.
+pub fn openapi() -> utoipa::openapi::OpenApi {
+    #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
+    let mut doc = ApiDoc::openapi();
+    #[cfg(feature = "sim")]
+    doc.merge(SimApiDoc::openapi());
+    doc
+}
 
 struct BearerAuth;
 

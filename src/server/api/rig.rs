@@ -32,7 +32,7 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
             exposure,
         )
     };
-    let world = sim.map(|s| s.world());
+    let world = LiveState::of(sim);
     let busy = matches!(state, Some(RunState::Running | RunState::Preparing));
     let fault_for = |name: &str| {
         (state == Some(RunState::Paused))
@@ -61,12 +61,12 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
         };
         match dev.kind {
             DeviceKind::Axis => {
-                let p = world.as_ref().and_then(|w| w.axes.get(name).copied());
+                let p = world.as_ref().and_then(|w| w.axis(name));
                 v.homed = Some(p.is_some());
                 v.position_deg = p;
             }
             DeviceKind::Arm => {
-                let q = world.as_ref().and_then(|w| w.arm.clone());
+                let q = world.as_ref().and_then(|w| w.arm());
                 v.homed = Some(q.is_some());
                 if let (Some(q), Some(joints)) = (q, &dev.joints) {
                     let m: serde_json::Map<String, serde_json::Value> = joints
@@ -78,10 +78,7 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
                 }
             }
             DeviceKind::Lamp => {
-                let on = world
-                    .as_ref()
-                    .and_then(|w| w.lamps_on.get(name).copied())
-                    .unwrap_or(false);
+                let on = world.as_ref().and_then(|w| w.lamp(name)).unwrap_or(false);
                 v.on = Some(on);
                 lamps.insert(name.clone(), serde_json::json!(on));
             }
@@ -132,4 +129,47 @@ pub async fn estop(State(d): State<AppState>) -> Json<EstopAnswer> {
             })
             .unwrap_or_default(),
     })
+}
+
+/// What the rig's devices report of themselves: on the simulated rig its
+/// world; the hardware drivers report through the run, so nothing here.
+struct LiveState {
+    #[cfg(feature = "sim")]
+    world: rigd_sim::World,
+}
+
+impl LiveState {
+    fn of(sim: Option<crate::rig::SimHandle>) -> Option<LiveState> {
+        #[cfg(feature = "sim")]
+        return sim.map(|s| LiveState { world: s.world() });
+        #[cfg(not(feature = "sim"))]
+        return sim.map(|s| match s {});
+    }
+
+    fn axis(&self, name: &str) -> Option<f64> {
+        #[cfg(feature = "sim")]
+        return self.world.axes.get(name).copied();
+        #[cfg(not(feature = "sim"))]
+        return {
+            let _ = name;
+            None
+        };
+    }
+
+    fn arm(&self) -> Option<Vec<f64>> {
+        #[cfg(feature = "sim")]
+        return self.world.arm.clone();
+        #[cfg(not(feature = "sim"))]
+        return None;
+    }
+
+    fn lamp(&self, name: &str) -> Option<bool> {
+        #[cfg(feature = "sim")]
+        return self.world.lamps_on.get(name).copied();
+        #[cfg(not(feature = "sim"))]
+        return {
+            let _ = name;
+            None
+        };
+    }
 }

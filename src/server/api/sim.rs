@@ -68,7 +68,8 @@ pub async fn sim_render(
 }
 
 fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, String> {
-    use crate::rig::shot::{parse_direction, parse_frame_size, parse_laser, RenderRequest};
+    use crate::model::text::{parse_direction, parse_frame_size};
+    use crate::rig::shot::{parse_laser, RenderRequest};
     let dir = |v: &Option<String>, what: &str| match v {
         Some(s) => parse_direction(s)
             .map(Some)

@@ -6,7 +6,6 @@
 //! rig would measure, for judging the post-processing.
 
 pub mod effects;
-mod holder;
 mod render;
 pub mod spec;
 mod surface;
@@ -17,8 +16,8 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
 pub use effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
-pub use holder::{Holder, Marker};
 pub use render::{LaserSheet, Rendered, Shot, WHITE_LEVEL};
+pub use rigd_core::holder::{Holder, Marker};
 pub use spec::SceneSpec;
 use spec::{AlbedoSpec, HeightSpec, MacroSpec, SensorSpec};
 pub use surface::{dome, dome_normal, Grid, DOME_FIELD_MM};

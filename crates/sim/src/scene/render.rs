@@ -9,6 +9,7 @@
 //! maps that to [`WHITE_LEVEL`] of full scale at nominal exposure and gain.
 
 use rayon::prelude::*;
+use rigd_core::camera::Camera;
 use rigd_core::geometry::{add, cross, dot, norm, normalize, scale, sub};
 use serde::Serialize;
 
@@ -103,104 +104,16 @@ pub struct Rendered {
     pub plan: EffectPlan,
 }
 
-/// How pixels map to rays, and back.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Camera {
-    right: [f64; 3],
-    up: [f64; 3],
-    forward: [f64; 3],
-    /// Pinhole position, or the view direction's far point for orthographic.
-    origin: [f64; 3],
-    focal: Option<f64>,
-    /// Metres per pixel for an orthographic view.
-    scale: f64,
-    half_w: f64,
-    half_h: f64,
-    /// Focal length that sets the vignetting's fall-off.
-    vignette_focal: f64,
-}
-
-impl Camera {
-    pub(crate) fn new(scene: &Scene, shot: &Shot) -> Camera {
-        let v = normalize(shot.view);
-        // Image axes: `up` is the sample normal projected into the image
-        // plane; at the pole that is undefined and the sample's +y is used.
-        let (right, up) = if v[0].hypot(v[1]) < 1e-9 {
-            ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-        } else {
-            let up = normalize([-v[2] * v[0], -v[2] * v[1], 1.0 - v[2] * v[2]]);
-            (cross(up, v), up)
-        };
-        let (w, h) = (shot.width.max(1) as f64, shot.height.max(1) as f64);
-        let field_half = 1.1 * scene.holder.half;
-        let (focal, origin) = match (shot.focal_px, shot.camera_distance_m) {
-            (Some(f), Some(d)) if f > 0.0 && d > 0.0 => (Some(f), scale(v, d)),
-            _ => (None, scale(v, 10.0)),
-        };
-        Camera {
-            right,
-            up,
-            forward: scale(v, -1.0),
-            origin,
-            focal,
-            scale: 2.0 * field_half / w.min(h),
-            half_w: w / 2.0,
-            half_h: h / 2.0,
-            vignette_focal: focal.unwrap_or(w.max(h)),
-        }
-    }
-
-    /// The ray through the centre of pixel (i, j).
-    pub(crate) fn ray(&self, i: usize, j: usize) -> ([f64; 3], [f64; 3]) {
-        let s = i as f64 + 0.5 - self.half_w;
-        let t = self.half_h - j as f64 - 0.5;
-        match self.focal {
-            Some(f) => {
-                let d = add(
-                    scale(self.forward, f),
-                    add(scale(self.right, s), scale(self.up, t)),
-                );
-                (self.origin, normalize(d))
-            }
-            None => {
-                let o = add(
-                    self.origin,
-                    add(
-                        scale(self.right, s * self.scale),
-                        scale(self.up, t * self.scale),
-                    ),
-                );
-                (o, self.forward)
-            }
-        }
-    }
-
-    /// Continuous pixel coordinates (x right, y down; pixel i spans
-    /// [i, i+1)) of a point, or None behind the camera.
-    pub(crate) fn project(&self, p: [f64; 3]) -> Option<[f64; 2]> {
-        let rel = sub(p, self.origin);
-        let (s, t) = match self.focal {
-            Some(f) => {
-                let z = dot(rel, self.forward);
-                if z <= 0.0 {
-                    return None;
-                }
-                (f * dot(rel, self.right) / z, f * dot(rel, self.up) / z)
-            }
-            None => (
-                dot(rel, self.right) / self.scale,
-                dot(rel, self.up) / self.scale,
-            ),
-        };
-        Some([s + self.half_w, self.half_h - t])
-    }
-
-    fn vignetting(&self, i: usize, j: usize, strength: f64) -> f64 {
-        let s = i as f64 + 0.5 - self.half_w;
-        let t = self.half_h - j as f64 - 0.5;
-        let cos2 = 1.0 / (1.0 + (s * s + t * t) / (self.vignette_focal * self.vignette_focal));
-        1.0 - strength * (1.0 - cos2 * cos2)
-    }
+/// The camera of a shot: the sample seen along `shot.view`, with the
+/// field of an orthographic view just wider than the holder.
+pub(crate) fn camera(scene: &Scene, shot: &Shot) -> Camera {
+    Camera::new(
+        shot.view,
+        [shot.width, shot.height],
+        shot.focal_px,
+        shot.camera_distance_m,
+        1.1 * scene.holder.half,
+    )
 }
 
 /// The lamp as seen from the sample.
@@ -616,7 +529,7 @@ impl Scene {
         let (w, h) = (shot.width.max(1) as usize, shot.height.max(1) as usize);
         let max_value = ((1u32 << shot.bit_depth.clamp(1, 16)) - 1) as f64;
         let gain = WHITE_LEVEL * max_value * shot.relative_exposure.max(0.0) * shot.gain.max(0.0);
-        let camera = Camera::new(self, shot);
+        let camera = camera(self, shot);
         let frame = Frame::new(self, shot);
         let vignette = frame
             .plan
@@ -641,7 +554,7 @@ impl Scene {
 
     /// Pixel positions of every registration marker in this frame.
     pub fn marker_pixels(&self, shot: &Shot) -> Vec<(super::Marker, Option<[f64; 2]>)> {
-        let camera = Camera::new(self, shot);
+        let camera = camera(self, shot);
         self.holder
             .markers()
             .into_iter()

@@ -2,6 +2,7 @@
 //! keys are errors, so a typo never silently renders the wrong sample.
 //! Lengths in the file are millimetres; the renderer works in metres.
 
+pub use rigd_core::holder::HolderSpec;
 use serde::Deserialize;
 
 #[derive(Debug, Clone, Deserialize)]
@@ -149,33 +150,6 @@ impl Default for VisibilitySpec {
             vertices: 24,
             theta_cells: 16,
             phi_cells: 48,
-        }
-    }
-}
-
-#[derive(Debug, Clone, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct HolderSpec {
-    /// Side of the square holder plate, mm.
-    pub size_mm: f64,
-    pub colour: f64,
-    pub marker_colour: f64,
-    /// Diameter of the point markers, mm.
-    pub point_marker_mm: f64,
-    /// Width of the border lines, mm; they run this far outside the sample: `border_gap_mm`.
-    pub border_line_mm: f64,
-    pub border_gap_mm: f64,
-}
-
-impl Default for HolderSpec {
-    fn default() -> Self {
-        HolderSpec {
-            size_mm: 160.0,
-            colour: 0.06,
-            marker_colour: 0.95,
-            point_marker_mm: 6.0,
-            border_line_mm: 2.0,
-            border_gap_mm: 5.0,
         }
     }
 }

@@ -12,7 +12,7 @@
 use super::effects::{Effect, EffectSwitches};
 use rigd_core::geometry::{add, normalize, scale};
 
-use super::render::{Camera, Frame, Shot};
+use super::render::{Frame, Shot};
 use super::{Marker, Scene};
 
 impl Scene {
@@ -90,7 +90,7 @@ impl Scene {
         let mut s = *shot;
         s.effects.forbid.remove(Effect::Relief);
         let frame = Frame::new(self, &s);
-        let (o, d) = Camera::new(self, &s).ray(i, j);
+        let (o, d) = super::render::camera(self, &s).ray(i, j);
         frame.intersect(o, d)
     }
 
