@@ -8,6 +8,7 @@
 //! drivers, rig assembly) → [`store`] (the dataset on disk) → [`engine`]
 //! (drives the rig through a schedule into the store) → [`postprocess`] →
 //! [`tradeoff`] → [`server`]. The command line (`src/cli/`) sits on top.
+#![warn(missing_docs)]
 
 pub mod engine;
 pub mod kinematics;

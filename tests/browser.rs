@@ -1222,7 +1222,7 @@ async fn view_and_compare(
     let png = c.screenshot().await.expect("screenshot");
     std::fs::write(out.join("viewer.png"), png).expect("write the screenshot");
 
-    // A photometric-stereo run: the bump-mapped view of seed 003.
+    // A photometric-stereo run: the bump-mapped view of Spence et al..
     c.goto(&format!(
         "{base}/viewer/{ps_id}?size={VIEWER_SIZE}&mesh=flat&view=0,0&light=40,0"
     ))

@@ -27,32 +27,32 @@ pub fn run(cmd: ProcessCmd) -> Result<ExitCode> {
 
 #[derive(Subcommand)]
 pub enum ProcessCmd {
-    /// Photometric stereo (seed 003 §2): albedo, normals, gradients p and q
+    /// Photometric stereo (Spence et al., §2): albedo, normals, gradients p and q
     /// and a Frankot–Chellappa height map, from a VirTex run directory or from
     /// a folder of images with a light table. Writes normals.npy (H×W×3
     /// float32, unit, z towards the camera), albedo.npy, height.npy, p.npy,
     /// q.npy, PNG renderings of each and report.json into --out.
     PhotometricStereo(PsArgs),
-    /// Register every frame of a run by its holder markers (seed 000 §3.2)
+    /// Register every frame of a run by its holder markers (Sattler et al., §3.2)
     /// and resample the sample to frontal textures: RUN/processed/
     /// normtextures/ with index.json (per frame: the marker residual in
     /// pixels, the markers used and rejected). Frames whose markers cannot be
     /// found are named in the error and the index.
     Rectify(RectifyArgs),
-    /// Compress a rectified run's BTF: a PCA per view slot (seed 000 §4.1)
+    /// Compress a rectified run's BTF: a PCA per view slot (Sattler et al., §4.1)
     /// into RUN/processed/btf/ (btf.json + slot files), with the eigenvalue
     /// decay and the RMS error for C = 1 … 32 per slot in report.json.
     Btf(BtfArgs),
     /// Fit every texel of every view slot of a rectified run with the
     /// K-lobe reflectance model by Levenberg–Marquardt and with a PTM
-    /// (seed 001 §4), and print the average error table (seed 001 Table 1);
+    /// (Meseth et al., §4), and print the average error table (Meseth et al. Table 1);
     /// also RUN/processed/fit/report.json.
     Fit(FitArgs),
-    /// The mesostructure distance function of a laser run (seed 002 §3.2):
+    /// The mesostructure distance function of a laser run (Wang et al., §3.2):
     /// each source's laser plane calibrated from the strip on the turntable
     /// and on the plate, the strip found per frame in the reference region
     /// outside the sample's box, space-time triangulation per pixel, and
-    /// the sources of each view merged with the seed's weights. Writes
+    /// the sources of each view merged with Sattler et al.'s weights. Writes
     /// RUN/processed/mdf/<view>.npy (float32 mm, −1 = none), an 8-bit
     /// .png per view and report.json; prints the depth error against the
     /// scene for simulated runs.
@@ -60,7 +60,7 @@ pub enum ProcessCmd {
     /// The reference render of a processed run's BTF on a mesh, exactly as
     /// the viewer (`/viewer/RUN`) draws it: the four nearest view slots, the
     /// light interpolated from the four nearest measured lights, the smooth
-    /// shadow boundary of seed 000 eq. 6. Writes an 8-bit RGB PNG.
+    /// shadow boundary of Sattler et al. eq. 6. Writes an 8-bit RGB PNG.
     Render(RelightArgs),
 }
 
@@ -112,11 +112,11 @@ pub struct RectifyArgs {
     pub final_size: usize,
     /// Which 8 bits of the sensor value to keep: `top` (no clipping), a
     /// shift N for value >> N clipped at 255 (2 = the central 8 bits of 12,
-    /// as seed 000 chose), `float` for linear float32 or `half` for linear
-    /// float16 (the seed's 16-bit floats), both .npy.
+    /// as Sattler et al. chose), `float` for linear float32 or `half` for linear
+    /// float16 (Sattler et al.'s 16-bit floats), both .npy.
     #[arg(long, default_value = "top")]
     pub bits: String,
-    /// Linear edge blending (seed 000 §3.2): the ROI is scaled to
+    /// Linear edge blending (Sattler et al., §3.2): the ROI is scaled to
     /// final + N texels and the extra band blended into the opposite edges,
     /// so the textures tile without seams. 0 = none.
     #[arg(long, default_value_t = 0)]
@@ -145,7 +145,7 @@ pub struct FitArgs {
 pub struct MdfArgs {
     /// The run directory of a `--plan laser` capture.
     pub run: PathBuf,
-    /// calibrated (the seed's: planes of a sweep parallel, at the
+    /// calibrated (Wang et al.'s: planes of a sweep parallel, at the
     /// calibrated angle) or emitter (planes through the profile's emitter).
     #[arg(long, value_enum, default_value_t = rigd::postprocess::mdf::PlaneModel::Calibrated)]
     pub planes: rigd::postprocess::mdf::PlaneModel,
@@ -185,11 +185,11 @@ pub struct RelightArgs {
     /// Multiplies the BTF's values before display.
     #[arg(long, default_value_t = 1.0)]
     pub exposure: f64,
-    /// Eq. 6's offset α in degrees (the seed used 15 for a coarse mesh).
+    /// Eq. 6's offset α in degrees (Sattler et al. used 15 for a coarse mesh).
     #[arg(long, default_value_t = 0.0)]
     pub shadow_alpha: f64,
     /// btf, or plain: one frontal texture with Lambert's cosine (the
-    /// comparison of seed 000 figures 13–14).
+    /// comparison of Sattler et al. figures 13–14).
     #[arg(long, value_enum, default_value_t = ShadingArg::Btf)]
     pub shading: ShadingArg,
     /// Material tiles per world unit (the flat sample is 2 units across).

@@ -233,7 +233,7 @@ impl Engine {
         policy: PausePolicy,
     ) -> (Engine, EngineHandle) {
         if meta.exposure_s.is_none() {
-            // Laser sweeps use the plan's short exposure (seed 002 §3.2).
+            // Laser sweeps use the plan's short exposure (Wang et al., §3.2).
             meta.exposure_s = schedule.laser.as_ref().map(|l| l.plan.exposure_s);
         }
         let laser_plan = schedule.laser.is_some();
@@ -548,7 +548,7 @@ impl Engine {
             .collect()
     }
 
-    /// Runs the laser sweep whose trigger heads the queue (seed 002 §3.2):
+    /// Runs the laser sweep whose trigger heads the queue (Wang et al., §3.2):
     /// moves to its first pose with the laser on, starts the tilt axis at
     /// the sweep velocity, and while it runs exposes every camera at the
     /// video rate, recording the tilt measured just before and after each

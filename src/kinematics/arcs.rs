@@ -1,4 +1,4 @@
-//! The MSRA turntable-and-arcs rig (seed 002 §3.1): a turntable turning the
+//! The MSRA turntable-and-arcs rig (Wang et al., §3.1): a turntable turning the
 //! sample by τ about world +z, a light arc turned by λ about +z carrying lamps at
 //! fixed elevations, and a stationary camera arc at world azimuth 0.
 //!

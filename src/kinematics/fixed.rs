@@ -1,4 +1,4 @@
-//! The VirTex photometric-stereo rig (seed 003 §2): one fixed camera and lamps
+//! The VirTex photometric-stereo rig (Spence et al., §2): one fixed camera and lamps
 //! at fixed directions; world frame = sample frame, nothing moves.
 //!
 //! Solving is choosing: the lamp nearest the requested light, and the one camera.

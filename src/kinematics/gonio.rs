@@ -1,4 +1,4 @@
-//! The Bonn gonioreflectometer (seed 000 §3): a fixed lamp along world +x, a
+//! The Bonn gonioreflectometer (Sattler et al., §3): a fixed lamp along world +x, a
 //! camera on a circular rail in the world xy plane, and a robot arm whose
 //! spherical wrist orients the sample at the origin.
 //!

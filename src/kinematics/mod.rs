@@ -40,7 +40,7 @@ pub struct Setpoints {
     /// The lamp (or laser) that is on during the exposure.
     pub lamp: String,
     /// The laser calibration plate's height over the turntable, when it is
-    /// in place (seed 002 §3.2).
+    /// in place (Wang et al., §3.2).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plate_mm: Option<f64>,
 }

@@ -74,7 +74,7 @@ pub struct Profile {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum RigGeometry {
-    /// Seed 000: a fixed lamp along world +x, a camera on a circular rail in
+    /// Sattler et al.: a fixed lamp along world +x, a camera on a circular rail in
     /// the world xy plane (rail angle measured from the lamp, counter-clockwise
     /// about +z), and a robot arm orienting the sample at the origin.
     Gonioreflectometer {
@@ -85,7 +85,7 @@ pub enum RigGeometry {
         lamp_distance_m: f64,
         rail_radius_m: f64,
     },
-    /// Seed 002: a turntable (rotation about world +z), a light arc rotating
+    /// Wang et al.: a turntable (rotation about world +z), a light arc rotating
     /// about +z carrying lamps at fixed elevations, and a stationary camera
     /// arc in the world xz plane at azimuth 0.
     TurntableArcs {
@@ -104,7 +104,7 @@ pub enum RigGeometry {
         occlusion_deg: f64,
         arc_radius_m: f64,
     },
-    /// Seed 003: one fixed camera and lamps at known slant/tilt.
+    /// Spence et al.: one fixed camera and lamps at known slant/tilt.
     FixedLamps {
         camera: String,
         lamps: Vec<String>,

@@ -1,11 +1,11 @@
-//! The laser scan of seed 002 §3.2, as a plan: the calibration captures
+//! The laser scan of Wang et al., §3.2, as a plan: the calibration captures
 //! that fix each laser plane's angle, then for every turntable position and
 //! every laser source position (light-arc angle) a sweep of the emitter
 //! tilt while every camera records at its video rate.
 //!
 //! Geometry: the emitter sits on the light arc at polar angle `θ_L` and the
 //! arc's radius; its strip on the turntable is orthogonal to the source's
-//! horizontal direction (seed §3.1), and the tilt moves the strip along that
+//! horizontal direction (Wang et al., §3.1), and the tilt moves the strip along that
 //! direction. At tilt 0 the plane passes through the turntable centre.
 
 use serde::{Deserialize, Serialize};
@@ -17,8 +17,8 @@ use rigd_core::geometry::{Direction, Vec3};
 /// tilt beyond puts it nowhere a turntable is.
 const MAX_STRIP_OFFSET_RADII: f64 = 10.0;
 
-/// Laser source positions of seed 002 (Figure 4).
-pub const SEED_SOURCES: usize = 26;
+/// Laser source positions of Wang et al. (Figure 4).
+pub const MSRA_LASER_SOURCES: usize = 26;
 
 /// What a laser plan captures; `laser:key=value,…` overrides the defaults.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -34,7 +34,7 @@ pub struct LaserPlan {
     pub step_mm: f64,
     /// The cameras' video rate during a sweep (seed: 7.5 Hz).
     pub frame_hz: f64,
-    /// Short exposures keep interreflections dark (seed §3.2).
+    /// Short exposures keep interreflections dark (Wang et al., §3.2).
     pub exposure_s: f64,
     /// Height of the calibration plate over the turntable, mm.
     pub plate_mm: f64,
@@ -49,7 +49,7 @@ pub struct LaserPlan {
 impl Default for LaserPlan {
     fn default() -> LaserPlan {
         LaserPlan {
-            sources: SEED_SOURCES,
+            sources: MSRA_LASER_SOURCES,
             turns: 12,
             sweep_mm: 65.0,
             step_mm: 0.5,

@@ -1,8 +1,8 @@
 //! Sampling plans: which (light, view) pairs to capture.
 //!
-//! The built-in plans are the hemisphere samplings H1 and H2 of seed 000
-//! (Table 1), the 12 × 8 grid of seed 002, and one image per lamp for
-//! photometric stereo (seed 003). Plans can also come from a JSON or TOML file.
+//! The built-in plans are the hemisphere samplings H1 and H2 of Sattler et al.
+//! (Table 1), the 12 × 8 grid of Wang et al., and one image per lamp for
+//! photometric stereo (Spence et al.). Plans can also come from a JSON or TOML file.
 
 pub mod laser;
 
@@ -21,7 +21,7 @@ pub const BUILTIN_PLANS: &[&str] = &["h1", "h2", "grid12x8", "lamps", "laser"];
 /// start a capture of a billion frames.
 pub const MAX_PAIRS: usize = 1_000_000;
 
-/// Ring sizes of H1 and H2 (seed 000, Table 1): 1 + 6 + 12 + 18 + 20 + 24 = 81.
+/// Ring sizes of H1 and H2 (Sattler et al., Table 1): 1 + 6 + 12 + 18 + 20 + 24 = 81.
 pub const HEMISPHERE_RING_COUNTS: [usize; 6] = [1, 6, 12, 18, 20, 24];
 /// Elevations of H1, degrees.
 pub const H1_THETAS: [f64; 6] = [0.0, 17.0, 34.0, 51.0, 68.0, 85.0];
@@ -42,7 +42,7 @@ pub struct Pair {
 pub struct Plan {
     pub name: String,
     pub pairs: Vec<Pair>,
-    /// A laser scan (seed 002 §3.2) instead of pairs.
+    /// A laser scan (Wang et al., §3.2) instead of pairs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub laser: Option<LaserPlan>,
     /// The order the engine takes the triggers in. Runs recorded before

@@ -34,7 +34,7 @@ pub struct SlotSummary {
 }
 
 /// Compresses a rectified run's BTF: a PCA per view slot with `components`
-/// components (seed 000 §4.1), streamed slot by slot into
+/// components (Sattler et al., §4.1), streamed slot by slot into
 /// `processed/btf/`, and its report.
 pub fn btf_run(
     run: &Path,

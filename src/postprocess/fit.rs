@@ -8,7 +8,7 @@ use serde::Serialize;
 use super::rectify::NormtextureIndex;
 use super::ProcessError;
 
-/// One row of the run's fit table (seed 001 Table 1).
+/// One row of the run's fit table (Meseth et al. Table 1).
 #[derive(Debug, Clone, Serialize)]
 pub struct FitRow {
     pub method: String,
@@ -21,7 +21,7 @@ pub struct FitRow {
 }
 
 /// Fits every view slot of a rectified run with PTM and the K-lobe model
-/// (seed 001 §4) and tabulates the errors, written to
+/// (Meseth et al., §4) and tabulates the errors, written to
 /// `processed/fit/report.json`. The fitted parameters are not stored.
 pub fn fit_run(
     run: &Path,
@@ -89,7 +89,7 @@ pub fn fit_run(
             row.fit_s += secs;
             row.converged_texels += converged;
         }
-        // The fitted parameters, per texel: the seed's (a, b, c, n) per
+        // The fitted parameters, per texel: Meseth et al.'s (a, b, c, n) per
         // lobe, and the six PTM coefficients.
         let side = index.size;
         let mut lobe_params = Vec::with_capacity(texels * lobes * 4);

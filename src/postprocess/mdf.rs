@@ -1,11 +1,11 @@
 //! `rigd process mdf`: the mesostructure distance function of a laser run
-//! (seed 002 §3.2). Per source position and camera, the laser plane's angle
+//! (Wang et al., §3.2). Per source position and camera, the laser plane's angle
 //! comes from the two calibration frames (strip on the turntable and on the
 //! plate); per sweep frame, the strip is found in the reference region
 //! outside the sample's bounding box and its plane fixed; the space-time
 //! analysis triangulates each pixel against its brightest frame's plane;
-//! the displacement images of all sources of one view are merged with the
-//! seed's tetrahedron-volume weights. `rigd_process::mdf` has the numerics;
+//! the displacement images of all sources of one view are merged with
+//! Wang et al.'s tetrahedron-volume weights. `rigd_process::mdf` has the numerics;
 //! this module feeds it a run directory and, for simulated runs, measures
 //! the result against the scene.
 
@@ -32,7 +32,7 @@ use rigd_core::geometry::Direction;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum PlaneModel {
-    /// The seed's: every plane of a sweep makes the calibrated angle with
+    /// Wang et al.'s: every plane of a sweep makes the calibrated angle with
     /// the turntable (the emitter taken as far away).
     Calibrated,
     /// Through the emitter, whose place the profile gives; the calibration
@@ -295,7 +295,7 @@ pub fn mdf_run(
     }
 
     // Space-time analysis per sweep and camera, in parallel.
-    // The seed's planes need the calibration of their source and camera.
+    // Wang et al.'s planes need the calibration of their source and camera.
     let jobs: Vec<&SweepView> = sweeps
         .values()
         .filter(|sv| {
@@ -433,7 +433,7 @@ fn pick_sources(total: usize, n: Option<usize>) -> Result<Vec<usize>, ProcessErr
 }
 
 /// The image rectangles `[x0, y0, x1, y1)` outside the sample's bounding
-/// box on the turntable: the seed's reference region.
+/// box on the turntable: Wang et al.'s reference region.
 fn reference_regions(cam: &PinholeCamera, box_half: f64) -> Vec<[usize; 4]> {
     let (w, h) = (cam.width, cam.height);
     let corners = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]
@@ -511,7 +511,7 @@ fn sweep_displacement(
                 let plane = plane_from_line(&cam, &line, 0.0, constraint).ok()?;
                 let on_turntable = cam.back_project_to_height(line.point[0], line.point[1], 0.0)?;
                 let (emitter, normal) = nominal?;
-                // The seed's parallel planes differ from the true ones by
+                // Wang et al.'s parallel planes differ from the true ones by
                 // up to the sweep's tilt range: only their strip is checked.
                 let check_angle = cfg.planes == PlaneModel::Emitter;
                 plausible(&plane, on_turntable, emitter, normal, check_angle).then_some(plane)

@@ -25,7 +25,7 @@ pub struct RectifyConfig {
     pub roi: f64,
     /// Side of the stored texture (the ROI scaled).
     pub final_size: usize,
-    /// Width of the linear edge blend that makes textures tile (seed 000
+    /// Width of the linear edge blend that makes textures tile (Sattler et al.
     /// §3.2), in final texels; 0 = none.
     pub blend: usize,
     pub bits: TextureBits,
@@ -37,11 +37,11 @@ pub enum TextureBits {
     /// 8-bit PNG of the top 8 bits of the sensor value (no clipping).
     Top8,
     /// 8-bit PNG of `value >> shift`, clipped at 255 (2 = the central 8
-    /// bits of 12, as seed 000 §3.2 chose for the linear part of its CCD).
+    /// bits of 12, as Sattler et al., §3.2 chose for the linear part of its CCD).
     Shift(u8),
     /// Linear float32 `.npy`, 1 = full scale.
     Float,
-    /// Linear float16 `.npy` (the seed's "16-bit floats"), half the bytes.
+    /// Linear float16 `.npy` (Sattler et al.'s "16-bit floats"), half the bytes.
     Half,
 }
 

@@ -151,7 +151,7 @@ pub trait LaserLine: Send {
 }
 
 /// Something an operator places by hand, such as the laser calibration
-/// plate of seed 002 §3.2 (a flat plate at a known height over the
+/// plate of Wang et al., §3.2 (a flat plate at a known height over the
 /// turntable).
 #[async_trait]
 pub trait Fixture: Send {

@@ -1,4 +1,4 @@
-//! The laser calibration plate (seed 002 §3.2): a flat plate an operator
+//! The laser calibration plate (Wang et al., §3.2): a flat plate an operator
 //! lays over the turntable at a known height, so the strip falls on two
 //! planes of different heights. On a real rig the run pauses with the
 //! instruction and goes on when the operator resumes; the simulated rig

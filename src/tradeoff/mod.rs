@@ -10,7 +10,7 @@
 //!   profile and ordered; its "capture" is the scene's true BTF, area-averaged
 //!   into normtextures, at the directions the rig really reaches (infeasible
 //!   pairs show up as error). The BTF is compressed with C components and
-//!   reconstructed at held-out (light, view) pairs (eq. 3 and 5 of seed 000).
+//!   reconstructed at held-out (light, view) pairs (eq. 3 and 5 of Sattler et al.).
 //!   The camera, registration and rectification are left out of this family:
 //!   `tests/process_run.rs` and `tests/btf_accuracy.rs` measure them
 //!   (registration residual 0.02–0.09 px).

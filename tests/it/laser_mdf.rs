@@ -1,4 +1,4 @@
-//! A laser scan on the simulated MSRA rig (seed 002 §3.2), end to end:
+//! A laser scan on the simulated MSRA rig (Wang et al., §3.2), end to end:
 //! `rigd run --plan laser:…` captures the calibration frames and the sweeps,
 //! `rigd process mdf` turns them into displacement images, measured against
 //! the ps-target's true geometry.
@@ -136,7 +136,7 @@ fn a_laser_scan_measures_the_domes() {
         .all(|v| v.is_finite() && (*v == -1.0 || *v >= 0.0)));
     assert!(run.join("processed/mdf/t000_cam3.png").exists());
 
-    // The seed's model (planes of a sweep parallel at the calibrated angle)
+    // Wang et al.'s model (planes of a sweep parallel at the calibrated angle)
     // pays for the emitter being near.
     let calibrated = mdf(&run, &[]);
     let cal = calibrated["calibrations"].as_array().unwrap();

@@ -10,6 +10,7 @@ mod acl_e2e;
 mod acl_transcripts;
 mod api;
 mod api_restart;
+mod architecture;
 mod btf_accuracy;
 mod cli;
 mod crash_resume;

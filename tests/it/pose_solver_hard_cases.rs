@@ -70,7 +70,7 @@ fn bits(sp: &Setpoints) -> Vec<(String, u64)> {
         .collect()
 }
 
-/// The H1 sampling of seed 000: rings θ = 0, 17, ..., 85 with 1, 6, 12, 18, 20, 24
+/// The H1 sampling of Sattler et al.: rings θ = 0, 17, ..., 85 with 1, 6, 12, 18, 20, 24
 /// azimuths, Δφ = 360/n from φ = 0.
 fn h1() -> Vec<Direction> {
     let rings = [

@@ -240,7 +240,7 @@ fn a_capture_is_rectified_and_compressed() {
     // The stored parameters reproduce the reported errors.
     stored_fits_reproduce_the_report(&run, &rows);
 
-    // The seed's 16-bit floats and edge blending; the BTF reads them.
+    // Sattler et al.'s 16-bit floats and edge blending; the BTF reads them.
     common::run_ok(&[
         "process",
         "rectify",

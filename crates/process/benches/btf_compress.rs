@@ -1,4 +1,4 @@
-//! PCA compression at the seed-000 size: one view slot of 81 lights (H1),
+//! PCA compression at the size of Sattler et al.: one view slot of 81 lights (H1),
 //! 256 × 256 RGB normtextures, C = 16; and a whole 81 × 81 BTF of 256²
 //! grey normtextures (what `rigd process rectify` writes), slot by slot as
 //! `rigd process btf` does, each slot's textures made outside the timing.

@@ -9,7 +9,7 @@ use rigd_process::image_io::Image;
 use rigd_process::rectify::{
     detect_markers, predict_markers, project, rectify, register, roi_cut, DetectOptions,
     Homography, MarkerLayout, RectifyOptions, RegisterOptions, Roi, NORMTEXTURE_SIZE,
-    SEED_ROI_FRACTION,
+    SATTLER_ROI_FRACTION,
 };
 
 const W: usize = 640;
@@ -81,7 +81,7 @@ fn bench(c: &mut Criterion) {
                 &RectifyOptions::default(),
             )
             .expect("valid input");
-            let roi = Roi::centred(size[0], size[1], SEED_ROI_FRACTION);
+            let roi = Roi::centred(size[0], size[1], SATTLER_ROI_FRACTION);
             roi_cut(&norm.texture, roi, [256, 256]).expect("valid ROI")
         })
     });

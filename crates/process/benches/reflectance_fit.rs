@@ -72,7 +72,7 @@ fn bench(c: &mut Criterion) {
     let lights = lights();
     let values = slot(&lights);
     let opts = FitOptions::default();
-    // One untimed pass for the seed 001 Table 1 figures at bench scale.
+    // One untimed pass for Meseth et al.'s Table 1 figures at bench scale.
     match error_table(&lights, &values, &[1, 2], &opts) {
         Ok(table) => eprintln!("{SIDE}x{SIDE} slot, 81 lights:\n{table}"),
         Err(error) => eprintln!("error table failed: {error}"),

@@ -1,4 +1,4 @@
-//! BTF compression by per-view-slot PCA (seed 000, §4.1) and reconstruction
+//! BTF compression by per-view-slot PCA (Sattler et al., §4.1) and reconstruction
 //! at arbitrary light and view directions (§4.2, eq. 3 and 5).
 //!
 //! # Model
@@ -16,7 +16,7 @@
 //! * weights p_ikj = σ_k V_ik, i.e. the projection of the centred N_ij onto
 //!   B_kj;
 //!
-//! so that N_ij ≈ M_j + Σ_k p_ikj B_kj. The mean texture is the seed's B_0j
+//! so that N_ij ≈ M_j + Σ_k p_ikj B_kj. The mean texture is Sattler et al.'s B_0j
 //! with γ_0j = 1 (eq. 4) and makes the kept subspace the affine one of §4.1.
 //!
 //! C is clamped to min(C, lights, values); components whose singular value is
@@ -81,7 +81,7 @@ pub const FORMAT_VERSION: u32 = 1;
 pub const HEADER_FILE: &str = "btf.json";
 /// The only value encoding of format version 1.
 pub const VALUE_ENCODING: &str = "f32le";
-/// Largest component count the error report goes up to (seed 000 keeps 16).
+/// Largest component count the error report goes up to (Sattler et al. keep 16).
 pub const MAX_REPORTED_COMPONENTS: usize = 32;
 
 #[derive(Debug, thiserror::Error)]
@@ -248,7 +248,7 @@ pub fn compress_slot(
     // Direct thin SVD of the tall (values × lights) matrix rather than an
     // eigen-decomposition of the small Gram matrix AᵀA: the Gram matrix
     // squares the condition number, so with a fast-decaying spectrum (the
-    // usual case, seed 000 Fig. 7) every σ_k below ~1e-8·σ_1 is lost in
+    // usual case, Sattler et al. Fig. 7) every σ_k below ~1e-8·σ_1 is lost in
     // rounding, and with it the small residual energies of the error report.
     // faer reduces a tall matrix by QR first, so the cost stays O(values·lights²).
     let centred = Mat::<f64>::from_fn(values, lights, |row, col| {
@@ -340,7 +340,7 @@ impl SlotPca {
     }
 
     /// Eigenvalues of the PCA (σ², unnormalised scatter), non-increasing:
-    /// the decay curve of seed 000 Fig. 7.
+    /// the decay curve of Sattler et al. Fig. 7.
     pub fn eigenvalues(&self) -> Vec<f64> {
         self.singular_values.iter().map(|s| s * s).collect()
     }

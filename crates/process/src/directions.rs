@@ -1,10 +1,10 @@
 //! Measured direction tables and the four-nearest-direction interpolation of
-//! seed 000 (§4.2, eq. 3 for lights and eq. 5 for view slots).
+//! Sattler et al. (§4.2, eq. 3 for lights and eq. 5 for view slots).
 //!
 //! A [`DirectionTable`] keeps the measured directions in measurement order
 //! (the index of a direction is its light index or view slot) and groups them
 //! into rings of equal elevation θ (within [`RING_THETA_TOLERANCE_DEG`]),
-//! each ring sorted by azimuth φ. The samplings H1 and H2 of seed 000
+//! each ring sorted by azimuth φ. The samplings H1 and H2 of Sattler et al.
 //! (Table 1) are such rings: θ = 0, 17, 34, 51, 68, 85° (H1) or
 //! 0, 15, 30, 45, 60, 75° (H2) with 1, 6, 12, 18, 20, 24 evenly spaced φ.
 //! A table that is not ring-structured still works: every distinct θ becomes
@@ -142,7 +142,7 @@ impl Interpolation {
             .map_or(0.0, |at| self.entries[at].1)
     }
 
-    /// The index with the largest weight (the seed's "nearest slot").
+    /// The index with the largest weight (Sattler et al.'s "nearest slot").
     pub fn dominant(&self) -> Option<usize> {
         self.entries
             .iter()
@@ -397,11 +397,11 @@ pub fn ring_directions(thetas: &[f64], counts: &[usize]) -> Vec<Direction> {
     out
 }
 
-/// Ring sizes of H1 and H2 (seed 000, Table 1): 1 + 6 + 12 + 18 + 20 + 24 = 81.
+/// Ring sizes of H1 and H2 (Sattler et al., Table 1): 1 + 6 + 12 + 18 + 20 + 24 = 81.
 pub const HEMISPHERE_RING_COUNTS: [usize; 6] = [1, 6, 12, 18, 20, 24];
-/// Elevations of H1 (seed 000, Table 1, θ1), degrees.
+/// Elevations of H1 (Sattler et al., Table 1, θ1), degrees.
 pub const H1_THETAS: [f64; 6] = [0.0, 17.0, 34.0, 51.0, 68.0, 85.0];
-/// Elevations of H2 (seed 000, Table 1, θ2), degrees.
+/// Elevations of H2 (Sattler et al., Table 1, θ2), degrees.
 pub const H2_THETAS: [f64; 6] = [0.0, 15.0, 30.0, 45.0, 60.0, 75.0];
 
 /// The 81 directions of H1.

@@ -2,6 +2,7 @@
 //! direction tables: nothing here knows about devices, runs or the daemon,
 //! so each step is testable on analytic data and reusable by the CLI, the
 //! daemon and the trade-off report.
+#![warn(missing_docs)]
 
 pub mod atomic;
 pub mod btf;

@@ -17,8 +17,8 @@
 //!
 //! [`Mesh::visibility`] gives, per vertex and per direction of a table given
 //! in the vertex's local frame, whether the surface itself hides that
-//! direction (seed 004's visibility maps, sampled at the measured light
-//! directions as seed 000 eq. 10 uses them). Only the cloth can hide its own
+//! direction (Ganster et al.'s visibility maps, sampled at the measured light
+//! directions as Sattler et al. eq. 10 uses them). Only the cloth can hide its own
 //! sky: the flat sample and the convex cylinder never do above their local
 //! horizon.
 

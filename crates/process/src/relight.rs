@@ -17,13 +17,13 @@
 //!    interpolated tangent made orthogonal to n, b = n × t. The world light
 //!    L and the direction to the eye V give the local l = (L·t, L·b, L·n)
 //!    and v likewise; θ = acos(z), φ = atan2(y, x).
-//! 4. **BTF.** The four nearest view slots of v (seed 000 eq. 5) and, in
+//! 4. **BTF.** The four nearest view slots of v (Sattler et al. eq. 5) and, in
 //!    each, the light weights interpolated from the four nearest measured
 //!    light directions of l (eq. 3): `value = Σ_s ω_s (M_s + Σ_k γ_sk B_sk)`
 //!    with `γ_sk = Σ_i τ_i p_isk`, every texture sampled bilinearly with
 //!    wrap-around at texture coordinates (s, −r): the material tiles the
 //!    mesh, row 0 of a normtexture being the sample's +y edge.
-//! 5. **Smooth shadow boundary** (seed 000 §4.3, eq. 6). Per vertex
+//! 5. **Smooth shadow boundary** (Sattler et al., §4.3, eq. 6). Per vertex
 //!    `u = (1 + cos(α + ∠(n_V, L))) / 2`, interpolated, then
 //!    `smoothstep(0.5, 0.5 + SHADOW_SOFTNESS, u)`: 0 from where the light
 //!    meets the smooth surface's horizon, so a light below the horizon adds
@@ -31,7 +31,7 @@
 //! 6. **Display.** `clamp(exposure · shadow · value, 0, 1)^(1/2.2)`, to
 //!    8 bits by rounding; the background is [`BACKGROUND`].
 //!
-//! [`Shading::Plain`] is the comparison the seed's figures 13–14 make: the
+//! [`Shading::Plain`] is the comparison Sattler et al.'s figures 13–14 make: the
 //! same mesh with one plain texture (the BTF at frontal light and view)
 //! shaded by Lambert's cosine.
 
@@ -71,7 +71,7 @@ pub enum RelightError {
 /// What the mesh shows.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Shading {
-    /// The BTF: view and light dependent texture (seed 000 §4).
+    /// The BTF: view and light dependent texture (Sattler et al., §4).
     Btf,
     /// One texture (frontal light and view) and Lambert's cosine.
     Plain,

@@ -15,12 +15,12 @@
 //!   half-float subnormals); the scale moves into the weights.
 //! * `weights`: little-endian f32 (`f32le`), `slots × lights × components`,
 //!   slot-major, then light, then component: `p_isk · peak_sk`, so
-//!   `value = M_s + Σ_k (Σ_i τ_i w_isk) B'_sk` with the stored B' is the
-//!   seed's eq. 3 unchanged.
+//!   `value = M_s + Σ_k (Σ_i τ_i w_isk) B'_sk` with the stored B' is
+//!   Sattler et al.'s eq. 3 unchanged.
 //! * `light_table` and `view_table`: the measured directions, their rings
 //!   (θ, pole, members as (φ, index) sorted by φ) for the shader's eq. 3 and
 //!   5 interpolation, and each direction's solid angle for environment
-//!   lighting (seed 000 eq. 10).
+//!   lighting (Sattler et al. eq. 10).
 //!
 //! # Photometric stereo (`kind: "photometric-stereo"`)
 //!

@@ -3,6 +3,7 @@
 //! `ptp::link` uses tokio channels), so the daemon's drivers and the simulated
 //! firmware in `rigd-sim` share one definition of each protocol (and neither
 //! crate has to depend on the other).
+#![warn(missing_docs)]
 
 pub mod acl;
 pub mod grbl;

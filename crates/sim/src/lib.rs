@@ -6,6 +6,7 @@
 //! The crate depends on nothing of the daemon, so the daemon can embed it as
 //! its default backend and tests can drive it directly. Its waits go through
 //! `rigd_core::Clock`, the clock the drivers and the engine use.
+#![warn(missing_docs)]
 
 pub mod devices;
 pub mod faults;

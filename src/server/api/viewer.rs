@@ -101,7 +101,7 @@ pub async fn btf_data(
 
 /// A viewer mesh (`flat`, `cylinder` or `cloth`): a grid with positions,
 /// normals, tangents, texture coordinates and triangles, plus per vertex
-/// the visibility of each of the run's measured light directions (seed 004).
+/// the visibility of each of the run's measured light directions (Ganster et al.).
 #[utoipa::path(get, path = "/api/v1/runs/{id}/btf/mesh/{kind}", tag = "runs",
     params(("id" = String, Path, description = "Run id"),
            ("kind" = String, Path, description = "flat, cylinder or cloth"), MeshQuery),

@@ -98,7 +98,7 @@ out vec3 vP; out vec3 vN; out vec3 vT; out vec2 vTex; out vec2 vParam; out float
 void main() {
   vP = aPos; vN = aNormal; vT = aTangent; vTex = aTex; vParam = aParam;
   float angle = acos(clamp(dot(aNormal, uLight), -1.0, 1.0));
-  vU = (1.0 + cos(uAlpha + angle)) * 0.5;   // seed 000 eq. 6
+  vU = (1.0 + cos(uAlpha + angle)) * 0.5;   // Sattler et al. eq. 6
   gl_Position = uVP * vec4(aPos, 1.0);
 }`;
 
@@ -199,7 +199,7 @@ vec3 btf() {
   }
   return value;
 }
-// Seed 000 eq. 10-11: every measured light weighted by the sky it sees.
+// Sattler et al. eq. 10-11: every measured light weighted by the sky it sees.
 vec3 btfEnvironment() {
   vec3 value = vec3(0.0);
   vec3 total = vec3(0.0);

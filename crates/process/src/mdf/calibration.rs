@@ -7,7 +7,7 @@ use super::*;
 pub struct PlaneCalibration {
     pub plane: LaserPlane,
     /// Angle between the laser plane and the reference plane `z = 0`,
-    /// degrees (the seed's calibrated quantity).
+    /// degrees (Wang et al.'s calibrated quantity).
     pub tilt_deg: f64,
     /// RMS distance of the back-projected line points from the fitted
     /// plane, metres (coplanarity residual).
@@ -164,7 +164,7 @@ pub fn calibrate_plane(
 /// reference plane.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum PlaneConstraint {
-    /// The seed's model (laser far away, planes of one scan parallel): the
+    /// Wang et al.'s model (laser far away, planes of one scan parallel): the
     /// plane makes the calibrated plane's angle with `z = 0` (its normal's
     /// `z` component and side are taken from this calibrated plane).
     CalibratedTilt(LaserPlane),

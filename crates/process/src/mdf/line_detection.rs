@@ -328,7 +328,7 @@ pub(super) fn fit_robust(cands: &[[f64; 2]], axis: ScanAxis) -> Option<LineFit> 
 }
 
 /// Detects the laser line in the reference region `[x0, y0, x1, y1)`
-/// (pixels, end exclusive) of `image` (seed §3.2, Fig. 5a).
+/// (pixels, end exclusive) of `image` (Wang et al., §3.2, Fig. 5a).
 ///
 /// The grey image is Gaussian-filtered (`sigma_px`, 0 = none); then both
 /// per row and per column the brightest filtered sample is taken as a
@@ -349,7 +349,7 @@ pub fn detect_line(
 }
 
 /// [`detect_line`] over several reference regions at once (the reference
-/// region of the seed is the image minus the sample's bounding box, which
+/// region of Wang et al. is the image minus the sample's bounding box, which
 /// is rarely one rectangle): candidates of all regions are pooled per scan
 /// axis before the fit, so a line crossing two bands is fitted over its
 /// whole span.

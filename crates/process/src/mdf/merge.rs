@@ -12,7 +12,7 @@ pub fn tetrahedron_volume(a: [f64; 3], b: [f64; 3], c: [f64; 3], d: [f64; 3]) ->
     }
 }
 
-/// The seed's merge weight of a scan (§3.2, after the error analysis of
+/// Wang et al.'s merge weight of a scan (§3.2, after the error analysis of
 /// [2]): the volume of the tetrahedron formed by the laser source position,
 /// the camera location, and two points on the laser line passing through
 /// the turntable centre. The laser strip on the turntable is orthogonal to
@@ -21,7 +21,7 @@ pub fn tetrahedron_volume(a: [f64; 3], b: [f64; 3], c: [f64; 3], d: [f64; 3]) ->
 /// points are `±half_length` along it (any fixed length: only ratios of
 /// weights matter). The volume vanishes when the camera lies in that laser
 /// plane (triangulation ill-conditioned).
-pub fn seed_source_weight(
+pub fn wang_source_weight(
     source: [f64; 3],
     camera_centre: [f64; 3],
     half_length: f64,
@@ -46,7 +46,7 @@ pub fn seed_source_weight(
 }
 
 /// Merges the displacement images of several laser source positions with
-/// the seed's tetrahedron weights ([`seed_source_weight`] with
+/// Wang et al.'s tetrahedron weights ([`wang_source_weight`] with
 /// `half_length` metres); see [`merge_weighted`].
 pub fn merge(
     displacements: &[DisplacementImage],
@@ -64,15 +64,15 @@ pub fn merge(
     }
     let weights: Vec<f64> = source_positions
         .iter()
-        .map(|&s| seed_source_weight(s, camera.centre, half_length))
+        .map(|&s| wang_source_weight(s, camera.centre, half_length))
         .collect::<Result<_, _>>()?;
     merge_weighted(displacements, &weights, use_pixel_confidence)
 }
 
 /// `D_v(x,y) = Σ w_i D_{v,l_i}(x,y) / Σ w_i` over the scans with
-/// `D_{v,l_i}(x,y) ≠ −1` (seed §3.2). With `use_pixel_confidence` each
+/// `D_{v,l_i}(x,y) ≠ −1` (Wang et al., §3.2). With `use_pixel_confidence` each
 /// term's weight is `w_i` times the pixel's [`space_time`] confidence
-/// (the seed's formula is `false`). A pixel with no valid scan, or whose
+/// (Wang et al.'s formula is `false`). A pixel with no valid scan, or whose
 /// weights sum to 0, stays −1. The output weight is the sum of the weights
 /// used.
 pub fn merge_weighted(

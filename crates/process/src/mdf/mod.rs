@@ -1,5 +1,5 @@
 //! Mesostructure distance function (MDF) measurement by laser scanning
-//! (seed 002 §3.2): laser line detection in a flat reference region, laser
+//! (Wang et al., §3.2): laser line detection in a flat reference region, laser
 //! plane calibration from two heights, space-time analysis of a scan
 //! sequence into a displacement image, and the weighted merge of the
 //! displacement images of several laser source positions.
@@ -19,7 +19,7 @@
 //! - **Laser plane**: [`LaserPlane`] `n·x = offset`, `n` unit; the sign of
 //!   `n` is arbitrary (the simulator's `LaserLine { emitter, normal }` is
 //!   `LaserPlane::through(emitter, normal)`).
-//! - **MDF** (seed §3, Fig. 2): the MDF is defined on a reference plane
+//! - **MDF** (Wang et al., §3, Fig. 2): the MDF is defined on a reference plane
 //!   `z = reference_height` *above* the mesostructure. For a camera pixel,
 //!   whose ray meets the reference plane at `p` and the mesostructure first
 //!   at `p'`, the displacement is `D = |p − p'|`, the distance along the
@@ -38,8 +38,8 @@
 //!    least-squares line with outlier rejection.
 //! 2. [`calibrate_plane`]: the line seen on `z = 0` and on a raised plane
 //!    `z = h` back-project to two 3-D lines; the laser plane is the
-//!    least-squares plane through both (its tilt to the turntable is the
-//!    seed's "angle between the laser plane and the reference plane").
+//!    least-squares plane through both (its tilt to the turntable is Wang
+//!    et al.'s "angle between the laser plane and the reference plane").
 //!    [`plane_from_line`] then turns each scan frame's reference line into
 //!    that frame's plane (with the calibrated tilt, or through a known
 //!    emitter position).
@@ -48,7 +48,7 @@
 //!    with the (interpolated) plane, the displacement from the reference
 //!    plane along the ray, and a confidence weight (see [`space_time`] for
 //!    the grazing-plane rule).
-//! 4. [`merge`]: the seed's weighted mean over laser source positions with
+//! 4. [`merge`]: Wang et al.'s weighted mean over laser source positions with
 //!    tetrahedron-volume weights, ignoring `−1` entries.
 //! 5. [`quantise_depth`] / [`write_displacement`]: 8-bit codes (255 = no
 //!    measurement) and `.npy` float output.
@@ -63,7 +63,7 @@ use crate::image_io::{write_png, Image, ImageError, PngDepth};
 use crate::npy::{write_f32, NpyError};
 use rigd_core::geometry::{add, cross, dot, norm, scale, sub, unit};
 
-/// Depth value of a pixel without a measurement (the seed's `−1`).
+/// Depth value of a pixel without a measurement (Wang et al.'s `−1`).
 pub const NO_DEPTH: f32 = -1.0;
 /// 8-bit code of a pixel without a measurement in [`quantise_depth`].
 pub const NO_DEPTH_CODE: u8 = 255;

@@ -2,7 +2,7 @@
 
 use super::*;
 
-/// 8-bit codes of the depths (the seed stores MDFs quantised to 8 bits):
+/// 8-bit codes of the depths (Wang et al. store MDFs quantised to 8 bits):
 /// `round(clamp(depth / max_depth, 0, 1) · 254)`; 255 ([`NO_DEPTH_CODE`])
 /// for −1 (any negative or non-finite depth).
 pub fn quantise_depth(d: &DisplacementImage, max_depth: f64) -> Result<Vec<u8>, MdfError> {

@@ -97,7 +97,7 @@ pub(super) enum PixelOutcome {
     OutOfRange,
 }
 
-/// Space-time analysis of one scan sequence (seed §3.2, Fig. 5b; [4]):
+/// Space-time analysis of one scan sequence (Wang et al., §3.2, Fig. 5b; [4]):
 /// per pixel, the frame `i0` with the brightest grey value; if it does not
 /// exceed `opts.threshold` the pixel is occluded (−1). Otherwise, with
 /// `opts.subframe`, the peak time is refined by a 3-point Gaussian fit of

@@ -1,5 +1,5 @@
 //! Marker-based registration and rectification of rig frames onto the
-//! frontal plane (seed 000 §3.2): find the holder plate's point markers in
+//! frontal plane (Sattler et al., §3.2): find the holder plate's point markers in
 //! a frame, estimate the plate→image homography, and resample the sample
 //! region to a frontal "normtexture".
 //!
@@ -54,12 +54,12 @@ use rayon::prelude::*;
 
 use crate::image_io::Image;
 
-/// Size of a normtexture in the seed (1024²).
+/// Size of a normtexture in Sattler et al. (1024²).
 pub const NORMTEXTURE_SIZE: usize = 1024;
-/// Size of the final textures after the ROI cut in the seed (256²).
+/// Size of the final textures after the ROI cut in Sattler et al. (256²).
 pub const FINAL_TEXTURE_SIZE: usize = 256;
-/// The seed's ROI: about 550 of 1024 texels, centred.
-pub const SEED_ROI_FRACTION: f64 = 550.0 / 1024.0;
+/// Sattler et al.'s ROI: about 550 of 1024 texels, centred.
+pub const SATTLER_ROI_FRACTION: f64 = 550.0 / 1024.0;
 /// Largest output side accepted by [`rectify`] and [`roi_cut`].
 pub const MAX_OUTPUT_SIDE: usize = 16384;
 

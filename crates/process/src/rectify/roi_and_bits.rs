@@ -13,7 +13,7 @@ pub struct Roi {
 
 impl Roi {
     /// The centred square covering `fraction` of the smaller side of a
-    /// `width × height` texture (e.g. [`SEED_ROI_FRACTION`]).
+    /// `width × height` texture (e.g. [`SATTLER_ROI_FRACTION`]).
     pub fn centred(width: usize, height: usize, fraction: f64) -> Roi {
         let f = if fraction.is_finite() {
             fraction.clamp(0.0, 1.0)
@@ -96,7 +96,7 @@ pub fn roi_cut(texture: &Image, roi: Roi, size: [usize; 2]) -> Result<Image, Rec
     Ok(out)
 }
 
-/// Linear edge blending (seed 000 §3.2: "linear edgeblending is applied,
+/// Linear edge blending (Sattler et al., §3.2: "linear edgeblending is applied,
 /// which reduces the usual tiling artifacts"): an `(n + band)`-square
 /// texture becomes an `n`-square one that tiles without seams. Along each
 /// axis, texel `x < band` mixes texel `x` (weight `(x + ½)/band`) with texel
@@ -187,7 +187,7 @@ pub enum Quantisation {
     Float,
     /// 8 bits of the sensor code: `code = round(value × (2^bit_depth − 1))`,
     /// then `min(code >> shift, 255)`. For a 12-bit sensor `shift: 2` keeps
-    /// the central 8 bits (bits 2..=9) as in the seed: codes ≥ 1020
+    /// the central 8 bits (bits 2..=9) as in Sattler et al.: codes ≥ 1020
     /// saturate to 255 (never wrap); `shift: 4` keeps the top 8 bits.
     Bits8 { shift: u8 },
 }

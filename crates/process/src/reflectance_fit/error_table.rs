@@ -1,4 +1,4 @@
-//! Error table (seed 001 Table 1).
+//! Error table (Meseth et al. Table 1).
 
 use super::*;
 
@@ -18,7 +18,7 @@ impl fmt::Display for FitMethod {
     }
 }
 
-/// One row of seed 001 Table 1 for one view slot.
+/// One row of Meseth et al. Table 1 for one view slot.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ErrorRow {
     pub method: FitMethod,
@@ -35,7 +35,7 @@ pub struct ErrorRow {
     pub converged_texels: usize,
 }
 
-/// Seed 001 Table 1 for one view slot: one row per method.
+/// Meseth et al. Table 1 for one view slot: one row per method.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ErrorTable {
     pub texels: usize,
@@ -72,7 +72,7 @@ impl fmt::Display for ErrorTable {
 }
 
 /// Fits a view slot with PTM and with each `k` in `ks` and tabulates the
-/// average luminance errors and fit times (seed 001 Table 1; its
+/// average luminance errors and fit times (Meseth et al. Table 1; its
 /// "Lafortune (2 lobes)" column fits one model to all views and is not a
 /// per-slot method, so it has no row here).
 pub fn error_table(

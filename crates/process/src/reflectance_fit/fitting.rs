@@ -60,7 +60,7 @@ pub(super) fn plan_texel(
 /// the peak's lobe (wide enough to reach the next ring of a 15° sampling).
 pub(super) const NEIGHBOUR_COS: f64 = 0.906; // cos 25°
 
-/// Initial lobes from principal directions (seed 001 §4.2: "detecting
+/// Initial lobes from principal directions (Meseth et al., §4.2: "detecting
 /// principal directions with a high-pass filter").
 ///
 /// Lobe 1 is the low-pass part: its axis is the value-weighted mean light

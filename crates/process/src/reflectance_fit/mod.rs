@@ -1,10 +1,10 @@
-//! Per view reflectance-field fit of seed 001 (Meseth, Müller, Klein,
+//! Per view reflectance-field fit of Meseth et al. (Meseth, Müller, Klein,
 //! "Preserving Realism in real-time Rendering of BTFs", §4.2), and the
 //! polynomial texture map (PTM, Malzbender et al. 2001) it is compared with.
 //!
 //! For one view slot `v` and one texel `x` the measured reflectance field
 //! `RF_v(x, l)` (one value per light direction `l`) is approximated by
-//! seed 001 equation (1):
+//! Meseth et al. equation (1):
 //!
 //! ```text
 //! RF_v(x, l) ≈ Σ_{i=1..k} ⟨(a_i, b_i, c_i), l⟩^{n_i}
@@ -16,7 +16,7 @@
 //! it, and with `k = 2` one lobe usually settles as the broad "directional
 //! diffuse" lobe. Like Lafortune, a negative scalar product contributes 0.
 //!
-//! # Reparametrisation (seed 001 §7: overflows with high exponents)
+//! # Reparametrisation (Meseth et al., §7: overflows with high exponents)
 //!
 //! In the paper's form the lobe height is `|C|^n`: with `n = 10⁴` a 1 %
 //! change of `|C|` (one ordinary Levenberg–Marquardt step) multiplies the
@@ -51,7 +51,7 @@
 //! (no lights, mismatched lengths, non-finite lights or values) is a
 //! [`FitError`]; nothing on an input path panics.
 //!
-//! # Error measure (seed 001 Table 1)
+//! # Error measure (Meseth et al. Table 1)
 //!
 //! Table 1 gives the "average luminance difference between data and
 //! model" without defining it further. [`error_table`] reports the mean
@@ -133,7 +133,7 @@ pub struct FitOptions {
     /// value (≥ 1). A sharp lobe whose axis falls between lights is seen by
     /// none of them at its peak, so the data cannot bound its height: LM
     /// would otherwise slide along a flat valley of ever higher, narrower
-    /// peaks, which render as the black or white pixels of seed 001 §7. The
+    /// peaks, which render as the black or white pixels of Meseth et al., §7. The
     /// default 10 still admits a lobe whose axis is up to `√(2 ln 10 / n)`
     /// from the nearest light.
     pub max_amplitude_ratio: f64,
@@ -189,7 +189,7 @@ impl FitOptions {
     }
 }
 
-/// One lobe `ρ · max(ĉ · l, 0)^n` (seed 001 eq. 1 with `C = ρ^{1/n} ĉ`).
+/// One lobe `ρ · max(ĉ · l, 0)^n` (Meseth et al. eq. 1 with `C = ρ^{1/n} ĉ`).
 /// Deserialising goes through [`Lobe::new`], so stored lobes keep the
 /// bounds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -323,7 +323,7 @@ impl TryFrom<RawLobe> for Lobe {
     }
 }
 
-/// `k` lobes of seed 001 equation (1) for one texel and view.
+/// `k` lobes of Meseth et al. equation (1) for one texel and view.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(try_from = "RawLobeModel")]
 pub struct LobeModel {
@@ -485,7 +485,7 @@ impl SlotFit {
     }
 }
 
-/// Fits seed 001 equation (1) with `k` lobes to one texel by
+/// Fits Meseth et al. equation (1) with `k` lobes to one texel by
 /// Levenberg–Marquardt from a principal-direction initialisation.
 ///
 /// `lights` are directions in the sample frame (z = normal; normalised

@@ -295,7 +295,7 @@ fn two_height_calibration_recovers_the_plane() {
         assert!((cal.tilt_deg - true_tilt).abs() < 0.1);
         assert!(origin_err < 20e-6);
         // The calibrated tilt turns another frame's reference line into its
-        // plane (the seed's per-frame step); a nearby plane of the same
+        // plane (Wang et al.'s per-frame step); a nearby plane of the same
         // rotating emitter is within a small fraction of a degree.
         let plane2 = plane_at(&s, -0.004);
         let g = geometry(&cam, 0.0, false);
@@ -449,7 +449,7 @@ fn more_laser_positions_fill_occlusions_and_lower_the_error() {
         let s = source(az);
         let sc = scan(&g, &s, 100 + k as u64);
         let (d, _) = space_time(&sc.frames, &sc.planes, &cam, &opts).unwrap();
-        let w = seed_source_weight(s.emitter, cam.centre, 0.05).unwrap();
+        let w = wang_source_weight(s.emitter, cam.centre, 0.05).unwrap();
         let (m, _, v) = score(&d, &truth);
         eprintln!("source az {az:>5}°: tetrahedron weight {:.3e} m³, alone: mean |error| {m:.4} mm, valid {:.1} %", w, v * 100.0);
         images.push(d);
@@ -515,12 +515,12 @@ fn seed_weight_vanishes_when_the_camera_is_in_the_laser_plane() {
     // Source on the far side of the camera along the same line from the
     // turntable centre: the camera lies in the plane of the source and the
     // strip through the centre.
-    let w0 = seed_source_weight(scale(cam.centre, 2.0), cam.centre, 0.05).unwrap();
-    let w1 = seed_source_weight(source(90.0).emitter, cam.centre, 0.05).unwrap();
+    let w0 = wang_source_weight(scale(cam.centre, 2.0), cam.centre, 0.05).unwrap();
+    let w1 = wang_source_weight(source(90.0).emitter, cam.centre, 0.05).unwrap();
     eprintln!("tetrahedron weight: camera in the plane {w0:.3e}, source at 90° {w1:.3e}");
     assert!(w0 < 1e-12 * w1.max(1e-30) + 1e-18);
     assert!(w1 > 0.0);
-    assert!(seed_source_weight([0.0, 0.0, 1.0], cam.centre, 0.05).is_err());
+    assert!(wang_source_weight([0.0, 0.0, 1.0], cam.centre, 0.05).is_err());
 }
 
 #[test]

@@ -12,7 +12,7 @@ use rigd_process::rectify::{
     codes8, detect_border_corners, detect_markers, fit_homography, project, quantise, rectify,
     register, require_all, roi_cut, BorderLines, DetectOptions, Detection, Filter, Homography,
     MarkerLayout, Quantisation, RectifyError, RectifyOptions, Region, RegisterOptions, Roi,
-    SEED_ROI_FRACTION,
+    SATTLER_ROI_FRACTION,
 };
 
 const W: usize = 640;
@@ -314,7 +314,7 @@ const SEARCH: f64 = 35.0;
 
 // ------------------------------------------------------------------ tests
 
-/// Poses (θ, φ) in degrees, including the seed's (60°, 342°) and the
+/// Poses (θ, φ) in degrees, including Sattler et al.'s (60°, 342°) and the
 /// φ = 360° wrap.
 const POSES: [(f64, f64); 8] = [
     (0.0, 0.0),
@@ -481,7 +481,7 @@ fn normtexture_roi_cut_pipeline_matches_truth() {
     )
     .unwrap();
     assert_eq!((norm.texture.width, norm.texture.height), (1024, 1024));
-    let roi = Roi::centred(1024, 1024, SEED_ROI_FRACTION);
+    let roi = Roi::centred(1024, 1024, SATTLER_ROI_FRACTION);
     assert_eq!((roi.width, roi.height, roi.x, roi.y), (550, 550, 237, 237));
     let small = roi_cut(&norm.texture, roi, [256, 256]).unwrap();
     // Truth over the same plate square.

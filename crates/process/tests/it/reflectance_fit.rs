@@ -1,5 +1,5 @@
-//! Reflectance-field fit of seed 001 §4.2: recovery of known lobes, PTM,
-//! Jacobian, high exponents (seed 001 §7), degenerate texels, invalid input.
+//! Reflectance-field fit of Meseth et al., §4.2: recovery of known lobes, PTM,
+//! Jacobian, high exponents (Meseth et al., §7), degenerate texels, invalid input.
 
 use proptest::prelude::*;
 use rigd_process::reflectance_fit::{
@@ -317,7 +317,7 @@ fn mirror_spike_with_exponent_1e4_fits_finitely() {
 fn spike_between_lights_cannot_grow_an_overflowing_peak() {
     let lights = lights_15();
     // A lobe 3° off the light at θ = 30°, φ = 60°, with n = 1e5, scaled so
-    // that light sees 0.5: its true peak is ~1e59, the overflow of seed 001
+    // that light sees 0.5: its true peak is ~1e59, the overflow of Meseth et al.
     // §7 once stored as (a, b, c, n) and evaluated in f32.
     let axis = direction(33.0, 60.0);
     let nearest = direction(30.0, 60.0);
@@ -703,7 +703,7 @@ fn error_table_for_a_synthetic_slot() {
     let values = synthetic_slot(&lights, texels, 0.01, 7);
     let table = error_table(&lights, &values, &[1, 2], &FitOptions::default()).unwrap();
     eprintln!(
-        "seed 001 Table 1 analogue, synthetic 16x16 slot (2 true lobes + uniform noise ±0.01):\n{table}"
+        "Meseth et al. Table 1 analogue, synthetic 16x16 slot (2 true lobes + uniform noise ±0.01):\n{table}"
     );
     assert_eq!(table.rows.len(), 3);
     assert_eq!(table.rows[0].method, FitMethod::Ptm);

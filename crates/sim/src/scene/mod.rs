@@ -103,7 +103,7 @@ pub(crate) struct Relief {
     pub height: Grid,
     pub grad_x: Grid,
     pub grad_y: Grid,
-    /// Highest point; the reference plane of the BTF and MDF (seed 002 §3).
+    /// Highest point; the reference plane of the BTF and MDF (Wang et al., §3).
     pub top: f64,
     /// The steepest slope, which bounds how far a ray can safely step.
     pub max_slope: f64,

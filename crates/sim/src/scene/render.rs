@@ -59,7 +59,7 @@ pub struct Shot {
     pub lamp_distance_m: Option<f64>,
     pub laser: Option<LaserSheet>,
     /// A flat matte plate at this height over the holder hides the sample:
-    /// the laser calibration plate of seed 002 §3.2.
+    /// the laser calibration plate of Wang et al., §3.2.
     pub plate_height_m: Option<f64>,
     /// Mixed into the scene's noise seed: one stream per frame.
     pub seed: u64,
@@ -493,8 +493,16 @@ impl Scene {
         plan
     }
 
-    /// Renders a frame at the shot's bit depth.
+    /// Renders a frame at the shot's bit depth, on the renderer's own
+    /// threads ([`render_pool`]).
     pub fn render(&self, shot: &Shot) -> Rendered {
+        match render_pool() {
+            Some(pool) => pool.install(|| self.render_here(shot)),
+            None => self.render_here(shot),
+        }
+    }
+
+    fn render_here(&self, shot: &Shot) -> Rendered {
         let (linear, plan) = self.render_linear(shot);
         let max_value = ((1u32 << shot.bit_depth.clamp(1, 16)) - 1) as f64;
         let noise = plan.has(Effect::Noise);
@@ -571,6 +579,25 @@ impl Scene {
             self.name, caps, wanted, self.forbid
         )
     }
+}
+
+/// The threads simulated cameras render on, apart from rayon's global pool:
+/// processing on the global pool (a trade-off report, a BTF compression,
+/// processing beside a capture) would otherwise queue a camera's frame
+/// behind its own work until the camera missed its deadline. `None` if the
+/// system would not start the threads; frames then render on the global
+/// pool.
+pub fn render_pool() -> Option<&'static rayon::ThreadPool> {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    POOL.get_or_init(|| {
+        let threads = std::thread::available_parallelism().map_or(2, |n| n.get());
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .thread_name(|i| format!("rigd-render-{i}"))
+            .build()
+            .ok()
+    })
+    .as_ref()
 }
 
 /// A standard normal deviate from a counter-based hash: the same for a

@@ -129,7 +129,7 @@ pub struct MacroSpec {
     pub wavelength_mm: f64,
     #[serde(default)]
     pub direction_deg: f64,
-    /// Binary visibility maps (seed 004, hemisphere model).
+    /// Binary visibility maps (Ganster et al., hemisphere model).
     #[serde(default)]
     pub visibility: VisibilitySpec,
 }

@@ -1,12 +1,12 @@
 //! Ground truth from a scene, for judging what the post-processing
 //! recovers: the reflectance a perfect rig would measure at any texel for
 //! any (light, view), the true height and normals, the mesostructure
-//! distance function (seed 002 §3), and where the markers are in a frame.
+//! distance function (Wang et al., §3), and where the markers are in a frame.
 //!
 //! BTF texels are points (x, y) of the holder plane z = 0, the plane the
-//! markers register frames to (seed 000 §3.2): a texel shows what the ray
+//! markers register frames to (Sattler et al., §3.2): a texel shows what the ray
 //! through (x, y, 0) from the view direction meets first. The MDF's texels
-//! lie on a reference plane at the top of the relief (seed 002 §3: "a
+//! lie on a reference plane at the top of the relief (Wang et al., §3: "a
 //! reference surface that lies above the top of mesostructure details").
 
 use super::effects::{Effect, EffectSwitches};

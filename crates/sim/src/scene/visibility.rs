@@ -1,4 +1,4 @@
-//! Per-vertex binary visibility maps over the hemisphere (seed 004, the
+//! Per-vertex binary visibility maps over the hemisphere (Ganster et al., the
 //! hemisphere model): for a grid of vertices on a folded sample, which
 //! directions of the sample frame's upper hemisphere the macro shape leaves
 //! open. Computed once per scene; a frame only looks them up.
