@@ -52,7 +52,7 @@ pub enum ProcessCmd {
     /// each source's laser plane calibrated from the strip on the turntable
     /// and on the plate, the strip found per frame in the reference region
     /// outside the sample's box, space-time triangulation per pixel, and
-    /// the sources of each view merged with Sattler et al.'s weights. Writes
+    /// the sources of each view merged with Wang et al.'s weights. Writes
     /// RUN/processed/mdf/<view>.npy (float32 mm, −1 = none), an 8-bit
     /// .png per view and report.json; prints the depth error against the
     /// scene for simulated runs.

@@ -9,8 +9,14 @@ use crate::model::run_state::RunState;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Command {
+    /// Pause between triggers, after writing the frames already exposed.
+    /// Accepted while preparing or running.
     Pause,
+    /// Go on after a pause; accepted only while paused. After a fault or an
+    /// emergency stop the rig is re-homed and the lamp warmed up first.
     Resume,
+    /// End the run for good: lamps off, the manifest written, state aborted.
+    /// Accepted while idle, preparing, running or paused.
     Abort,
     /// Stop driving the run but leave it resumable (daemon shutdown, CLI interrupt).
     Detach,
@@ -23,7 +29,9 @@ pub enum Command {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("cannot {command:?} a run that is {state}")]
 pub struct Refused {
+    /// The command that was refused.
     pub command: Command,
+    /// The run's state when the command arrived.
     pub state: RunState,
 }
 

@@ -18,6 +18,7 @@ pub const STOP_DEADLINE_S: f64 = 2.0;
 /// One device's answer to the emergency stop.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StopAck {
+    /// The device (or shared bus) that was stopped, named as in the rig profile.
     pub device: String,
     /// Physical seconds from the request to this device's acknowledgement
     /// (or to its failure).
@@ -32,6 +33,7 @@ pub struct StopAck {
 pub struct StopReport {
     /// Physical seconds from the request to the last device acknowledging.
     pub latency_s: f64,
+    /// Every device's answer, in name order.
     pub devices: Vec<StopAck>,
 }
 
@@ -61,6 +63,8 @@ impl std::fmt::Debug for EStop {
 }
 
 impl EStop {
+    /// A stop button over these devices' out-of-band stops (by device name),
+    /// not tripped; `clock` times their acknowledgements.
     pub fn new(stops: BTreeMap<String, Arc<dyn EmergencyStop>>, clock: Clock) -> EStop {
         EStop {
             stops: Arc::new(stops),

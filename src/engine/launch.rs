@@ -19,20 +19,31 @@ use crate::schedule::timing::{check_exposure_s, Timing};
 use crate::schedule::{self, Schedule};
 use crate::store::{now_rfc3339, Recovery, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
 
+/// Why a run could not be started or resumed.
 #[derive(Debug, thiserror::Error)]
 pub enum RunError {
+    /// The profile could not be read, parsed or validated.
     #[error(transparent)]
     Profile(#[from] ProfileError),
+    /// The plan is unknown, its file is unusable, or it does not fit the rig.
     #[error(transparent)]
     Plan(#[from] PlanError),
+    /// The pose solver cannot be built for the profile's rig.
     #[error("pose solver: {0}")]
     Kinematics(#[from] KinematicsError),
+    /// The run directory could not be created or opened: it is not empty,
+    /// already holds a run, is finished, damaged, or the disk failed.
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// The simulated rig could not be set up (its scene, a device).
     #[error("connecting the simulated rig: {0}")]
     Simulator(DeviceError),
+    /// A device of the profile's hardware could not be connected.
     #[error("connecting the rig's hardware: {0} (add --sim to use the simulated rig)")]
     Hardware(DeviceError),
+    /// The request cannot be used: a bad exposure, a blank sample name, faults
+    /// asked of real hardware, a journal naming images the plan lacks, or a
+    /// simulated run in a build without the simulator.
     #[error("{0}")]
     Invalid(String),
 }
@@ -40,14 +51,26 @@ pub enum RunError {
 /// A new run as asked for on the command line or over the API.
 #[derive(Debug, Clone)]
 pub struct NewRun {
+    /// The rig profile to run on; a snapshot of it goes into `run.json`.
     pub profile: Profile,
+    /// Where the profile came from (a path, or `<embedded NAME>`).
     pub profile_source: String,
+    /// The plan as given (`h1`, `laser:…`, a plan file path); only a label
+    /// when the plan comes already solved ([`prepare_new_solved`]).
     pub plan: String,
+    /// Name of the measured sample; must not be blank.
     pub sample: String,
+    /// Who runs the capture, if given.
     pub operator: Option<String>,
+    /// Free-text notes on the run, if given.
     pub notes: Option<String>,
+    /// Exposure of every camera in seconds (positive, checked); None: each
+    /// camera's exposure from the profile (laser plans: the plan's).
     pub exposure_s: Option<f64>,
+    /// Simulated frames' `[width, height]` in pixels; None: the profile's
+    /// simulator size. Ignored on hardware.
     pub frame_size: Option<[u32; 2]>,
+    /// The run directory to create; it must be new or empty.
     pub out: PathBuf,
     /// Drive the simulated rig instead of the profile's hardware.
     pub simulated: bool,
@@ -58,12 +81,17 @@ pub struct NewRun {
 
 /// An engine ready to run, and what a progress display needs to know.
 pub struct Prepared {
+    /// The engine; [`Engine::run`] drives the run.
     pub engine: Engine,
+    /// Commands, events and the emergency stop of that engine.
     pub handle: EngineHandle,
     /// The simulated rig's faults and world (None on hardware).
     pub sim: Option<SimHandle>,
+    /// The run directory.
     pub root: PathBuf,
+    /// Images in the plan.
     pub frames_total: usize,
+    /// Images that already have a valid frame (0 for a new run).
     pub frames_done: usize,
     /// Physical time already spent (resumed runs).
     pub t_offset_s: f64,

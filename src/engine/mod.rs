@@ -60,6 +60,8 @@ pub enum PausePolicy {
 /// Retries of calls that are safe to repeat.
 #[derive(Debug, Clone, Copy)]
 pub struct RetryPolicy {
+    /// Attempts in all at one trigger, the first included, before a
+    /// retryable fault (timeout, bad frame) pauses the run.
     pub max_attempts: u32,
     /// Physical back-off before attempt n is n × this.
     pub backoff_s: f64,
@@ -77,46 +79,76 @@ impl Default for RetryPolicy {
 /// Something the engine did, for progress bars, logs and the event stream.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunEvent {
+    /// Number of the event within this engine session: 1, 2, 3, … with no
+    /// gaps (a resumed run starts again at 1).
     pub seq: u64,
     /// Physical seconds since the run started.
     pub t_s: f64,
+    /// What happened; flattened into the event, tagged by `type`.
     #[serde(flatten)]
     pub kind: EventKind,
 }
 
+/// What a [`RunEvent`] reports, tagged by `type`: `state`, `step`, `retry`
+/// or `refused`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum EventKind {
+    /// The run changed state.
     State {
+        /// The state it left.
         from: RunState,
+        /// The state it entered.
         to: RunState,
+        /// Why, when there is a reason (a fault, the operator, missing frames);
+        /// absent otherwise.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         reason: Option<String>,
     },
     /// A trigger's frames are written and journaled.
     Step {
+        /// The trigger's index in the schedule.
         trigger: usize,
+        /// Indices of the images it wrote.
         images: Vec<usize>,
+        /// Images with a valid frame so far, earlier sessions included.
         frames_done: usize,
+        /// Images in the plan.
         frames_total: usize,
     },
     /// A failed call is being retried.
     Retry {
+        /// The device whose call failed, named as in the profile.
         device: String,
+        /// The error that is being retried.
         reason: String,
+        /// The attempt that failed: 1 for the first.
         attempt: u32,
     },
     /// A command was refused in the current state.
-    Refused { command: Command, state: RunState },
+    Refused {
+        /// The refused command.
+        command: Command,
+        /// The run's state when it arrived.
+        state: RunState,
+    },
 }
 
 /// How a call of [`Engine::run`] ended.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Outcome {
+    /// The state the call ended in: completed, aborted or failed, or paused
+    /// (the run returned under [`PausePolicy::Return`] or was detached).
     pub state: RunState,
+    /// Why it ended there (a fault, the operator, frames missing); None when
+    /// it completed.
     pub reason: Option<String>,
+    /// Physical seconds of the run over all its sessions; for a finished
+    /// capture, up to its last frame.
     pub physical_s: f64,
+    /// Images with a valid frame, earlier sessions included.
     pub frames_written: usize,
+    /// Images in the plan.
     pub frames_total: usize,
 }
 
@@ -126,7 +158,10 @@ pub const ESTOP_REASON: &str = "emergency stop: every device stopped; resume re-
 /// The caller's end of a running engine.
 #[derive(Debug, Clone)]
 pub struct EngineHandle {
+    /// Sends operator commands; the engine acts on them between triggers (a
+    /// paused engine at once).
     pub commands: mpsc::Sender<Command>,
+    /// The engine's events; `subscribe` to watch them.
     pub events: broadcast::Sender<RunEvent>,
     /// The rig's stop button (works while a device call is in flight).
     pub estop: EStop,
@@ -277,6 +312,7 @@ impl Engine {
         )
     }
 
+    /// Replaces the retry policy (by default 3 attempts, 1 s back-off).
     pub fn set_retry_policy(&mut self, retry: RetryPolicy) {
         self.retry = retry;
     }

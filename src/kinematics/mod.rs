@@ -48,13 +48,18 @@ pub struct Setpoints {
 /// The solved pose of one image.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PoseSolution {
+    /// What to command the rig's axes, arm and lamps to for this image.
     pub setpoints: Setpoints,
     /// The camera that takes this image.
     pub camera: String,
     /// Light and view directions in the sample frame that the set-points really produce
     /// (computed by forward kinematics from `setpoints`).
     pub achieved_light: Direction,
+    /// View direction in the sample frame that the set-points really produce
+    /// (forward kinematics for `camera`).
     pub achieved_view: Direction,
+    /// Whether the rig can reach the requested pair; when false the set-points
+    /// are the nearest substitute and `reason` says why.
     pub feasible: bool,
     /// When infeasible: why, and what was substituted (one human-readable line).
     pub reason: Option<String>,
@@ -80,8 +85,11 @@ pub enum KinematicsError {
 /// Per-rig solver built from a validated profile.
 #[derive(Debug, Clone)]
 pub enum Solver {
+    /// Gonioreflectometer: fixed lamp, camera on a rail, sample turned by a robot arm.
     Gonio(gonio::GonioSolver),
+    /// Turntable under the sample, a rotating light arc and a stationary camera arc.
     Arcs(arcs::ArcsSolver),
+    /// Fixed lamps and one fixed camera; only the lamp is chosen.
     Fixed(fixed::FixedSolver),
 }
 

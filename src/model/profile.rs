@@ -36,8 +36,12 @@ pub const DEFAULT_PROFILE: &str = "bonn-gonioreflectometer";
 /// A profile that could not be loaded: where, which key, and what was expected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub struct ProfileError {
+    /// The file's path as given, or `<embedded NAME>` for an embedded profile.
     pub file: String,
+    /// The dotted key the error is about (`devices.rail.limits`); empty when
+    /// it concerns the whole file.
     pub key: String,
+    /// What is wrong and what was expected, on one line.
     pub message: String,
 }
 
@@ -55,7 +59,10 @@ impl fmt::Display for ProfileError {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Profile {
+    /// The rig's name (`bonn-gonioreflectometer`), recorded in every run's
+    /// manifest and shown by the daemon.
     pub name: String,
+    /// One line for people: what the rig is and what it captures.
     #[serde(default)]
     pub description: String,
     /// Plan used when a run names none (`h1`, `h2`, `grid12x8`, `lamps`).
@@ -78,35 +85,58 @@ pub enum RigGeometry {
     /// the world xy plane (rail angle measured from the lamp, counter-clockwise
     /// about +z), and a robot arm orienting the sample at the origin.
     Gonioreflectometer {
+        /// The fixed lamp's device (a `lamp`), standing along world +x.
         lamp: String,
+        /// The camera's device (a `camera`), carried by the rail.
         camera: String,
+        /// The rail's device (an `axis`): the camera's angle on the rail in
+        /// degrees, measured from the lamp.
         rail: String,
+        /// The arm's device (an `arm`) with the three wrist joints `roll`,
+        /// `pitch` and `twist` that orient the sample.
         arm: String,
+        /// Distance from the lamp to the sample centre, in metres (unless
+        /// the lamp device gives its own `distance_m`).
         lamp_distance_m: f64,
+        /// Radius of the camera rail, in metres: the camera's distance from
+        /// the sample centre unless the camera gives its own `distance_m`.
         rail_radius_m: f64,
     },
     /// Wang et al.: a turntable (rotation about world +z), a light arc rotating
     /// about +z carrying lamps at fixed elevations, and a stationary camera
     /// arc in the world xz plane at azimuth 0.
     TurntableArcs {
+        /// The turntable's device (an `axis`): the sample's rotation about
+        /// world +z, in degrees.
         turntable: String,
+        /// The light arc's device (an `axis`): the arc's rotation about
+        /// world +z, in degrees.
         light_arc: String,
         /// Lamps on the light arc, in arc order; each has an `elevation_deg`.
         lamps: Vec<String>,
         /// Cameras on the stationary arc; each has a `direction` (φ = 0 in the world).
         cameras: Vec<String>,
+        /// The laser line unit on the light arc (a `laser`), for MDF scans;
+        /// absent on a rig without one.
         #[serde(default)]
         laser: Option<String>,
+        /// The axis that tilts the laser line, in degrees (an `axis`);
+        /// absent on a rig without one.
         #[serde(default)]
         laser_tilt: Option<String>,
         /// A lamp closer than this to a camera, seen from the sample, is
         /// blocked by that camera.
         occlusion_deg: f64,
+        /// Radius of the light arc, in metres: the distance of its lamps and
+        /// laser from the sample centre unless a device gives its own
+        /// `distance_m`.
         arc_radius_m: f64,
     },
     /// Spence et al.: one fixed camera and lamps at known slant/tilt.
     FixedLamps {
+        /// The one camera (a `camera` with a `direction`).
         camera: String,
+        /// The lamps in rig order, each a `lamp` with a `direction`.
         lamps: Vec<String>,
         /// A requested light direction further than this from every lamp is infeasible.
         #[serde(default = "default_lamp_tolerance")]
@@ -122,10 +152,16 @@ fn default_lamp_tolerance() -> f64 {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DeviceKind {
+    /// One rotary axis in degrees (rail, turntable, arc, tilt); needs
+    /// `limits` and `motion`.
     Axis,
+    /// A robot arm; needs `joints`.
     Arm,
+    /// A lamp switched by a relay coil; needs `warm_up_s`.
     Lamp,
+    /// A camera; needs `intrinsics` and `timing`.
     Camera,
+    /// A laser line unit switched by a relay coil.
     Laser,
 }
 
@@ -159,7 +195,11 @@ impl fmt::Display for DeviceKind {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Device {
+    /// What the device is (`axis`, `arm`, `lamp`, `camera`, `laser`), which
+    /// decides the tables it needs.
     pub kind: DeviceKind,
+    /// How the daemon reaches it: `{ type = "serial" | "modbus_rtu" |
+    /// "modbus_tcp" | "usb" | "ptp_tcp", ... }`.
     pub transport: Transport,
     /// Wire protocol: `grbl`, `modbus`, `acl` or `ptp`.
     pub protocol: String,
@@ -193,8 +233,10 @@ pub struct Device {
     /// Lamp or laser: the Modbus coil of its relay.
     #[serde(default)]
     pub coil: Option<u16>,
+    /// Camera: sensor resolution, focal length and bit depth (required).
     #[serde(default)]
     pub intrinsics: Option<Intrinsics>,
+    /// Camera: exposure, readout and transfer time per frame (required).
     #[serde(default)]
     pub timing: Option<CameraTiming>,
 }
@@ -203,11 +245,15 @@ pub struct Device {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Limits {
+    /// Lowest allowed position, in degrees.
     pub min: f64,
+    /// Highest allowed position, in degrees; must exceed `min`.
     pub max: f64,
 }
 
 impl Limits {
+    /// Whether `x` (degrees) lies within the limits, with 1e-9° of slack so
+    /// a value on a limit up to rounding counts as inside.
     pub fn contains(&self, x: f64) -> bool {
         x >= self.min - 1e-9 && x <= self.max + 1e-9
     }
@@ -217,8 +263,12 @@ impl Limits {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Motion {
+    /// Top speed, in degrees/s.
     pub max_velocity: f64,
+    /// Acceleration and deceleration, in degrees/s².
     pub acceleration: f64,
+    /// Time the axis needs to settle after a move before a frame may be
+    /// exposed, in seconds.
     pub settle_s: f64,
 }
 
@@ -236,9 +286,14 @@ impl From<Motion> for rigd_core::Trapezoid {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Joint {
+    /// The joint's name; the gonioreflectometer's solver finds its wrist
+    /// joints by the names `roll`, `pitch` and `twist`.
     pub name: String,
+    /// Soft limits of the joint, in degrees.
     pub limits: Limits,
+    /// Trapezoidal motion model of the joint (degrees, seconds).
     pub motion: Motion,
+    /// Where the joint stands after homing, in degrees (0 if absent).
     #[serde(default)]
     pub home_deg: f64,
     /// Encoder counts per degree, as the arm's controller counts.
@@ -256,7 +311,9 @@ fn default_counts_per_deg() -> f64 {
 pub struct Intrinsics {
     /// Sensor size in pixels, `[width, height]`.
     pub resolution: [u32; 2],
+    /// Focal length in pixels of the full-resolution sensor.
     pub focal_px: f64,
+    /// Bits per pixel sample of the raw frames, 8 to 16.
     pub bit_depth: u8,
 }
 
@@ -264,8 +321,13 @@ pub struct Intrinsics {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraTiming {
+    /// Exposure time, in seconds (positive); `--exposure` overrides it.
     pub exposure_s: f64,
+    /// Sensor readout after the exposure, in seconds; the rig does not move
+    /// meanwhile.
     pub readout_s: f64,
+    /// Moving the frame to the host, in seconds; it overlaps the next
+    /// trigger's moves.
     pub transfer_s: f64,
 }
 
@@ -273,32 +335,51 @@ pub struct CameraTiming {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Transport {
+    /// A serial line: GRBL axes and ACL arms speak their text protocol on it;
+    /// a lamp or laser on it speaks Modbus RTU.
     Serial {
+        /// The serial device, e.g. `/dev/ttyUSB0`.
         port: String,
+        /// Line speed in baud (GRBL: 115200).
         baud: u32,
     },
+    /// A relay module speaking Modbus RTU on a serial line (RS-485).
     ModbusRtu {
+        /// The serial device, e.g. `/dev/ttyUSB2`.
         port: String,
+        /// Line speed in baud.
         baud: u32,
+        /// The relay module's Modbus unit (slave) address, 1 if absent.
         #[serde(default = "default_unit")]
         unit: u8,
     },
+    /// A relay module speaking Modbus TCP.
     ModbusTcp {
+        /// The module's (or gateway's) host name or IP address.
         host: String,
+        /// TCP port, usually 502.
         port: u16,
+        /// The Modbus unit identifier of the requests, 1 if absent.
         #[serde(default = "default_unit")]
         unit: u8,
     },
+    /// A PTP (USB Still Image) camera on USB.
     Usb {
+        /// The camera's USB vendor id (`0x040a`).
         vendor_id: u16,
+        /// The camera's USB product id.
         product_id: u16,
+        /// The USB serial number that picks one of several identical
+        /// cameras; absent: the first that matches the ids.
         #[serde(default)]
         serial: Option<String>,
     },
     /// A PTP camera's USB transfers carried over TCP, one frame per
     /// transfer (how `rigd sim serve` offers its simulated cameras).
     PtpTcp {
+        /// Host name or IP address serving the camera link.
         host: String,
+        /// TCP port of the camera link.
         port: u16,
     },
 }
@@ -393,6 +474,8 @@ impl Profile {
         Profile::load(DEFAULT_PROFILE)
     }
 
+    /// Reads, parses and validates the profile file at `path`; errors name
+    /// that path.
     pub fn from_file(path: &Path) -> Result<Profile, ProfileError> {
         let file = path.display().to_string();
         let text = std::fs::read_to_string(path).map_err(|e| ProfileError {

@@ -32,7 +32,7 @@ pub struct LaserPlan {
     pub sweep_mm: f64,
     /// Strip travel between frames, mm.
     pub step_mm: f64,
-    /// The cameras' video rate during a sweep (seed: 7.5 Hz).
+    /// The cameras' video rate during a sweep (Wang et al.: 7.5 Hz).
     pub frame_hz: f64,
     /// Short exposures keep interreflections dark (Wang et al., §3.2).
     pub exposure_s: f64,
@@ -226,17 +226,25 @@ impl LaserGeometry {
 /// What the rig offers a laser plan.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LaserRig {
+    /// The laser line device, switched on for the sweeps.
     pub laser: String,
+    /// The axis that tilts the laser line and so moves its strip.
     pub tilt_axis: String,
+    /// The turntable axis, which sets the view.
     pub turntable: String,
+    /// The light-arc axis, which sets the laser source's azimuth.
     pub light_arc: String,
+    /// Where the emitter sits: polar angle and distance from the centre.
     pub geometry: LaserGeometry,
     /// Cameras with their polar angle on the stationary arc.
     pub cameras: Vec<(String, f64)>,
     /// Soft limits: tilt, light arc, turntable.
     pub tilt_limits: (f64, f64),
+    /// The light arc's soft limits (min, max), degrees.
     pub arc_limits: (f64, f64),
+    /// The turntable's soft limits (min, max), degrees.
     pub turntable_limits: (f64, f64),
+    /// The tilt axis's top speed, degrees/s; a sweep may not need more.
     pub tilt_max_velocity: f64,
     /// Exposure-free part of a frame: slowest readout plus transfer.
     pub frame_overhead_s: f64,

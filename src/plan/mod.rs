@@ -32,7 +32,9 @@ pub const H2_THETAS: [f64; 6] = [0.0, 15.0, 30.0, 45.0, 60.0, 75.0];
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Pair {
+    /// Direction towards the light, in the sample frame.
     pub light: Direction,
+    /// Direction towards the camera, in the sample frame.
     pub view: Direction,
 }
 
@@ -40,7 +42,10 @@ pub struct Pair {
 /// (view-major: all lights of one view slot, then the next view).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Plan {
+    /// The plan as named (`h1`, `laser:turns=4`), or a plan file's `name`
+    /// (its file stem if it has none).
     pub name: String,
+    /// The images to take, view-major; empty for a laser scan.
     pub pairs: Vec<Pair>,
     /// A laser scan (Wang et al., §3.2) instead of pairs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -51,20 +56,35 @@ pub struct Plan {
     pub order: Order,
 }
 
+/// Why a plan could not be resolved for a rig.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PlanError {
+    /// The name is no built-in plan and does not look like a plan file.
     #[error(
         "unknown plan `{0}` (expected one of h1, h2, grid12x8, lamps, laser[:key=value,…], or a .json/.toml plan file)"
     )]
     Unknown(String),
+    /// A built-in plan the rig cannot take (grid12x8 without arcs, `lamps`
+    /// without fixed lamps, a laser scan without a laser or with bad
+    /// settings).
     #[error("plan `{plan}` does not fit profile `{profile}`: {why}")]
     NotForRig {
+        /// The plan as named.
         plan: String,
+        /// The profile's name.
         profile: String,
+        /// What the plan needs that the rig lacks.
         why: String,
     },
+    /// A plan file (or inline plan) that cannot be read or parsed, or whose
+    /// images are not a usable list (none, too many, wrong shape).
     #[error("plan file {file}: {why}")]
-    File { file: String, why: String },
+    File {
+        /// The file's path, or what names an inline plan.
+        file: String,
+        /// What is wrong with it.
+        why: String,
+    },
 }
 
 /// Rings of directions: `counts[i]` directions at elevation `thetas[i]`,
@@ -163,8 +183,13 @@ pub fn btf(lights: &[Direction], views: &[Direction]) -> Vec<Pair> {
 /// fixed lamps and camera (photometric-stereo rigs).
 #[derive(Debug, Clone, Default)]
 pub struct RigOffer {
+    /// The profile's name, for messages.
     pub profile: String,
+    /// Elevations (θ, degrees) of the lamps and of the cameras on the arcs,
+    /// each in arc order; None for rigs without arcs.
     pub arc_elevations: Option<(Vec<f64>, Vec<f64>)>,
+    /// The fixed lamps' directions in rig order and the camera's direction;
+    /// None for rigs without fixed lamps.
     pub fixed_lamps: Option<(Vec<Direction>, Direction)>,
     /// The laser unit, on rigs that have one.
     pub laser: Option<LaserRig>,

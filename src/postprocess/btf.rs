@@ -13,23 +13,34 @@ use super::ProcessError;
 /// RMS error C components leave.
 #[derive(Debug, Clone, Serialize)]
 pub struct BtfReport {
+    /// Components C kept per view slot in the stored BTF.
     pub components: usize,
+    /// View slots (views) compressed.
     pub slots: usize,
+    /// Light directions per view slot.
     pub lights: usize,
     /// Mean over slots of the RMS reconstruction error with C = 1 … 32
     /// components (in texture units, 1 = full scale).
     pub mean_rms_by_components: Vec<f64>,
+    /// One summary per view slot, in slot order.
     pub per_slot: Vec<SlotSummary>,
+    /// Wall-clock time the compression took, seconds.
     pub compress_s: f64,
+    /// Size of `processed/btf/` on disk, bytes.
     pub bytes: u64,
 }
 
+/// The PCA of one view slot: its spectrum and error curve.
 #[derive(Debug, Clone, Serialize)]
 pub struct SlotSummary {
+    /// The view slot's index.
     pub slot: usize,
+    /// The slot's view direction in the sample frame.
     pub view: Direction,
     /// Eigenvalues (σ²), largest first, at most 32.
     pub eigenvalues: Vec<f64>,
+    /// RMS reconstruction error of this slot with C = 1 … 32 components
+    /// (texture units, 1 = full scale).
     pub rms_by_components: Vec<f64>,
 }
 
@@ -130,7 +141,9 @@ pub fn btf_run(
 /// true reflectance.
 #[derive(Debug, Clone, Serialize)]
 pub struct HeldOutError {
+    /// The light direction reconstructed, sample frame.
     pub light: Direction,
+    /// The view direction reconstructed, sample frame.
     pub view: Direction,
     /// RMS over texels of reconstruction − truth, texture units.
     pub rms: f64,

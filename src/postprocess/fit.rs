@@ -11,18 +11,25 @@ use super::ProcessError;
 /// One row of the run's fit table (Meseth et al. Table 1).
 #[derive(Debug, Clone, Serialize)]
 pub struct FitRow {
+    /// The model fitted: `PTM` or `non-linear K=<lobes>`.
     pub method: String,
     /// Mean over slots of the mean |model − value| over texels and lights,
     /// in texture units (1 = full scale).
     pub mean_abs_error: f64,
+    /// Mean over slots of the RMS of model − value over texels and lights,
+    /// in texture units.
     pub rms_error: f64,
+    /// Wall-clock time the fits of all slots took, seconds.
     pub fit_s: f64,
+    /// Texels whose fit converged, summed over slots (PTM, a linear fit,
+    /// counts every texel).
     pub converged_texels: usize,
 }
 
 /// Fits every view slot of a rectified run with PTM and the K-lobe model
 /// (Meseth et al., §4) and tabulates the errors, written to
-/// `processed/fit/report.json`. The fitted parameters are not stored.
+/// `processed/fit/report.json`; the fitted parameters of every slot go to
+/// `processed/fit/slot_NNN_lobes.npy` and `slot_NNN_ptm.npy`.
 pub fn fit_run(
     run: &Path,
     lobes: usize,

@@ -9,12 +9,16 @@ use crate::store::{decode_png, read_journal, read_meta, FrameEntry, RunMeta, JOU
 
 /// A run's metadata and every frame it wrote, in capture order.
 pub struct RunFrames {
+    /// The run directory.
     pub root: PathBuf,
+    /// What the run was asked for (`run.json`).
     pub meta: RunMeta,
+    /// Every journaled frame, sorted by image index.
     pub entries: Vec<FrameEntry>,
 }
 
 impl RunFrames {
+    /// Reads the run directory's metadata and journal.
     pub fn open(root: &Path) -> Result<RunFrames, ProcessError> {
         let meta = read_meta(root)?;
         let (mut entries, _) = read_journal(&root.join(JOURNAL_FILE))?;

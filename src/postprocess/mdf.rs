@@ -51,6 +51,7 @@ pub struct MdfConfig {
     /// Grey level (0–1) of the strip in the reference region, after the
     /// Gaussian filter: the holder is dark, so the strip is dimmer there.
     pub line_threshold: f64,
+    /// How each scan frame's laser plane is fixed besides its strip.
     pub planes: PlaneModel,
     /// Use this many of the run's source positions (evenly picked), or all.
     pub sources: Option<usize>,
@@ -71,26 +72,35 @@ impl Default for MdfConfig {
 /// One source's calibration, seen by one camera.
 #[derive(Debug, Clone, Serialize)]
 pub struct CalibrationSummary {
+    /// The laser source position (index along the light arc).
     pub source: usize,
+    /// The camera whose calibration frames were used.
     pub camera: String,
     /// The laser plane's angle with the turntable, as calibrated.
     pub angle_deg: f64,
     /// The same angle from the profile's emitter geometry.
     pub geometric_angle_deg: f64,
+    /// RMS distance of the two strips' back-projected points from the
+    /// calibrated plane, mm (coplanarity residual).
     pub residual_mm: f64,
 }
 
 /// One view's merged displacement image.
 #[derive(Debug, Clone, Serialize)]
 pub struct ViewSummary {
+    /// The turntable's position for this view, degrees.
     pub turntable_deg: f64,
+    /// The camera that saw it.
     pub camera: String,
+    /// The achieved view direction, sample frame.
     pub view: Direction,
     /// `processed/mdf/<name>.npy` (float32, mm, −1 = no measurement) and `.png`.
     pub name: String,
+    /// Source positions whose sweeps were merged into this view.
     pub sources: usize,
     /// Sweep frames whose strip was not found in the reference region.
     pub frames_without_strip: usize,
+    /// Share of the merged image's pixels with a measurement.
     pub valid_fraction: f64,
     /// Against the simulated scene: over the sample's measured pixels.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -100,28 +110,39 @@ pub struct ViewSummary {
 /// Depth error against the scene's true MDF, millimetres.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct DepthError {
+    /// Sample pixels with a measurement, over which the error is taken.
     pub pixels: usize,
     /// Share of the sample's pixels with a measurement.
     pub coverage: f64,
+    /// Mean absolute error of the displacement, mm.
     pub mean_mm: f64,
+    /// Median absolute error, mm.
     pub median_mm: f64,
+    /// 95th percentile of the absolute error, mm.
     pub p95_mm: f64,
 }
 
 /// `processed/mdf/report.json`.
 #[derive(Debug, Clone, Serialize)]
 pub struct MdfReport {
+    /// How the scan frames' planes were fixed.
     pub planes: PlaneModel,
+    /// The source positions analysed (all, or those `--sources` picked).
     pub sources_used: Vec<usize>,
+    /// Height of the reference plane over the turntable from which
+    /// displacements are measured, mm.
     pub reference_mm: f64,
+    /// The calibration of every source and camera that succeeded.
     pub calibrations: Vec<CalibrationSummary>,
     /// What could not be calibrated or analysed, and why: those sweeps are
     /// left out of their view's merge.
     pub skipped: Vec<String>,
+    /// One merged displacement image per turntable position and camera.
     pub views: Vec<ViewSummary>,
     /// Mean over views of the views' mean error (simulated runs).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub mean_error_mm: Option<f64>,
+    /// Wall-clock time the processing took, seconds.
     pub elapsed_s: f64,
 }
 

@@ -28,6 +28,7 @@ pub struct RectifyConfig {
     /// Width of the linear edge blend that makes textures tile (Sattler et al.
     /// §3.2), in final texels; 0 = none.
     pub blend: usize,
+    /// How the textures are stored: 8-bit PNG or linear `.npy`.
     pub bits: TextureBits,
 }
 
@@ -60,19 +61,29 @@ impl Default for RectifyConfig {
 /// One frame's registration, as `processed/normtextures/index.json` records it.
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct FrameRegistration {
+    /// The frame's image index in the run.
     pub index: usize,
+    /// Index of its view in the index's `views` (the BTF slot).
     pub view_slot: usize,
+    /// Index of its light in the index's `lights`.
     pub light_index: usize,
     /// The texture file, relative to the normtextures folder; None if the
     /// frame could not be registered.
     pub file: Option<String>,
+    /// RMS reprojection residual of the markers used, pixels; None if the
+    /// frame was not registered.
     pub rms_px: Option<f64>,
+    /// Largest reprojection residual of the markers used, pixels.
     pub max_px: Option<f64>,
+    /// Holder markers detected in the frame.
     pub markers_found: usize,
+    /// Markers used in the final fit of the homography.
     pub markers_used: usize,
+    /// Layout indices of the markers rejected as outliers.
     pub markers_rejected: Vec<usize>,
     /// Fraction of the texture the frame covered.
     pub coverage: Option<f64>,
+    /// Why the frame could not be registered or written, if it could not.
     pub error: Option<String>,
 }
 
@@ -99,18 +110,24 @@ impl FrameRegistration {
 /// (view slot, light), the texture.
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct NormtextureIndex {
+    /// Side of every stored texture, texels.
     pub size: usize,
     /// `png8` (8-bit codes / 255), `npy-f32` or `npy-f16` (linear, 1 =
     /// full scale).
     pub encoding: String,
+    /// Bit depth of the sensor values the frames were captured with.
     pub bit_depth: u8,
     /// Commanded directions (sample frame); BTF slots are views.
     pub lights: Vec<Direction>,
+    /// Commanded view directions (sample frame), one per BTF slot.
     pub views: Vec<Direction>,
+    /// Every frame's registration, in run order.
     pub frames: Vec<FrameRegistration>,
 }
 
 impl NormtextureIndex {
+    /// Reads a run's `processed/normtextures/index.json`, written by
+    /// `rigd process rectify`.
     pub fn read(run: &Path) -> Result<NormtextureIndex, ProcessError> {
         let path = normtextures_dir(run).join(NORMTEXTURE_INDEX);
         let bytes = std::fs::read(&path).map_err(|e| ProcessError::Frame {

@@ -22,11 +22,15 @@ use crate::store::read_meta;
 /// How far recovered normals are from the scene's true ones.
 #[derive(Debug, Clone, Serialize)]
 pub struct NormalError {
+    /// The simulated scene the run rendered.
     pub scene: String,
     /// Pixels on the sample that photometric stereo solved.
     pub pixels: usize,
+    /// Mean angle between recovered and true normal, degrees.
     pub mean_deg: f64,
+    /// Median of that angle, degrees.
     pub median_deg: f64,
+    /// 95th percentile of that angle, degrees.
     pub p95_deg: f64,
 }
 

@@ -17,26 +17,43 @@ use serde::Serialize;
 /// flat sample).
 pub const DEFAULT_DENSITY: f64 = 1.0;
 
+/// Why the viewer or the reference renderer cannot show a run.
 #[derive(Debug, thiserror::Error)]
 pub enum ViewerError {
+    /// The run holds neither a compressed BTF nor photometric-stereo maps.
     #[error(
         "{run} has no processed BTF ({btf}) and no photometric-stereo result ({ps}): run `rigd process rectify` then `rigd process btf`, or `rigd process photometric-stereo`"
     )]
     NotProcessed {
+        /// The run directory.
         run: String,
+        /// Where the BTF's header was looked for.
         btf: String,
+        /// Where the photometric-stereo normals were looked for.
         ps: String,
     },
+    /// Something only a BTF allows (the reference render) was asked of a
+    /// photometric-stereo run.
     #[error("{what} needs a compressed BTF; {run} holds a photometric-stereo result only")]
-    NeedsBtf { what: &'static str, run: String },
+    NeedsBtf {
+        /// What needed the BTF, for the message.
+        what: &'static str,
+        /// The run directory.
+        run: String,
+    },
+    /// The stored BTF cannot be read or is inconsistent.
     #[error(transparent)]
     Btf(#[from] BtfError),
+    /// The BTF's light or view directions do not make a valid table.
     #[error(transparent)]
     Direction(#[from] DirectionError),
+    /// A photometric-stereo `.npy` map cannot be read.
     #[error(transparent)]
     Npy(#[from] NpyError),
+    /// The material cannot be packed into the viewer's blob.
     #[error(transparent)]
     Pack(#[from] PackError),
+    /// The reference render failed.
     #[error(transparent)]
     Render(#[from] RelightError),
 }
@@ -63,8 +80,13 @@ pub fn processed_kind(run: &Path) -> Option<&'static str> {
 
 /// What a processed run holds for relighting.
 pub enum Material {
+    /// The compressed BTF of `processed/btf/`.
     Btf(BtfStore),
-    PhotometricStereo { dir: PathBuf },
+    /// Albedo and normal maps of a photometric-stereo run.
+    PhotometricStereo {
+        /// The folder holding `albedo.npy` and `normals.npy`.
+        dir: PathBuf,
+    },
 }
 
 /// Opens what the run holds: the BTF if there is one, else the
@@ -137,13 +159,21 @@ pub fn pack(run: &Path, max_components: usize) -> Result<(BlobManifest, Vec<u8>)
 /// visibility of each measured light direction per vertex (vertex-major).
 #[derive(Debug, Serialize)]
 pub struct MeshView {
+    /// The mesh's geometry, flattened into the JSON object.
     #[serde(flatten)]
     pub mesh: Mesh,
+    /// Material tiles per world unit the mesh was built with.
     pub density: f64,
+    /// Per vertex, then per measured light direction: 1 if the direction
+    /// sees the sky from the vertex, 0 if hidden; empty for a
+    /// photometric-stereo run.
     pub visibility: Vec<u8>,
+    /// Light directions per vertex in `visibility` (0 without a BTF).
     pub visibility_directions: usize,
 }
 
+/// Builds the viewer's mesh of `kind` for a processed run, with the
+/// visibility of the BTF's light directions.
 pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, ViewerError> {
     let mesh = Mesh::build(kind, density);
     let (visibility, visibility_directions) = match btf_header(run)? {

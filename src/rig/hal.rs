@@ -51,12 +51,16 @@ impl fmt::Display for ErrorKind {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("{device}: {kind}: {message}")]
 pub struct DeviceError {
+    /// The device's (or bus's) name in the profile.
     pub device: String,
+    /// What kind of failure, which decides whether the engine retries.
     pub kind: ErrorKind,
+    /// The driver's description of what happened.
     pub message: String,
 }
 
 impl DeviceError {
+    /// An error of `device` of this kind.
     pub fn new(device: &str, kind: ErrorKind, message: impl Into<String>) -> DeviceError {
         DeviceError {
             device: device.to_string(),
@@ -70,9 +74,13 @@ impl DeviceError {
 /// `bit_depth` significant bits.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// Significant bits per pixel value.
     pub bit_depth: u8,
+    /// `width × height` values, row by row.
     pub pixels: Vec<u16>,
 }
 
@@ -130,15 +138,20 @@ pub trait Axis: Send {
 /// A multi-joint manipulator that moves all joints to a joint-space pose.
 #[async_trait]
 pub trait Arm: Send {
+    /// Runs the homing cycle; returns the joint values afterwards (degrees,
+    /// in profile order).
     async fn home(&mut self) -> Result<Vec<f64>, DeviceError>;
     /// Moves to joint values (degrees, in profile order); returns the pose reached.
     async fn move_joints(&mut self, joints: &[f64]) -> Result<Vec<f64>, DeviceError>;
+    /// Asks the controller for the current joint values (degrees, in
+    /// profile order).
     async fn joints(&mut self) -> Result<Vec<f64>, DeviceError>;
 }
 
 /// A lamp behind a relay.
 #[async_trait]
 pub trait Lamp: Send {
+    /// Switches the lamp on or off; returns once the switch is confirmed.
     async fn set(&mut self, on: bool) -> Result<(), DeviceError>;
     /// Waits until the light output is stable (warm-up).
     async fn wait_ready(&mut self) -> Result<(), DeviceError>;
@@ -147,6 +160,7 @@ pub trait Lamp: Send {
 /// A laser line emitter (its tilt is an [`Axis`]).
 #[async_trait]
 pub trait LaserLine: Send {
+    /// Switches the laser on or off; returns once the switch is confirmed.
     async fn set(&mut self, on: bool) -> Result<(), DeviceError>;
 }
 
@@ -163,6 +177,7 @@ pub trait Fixture: Send {
 /// A camera: expose (the sensor is busy and nothing may move), then transfer.
 #[async_trait]
 pub trait Camera: Send {
+    /// Sets the exposure time, in seconds, of the following exposures.
     async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError>;
     /// Exposes and reads out the sensor; returns when the sensor is free.
     async fn expose(&mut self) -> Result<(), DeviceError>;
@@ -182,12 +197,17 @@ pub trait EmergencyStop: Send + Sync {
 /// A profile's devices, by name, behind their capability traits.
 #[derive(Default)]
 pub struct Rig {
+    /// Single axes (rail, turntable, light arc, laser tilt), by name.
     pub axes: BTreeMap<String, Box<dyn Axis>>,
+    /// Robot arms, by name.
     pub arms: BTreeMap<String, Box<dyn Arm>>,
+    /// Lamps, by name.
     pub lamps: BTreeMap<String, Box<dyn Lamp>>,
+    /// Laser line emitters, by name.
     pub lasers: BTreeMap<String, Box<dyn LaserLine>>,
     /// The calibration plate, for rigs with a laser.
     pub fixture: Option<Box<dyn Fixture>>,
+    /// Cameras, by name.
     pub cameras: BTreeMap<String, Box<dyn Camera>>,
     /// Out-of-band stops, by device (or bus) name.
     pub stops: BTreeMap<String, Arc<dyn EmergencyStop>>,

@@ -14,7 +14,9 @@ use rigd_core::Clock;
 
 /// A serial port (a USB-serial adapter, an RS-485 dongle, a pty).
 pub struct SerialOpener {
+    /// The serial device path, e.g. `/dev/ttyUSB0`.
     pub port: String,
+    /// Line speed in baud.
     pub baud: u32,
 }
 
@@ -33,7 +35,9 @@ impl Opener for SerialOpener {
 
 /// A TCP connection (Modbus TCP, or an RS-485 gateway).
 pub struct TcpOpener {
+    /// Host name or IP address to connect to.
     pub host: String,
+    /// TCP port (502 for Modbus TCP).
     pub port: u16,
 }
 
@@ -52,8 +56,12 @@ impl Opener for TcpOpener {
 
 /// A USB Still Image camera by vendor, product and (optionally) serial.
 pub struct UsbOpener {
+    /// USB vendor id of the camera.
     pub vendor_id: u16,
+    /// USB product id of the camera.
     pub product_id: u16,
+    /// USB serial number that picks one of several identical cameras;
+    /// None: the first with these ids.
     pub serial: Option<String>,
 }
 
@@ -77,7 +85,9 @@ impl PipeOpener for UsbOpener {
 
 /// A camera's USB transfers over TCP (see `ptp-camera.md`).
 pub struct PtpTcpOpener {
+    /// Host name or IP address serving the camera link.
     pub host: String,
+    /// TCP port of the camera link.
     pub port: u16,
 }
 

@@ -72,13 +72,16 @@ pub type BoxPipe = Box<dyn UsbPipe>;
 pub trait Opener: Send + Sync {
     /// Where the link goes, for error messages.
     fn describe(&self) -> String;
+    /// Opens a fresh stream; called again after the link is lost.
     async fn open(&self) -> std::io::Result<ByteStream>;
 }
 
 /// Opens (and re-opens) the USB pipe of one camera.
 #[async_trait]
 pub trait PipeOpener: Send + Sync {
+    /// Where the pipe goes, for error messages.
     fn describe(&self) -> String;
+    /// Opens a fresh pipe; called again after the camera is lost.
     async fn open(&self) -> Result<BoxPipe, UsbError>;
 }
 
@@ -92,9 +95,14 @@ pub enum Link {
     Line(Arc<dyn Opener>),
     /// A coil on a Modbus module; devices with the same `bus` share it.
     Modbus {
+        /// The bus's identity (e.g. `modbus-tcp:HOST:PORT#UNIT`): devices with
+        /// the same bus share one connection and one emergency stop.
         bus: String,
+        /// Opens the bus's byte stream.
         opener: Arc<dyn Opener>,
+        /// RTU (CRC-16 per frame) or TCP (MBAP header) framing on that stream.
         framing: Framing,
+        /// The module's Modbus unit (slave) address.
         unit: u8,
     },
     /// A USB camera.

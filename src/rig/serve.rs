@@ -22,16 +22,23 @@ use crate::rig::hal::{DeviceError, ErrorKind};
 /// Where one device of the served rig can be reached.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Endpoint {
+    /// The device's name, or a Modbus bus's key for a relay module.
     pub device: String,
     /// A pty path or `127.0.0.1:PORT`, with what speaks there.
     pub address: String,
+    /// What speaks there: `GRBL`, `ACL`, `Modbus RTU`, `Modbus TCP`,
+    /// `PTP over TCP`.
     pub protocol: String,
 }
 
 /// A served rig: the endpoints and the profile that points at them.
 #[derive(Debug, Clone)]
 pub struct Served {
+    /// Every endpoint offered, one per device or Modbus bus (two for an
+    /// RTU module: its pty and Modbus TCP).
     pub endpoints: Vec<Endpoint>,
+    /// A copy of the profile whose transports point at the endpoints, for
+    /// `rigd run --profile`.
     pub profile: Profile,
     /// The pty ends the firmware do not use, kept open: a pty whose last
     /// slave handle closes hangs up its master.

@@ -16,14 +16,24 @@ use crate::rig::hal::Frame;
 use crate::store::{encode_png, write_atomic};
 use rigd_core::geometry::Direction;
 
+/// Why a frame could not be rendered or written.
 #[derive(Debug, thiserror::Error)]
 pub enum RenderError {
+    /// A request value out of range (frame size, zoom, exposure, direction,
+    /// laser) or a camera the profile does not have.
     #[error("{0}")]
     Invalid(String),
+    /// The scene could not be loaded.
     #[error(transparent)]
     Scene(#[from] rigd_sim::scene::SceneError),
+    /// Encoding or writing the PNG or its JSON failed.
     #[error("writing {path}: {message}")]
-    Write { path: PathBuf, message: String },
+    Write {
+        /// The file being written.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
 }
 
 /// What to render.
@@ -33,11 +43,15 @@ pub struct RenderRequest {
     pub scene: Option<String>,
     /// Which camera of the profile; its first if None.
     pub camera: Option<String>,
+    /// Direction towards the lamp, sample frame (θ 0 to 90°).
     pub light: Direction,
+    /// Direction towards the camera, sample frame (θ 0 to 90°).
     pub view: Direction,
     /// Frame size; the profile's `[sim] frame_size` if None.
     pub size: Option<[u32; 2]>,
+    /// Effects to force on or off beyond what the scene asks for.
     pub effects: EffectSwitches,
+    /// Mixed into the scene's noise seed: another seed, other noise.
     pub seed: u64,
     /// Exposure relative to the camera's nominal one.
     pub exposure: f64,
@@ -71,40 +85,63 @@ impl Default for RenderRequest {
 /// A rendered frame with everything needed to judge it.
 #[derive(Debug, Clone)]
 pub struct RenderOutput {
+    /// The scene rendered.
     pub scene: Arc<Scene>,
+    /// Exactly what was asked of the renderer.
     pub shot: Shot,
+    /// The profile's camera whose geometry was used.
     pub camera: String,
+    /// The pixels and the effects the frame used.
     pub rendered: Rendered,
+    /// Wall-clock render time, milliseconds.
     pub render_ms: f64,
 }
 
 /// The frame's metadata, written next to the PNG.
 #[derive(Debug, Serialize)]
 pub struct RenderMeta<'a> {
+    /// The scene's name.
     pub scene: &'a str,
+    /// The profile's camera whose geometry was used.
     pub camera: &'a str,
+    /// Direction towards the lamp, sample frame.
     pub light: Direction,
+    /// Direction towards the camera, sample frame.
     pub view: Direction,
+    /// Whether the lamp was on (off for laser-only frames).
     pub lamp_on: bool,
+    /// Frame width, pixels.
     pub width: u32,
+    /// Frame height, pixels.
     pub height: u32,
+    /// Significant bits per pixel value.
     pub bit_depth: u8,
+    /// Focal length in pixels of this frame (zoom included); None: an
+    /// orthographic view.
     pub focal_px: Option<f64>,
+    /// Distance from the sample centre to the camera, metres.
     pub camera_distance_m: Option<f64>,
+    /// Distance of the point lamp, metres; None: a directional light.
     pub lamp_distance_m: Option<f64>,
+    /// The laser's sheet of light, if it was on.
     pub laser: Option<LaserSheet>,
+    /// The noise seed the frame was rendered with.
     pub seed: u64,
     /// The effects this frame paid for, and those it could have.
     pub effects: EffectPlan,
+    /// Wall-clock render time, milliseconds.
     pub render_ms: f64,
     /// Where each registration marker lands, pixels (x right, y down).
     pub markers: Vec<MarkerPixel>,
 }
 
+/// One holder marker and where it lands in the frame.
 #[derive(Debug, Serialize)]
 pub struct MarkerPixel {
+    /// The marker, flattened into the JSON object.
     #[serde(flatten)]
     pub marker: Marker,
+    /// Its pixel position (x right, y down); None when behind the camera.
     pub pixel: Option<[f64; 2]>,
 }
 
@@ -215,6 +252,7 @@ pub fn laser_plane(x0: f64, tilt_deg: f64) -> LaserSheet {
 }
 
 impl RenderOutput {
+    /// The rendered pixels as a camera would deliver them.
     pub fn frame(&self) -> Frame {
         Frame {
             width: self.rendered.width,
@@ -224,10 +262,13 @@ impl RenderOutput {
         }
     }
 
+    /// The frame as a greyscale PNG: 8-bit up to 8-bit sensors, else 16-bit
+    /// holding the raw values.
     pub fn png(&self) -> Result<Vec<u8>, String> {
         encode_png(&self.frame())
     }
 
+    /// The metadata written next to the PNG, markers included.
     pub fn meta(&self) -> RenderMeta<'_> {
         let s = &self.shot;
         RenderMeta {

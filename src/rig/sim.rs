@@ -44,6 +44,8 @@ const ARM_HOME_S: f64 = 12.0;
 pub struct SimOptions {
     /// Frame size the cameras render; the profile's `[sim] frame_size` if None.
     pub frame_size: Option<[u32; 2]>,
+    /// Faults the simulated firmware inject (`--sim-fault`), armed from the
+    /// start.
     pub faults: Vec<FaultRule>,
 }
 
@@ -57,6 +59,8 @@ pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
 /// Handles into a running simulated rig: its faults and its world.
 #[derive(Clone)]
 pub struct SimHandle {
+    /// The rig's fault injector, shared by all its simulated devices: arm
+    /// more faults while it runs, or clear a device's sticky ones.
     pub faults: Arc<FaultInjector>,
     world: SimWorld,
 }

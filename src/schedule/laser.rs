@@ -22,6 +22,7 @@ pub enum LaserRole {
 /// The laser side of an image: which source, which tilt.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct LaserStep {
+    /// Whether the image calibrates a plane or belongs to a sweep.
     pub role: LaserRole,
     /// Index of the source position.
     pub source: usize,
@@ -30,6 +31,7 @@ pub struct LaserStep {
     /// The sweep this frame belongs to, and its place in it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sweep: Option<usize>,
+    /// The frame's place in its sweep, from 0 (0 for calibration frames).
     #[serde(default)]
     pub frame: usize,
     /// Emitter tilt, degrees: nominal in the schedule; in a frame's record,
@@ -44,9 +46,13 @@ pub struct LaserStep {
 /// What the engine needs to run the sweeps of a laser schedule.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LaserRun {
+    /// The laser plan being run.
     pub plan: LaserPlan,
+    /// The axis that tilts the laser line during a sweep.
     pub tilt_axis: String,
+    /// The tilt axis's constant velocity during a sweep, degrees/s.
     pub velocity_deg_s: f64,
+    /// Where the emitter sits: polar angle and distance from the centre.
     pub geometry: LaserGeometry,
 }
 

@@ -22,17 +22,24 @@ use rigd_core::geometry::Direction;
 /// One image of the run.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ImageStep {
+    /// The image's number in capture order, from 0; frames are named by it.
     pub index: usize,
     /// Images taken by one trigger share this index.
     pub trigger: usize,
+    /// The camera that takes the image.
     pub camera: String,
     /// Commanded directions, in the sample frame.
     pub light: Direction,
+    /// Commanded view direction, in the sample frame.
     pub view: Direction,
     /// What the set-points really produce.
     pub achieved_light: Direction,
+    /// The view direction the set-points really produce.
     pub achieved_view: Direction,
+    /// Whether the rig reaches the commanded pair; an infeasible image is
+    /// still taken, at the substitute.
     pub feasible: bool,
+    /// When infeasible: why, and what was substituted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
     /// Laser plans: the source and tilt of this frame.
@@ -43,7 +50,9 @@ pub struct ImageStep {
 /// One trigger: set-points, then all its cameras expose together.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Trigger {
+    /// The trigger's number in capture order, from 0.
     pub index: usize,
+    /// Where the axes, arm and lamps go before the cameras expose.
     pub setpoints: Setpoints,
     /// Indices into [`Schedule::images`].
     pub images: Vec<usize>,
@@ -56,9 +65,13 @@ pub struct Trigger {
 /// A plan solved for a rig, in capture order.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Schedule {
+    /// The plan's name.
     pub plan: String,
+    /// The profile's name.
     pub profile: String,
+    /// Every image, in capture order (`images[i].index == i`).
     pub images: Vec<ImageStep>,
+    /// Every trigger, in capture order.
     pub triggers: Vec<Trigger>,
     /// Laser plans: what the engine needs for the sweeps.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -212,6 +225,7 @@ fn build_in_plan_order(profile: &Profile, solver: &Solver, plan: &Plan) -> Sched
 }
 
 impl Schedule {
+    /// The images the rig cannot take as commanded, in capture order.
     pub fn infeasible(&self) -> impl Iterator<Item = &ImageStep> {
         self.images.iter().filter(|i| !i.feasible)
     }

@@ -49,9 +49,13 @@ const MAX_PASSES: usize = 30;
 /// motion model, as `rigd plan show` reports it).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct OrderReport {
+    /// Triggers in the schedule.
     pub triggers: usize,
+    /// Estimated seconds in the plan's nested-loop order.
     pub naive_s: f64,
+    /// Estimated seconds in the optimised order.
     pub optimised_s: f64,
+    /// A lower bound on the seconds any order takes.
     pub lower_bound_s: f64,
     /// `spanning tree` or `pipeline` (the weaker bound of large plans).
     pub bound: String,

@@ -46,6 +46,8 @@ pub struct Timing<'a> {
 }
 
 impl<'a> Timing<'a> {
+    /// The model of `profile`, with every camera's exposure replaced by
+    /// `exposure_override_s` (seconds) when given (`--exposure`).
     pub fn new(profile: &'a Profile, exposure_override_s: Option<f64>) -> Timing<'a> {
         Timing {
             profile,
@@ -115,6 +117,8 @@ impl<'a> Timing<'a> {
         off + on
     }
 
+    /// The exposure of `camera`, seconds: the override if any, else the
+    /// profile's `timing.exposure_s` (0 for a device without timing).
     pub fn exposure_s(&self, camera: &str) -> f64 {
         let nominal = self
             .profile

@@ -21,10 +21,12 @@ pub const TOKEN_FILE: &str = "token";
 #[derive(Debug, Clone)]
 pub struct Token {
     secret: Arc<str>,
+    /// The file the token was read from, or generated into.
     pub path: PathBuf,
 }
 
 impl Token {
+    /// The token itself, as clients send it in `Authorization: Bearer <token>`.
     pub fn secret(&self) -> &str {
         &self.secret
     }

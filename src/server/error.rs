@@ -24,32 +24,41 @@ pub struct ErrorBody {
 #[derive(Debug, Clone, thiserror::Error)]
 #[error("{status}: {detail}")]
 pub struct ApiError {
+    /// HTTP status of the answer; it also picks `ErrorBody::error`.
     pub status: StatusCode,
+    /// What went wrong, for a person (`ErrorBody::detail`).
     pub detail: String,
 }
 
 impl ApiError {
+    /// An error answer with this status and detail.
     pub fn new(status: StatusCode, detail: impl Into<String>) -> Self {
         ApiError {
             status,
             detail: detail.into(),
         }
     }
+    /// 400: the request cannot be read (malformed JSON, query or path).
     pub fn bad_request(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::BAD_REQUEST, detail)
     }
+    /// 422: the request reads fine but a value is unusable.
     pub fn invalid(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::UNPROCESSABLE_ENTITY, detail)
     }
+    /// 404: no such run, item, plan or file.
     pub fn not_found(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::NOT_FOUND, detail)
     }
+    /// 409: the rig's or a run's state does not allow it now.
     pub fn conflict(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::CONFLICT, detail)
     }
+    /// 401: the token is missing or wrong.
     pub fn unauthorized(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::UNAUTHORIZED, detail)
     }
+    /// 500: something failed inside the daemon.
     pub fn internal(detail: impl Into<String>) -> Self {
         Self::new(StatusCode::INTERNAL_SERVER_ERROR, detail)
     }

@@ -54,6 +54,7 @@ impl Default for EventHub {
 }
 
 impl EventHub {
+    /// An empty hub; the first event published gets id 1.
     pub fn new() -> Self {
         let (tx, _) = broadcast::channel(RING_CAPACITY);
         EventHub {

@@ -58,7 +58,10 @@ pub struct ServerConfig {
     pub profile: Option<String>,
     /// Drive the simulated rig.
     pub sim: bool,
+    /// Address to serve HTTP on (default `127.0.0.1:8080`; port 0 takes a free port).
     pub listen: SocketAddr,
+    /// The data directory: `runs/`, `queue.json`, the token and the trade-off
+    /// report; created if missing.
     pub data_dir: PathBuf,
     /// Physical seconds per wall second of the simulated rig.
     pub sim_speed: f64,
@@ -87,21 +90,44 @@ impl ServerConfig {
 /// Why the daemon cannot start.
 #[derive(Debug, thiserror::Error)]
 pub enum ServerError {
+    /// The profile could not be read, parsed or validated.
     #[error(transparent)]
     Profile(#[from] crate::model::profile::ProfileError),
+    /// `--sim-speed` is not a positive finite number.
     #[error("--sim-speed {0}: expected a positive number")]
     Speed(f64),
+    /// The data directory (or its `runs/`) cannot be created.
     #[error("data directory {path}: {why}")]
-    DataDir { path: PathBuf, why: String },
+    DataDir {
+        /// The directory.
+        path: PathBuf,
+        /// The operating system's error.
+        why: String,
+    },
+    /// The token file cannot be read or written, or holds no usable token
+    /// (one line of at least 16 visible characters).
     #[error("token file {path}: {why}")]
-    Token { path: PathBuf, why: String },
+    Token {
+        /// The token file.
+        path: PathBuf,
+        /// What is wrong with it.
+        why: String,
+    },
+    /// The listen address cannot be bound.
     #[error("cannot listen on {addr}: {why}")]
-    Listen { addr: SocketAddr, why: String },
+    Listen {
+        /// The address asked for.
+        addr: SocketAddr,
+        /// The operating system's error.
+        why: String,
+    },
 }
 
 /// A running daemon.
 pub struct ServerHandle {
+    /// The daemon's state and run supervisor.
     pub daemon: Arc<supervisor::Daemon>,
+    /// The API token and the file it is kept in.
     pub token: auth::Token,
     server: JoinHandle<()>,
 }

@@ -30,7 +30,9 @@ impl From<Direction> for Dir {
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PairDto {
+    /// Light direction.
     pub light: Dir,
+    /// View direction.
     pub view: Dir,
 }
 
@@ -39,14 +41,20 @@ pub struct PairDto {
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct InlinePlan {
+    /// Name of the plan (1..=128 characters), used in the run id and the
+    /// run's records; `custom` if absent.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub name: Option<String>,
+    /// Directions, each paired with each (as light and as view).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub directions: Option<Vec<Dir>>,
+    /// Light directions, each paired with every one of `views`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lights: Option<Vec<Dir>>,
+    /// View directions, each paired with every one of `lights`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub views: Option<Vec<Dir>>,
+    /// Explicit light/view pairs.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pairs: Option<Vec<PairDto>>,
 }
@@ -56,11 +64,16 @@ pub struct InlinePlan {
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 #[serde(untagged)]
 pub enum PlanSpec {
+    /// A built-in plan: `h1`, `h2`, `grid12x8`, `lamps`, `laser` or
+    /// `laser:key=value,…`.
     Name(String),
+    /// A plan given in the request.
     Inline(InlinePlan),
 }
 
 impl PlanSpec {
+    /// The plan's name: the built-in name, or the inline plan's `name`
+    /// (`custom` if it has none).
     pub fn label(&self) -> String {
         match self {
             PlanSpec::Name(n) => n.clone(),
@@ -75,9 +88,13 @@ impl PlanSpec {
 pub struct RunRequest {
     /// Sample name, recorded in the dataset (1..=128 characters).
     pub sample: String,
+    /// The plan to capture: a built-in plan's name or an inline plan.
     pub plan: PlanSpec,
+    /// Who runs the capture, recorded in the dataset (at most 128 characters,
+    /// no control characters).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub operator: Option<String>,
+    /// Free-text notes recorded in the dataset (at most 8192 characters).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub notes: Option<String>,
     /// Exposure for every camera, seconds (default: the profile's).
@@ -97,10 +114,16 @@ pub struct RunRequest {
 pub struct RunView {
     /// Server-made id: `YYYYMMDDTHHMMSSZ-SAMPLE-PLAN[-N]`.
     pub id: String,
+    /// Sample name, as requested.
     pub sample: String,
+    /// Plan name: the built-in name (`h1`, `laser:…`) or the inline plan's
+    /// `name` (`custom` if it had none).
     pub plan: String,
+    /// Name of the rig profile it was captured on.
     pub profile: String,
+    /// Who ran it; null if not given.
     pub operator: Option<String>,
+    /// Free-text notes; null if none were given.
     pub notes: Option<String>,
     /// Where the run stands: `interrupted` means the daemon died while it
     /// was active.
@@ -114,7 +137,9 @@ pub struct RunView {
     pub active: bool,
     /// `POST /runs/{id}/resume` would continue it.
     pub resumable: bool,
+    /// Images with a journaled frame so far.
     pub steps_done: usize,
+    /// Images in the plan.
     pub steps_total: usize,
     /// Physical seconds of capture so far.
     pub physical_s: f64,
@@ -122,10 +147,19 @@ pub struct RunView {
     pub eta_physical_s: Option<f64>,
     /// The same in wall seconds at the daemon's simulation speed.
     pub eta_wall_s: Option<f64>,
+    /// Exposure of every camera, seconds, as requested; null: each camera's
+    /// exposure from the profile (laser plans: the plan's).
     pub exposure_s: Option<f64>,
+    /// Simulated frame size `[width, height]` in pixels; null on hardware.
     pub frame_size: Option<[u32; 2]>,
+    /// When the run was created, RFC 3339 UTC.
     pub started_at: String,
+    /// When the run last changed (its state record, or its latest engine
+    /// event while active), RFC 3339 UTC; null if it has no state record.
     pub updated_at: Option<String>,
+    /// When the run's manifest was written at its end (completed, failed or
+    /// aborted by its engine), RFC 3339 UTC; null until then, and for a run
+    /// aborted with no live engine.
     pub finished_at: Option<String>,
     /// What `rigd process` made of it that the viewer (`/viewer/{id}`)
     /// shows: `btf` or `photometric-stereo`; null before processing.
@@ -150,14 +184,20 @@ pub struct CommandAck {
     /// True when handed to the live engine (its state changes arrive as
     /// events); false when done on disk (a run with no live engine).
     pub sent_to_engine: bool,
+    /// The run right after the command; with a live engine, its state change
+    /// follows as an event.
     pub run: RunView,
 }
 
 /// One queued run.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct QueueItem {
+    /// Queue item id, `q<unix milliseconds>-<n>`; not the id of the run it
+    /// becomes.
     pub id: String,
+    /// The run to start, as posted.
     pub request: RunRequest,
+    /// When it was queued, RFC 3339 UTC.
     pub created_at: String,
 }
 
@@ -171,6 +211,7 @@ pub struct QueueView {
 /// Answer to `POST /api/v1/queue`.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct Enqueued {
+    /// The new queue item.
     pub item: QueueItem,
     /// Set when the rig was free and the item started at once (it is then
     /// no longer in the queue).
@@ -180,9 +221,13 @@ pub struct Enqueued {
 /// `GET /api/v1/health`.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct Health {
+    /// Always true: the daemon is up and answering.
     pub ok: bool,
+    /// Version of the rigd serving the API (semantic versioning).
     pub version: String,
+    /// Name of the rig profile the daemon drives.
     pub profile: String,
+    /// True when it drives the simulated rig, false on hardware.
     pub sim: bool,
     /// Physical seconds per wall second of the simulated rig.
     pub sim_speed: f64,
@@ -191,13 +236,18 @@ pub struct Health {
 /// A device and its live state.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct DeviceView {
+    /// The device's name in the profile.
     pub name: String,
     /// axis, arm, lamp, camera or laser.
     pub kind: String,
+    /// The protocol its driver speaks, as in the profile.
     pub protocol: String,
+    /// True on the simulated rig; false on hardware, whose drivers connect for
+    /// each run and report nothing here.
     pub connected: bool,
     /// Null for devices that do not home (lamps, cameras).
     pub homed: Option<bool>,
+    /// True while a run is preparing or running (the same for every device).
     pub busy: bool,
     /// The fault that paused the run, if it names this device.
     pub fault: Option<String>,
@@ -217,13 +267,19 @@ pub struct DeviceView {
 /// `GET /api/v1/rig`.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct RigView {
+    /// Name of the rig profile.
     pub profile: String,
+    /// The profile's description of the rig.
     pub description: String,
+    /// True when the daemon drives the simulated rig, false on hardware.
     pub sim: bool,
+    /// Physical seconds per wall second: the simulation speed, or 1 on hardware.
     pub sim_speed: f64,
+    /// Id of the run an engine drives; null when the rig is free.
     pub active_run: Option<String>,
     /// The active run's state, or `idle` when the rig is free.
     pub state: RunState,
+    /// Every device of the profile, in name order.
     pub devices: Vec<DeviceView>,
     /// Lamp name → on.
     #[schema(value_type = Object)]
@@ -233,6 +289,7 @@ pub struct RigView {
 /// A plan on this rig, in short.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct PlanSummary {
+    /// The built-in plan's name (`h1`, `h2`, `grid12x8`, `lamps` or `laser`).
     pub name: String,
     /// Solved for this rig; while `false` (the daemon has just started) the
     /// other fields say nothing yet: ask again in a moment.
@@ -241,8 +298,11 @@ pub struct PlanSummary {
     pub fits: bool,
     /// Why not, when it does not fit.
     pub error: Option<String>,
+    /// Images in the plan.
     pub steps_total: usize,
+    /// Triggers: rig poses at which one or more cameras expose together.
     pub triggers_total: usize,
+    /// Images the rig cannot take as asked (the nearest reachable pair is taken).
     pub infeasible_total: usize,
     /// Estimated physical capture time, seconds.
     pub estimated_physical_s: f64,
@@ -253,21 +313,34 @@ pub struct PlanSummary {
 /// `GET /api/v1/plans`.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct PlanList {
+    /// Name of the rig profile the plans are solved for.
     pub profile: String,
+    /// Every built-in plan, in the order `h1`, `h2`, `grid12x8`, `lamps`, `laser`.
     pub plans: Vec<PlanSummary>,
 }
 
 /// One image of a plan.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct PlanStep {
+    /// The image's index, in capture order.
     pub index: usize,
+    /// Index of its trigger; images taken together share it.
     pub trigger: usize,
+    /// The camera that takes it.
     pub camera: String,
+    /// Commanded light direction.
     pub light: Dir,
+    /// Commanded view direction.
     pub view: Dir,
+    /// Light direction the set-points really produce; for an infeasible pair,
+    /// the substitute's.
     pub achieved_light: Dir,
+    /// View direction the set-points really produce; for an infeasible pair,
+    /// the substitute's.
     pub achieved_view: Dir,
+    /// Whether the rig can take the pair as asked.
     pub feasible: bool,
+    /// When infeasible: why, and what is taken instead; absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reason: Option<String>,
     /// Laser plans: the source and tilt of this frame.
@@ -303,22 +376,35 @@ impl From<crate::schedule::PlanStep<'_>> for PlanStep {
 /// `GET /api/v1/plans/{name}`.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct PlanDetail {
+    /// Size, feasibility and estimated duration (its fields are inlined here).
     #[serde(flatten)]
     pub summary: PlanSummary,
+    /// Every image, in capture order.
     pub steps: Vec<PlanStep>,
 }
 
 /// One image of a run, planned and captured.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct RunStep {
+    /// The image's index, in capture order.
     pub index: usize,
+    /// Index of its trigger; images taken together share it.
     pub trigger: usize,
+    /// The camera that takes it.
     pub camera: String,
+    /// Commanded light direction.
     pub light: Dir,
+    /// Commanded view direction.
     pub view: Dir,
+    /// Light direction the set-points really produce; for an infeasible pair,
+    /// the substitute's.
     pub achieved_light: Dir,
+    /// View direction the set-points really produce; for an infeasible pair,
+    /// the substitute's.
     pub achieved_view: Dir,
+    /// Whether the rig can take the pair as asked.
     pub feasible: bool,
+    /// When infeasible: why, and what is taken instead; null otherwise.
     pub reason: Option<String>,
     /// Its frame is written and journaled.
     pub done: bool,
@@ -327,9 +413,13 @@ pub struct RunStep {
 /// `GET /api/v1/runs/{id}/steps`.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct RunSteps {
+    /// The run's id.
     pub run: String,
+    /// Images in the run's plan.
     pub steps_total: usize,
+    /// Images with a journaled frame.
     pub steps_done: usize,
+    /// Every image of the plan, in capture order.
     pub steps: Vec<RunStep>,
 }
 
@@ -343,6 +433,8 @@ pub struct EstopAnswer {
     /// Every device's acknowledgement: `{device, after_s, error?}`.
     #[schema(value_type = Vec<Object>)]
     pub devices: Vec<serde_json::Value>,
+    /// True when every device acknowledged its stop (also when no run was
+    /// active).
     pub all_stopped: bool,
 }
 

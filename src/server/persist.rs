@@ -15,7 +15,9 @@ use crate::store::{
     MANIFEST_FILE, RUN_FILE,
 };
 
+/// The queue's file in the data directory.
 pub const QUEUE_FILE: &str = "queue.json";
+/// The folder of the data directory that holds one run directory per run id.
 pub const RUNS_DIR: &str = "runs";
 const QUEUE_FORMAT: &str = "rigd-queue/1";
 
@@ -155,10 +157,12 @@ struct ManifestHead {
     physical_duration_s: f64,
 }
 
-/// Reads one run directory into a view (not active). A run that was
-/// preparing or running (the daemon died) is marked `interrupted` in its
-/// `state.json`.
-pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError> {
+/// Reads one run directory into a view (not active). With `mark_stale`
+/// (the scan at start-up), a run that was preparing or running, whose
+/// driver therefore died, is marked `interrupted` in its `state.json`;
+/// without it (a run the daemon itself is starting or has just ended) the
+/// record is read as it is.
+pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, RunMeta), StoreError> {
     let run_path = root.join(RUN_FILE);
     let bytes = std::fs::read(&run_path).map_err(|e| StoreError::Corrupt {
         path: run_path.clone(),
@@ -173,14 +177,14 @@ pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError>
     let stale = state
         .as_ref()
         .is_none_or(|s| s.state.is_active() || s.state == RunState::Idle);
-    if stale {
+    if stale && mark_stale {
         let reason = INTERRUPTED_REASON.replace("{id}", id);
         state = Some(mark_interrupted(root, state.as_ref(), &reason)?);
     }
     let manifest: Option<ManifestHead> = std::fs::read(root.join(MANIFEST_FILE))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok());
-    let run_state = state.as_ref().map_or(RunState::Interrupted, |s| s.state);
+    let run_state = state.as_ref().map_or(RunState::Idle, |s| s.state);
     let resumable = run_state.is_resumable();
     let view = RunView {
         id: id.to_string(),
@@ -199,7 +203,7 @@ pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError>
         active: false,
         resumable,
         steps_done: done.len(),
-        steps_total: meta.plan.pairs.len(),
+        steps_total: images_in_plan(&meta),
         physical_s: manifest
             .as_ref()
             .map(|m| m.physical_duration_s)
@@ -215,6 +219,19 @@ pub fn load_run(root: &Path, id: &str) -> Result<(RunView, RunMeta), StoreError>
         processed: None,
     };
     Ok((view, meta))
+}
+
+/// Images in a run's plan: one per pair, or for a laser plan every frame of
+/// its calibrations and sweeps (a laser plan has no pairs).
+fn images_in_plan(meta: &RunMeta) -> usize {
+    match &meta.plan.laser {
+        Some(laser) => crate::plan::laser::LaserRig::of(&meta.profile).map_or(0, |rig| {
+            crate::schedule::laser::schedule(&rig, &meta.plan.name, &meta.profile.name, laser)
+                .images
+                .len()
+        }),
+        None => meta.plan.pairs.len(),
+    }
 }
 
 /// Whether a pause or end reason is an error (not the operator's doing).
@@ -236,7 +253,7 @@ pub fn scan_runs(runs_dir: &Path) -> Vec<(RunView, PathBuf)> {
         if !is_valid_id(&name) || !path.join(RUN_FILE).is_file() {
             continue;
         }
-        match load_run(&path, &name) {
+        match load_run(&path, &name, true) {
             Ok((view, _)) => {
                 if view.state == RunState::Interrupted {
                     tracing::warn!(run = %name, "run was active when the daemon stopped: marked interrupted (resumable)");
@@ -300,5 +317,39 @@ mod tests {
         std::fs::write(dir.path().join(QUEUE_FILE), b"{torn").expect("write");
         assert!(load_queue(dir.path()).is_empty());
         assert!(dir.path().join("queue.json.bad").exists());
+    }
+
+    /// A laser plan has no (light, view) pairs: its image count comes from
+    /// its sweeps, so frames of a laser run stay reachable after a restart.
+    #[test]
+    fn a_laser_run_read_back_counts_its_frames() {
+        let profile = crate::plan::load_profile("msra-btf-mdf").unwrap_or_else(|e| panic!("{e}"));
+        let spec = "laser:sources=2,turns=1";
+        let (_, plan, schedule) = crate::engine::launch::solve_plan(&profile, spec, None)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let meta = RunMeta {
+            format: crate::store::RUN_FORMAT.into(),
+            software_version: "test".into(),
+            profile: profile.clone(),
+            profile_source: "msra-btf-mdf".into(),
+            plan,
+            sample: "s".into(),
+            operator: None,
+            notes: None,
+            exposure_s: None,
+            frame_size: None,
+            simulated: true,
+            sim_scene: None,
+            started_at: crate::store::now_rfc3339(),
+        };
+        let dir = tempfile::tempdir().expect("tempdir");
+        let root = dir.path().join("run");
+        crate::store::RunDir::create(&root, &meta).expect("create");
+        let (view, _) = load_run(&root, "run", true).expect("load");
+        assert!(!schedule.images.is_empty());
+        assert_eq!(view.steps_total, schedule.images.len());
+        assert_eq!(view.state, RunState::Interrupted, "nobody drives it");
+        let (view, _) = load_run(&root, "run", false).expect("load");
+        assert_eq!(view.state, RunState::Interrupted, "the record as it is");
     }
 }

@@ -26,20 +26,28 @@ use rigd_core::Clock;
 
 /// The run an engine drives.
 pub struct Active {
+    /// The run's id.
     pub id: String,
+    /// Commands, events and the emergency stop of the run's engine.
     pub handle: EngineHandle,
     /// The simulated rig's world and faults (None on hardware).
     pub sim: Option<SimHandle>,
+    /// The engine's state, as of its latest state event.
     pub state: RunState,
     /// Physical time at which the run should end (t_offset + estimate).
     pub end_estimate_s: f64,
 }
 
+/// The daemon's mutable state, under one lock ([`Daemon::inner`]).
 #[derive(Default)]
 pub struct Inner {
+    /// Every known run by id, the active one included: the run history.
     pub runs: BTreeMap<String, RunView>,
+    /// The run an engine drives now; None when the rig is free.
     pub active: Option<Active>,
+    /// Queued runs, in the order they will start (kept in `queue.json`).
     pub queue: Vec<QueueItem>,
+    /// Set when shutdown begins: from then on no run starts.
     pub shutting_down: bool,
     /// The rig of the last run, for positions after it ended.
     pub last_sim: Option<SimHandle>,
@@ -48,16 +56,24 @@ pub struct Inner {
 
 /// Everything the handlers share.
 pub struct Daemon {
+    /// How the daemon was started.
     pub config: ServerConfig,
+    /// The rig profile every run of this daemon uses.
     pub profile: Profile,
+    /// Where the profile came from (a path, or `<embedded NAME>`).
     pub profile_source: String,
+    /// The event stream the handlers and the runs publish to.
     pub hub: EventHub,
+    /// The data directory.
     pub data_dir: PathBuf,
+    /// `DATA/runs/`: one run directory per run id.
     pub runs_dir: PathBuf,
     inner: Mutex<Inner>,
     /// Serialises starting runs (prepare happens outside `inner`'s lock).
     start_gate: tokio::sync::Mutex<()>,
     supervisor: Mutex<Option<JoinHandle<()>>>,
+    /// Turns true at the end of shutdown (the engine stopped, or 60 s
+    /// passed): the event streams end and the HTTP server stops.
     pub shutdown_tx: watch::Sender<bool>,
     schedules: Mutex<HashMap<String, Arc<Schedule>>>,
     /// The built-in plans solved for this rig, in the background.
@@ -126,6 +142,9 @@ fn run_error(e: RunError) -> SupervisorError {
 }
 
 impl Daemon {
+    /// Opens the data directory: creates `runs/`, reads the run history
+    /// (marking runs found active as interrupted) and the queue, and starts
+    /// solving the built-in plans in the background.
     pub fn new(
         config: ServerConfig,
         profile: Profile,
@@ -162,6 +181,7 @@ impl Daemon {
         }))
     }
 
+    /// Locks the daemon's mutable state (taken over even if a holder panicked).
     pub fn inner(&self) -> MutexGuard<'_, Inner> {
         lock(&self.inner)
     }
@@ -189,6 +209,8 @@ impl Daemon {
         self.inner().runs.get(id).cloned()
     }
 
+    /// The directory of run `id`; None unless `id` is a well-formed id of a
+    /// known run, so no path is built from unchecked input.
     pub fn run_root(&self, id: &str) -> Option<PathBuf> {
         if !persist::is_valid_id(id) || !self.inner().runs.contains_key(id) {
             return None;
@@ -328,8 +350,8 @@ impl Daemon {
         .await
         .map_err(|e| SupervisorError::internal(format!("preparing the run failed: {e}")))?
         .map_err(run_error)?;
-        let (view, _) =
-            persist::load_run(&root, &id).map_err(|e| SupervisorError::internal(e.to_string()))?;
+        let (view, _) = persist::load_run(&root, &id, false)
+            .map_err(|e| SupervisorError::internal(e.to_string()))?;
         let view = self.install(view, prepared, "run_created");
         Ok(view)
     }
@@ -436,7 +458,7 @@ impl Daemon {
         result: Result<Result<Outcome, EngineError>, String>,
     ) {
         let root = self.runs_dir.join(id);
-        let reloaded = persist::load_run(&root, id).ok().map(|(v, _)| v);
+        let reloaded = persist::load_run(&root, id, false).ok().map(|(v, _)| v);
         let (shutting_down, view) = {
             let mut inner = self.inner();
             if inner.active.as_ref().is_some_and(|a| a.id == id) {
@@ -584,6 +606,8 @@ impl Daemon {
         Ok((item, started))
     }
 
+    /// Removes a queued run by its item id and saves the queue; not found when
+    /// no item has that id.
     pub fn dequeue(&self, item: &str) -> Result<(), SupervisorError> {
         {
             let mut inner = self.inner();

@@ -34,35 +34,61 @@ use rigd_core::geometry::Direction;
 
 /// Format tag of `run.json` and `manifest.json`.
 pub const RUN_FORMAT: &str = "rigd-run/1";
+/// File name of the run's metadata ([`RunMeta`]), written once at the start.
 pub const RUN_FILE: &str = "run.json";
+/// File name of the journal: one [`FrameEntry`] per line, appended and
+/// fsynced as frames are taken.
 pub const JOURNAL_FILE: &str = "journal.ndjson";
+/// File name of the run's last known state ([`StateRecord`]).
 pub const STATE_FILE: &str = "state.json";
+/// File name of the [`Manifest`], written when the run ends.
 pub const MANIFEST_FILE: &str = "manifest.json";
+/// Folder of the frames, `NNNNNN.png` by image index.
 pub const FRAMES_DIR: &str = "frames";
 
+/// Why a run directory could not be created, opened, read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     /// The I/O error is part of the message, not a separate cause, so it
     /// reads once in a one-line report.
     #[error("{path}: {op}: {error}")]
     Io {
+        /// The file or folder the operation was on.
         path: PathBuf,
+        /// The operation that failed (`create`, `write`, `fsync`, `rename`, …).
         op: &'static str,
+        /// The operating system's error.
         error: std::io::Error,
     },
+    /// The folder given for a new run already holds one: the folder, and that
+    /// run's sample name (`?` if its `run.json` is unreadable).
     #[error("{0} already holds run `{1}`; resume it with `rigd run --resume {0}` or choose another --out")]
     AlreadyRun(String, String),
+    /// The folder given for a new run holds other files and no run.
     #[error("{0} is not empty and holds no run; choose an empty or new folder for --out")]
     NotEmpty(String),
+    /// The folder to open holds no run: it has no `run.json`.
     #[error("{0} holds no run (no run.json)")]
     NoRun(String),
+    /// A file cannot be read back or parsed (`run.json`, `state.json`, a
+    /// damaged journal line), or cannot be serialized or encoded as PNG.
     #[error("{path}: {why}")]
-    Corrupt { path: PathBuf, why: String },
+    Corrupt {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong with it.
+        why: String,
+    },
+    /// The run to resume has already ended (completed or aborted): its folder
+    /// and its state.
     #[error("{0}: the run is already {1}; nothing to resume")]
     Finished(String, RunState),
+    /// The state table refuses the state change asked of the run.
     #[error("{path}: {error}")]
     Transition {
+        /// The run's `state.json`.
         path: PathBuf,
+        /// The refused transition, naming both states.
         error: IllegalTransition,
     },
 }
@@ -78,15 +104,24 @@ fn io<'a>(path: &'a Path, op: &'static str) -> impl FnOnce(std::io::Error) -> St
 /// What was asked for, written once at the start.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct RunMeta {
+    /// Format tag of the file: [`RUN_FORMAT`].
     pub format: String,
+    /// Version of the rigd that started the run.
     pub software_version: String,
+    /// A full copy of the rig profile the run was started with; a resume
+    /// uses this, not the file it came from.
     pub profile: Profile,
     /// Where the profile came from (a path, or `<embedded NAME>`).
     pub profile_source: String,
+    /// The plan as resolved for the rig (every light and view pair, or the
+    /// laser scan, and the trigger order); a resume rebuilds the schedule from it.
     pub plan: Plan,
+    /// Name of the measured sample.
     pub sample: String,
+    /// Who ran the capture; null if not given.
     #[serde(default)]
     pub operator: Option<String>,
+    /// Free-text notes on the run; null if none were given.
     #[serde(default)]
     pub notes: Option<String>,
     /// Exposure override for every camera; the profile's own if None.
@@ -95,6 +130,7 @@ pub struct RunMeta {
     /// Frame size of the simulated cameras (None on real hardware).
     #[serde(default)]
     pub frame_size: Option<[u32; 2]>,
+    /// True when the run drives the simulated rig, false on hardware.
     pub simulated: bool,
     /// The scene the simulated cameras render and the effects a lit frame
     /// of it pays for (None on hardware).
@@ -107,6 +143,7 @@ pub struct RunMeta {
 /// What a simulated run's frames show.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SimScene {
+    /// The scene's name (`rigd sim scenes` lists them).
     pub name: String,
     /// Effects live in a frame lit by a lamp (no laser).
     pub effects: Vec<String>,
@@ -116,24 +153,38 @@ pub struct SimScene {
 /// are a contract other tools read.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameEntry {
+    /// The image's index in the plan's capture order; also names the frame file.
     pub index: usize,
+    /// Index of the trigger that took it; images taken together share it.
     pub trigger: usize,
     /// Path relative to the run directory.
     pub file: String,
+    /// SHA-256 of the frame's PNG file, lowercase hex.
     pub sha256: String,
     /// Commanded directions, sample frame.
     pub light: Direction,
+    /// Commanded view direction, sample frame.
     pub view: Direction,
+    /// Light direction the set-points really produce (sample frame);
+    /// for an infeasible pair, the substitute's.
     pub achieved_light: Direction,
+    /// View direction the set-points really produce (sample frame);
+    /// for an infeasible pair, the substitute's.
     pub achieved_view: Direction,
+    /// The camera that took the frame, named as in the profile.
     pub camera: String,
+    /// Exposure time in seconds: the run's override, else the camera's own.
     pub exposure_s: f64,
     /// Physical time of the exposure's start since the run started, seconds.
     pub t_s: f64,
     /// Where the devices stood.
     pub positions: Setpoints,
+    /// Frame width in pixels.
     pub width: u32,
+    /// Frame height in pixels.
     pub height: u32,
+    /// Bits per sensor value of the camera; the PNG holds 8 bits for 8 or
+    /// fewer, else 16.
     pub bit_depth: u8,
     /// Laser frames: source, and the tilt measured around the exposure.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -145,42 +196,67 @@ pub struct FrameEntry {
 pub struct StateRecord {
     /// Where the run stands.
     pub state: RunState,
+    /// Why the run is in this state (a fault, the operator, an interruption,
+    /// frames missing); null when there is none.
     #[serde(default)]
     pub reason: Option<String>,
     /// Physical time spent so far, over all sessions.
     pub physical_s: f64,
+    /// When the record was written: RFC 3339, UTC, whole seconds.
     pub updated_at: String,
 }
 
 /// An image that could not be taken as asked.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct InfeasibleEntry {
+    /// The image's index in the plan's capture order.
     pub index: usize,
+    /// Commanded light direction, sample frame.
     pub light: Direction,
+    /// Commanded view direction, sample frame.
     pub view: Direction,
+    /// Light direction taken instead (the nearest the rig reaches), sample frame.
     pub achieved_light: Direction,
+    /// View direction taken instead (the nearest the rig reaches), sample frame.
     pub achieved_view: Direction,
+    /// Why the rig cannot reach the pair, and what was substituted.
     pub reason: String,
 }
 
 /// Written at the end of a run.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Manifest {
+    /// Format tag of the file: [`RUN_FORMAT`].
     pub format: String,
+    /// Version of the rigd that wrote the manifest.
     pub software_version: String,
+    /// Name of the rig profile.
     pub profile: String,
+    /// Name of the plan (`h1`, `laser:turns=4`, a plan file's name).
     pub plan: String,
+    /// Name of the measured sample.
     pub sample: String,
+    /// The state the run ended in: completed, failed (frames missing) or aborted.
     pub state: RunState,
+    /// Why it ended so; null for a completed run.
     #[serde(default)]
     pub reason: Option<String>,
+    /// Images in the plan.
     pub steps_total: usize,
+    /// Triggers in the plan; one trigger exposes one or more cameras together.
     pub triggers_total: usize,
+    /// Images with a valid frame (the entries of `frames`).
     pub frames_written: usize,
+    /// Physical capture time in seconds over all sessions: up to the last
+    /// frame, or to the abort.
     pub physical_duration_s: f64,
+    /// When the run was started, RFC 3339 UTC (as in `run.json`).
     pub started_at: String,
+    /// When the manifest was written, RFC 3339 UTC.
     pub finished_at: String,
+    /// Images the rig could not take as asked, with what was taken instead.
     pub infeasible: Vec<InfeasibleEntry>,
+    /// Every valid frame, by image index.
     pub frames: Vec<FrameEntry>,
 }
 
@@ -280,6 +356,7 @@ pub fn decode_png(bytes: &[u8]) -> Result<(u32, u32, Vec<u16>), String> {
     Ok((info.width, info.height, pixels))
 }
 
+/// Lowercase hex SHA-256 of `bytes`, as in [`FrameEntry::sha256`].
 pub fn sha256_hex(bytes: &[u8]) -> String {
     hex::encode(Sha256::digest(bytes))
 }
@@ -377,6 +454,7 @@ impl RunDir {
         ))
     }
 
+    /// The run directory's path.
     pub fn root(&self) -> &Path {
         &self.root
     }
@@ -427,6 +505,7 @@ impl RunDir {
         self.journal.sync_data().map_err(io(&path, "fsync"))
     }
 
+    /// Replaces `state.json` with `record`, atomically.
     pub fn write_state(&self, record: &StateRecord) -> Result<(), StoreError> {
         let json = serde_json::to_vec_pretty(record).map_err(|e| StoreError::Corrupt {
             path: self.root.join(STATE_FILE),
@@ -435,6 +514,7 @@ impl RunDir {
         write_atomic(&self.root.join(STATE_FILE), &json)
     }
 
+    /// Writes `manifest.json`, atomically.
     pub fn write_manifest(&self, manifest: &Manifest) -> Result<(), StoreError> {
         let json = serde_json::to_vec_pretty(manifest).map_err(|e| StoreError::Corrupt {
             path: self.root.join(MANIFEST_FILE),

@@ -69,8 +69,13 @@ impl Default for TradeoffConfig {
 /// One row of the table.
 #[derive(Debug, Clone, Serialize)]
 pub struct Row {
+    /// The family the row belongs to: `plans`, `pca`, `fidelity`, `laser`
+    /// or `photometric stereo`.
     pub family: String,
+    /// What varies within the family (a plan's name, `C = 8`, an effect
+    /// left out, a source count).
     pub setting: String,
+    /// Images captured; None for rows without a capture (fidelity).
     pub images: Option<usize>,
     /// Physical capture time, seconds (motion-model estimate).
     pub physical_s: Option<f64>,
@@ -92,12 +97,19 @@ pub struct Row {
 /// The whole report.
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
+    /// The profile's name (the rig of the plans and pca families).
     pub profile: String,
+    /// The simulated scene (the material) measured.
     pub scene: String,
+    /// Side of the normtextures, texels.
     pub texture: usize,
+    /// Held-out (light, view) pairs the BTF error is measured at.
     pub held_out: usize,
+    /// PCA components of the plans family.
     pub components: usize,
+    /// How each figure was measured, one sentence per family or column.
     pub method: Vec<String>,
+    /// Every row of the table, family by family.
     pub rows: Vec<Row>,
 }
 

@@ -5,8 +5,8 @@
 //!
 //! For one view slot j, the normtextures N_ij under the measured lights
 //! i = 1…n are vectors of `width · height · channels` values (texel-major,
-//! row-major texels, channels interleaved: r₁₁ g₁₁ b₁₁ r₁₂ …, as X_ij in the
-//! seed). The slot matrix has one column per light. Per value (row) the mean
+//! row-major texels, channels interleaved: r₁₁ g₁₁ b₁₁ r₁₂ …, as X_ij in
+//! Sattler et al.). The slot matrix has one column per light. Per value (row) the mean
 //! over lights is removed and stored as the *mean texture* M_j; the centred
 //! matrix is factored by a thin SVD, U Σ Vᵀ, and the first C components are
 //! kept:
@@ -84,43 +84,104 @@ pub const VALUE_ENCODING: &str = "f32le";
 /// Largest component count the error report goes up to (Sattler et al. keep 16).
 pub const MAX_REPORTED_COMPONENTS: usize = 32;
 
+/// Errors of BTF compression, reconstruction and the on-disk store.
 #[derive(Debug, thiserror::Error)]
 pub enum BtfError {
+    /// A [`TextureShape`] with a zero side, a channel count other than 1 or 3,
+    /// or too many values.
     #[error("texture shape {width}×{height}×{channels} is invalid: {why}")]
     Shape {
+        /// Requested width, texels.
         width: usize,
+        /// Requested height, texels.
         height: usize,
+        /// Requested values per texel.
         channels: usize,
+        /// Which rule the shape breaks.
         why: &'static str,
     },
+    /// [`compress_slot`] was given no images.
     #[error("a view slot needs at least one image")]
     NoImages,
+    /// Zero PCA components were requested.
     #[error("at least one PCA component is required")]
     NoComponents,
+    /// An image's value count differs from `width · height · channels`.
     #[error("image {image} has {actual} values, expected {expected} (width · height · channels)")]
     ImageSize {
+        /// Index of the image (its light) in the slot.
         image: usize,
+        /// Values the texture shape needs.
         expected: usize,
+        /// Values the image has.
         actual: usize,
     },
+    /// An input image holds NaN or infinity.
     #[error("image {image} has a non-finite value at {value_index}")]
-    NonFiniteValue { image: usize, value_index: usize },
+    NonFiniteValue {
+        /// Index of the image (its light) in the slot.
+        image: usize,
+        /// Index of the first non-finite value in the image.
+        value_index: usize,
+    },
+    /// faer's SVD of a slot matrix did not converge.
     #[error("the SVD of view slot did not converge")]
     SvdNoConvergence,
+    /// A light or view direction table is invalid, or a query direction is
+    /// not finite.
     #[error(transparent)]
     Direction(#[from] DirectionError),
+    /// A slot disagrees with the store's texture size, light count or component
+    /// count, or its loader returned a different number of images than lights.
     #[error("view slot {slot}: {why}")]
-    SlotMismatch { slot: usize, why: String },
+    SlotMismatch {
+        /// Index of the offending view slot.
+        slot: usize,
+        /// What does not match.
+        why: String,
+    },
+    /// The number of slots differs from the number of view directions.
     #[error("{slots} slots for {views} view directions")]
-    SlotCount { slots: usize, views: usize },
+    SlotCount {
+        /// Slots given.
+        slots: usize,
+        /// View directions in the table.
+        views: usize,
+    },
+    /// A light index is beyond the slot's measured lights.
     #[error("light index {light} out of range ({lights} lights)")]
-    LightIndex { light: usize, lights: usize },
+    LightIndex {
+        /// The requested light index.
+        light: usize,
+        /// Measured lights in the slot.
+        lights: usize,
+    },
+    /// A view-slot index is beyond the store's slots.
     #[error("view slot {slot} out of range ({slots} slots)")]
-    SlotIndex { slot: usize, slots: usize },
+    SlotIndex {
+        /// The requested slot index.
+        slot: usize,
+        /// Slots in the store.
+        slots: usize,
+    },
+    /// Creating the directory, or reading or writing a file of the store, failed.
     #[error("{}: {source}", path.display())]
-    Io { path: PathBuf, source: io::Error },
+    Io {
+        /// The file or directory concerned.
+        path: PathBuf,
+        /// The underlying I/O error.
+        source: io::Error,
+    },
+    /// `btf.json` or a slot file is malformed: bad JSON, an unknown format,
+    /// version or encoding, inconsistent counts, a wrong file size or a
+    /// non-finite value.
     #[error("{}: {why}", path.display())]
-    Format { path: PathBuf, why: String },
+    Format {
+        /// The file concerned.
+        path: PathBuf,
+        /// What is wrong with it.
+        why: String,
+    },
 }
 
 /// Size of one normtexture.
@@ -161,18 +222,22 @@ impl TextureShape {
         })
     }
 
+    /// Width, texels.
     pub fn width(&self) -> usize {
         self.width
     }
 
+    /// Height, texels (rows).
     pub fn height(&self) -> usize {
         self.height
     }
 
+    /// Values per texel: 1 (grey) or 3 (RGB, interleaved).
     pub fn channels(&self) -> usize {
         self.channels
     }
 
+    /// Texels per texture: width · height.
     pub fn texels(&self) -> usize {
         self.width * self.height
     }
@@ -310,6 +375,7 @@ impl SlotPca {
         self.values
     }
 
+    /// Number of measured lights (images) the slot was compressed from.
     pub fn lights(&self) -> usize {
         self.lights
     }
@@ -319,6 +385,8 @@ impl SlotPca {
         self.components
     }
 
+    /// The mean texture M_j: per value, the mean over lights; `values()`
+    /// values, texel-major with channels interleaved.
     pub fn mean(&self) -> &[f32] {
         &self.mean
     }
@@ -432,7 +500,9 @@ impl SlotPca {
 /// Eigenvalue decay and error curve of one view slot.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct SlotReport {
+    /// Index of the view slot.
     pub slot: usize,
+    /// The slot's measured view direction.
     pub view: Direction,
     /// σ², non-increasing, all of them.
     pub eigenvalues: Vec<f64>,
@@ -503,6 +573,7 @@ impl BtfStore {
         BtfStore::new(shape, lights, views, slots)
     }
 
+    /// Size of every texture in the store.
     pub fn shape(&self) -> TextureShape {
         self.shape
     }
@@ -512,14 +583,17 @@ impl BtfStore {
         self.components
     }
 
+    /// The measured light directions, in light-index order.
     pub fn lights(&self) -> &DirectionTable {
         &self.lights
     }
 
+    /// The measured view directions, one per slot, in slot order.
     pub fn views(&self) -> &DirectionTable {
         &self.views
     }
 
+    /// The per-view-slot PCAs, in slot order.
     pub fn slots(&self) -> &[SlotPca] {
         &self.slots
     }
@@ -664,22 +738,37 @@ fn check_slot(
 /// One slot's entry in `btf.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SlotEntry {
+    /// Name of the slot's `.bin` file, a plain file name in the store's
+    /// directory.
     pub file: String,
+    /// All singular values of the slot's centred matrix, non-increasing:
+    /// min(lights, W·H·channels) of them.
     pub singular_values: Vec<f64>,
 }
 
 /// The contents of `btf.json`; see the module documentation.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct BtfHeader {
+    /// Format name, always [`FORMAT_NAME`].
     pub format: String,
+    /// Format version; this module reads and writes [`FORMAT_VERSION`].
     pub version: u32,
+    /// Texture width, texels.
     pub width: usize,
+    /// Texture height, texels.
     pub height: usize,
+    /// Values per texel: 1 (grey) or 3 (RGB).
     pub channels: usize,
+    /// Components C stored per slot.
     pub components: usize,
+    /// Encoding of the slot files' values, [`VALUE_ENCODING`]
+    /// (little-endian f32).
     pub value_encoding: String,
+    /// Measured light directions, in light-index order.
     pub light_directions: Vec<Direction>,
+    /// Measured view directions, in slot order.
     pub view_directions: Vec<Direction>,
+    /// One entry per view slot, in slot order.
     pub slots: Vec<SlotEntry>,
 }
 

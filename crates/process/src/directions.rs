@@ -44,29 +44,53 @@ pub const RING_THETA_TOLERANCE_DEG: f64 = 0.01;
 /// the one direction type of rigd, shared with the capture side.
 pub use rigd_core::geometry::Direction;
 
+/// Why a direction table or a query direction is rejected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum DirectionError {
+    /// The table has no directions.
     #[error("direction table is empty")]
     Empty,
+    /// A table direction has a non-finite θ or φ.
     #[error("direction {index} is not finite (θ = {theta_deg}, φ = {phi_deg})")]
     NonFinite {
+        /// Index of the direction in the table.
         index: usize,
+        /// Its θ, degrees.
         theta_deg: f64,
+        /// Its φ, degrees.
         phi_deg: f64,
     },
+    /// A table direction's θ is outside [0°, 90°].
     #[error("direction {index} has θ = {theta_deg}°, outside the hemisphere 0..=90°")]
-    OutsideHemisphere { index: usize, theta_deg: f64 },
+    OutsideHemisphere {
+        /// Index of the direction in the table.
+        index: usize,
+        /// Its θ, degrees.
+        theta_deg: f64,
+    },
+    /// Two table directions off the pole agree in both θ and φ within
+    /// [`RING_THETA_TOLERANCE_DEG`]: the same direction measured twice.
     #[error(
         "directions {first} and {second} are the same direction (θ = {theta_deg}°, φ = {phi_deg}°)"
     )]
     Duplicate {
+        /// The lower of the two table indices.
         first: usize,
+        /// The higher of the two table indices.
         second: usize,
+        /// θ of the repeated direction, degrees.
         theta_deg: f64,
+        /// φ of the repeated direction, degrees.
         phi_deg: f64,
     },
+    /// A direction to interpolate at has a non-finite θ or φ.
     #[error("query direction is not finite (θ = {theta_deg}, φ = {phi_deg})")]
-    NonFiniteQuery { theta_deg: f64, phi_deg: f64 },
+    NonFiniteQuery {
+        /// The query's θ, degrees.
+        theta_deg: f64,
+        /// The query's φ, degrees.
+        phi_deg: f64,
+    },
 }
 
 /// Directions of equal θ, sorted by φ.
@@ -118,8 +142,11 @@ impl Ring {
 /// One ring of a [`DirectionTable`], for consumers outside Rust.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct RingLayout {
+    /// The ring's elevation θ (mean over its members), degrees.
     pub theta_deg: f64,
+    /// True for the ring at θ = 0, whose members are one physical direction.
     pub pole: bool,
+    /// (φ in [0°, 360°), table index) of each member, sorted by φ.
     pub members: Vec<(f64, usize)>,
 }
 
@@ -131,6 +158,7 @@ pub struct Interpolation {
 }
 
 impl Interpolation {
+    /// The (table index, weight) pairs, sorted by index; the weights sum to 1.
     pub fn entries(&self) -> &[(usize, f64)] {
         &self.entries
     }
@@ -256,6 +284,7 @@ impl DirectionTable {
         &self.directions
     }
 
+    /// Number of directions in the table.
     pub fn len(&self) -> usize {
         self.directions.len()
     }

@@ -22,7 +22,9 @@ use crate::image_io::{self, Image, PngDepth};
 /// The export formats.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Format {
+    /// UTIA layout: a folder per view holding one 8-bit PNG per light.
     Utia,
+    /// Bonn 2003 (UBO2003) layout: a zip of 8-bit JPEGs.
     Ubo2003,
 }
 
@@ -40,28 +42,56 @@ impl std::str::FromStr for Format {
 /// One texture and the directions it was measured under.
 #[derive(Debug, Clone)]
 pub struct Texture {
+    /// Light direction the texture was measured under.
     pub light: Direction,
+    /// View direction the texture was measured from.
     pub view: Direction,
+    /// The texture: grey (1 channel), values in [0, 1], at most 65535 pixels
+    /// a side.
     pub image: Image,
 }
 
+/// Why exporting or importing textures failed.
 #[derive(Debug, thiserror::Error)]
 pub enum ExportError {
+    /// Creating, listing, reading or writing a file, folder or zip failed,
+    /// or an image in it could not be encoded or decoded.
     #[error("{}: {message}", path.display())]
-    Io { path: PathBuf, message: String },
+    Io {
+        /// The file, folder or zip concerned.
+        path: PathBuf,
+        /// What went wrong.
+        message: String,
+    },
+    /// Two textures' directions round to the same file name in whole degrees.
     #[error("directions {first} and {second} both round to the name `{name}`")]
     NameClash {
+        /// The shared file name.
         name: String,
+        /// Light and view of the first texture with that name.
         first: String,
+        /// Light and view of the second texture with that name.
         second: String,
     },
+    /// On import, an image's name does not parse as `tl…pl…tv…pv…`.
     #[error("{}: `{name}` is not a name this format uses", path.display())]
-    BadName { path: PathBuf, name: String },
+    BadName {
+        /// The PNG file, or the zip holding the entry.
+        path: PathBuf,
+        /// The name that did not parse.
+        name: String,
+    },
+    /// A texture to export is not grey, or has a side of 0 or more than 65535
+    /// pixels.
     #[error("texture for {what} is {width}x{height} with {channels} channels: expected grey, at most 65535 pixels a side")]
     BadTexture {
+        /// The file name the texture would have had.
         what: String,
+        /// Its width, pixels.
         width: usize,
+        /// Its height, pixels.
         height: usize,
+        /// Its channel count (only 1 can be exported).
         channels: usize,
     },
 }

@@ -25,10 +25,14 @@ const MAX_DECODED_BYTES: usize = 1 << 30;
 /// An image as `f32` samples in `[0, 1]`; see the module doc for the layout.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Image {
+    /// Width, pixels (columns).
     pub width: usize,
+    /// Height, pixels (rows).
     pub height: usize,
     /// 1 (grey) or 3 (RGB).
     pub channels: usize,
+    /// `width · height · channels` samples, row-major from the top row,
+    /// channels interleaved.
     pub data: Vec<f32>,
 }
 
@@ -57,29 +61,58 @@ impl Image {
 /// Bit depth of a written PNG.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PngDepth {
+    /// 8 bits per sample (codes 0 … 255).
     Eight,
+    /// 16 bits per sample (codes 0 … 65535).
     Sixteen,
 }
 
+/// Why a PNG could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum ImageError {
+    /// The file could not be opened.
     #[error("cannot open {}: {source}", path.display())]
     Open {
+        /// The file.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
+    /// The PNG decoder rejected the file: corrupt, truncated or over the
+    /// decoder's memory limit.
     #[error("cannot decode PNG {}: {source}", path.display())]
     Decode {
+        /// The file.
         path: PathBuf,
+        /// The decoder's error.
         source: png::DecodingError,
     },
+    /// The PNG decodes but is not one this module loads (an unexpanded
+    /// palette, an odd bit depth, short data) or exceeds the 1 GiB
+    /// decoded-size limit.
     #[error("unsupported PNG {}: {reason}", path.display())]
-    Unsupported { path: PathBuf, reason: String },
+    Unsupported {
+        /// The file.
+        path: PathBuf,
+        /// What is unsupported.
+        reason: String,
+    },
+    /// An image could not be encoded: a channel count other than 1 or 3,
+    /// a sample count that does not match its size, an empty or oversized
+    /// image, or an encoder failure.
     #[error("cannot write PNG {}: {reason}", path.display())]
-    Encode { path: PathBuf, reason: String },
+    Encode {
+        /// The destination the image was meant for.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Writing the encoded file failed.
     #[error("cannot write {}: {source}", path.display())]
     Write {
+        /// The destination.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
 }

@@ -31,13 +31,21 @@ use rigd_core::geometry::{add, cross, dot, scale, sub, unit};
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "lowercase")]
 pub enum MeshKind {
+    /// A flat square sample in the z = 0 plane.
     Flat,
+    /// A cylinder of radius 0.6 world units with its axis along x, the
+    /// material wrapped round it.
     Cylinder,
+    /// A draped cloth with two diagonal folds and a ripple, steep enough to
+    /// shade itself.
     Cloth,
 }
 
+/// Why a mesh name was not understood.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MeshError {
+    /// The name is not `flat`, `cylinder` or `cloth` (holds at most its first
+    /// 32 characters).
     #[error("unknown mesh `{0}`: expected flat, cylinder or cloth")]
     UnknownKind(String),
 }
@@ -64,8 +72,11 @@ const MARCH_STEP: f64 = 0.01;
 const MARCH_REACH: f64 = 3.0;
 
 impl MeshKind {
+    /// Every mesh kind.
     pub const ALL: [MeshKind; 3] = [MeshKind::Flat, MeshKind::Cylinder, MeshKind::Cloth];
 
+    /// The lowercase name the command line and the API use (`flat`,
+    /// `cylinder`, `cloth`); `parse` reads it back.
     pub fn name(self) -> &'static str {
         match self {
             MeshKind::Flat => "flat",
@@ -148,10 +159,12 @@ fn cloth_height(x: f64, y: f64) -> f64 {
 /// A grid mesh with per-vertex frames, ready for `gl.bufferData`.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Mesh {
+    /// Which shape this is.
     pub kind: MeshKind,
     /// Vertices per row (along u) and rows (along v); vertex (i, j) is
     /// number `j · nu + i`.
     pub nu: usize,
+    /// Rows of vertices (along v); see `nu`.
     pub nv: usize,
     /// x y z per vertex.
     pub positions: Vec<f32>,
@@ -210,6 +223,7 @@ impl Mesh {
         mesh
     }
 
+    /// Number of vertices, `nu · nv`.
     pub fn vertex_count(&self) -> usize {
         self.nu * self.nv
     }
@@ -222,14 +236,17 @@ impl Mesh {
         ]
     }
 
+    /// World position of vertex number `vertex`.
     pub fn position(&self, vertex: usize) -> [f64; 3] {
         Mesh::vec3_of(&self.positions, vertex)
     }
 
+    /// Unit normal of vertex number `vertex`, world frame.
     pub fn normal(&self, vertex: usize) -> [f64; 3] {
         Mesh::vec3_of(&self.normals, vertex)
     }
 
+    /// Unit tangent (along u) of vertex number `vertex`, world frame.
     pub fn tangent(&self, vertex: usize) -> [f64; 3] {
         Mesh::vec3_of(&self.tangents, vertex)
     }

@@ -16,7 +16,9 @@ const MAGIC: &[u8] = b"\x93NUMPY";
 /// An `f32` array and its shape (row-major).
 #[derive(Debug, Clone, PartialEq)]
 pub struct NpyArray {
+    /// Dimensions, outermost first: `[H, W]` or `[H, W, C]`.
     pub shape: Vec<usize>,
+    /// The values in C (row-major) order, as many as the product of `shape`.
     pub data: Vec<f32>,
 }
 
@@ -25,21 +27,33 @@ pub struct NpyArray {
 #[error("{0}")]
 pub struct NpyFormatError(pub String);
 
+/// Why a `.npy` file could not be read or written.
 #[derive(Debug, thiserror::Error)]
 pub enum NpyError {
+    /// The file could not be read.
     #[error("cannot read {}: {source}", path.display())]
     Read {
+        /// The file.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
+    /// The file could not be written.
     #[error("cannot write {}: {source}", path.display())]
     Write {
+        /// The destination.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
+    /// The array cannot be encoded (wrong rank, shape not matching the data),
+    /// or the bytes read are not a `.npy` this module handles (dtype, order,
+    /// rank, version, truncated data).
     #[error("{}: not a supported .npy file: {source}", path.display())]
     Format {
+        /// The file read or written.
         path: PathBuf,
+        /// What is wrong with the array or the bytes.
         source: NpyFormatError,
     },
 }

@@ -42,7 +42,10 @@ use crate::directions::{Direction, DirectionError, Interpolation};
 use crate::mesh::Mesh;
 use rigd_core::geometry::{cross, dot, scale, sub, unit};
 
+/// Distance of the orbit camera from the origin, world units (the meshes
+/// are about two units across).
 pub const CAMERA_DISTANCE: f64 = 4.5;
+/// Vertical field of view of the camera, degrees.
 pub const FOV_DEG: f64 = 40.0;
 const NEAR: f64 = 0.1;
 const FAR: f64 = 20.0;
@@ -50,20 +53,33 @@ const FAR: f64 = 20.0;
 pub const BACKGROUND: f64 = 0.12;
 /// Width of the blurred edge of eq. 6's half-black, half-white texture.
 pub const SHADOW_SOFTNESS: f64 = 0.05;
+/// Display gamma: the output is `clamp(linear, 0, 1)^(1/DISPLAY_GAMMA)`.
 pub const DISPLAY_GAMMA: f64 = 2.2;
 /// Largest image side, pixels.
 pub const MAX_SIDE: usize = 4096;
 
+/// Why [`relight`] refused to render.
 #[derive(Debug, thiserror::Error)]
 pub enum RelightError {
+    /// An error of the compressed BTF store.
     #[error(transparent)]
     Btf(#[from] BtfError),
+    /// A light or view direction to interpolate at is not finite.
     #[error(transparent)]
     Direction(#[from] DirectionError),
+    /// The image size is 0 or above [`MAX_SIDE`] on a side.
     #[error("image size {width}×{height}: each side must be 1 … {MAX_SIDE}")]
-    Size { width: usize, height: usize },
+    Size {
+        /// Requested width, pixels.
+        width: usize,
+        /// Requested height, pixels.
+        height: usize,
+    },
+    /// The exposure is not a positive finite number.
     #[error("exposure {0} must be a positive finite number")]
     Exposure(f64),
+    /// The view's θ (degrees, given) is outside 0 … 89°, or the view is not
+    /// finite.
     #[error("view θ = {0}° is outside the orbit camera's 0 … 89°")]
     ViewElevation(f64),
 }
@@ -77,17 +93,22 @@ pub enum Shading {
     Plain,
 }
 
+/// What [`relight`] renders and how.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RelightSettings {
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
     /// Directional light, world frame (θ from +z, φ from +x).
     pub light: Direction,
     /// Orbit camera direction, world frame.
     pub view: Direction,
+    /// Factor on the linear value before clamping and gamma; positive.
     pub exposure: f64,
     /// Eq. 6's offset α, degrees.
     pub shadow_alpha_deg: f64,
+    /// The BTF, or the plain-texture comparison.
     pub shading: Shading,
 }
 
@@ -108,8 +129,11 @@ impl Default for RelightSettings {
 /// An 8-bit RGB image, rows top to bottom.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RgbImage {
+    /// Width, pixels.
     pub width: usize,
+    /// Height, pixels.
     pub height: usize,
+    /// `width · height` RGB triples, row-major from the top row.
     pub pixels: Vec<u8>,
     /// Per pixel: true where the mesh covers it.
     pub covered: Vec<bool>,
@@ -124,11 +148,15 @@ fn world(d: Direction) -> [f64; 3] {
 /// (row-major, acting on column vectors).
 #[derive(Debug, Clone, Copy)]
 pub struct Camera {
+    /// Eye position, world frame.
     pub eye: [f64; 3],
+    /// Projection × view: world point (x, y, z, 1) → clip coordinates.
     pub view_projection: [[f64; 4]; 4],
 }
 
 impl Camera {
+    /// The orbit camera of the module doc (step 1) for view direction `view`
+    /// and aspect ratio `aspect` = width / height.
     pub fn orbit(view: Direction, aspect: f64) -> Camera {
         let (st, ct) = view.theta_deg.to_radians().sin_cos();
         let (sp, cp) = view.phi_deg.to_radians().sin_cos();

@@ -37,17 +37,25 @@ use crate::directions::{Direction, DirectionTable, RingLayout};
 /// The format version the viewer checks.
 pub const PACK_VERSION: u32 = 1;
 
+/// Where one part of the blob lies.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Section {
+    /// Start, bytes from the beginning of the blob (a multiple of 4).
     pub offset: usize,
+    /// Length, bytes.
     pub bytes: usize,
+    /// Value encoding: `f16le` (half floats) or `f32le`.
     pub encoding: &'static str,
 }
 
+/// A direction table as the viewer's shader reads it.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct TableLayout {
+    /// The measured directions, in index order.
     pub directions: Vec<Direction>,
+    /// Rings of equal θ, ascending, for the eq. 3 and 5 interpolation.
     pub rings: Vec<RingLayout>,
+    /// Solid angle each direction stands for, steradians (summing to 2π).
     pub solid_angle_sr: Vec<f64>,
 }
 
@@ -61,19 +69,34 @@ impl TableLayout {
     }
 }
 
+/// The JSON manifest of a blob: what it holds and where; see the module
+/// doc.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct BlobManifest {
+    /// Format version, [`PACK_VERSION`].
     pub version: u32,
+    /// `btf` or `photometric-stereo`.
     pub kind: &'static str,
+    /// Texture width, texels.
     pub width: usize,
+    /// Texture height, texels (rows).
     pub height: usize,
+    /// Values per texel in a layer: 1 or 3 (always 3 for photometric
+    /// stereo).
     pub channels: usize,
     /// Components per slot in this blob (the stored ones, or fewer when asked).
     pub components: usize,
+    /// Texture layers: slots × (components + 1) for a BTF, 2 for photometric
+    /// stereo.
     pub layers: usize,
+    /// The half-float texture layers.
     pub textures: Section,
+    /// The BTF's f32 weights; `None` for photometric stereo.
     pub weights: Option<Section>,
+    /// The BTF's light directions; `None` for photometric stereo.
     pub light_table: Option<TableLayout>,
+    /// The BTF's view directions, one per slot; `None` for photometric
+    /// stereo.
     pub view_table: Option<TableLayout>,
     /// Total blob size.
     pub bytes: usize,
@@ -163,13 +186,17 @@ pub fn pack_btf(store: &BtfStore, max_components: usize) -> (BlobManifest, Vec<u
     (manifest, data)
 }
 
+/// Why a photometric-stereo result could not be packed.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PackError {
+    /// The albedo and normals arrays' shapes or lengths do not fit together.
     #[error(
         "albedo has shape {albedo:?} and normals {normals:?}: expected H×W (or H×W×C) and H×W×3"
     )]
     Shapes {
+        /// Shape of the albedo array.
         albedo: Vec<usize>,
+        /// Shape of the normals array.
         normals: Vec<usize>,
     },
 }

@@ -20,14 +20,27 @@ pub const PROMPT: &str = ">";
 /// Why a line could not be parsed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ParseError {
+    /// The line holds nothing but whitespace.
     #[error("empty line")]
     Empty,
+    /// The first word is not a known command keyword (carries that word).
     #[error("unknown command `{0}`")]
     UnknownCommand(String),
+    /// A known command has the wrong number of arguments or one that is not
+    /// a number.
     #[error("bad arguments to {cmd}: `{line}`")]
-    BadArguments { cmd: &'static str, line: String },
+    BadArguments {
+        /// The command (or group of commands) whose arguments were wrong.
+        cmd: &'static str,
+        /// The whole offending line.
+        line: String,
+    },
+    /// A position name is empty, longer than [`MAX_NAME`], does not start
+    /// with a letter or has a character outside `[A-Za-z0-9_]`.
     #[error("bad position name `{0}`")]
     BadName(String),
+    /// A controller line is none of the replies the host knows (carries the
+    /// line).
     #[error("unrecognised reply `{0}`")]
     UnknownReply(String),
 }
@@ -41,14 +54,29 @@ pub enum Command {
     Defp(String),
     /// Set joint `joint` (1-based) of a position to `counts` encoder counts.
     Setpv {
+        /// The position variable to change.
         name: String,
+        /// Joint number, 1-based.
         joint: u8,
+        /// Target in encoder counts.
         counts: i64,
     },
     /// Start a move; answered at once. `duration` in hundredths of a second.
-    Move { name: String, duration: Option<u32> },
+    Move {
+        /// The position variable to move to.
+        name: String,
+        /// Minimum duration of the move in hundredths of a second; `None`:
+        /// as fast as the joints allow.
+        duration: Option<u32>,
+    },
     /// Move and answer only when the motion is complete.
-    Moved { name: String, duration: Option<u32> },
+    Moved {
+        /// The position variable to move to.
+        name: String,
+        /// Minimum duration of the move in hundredths of a second; `None`:
+        /// as fast as the joints allow.
+        duration: Option<u32>,
+    },
     /// Record the current position into a position variable.
     Here(String),
     /// List a position's joint counts (`POSITION`: where the arm is now).
@@ -183,8 +211,11 @@ pub fn parse_command(line: &str) -> Result<Command, ParseError> {
 /// The controller's status line: `HOMED=1 MOVING=0 CON=1`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Status {
+    /// `HOMED=1`: the axes have been homed since power-up.
     pub homed: bool,
+    /// `MOVING=1`: a motion is in progress.
     pub moving: bool,
+    /// `CON=1`: servo control is on.
     pub control: bool,
 }
 
@@ -300,12 +331,14 @@ pub struct LineSplitter {
 /// One complete line from a [`LineSplitter`].
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Line {
+    /// The line's text without its line ending (invalid UTF-8 replaced).
     pub text: String,
     /// The line was longer than the splitter's maximum.
     pub too_long: bool,
 }
 
 impl LineSplitter {
+    /// An empty splitter that cuts lines at `max` bytes.
     pub fn new(max: usize) -> LineSplitter {
         LineSplitter {
             buf: Vec::new(),

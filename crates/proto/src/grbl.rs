@@ -34,13 +34,18 @@ pub fn is_realtime(b: u8) -> bool {
 /// The realtime commands rigd uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Realtime {
+    /// `?`: ask for a status report.
     StatusQuery,
+    /// `!`: decelerate and pause the current motion.
     FeedHold,
+    /// `~`: resume after a feed hold.
     CycleStart,
+    /// Ctrl-X (0x18): stop everything and restart GRBL.
     SoftReset,
 }
 
 impl Realtime {
+    /// The single byte sent on the wire for this command.
     pub fn byte(self) -> u8 {
         match self {
             Realtime::StatusQuery => STATUS_QUERY,
@@ -50,6 +55,7 @@ impl Realtime {
         }
     }
 
+    /// The realtime command a byte stands for, or `None` for any other byte.
     pub fn from_byte(b: u8) -> Option<Realtime> {
         match b {
             STATUS_QUERY => Some(Realtime::StatusQuery),
@@ -71,9 +77,17 @@ pub enum Command {
     /// `$I`: build info (`[VER:…]`, `[OPT:…]`, `ok`).
     BuildInfo,
     /// `G90 G0 X…`: absolute rapid move of the X axis.
-    Rapid { x: f64 },
+    Rapid {
+        /// Target machine position of X (rigd's unit: degrees).
+        x: f64,
+    },
     /// `$J=G90 X… F…`: absolute jog at `feed` units/min.
-    Jog { x: f64, feed: f64 },
+    Jog {
+        /// Target machine position of X (rigd's unit: degrees).
+        x: f64,
+        /// Feed rate in units/min (rigd: degrees/min); must be positive.
+        feed: f64,
+    },
     /// A line that parses but moves nothing (empty, or modal words only);
     /// GRBL acknowledges it with `ok`.
     Nop,
@@ -111,13 +125,21 @@ impl Command {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ErrorCode(pub u16);
 
+/// `error:1`: a G-code word without a letter.
 pub const ERR_EXPECTED_LETTER: ErrorCode = ErrorCode(1);
+/// `error:2`: a numeric value missing or badly formatted.
 pub const ERR_BAD_NUMBER: ErrorCode = ErrorCode(2);
+/// `error:3`: a `$` system command not recognised or not supported.
 pub const ERR_INVALID_STATEMENT: ErrorCode = ErrorCode(3);
+/// `error:9`: G-code locked out during the alarm or jog state.
 pub const ERR_ALARM_LOCK: ErrorCode = ErrorCode(9);
+/// `error:11`: the line is longer than [`LINE_BUFFER_SIZE`].
 pub const ERR_LINE_OVERFLOW: ErrorCode = ErrorCode(11);
+/// `error:16`: a jog without `=` or with a prohibited G-code.
 pub const ERR_INVALID_JOG: ErrorCode = ErrorCode(16);
+/// `error:20`: unsupported or invalid G-code command.
 pub const ERR_UNSUPPORTED_GCODE: ErrorCode = ErrorCode(20);
+/// `error:22`: feed rate not set or undefined (a jog without a positive `F`).
 pub const ERR_UNDEFINED_FEED: ErrorCode = ErrorCode(22);
 
 impl ErrorCode {
@@ -175,8 +197,12 @@ impl fmt::Display for ErrorCode {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct AlarmCode(pub u16);
 
+/// `ALARM:1`: a hard limit switch triggered; position likely lost.
 pub const ALARM_HARD_LIMIT: AlarmCode = AlarmCode(1);
+/// `ALARM:2`: a motion target beyond machine travel (soft limit); position
+/// retained.
 pub const ALARM_SOFT_LIMIT: AlarmCode = AlarmCode(2);
+/// `ALARM:3`: soft reset while in motion; position likely lost.
 pub const ALARM_RESET_IN_MOTION: AlarmCode = AlarmCode(3);
 
 impl AlarmCode {
@@ -207,16 +233,23 @@ impl fmt::Display for AlarmCode {
 /// The machine state at the start of a status report.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MachineState {
+    /// `Idle`: no motion pending; a move is complete.
     Idle,
+    /// `Run`: executing motion.
     Run,
     /// `Hold:0` hold complete (ready to resume), `Hold:1` decelerating.
     Hold(u8),
+    /// `Jog`: executing a `$J=` jog.
     Jog,
+    /// `Alarm`: stopped after an alarm; G-code locked out until `$H` or `$X`.
     Alarm,
     /// `Door:0`…`Door:3`: safety door states.
     Door(u8),
+    /// `Check`: G-code check mode (`$C`), lines parsed but not executed.
     Check,
+    /// `Home`: running the homing cycle.
     Home,
+    /// `Sleep`: sleep mode (`$SLP`).
     Sleep,
 }
 
@@ -261,11 +294,13 @@ impl fmt::Display for MachineState {
 /// not use (WPos, WCO, Bf, Ln, Pn, Ov, …) are skipped when parsing.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Status {
+    /// The machine state, the report's first field.
     pub state: MachineState,
     /// Machine position per axis (X first), if reported.
     pub mpos: Option<Vec<f64>>,
     /// Current feed rate (units/min) and spindle speed, if reported.
     pub feed: Option<f64>,
+    /// Spindle speed, the second value of `FS`, if reported.
     pub spindle: Option<f64>,
 }
 
@@ -308,7 +343,10 @@ pub enum Reply {
     /// Any other `[…]` message (`[GC:…]`, `[HLP:…]`, …), content kept.
     Bracket(String),
     /// `Grbl 1.1h ['$' for help]`: GRBL (re)started; position is not trusted.
-    Welcome { version: String },
+    Welcome {
+        /// The version word of the banner, e.g. `1.1h`.
+        version: String,
+    },
     /// `<…>` status report.
     Status(Status),
 }
@@ -341,10 +379,18 @@ impl Reply {
 /// Why a line could not be parsed.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ParseError {
+    /// The line starts like none of GRBL's replies (carries the line).
     #[error("unrecognized GRBL line `{0}`")]
     Unrecognized(String),
+    /// The line starts like a known reply but its body does not parse
+    /// (a bad code number, status field or unterminated message).
     #[error("malformed GRBL {what} `{line}`")]
-    Malformed { what: &'static str, line: String },
+    Malformed {
+        /// Which kind of reply or status field was malformed.
+        what: &'static str,
+        /// The whole offending line.
+        line: String,
+    },
 }
 
 fn malformed(what: &'static str, line: &str) -> ParseError {
@@ -559,6 +605,7 @@ pub struct LineSplitter {
 }
 
 impl LineSplitter {
+    /// An empty splitter that cuts lines at `max` bytes.
     pub fn new(max: usize) -> LineSplitter {
         LineSplitter {
             buf: Vec::new(),

@@ -36,7 +36,11 @@ pub enum Framing {
 /// The addressing part of a frame. `transaction` is 0 on RTU, which has none.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Header {
+    /// Transaction identifier of the MBAP header, echoed in the response
+    /// (0 on RTU).
     pub transaction: u16,
+    /// Unit identifier: the MBAP header's last byte, or the RTU frame's
+    /// first (slave address).
     pub unit: u8,
 }
 
@@ -56,28 +60,71 @@ const MAX_MBAP_LEN: u16 = 254;
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum RequestPdu {
     /// FC01.
-    ReadCoils { addr: u16, count: u16 },
+    ReadCoils {
+        /// Address of the first coil (0-based).
+        addr: u16,
+        /// Number of coils to read, 1..=[`MAX_READ_BITS`].
+        count: u16,
+    },
     /// FC02.
-    ReadDiscreteInputs { addr: u16, count: u16 },
+    ReadDiscreteInputs {
+        /// Address of the first discrete input (0-based).
+        addr: u16,
+        /// Number of inputs to read, 1..=[`MAX_READ_BITS`].
+        count: u16,
+    },
     /// FC03.
-    ReadHoldingRegisters { addr: u16, count: u16 },
+    ReadHoldingRegisters {
+        /// Address of the first holding register (0-based).
+        addr: u16,
+        /// Number of registers to read, 1..=[`MAX_READ_REGISTERS`].
+        count: u16,
+    },
     /// FC04.
-    ReadInputRegisters { addr: u16, count: u16 },
+    ReadInputRegisters {
+        /// Address of the first input register (0-based).
+        addr: u16,
+        /// Number of registers to read, 1..=[`MAX_READ_REGISTERS`].
+        count: u16,
+    },
     /// FC05 (`FF 00` on, `00 00` off).
-    WriteSingleCoil { addr: u16, on: bool },
+    WriteSingleCoil {
+        /// Address of the coil (0-based).
+        addr: u16,
+        /// The value to write: `FF 00` on the wire for on, `00 00` for off.
+        on: bool,
+    },
     /// FC06.
-    WriteSingleRegister { addr: u16, value: u16 },
+    WriteSingleRegister {
+        /// Address of the register (0-based).
+        addr: u16,
+        /// The register value to write.
+        value: u16,
+    },
     /// FC0F.
-    WriteMultipleCoils { addr: u16, values: Vec<bool> },
+    WriteMultipleCoils {
+        /// Address of the first coil (0-based).
+        addr: u16,
+        /// The coil values in address order (the quantity is their number).
+        values: Vec<bool>,
+    },
     /// FC10.
-    WriteMultipleRegisters { addr: u16, values: Vec<u16> },
+    WriteMultipleRegisters {
+        /// Address of the first register (0-based).
+        addr: u16,
+        /// The register values in address order (the quantity is their number).
+        values: Vec<u16>,
+    },
     /// A well-framed request to be answered with `exception`:
     /// [`Exception::IllegalFunction`] for an unknown function code (TCP
     /// only), [`Exception::IllegalDataValue`] for a forbidden value.
     /// `data` is the PDU after the function code, verbatim.
     Rejected {
+        /// The request's function code.
         function: u8,
+        /// The PDU bytes after the function code.
         data: Vec<u8>,
+        /// The exception to answer with.
         exception: Exception,
     },
 }
@@ -111,37 +158,79 @@ pub enum ResponsePdu {
     /// FC04.
     ReadInputRegisters(Vec<u16>),
     /// FC05: echo of the request.
-    WriteSingleCoil { addr: u16, on: bool },
+    WriteSingleCoil {
+        /// Address of the coil written.
+        addr: u16,
+        /// The value written (`FF 00` on, `00 00` off).
+        on: bool,
+    },
     /// FC06: echo of the request.
-    WriteSingleRegister { addr: u16, value: u16 },
+    WriteSingleRegister {
+        /// Address of the register written.
+        addr: u16,
+        /// The value written.
+        value: u16,
+    },
     /// FC0F: address and quantity written.
-    WriteMultipleCoils { addr: u16, count: u16 },
+    WriteMultipleCoils {
+        /// Address of the first coil written.
+        addr: u16,
+        /// Number of coils written.
+        count: u16,
+    },
     /// FC10: address and quantity written.
-    WriteMultipleRegisters { addr: u16, count: u16 },
+    WriteMultipleRegisters {
+        /// Address of the first register written.
+        addr: u16,
+        /// Number of registers written.
+        count: u16,
+    },
 }
 
 /// Modbus exception codes the module sends.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Exception {
+    /// 0x01: the function code is not supported.
     IllegalFunction = 0x01,
+    /// 0x02: the coil or register address is not wired on this module.
     IllegalDataAddress = 0x02,
+    /// 0x03: a value or quantity the Modbus specification forbids.
     IllegalDataValue = 0x03,
+    /// 0x04 (slave device failure): the relay driver or a lamp ballast
+    /// failed during a write.
     ServerDeviceFailure = 0x04,
 }
 
 /// Why bytes could not be framed. See the module docs for how to resync.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum FrameError {
+    /// TCP: the MBAP protocol identifier is not 0 (carries the value read).
     #[error("MBAP protocol id {0:#06x}, expected 0")]
     ProtocolId(u16),
+    /// TCP: the MBAP length field is outside 2..=254 (carries the value read).
     #[error("MBAP length {0} out of range 2..=254")]
     Length(u16),
+    /// RTU: the frame's CRC-16 does not match its bytes.
     #[error("RTU CRC {got:#06x}, computed {computed:#06x}")]
-    Crc { got: u16, computed: u16 },
+    Crc {
+        /// The CRC the frame carries.
+        got: u16,
+        /// The CRC computed over the frame's bytes.
+        computed: u16,
+    },
+    /// RTU: a function code whose frame length cannot be known, so the
+    /// frame cannot be delimited (carries the code).
     #[error("RTU function code {0:#04x} cannot be framed (unknown length)")]
     UnknownFunction(u8),
+    /// The PDU's length does not fit its function code (a fixed-size request
+    /// of the wrong size, or a byte count that disagrees with the bytes).
     #[error("function {function:#04x}: PDU of {len} bytes does not match its fields")]
-    Malformed { function: u8, len: usize },
+    Malformed {
+        /// The PDU's function code (0 for an empty PDU).
+        function: u8,
+        /// Length of the PDU in bytes, function code included.
+        len: usize,
+    },
 }
 
 /// CRC-16/MODBUS: reflected polynomial 0xA001, initial value 0xFFFF. Sent

@@ -31,20 +31,48 @@ pub const MAX_STRING_UNITS: usize = 254;
 /// Why bytes could not be decoded (or a value could not be encoded).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum CodecError {
+    /// The input ended in the middle of a field.
     #[error("truncated: needed {needed} bytes, had {had}")]
-    Truncated { needed: usize, had: usize },
+    Truncated {
+        /// Input length in bytes the field needs (the offset of its end).
+        needed: usize,
+        /// Input length in bytes.
+        had: usize,
+    },
+    /// A container's length field is below [`HEADER_LEN`], or a payload is
+    /// too long for the length field to describe (then `u32::MAX`).
     #[error("container length field {0} is shorter than the 12-byte header")]
     BadLength(u32),
+    /// The container's length field disagrees with the bytes received.
     #[error("container length field says {declared} bytes but {actual} arrived")]
-    LengthMismatch { declared: usize, actual: usize },
+    LengthMismatch {
+        /// Length in bytes the header announces.
+        declared: usize,
+        /// Length in bytes actually received.
+        actual: usize,
+    },
+    /// The container type field is not 1..=4 (carries the value read).
     #[error("unknown container type {0}")]
     UnknownType(u16),
+    /// A command, response or event payload is not whole u32 parameters or
+    /// holds more than [`MAX_PARAMS`] of them.
     #[error("a {kind} container carries {len} parameter bytes (a multiple of 4, at most 20)")]
-    BadParams { kind: ContainerKind, len: usize },
+    BadParams {
+        /// The container's type.
+        kind: ContainerKind,
+        /// Length of its payload in bytes.
+        len: usize,
+    },
+    /// More than [`MAX_PARAMS`] parameters were given to encode (carries
+    /// their number).
     #[error("{0} parameters given, PTP allows at most 5")]
     TooManyParams(usize),
+    /// Bytes were left after a dataset was decoded (carries their number).
     #[error("{0} trailing bytes after the dataset")]
     Trailing(usize),
+    /// A [`RawFrame`] payload lacks the magic, has a bit depth outside the
+    /// range 1..=16 or a pixel count other than width × height (carries
+    /// the reason).
     #[error("raw frame: {0}")]
     BadRaw(String),
 }
@@ -52,13 +80,19 @@ pub enum CodecError {
 /// What a container is (the `type` field of the header).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum ContainerKind {
+    /// Host to camera on bulk-out: starts a transaction.
     Command = 1,
+    /// The data phase of a transaction, in either direction.
     Data = 2,
+    /// Camera to host on bulk-in: ends a transaction.
     Response = 3,
+    /// Camera to host on the interrupt endpoint.
     Event = 4,
 }
 
 impl ContainerKind {
+    /// The kind with this `type` field value; [`CodecError::UnknownType`]
+    /// for any other.
     pub fn from_u16(v: u16) -> Result<ContainerKind, CodecError> {
         Ok(match v {
             1 => ContainerKind::Command,
@@ -69,6 +103,7 @@ impl ContainerKind {
         })
     }
 
+    /// The kind's name as transcripts and messages write it (`Command`, …).
     pub fn name(self) -> &'static str {
         match self {
             ContainerKind::Command => "Command",
@@ -78,6 +113,7 @@ impl ContainerKind {
         }
     }
 
+    /// The kind with this [`name`](ContainerKind::name), if any.
     pub fn from_name(s: &str) -> Option<ContainerKind> {
         [
             ContainerKind::Command,
@@ -145,14 +181,23 @@ macro_rules! codes {
 codes! {
     /// Operation codes (the code of Command and Data containers).
     OpCode {
+        /// Read the [`DeviceInfo`] dataset (allowed outside a session).
         GetDeviceInfo = 0x1001,
+        /// Open a session; parameter: the session id (not 0).
         OpenSession = 0x1002,
+        /// Close the open session.
         CloseSession = 0x1003,
+        /// Read an object's [`ObjectInfo`]; parameter: the object handle.
         GetObjectInfo = 0x1008,
+        /// Read an object's data (the raw frame); parameter: the object handle.
         GetObject = 0x1009,
+        /// Delete an object; parameter: the handle (0xFFFFFFFF: all).
         DeleteObject = 0x100B,
+        /// Start a capture; answered at once, the frame is announced by events.
         InitiateCapture = 0x100E,
+        /// Read a device property's value; parameter: the property code.
         GetDevicePropValue = 0x1015,
+        /// Write a device property's value (data phase host to camera).
         SetDevicePropValue = 0x1016,
     }
 }
@@ -160,22 +205,39 @@ codes! {
 codes! {
     /// Response codes (the code of Response containers).
     ResponseCode {
+        /// The operation succeeded.
         OK = 0x2001,
+        /// The operation failed for an unspecified reason.
         GeneralError = 0x2002,
+        /// The operation needs an open session.
         SessionNotOpen = 0x2003,
+        /// The transaction id is not valid in this session.
         InvalidTransactionID = 0x2004,
+        /// The operation code is unknown to the camera.
         OperationNotSupported = 0x2005,
+        /// A parameter was given that the operation does not use.
         ParameterNotSupported = 0x2006,
+        /// The data phase did not complete.
         IncompleteTransfer = 0x2007,
+        /// No storage has the given storage id.
         InvalidStorageID = 0x2008,
+        /// No object has the given handle.
         InvalidObjectHandle = 0x2009,
+        /// The camera does not have the device property.
         DevicePropNotSupported = 0x200A,
+        /// The camera does not support the object format.
         InvalidObjectFormatCode = 0x200B,
+        /// The camera's storage is full.
         StoreFull = 0x200C,
+        /// Access to the object or storage is denied.
         AccessDenied = 0x200F,
+        /// The camera is busy (e.g. a capture is running).
         DeviceBusy = 0x2019,
+        /// The value is not allowed for the device property.
         InvalidDevicePropValue = 0x201C,
+        /// A parameter value is invalid (e.g. session id 0).
         InvalidParameter = 0x201D,
+        /// A session is already open; parameter: its id.
         SessionAlreadyOpen = 0x201E,
     }
 }
@@ -183,10 +245,15 @@ codes! {
 codes! {
     /// Event codes (the code of Event containers on the interrupt endpoint).
     EventCode {
+        /// The transaction in progress is cancelled.
         CancelTransaction = 0x4001,
+        /// A new object is on the camera; parameter: its handle.
         ObjectAdded = 0x4002,
+        /// An object was removed; parameter: its handle.
         ObjectRemoved = 0x4003,
+        /// A device property changed; parameter: the property code.
         DevicePropChanged = 0x4006,
+        /// The capture named by the transaction id has finished.
         CaptureComplete = 0x400D,
     }
 }
@@ -203,18 +270,27 @@ codes! {
 /// commands, responses and events; the dataset for data containers).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Container {
+    /// Container type (header offset 4).
     pub kind: ContainerKind,
+    /// Operation, response or event code (header offset 6).
     pub code: u16,
+    /// Transaction id (header offset 8).
     pub transaction_id: u32,
+    /// Everything after the header: up to five little-endian u32
+    /// parameters, or the dataset of a data container.
     pub payload: Vec<u8>,
 }
 
 /// The header alone, read before the rest of a long data phase has arrived.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Header {
+    /// Container length in bytes, header included (at least [`HEADER_LEN`]).
     pub length: u32,
+    /// Container type (header offset 4).
     pub kind: ContainerKind,
+    /// Operation, response or event code (header offset 6).
     pub code: u16,
+    /// Transaction id (header offset 8).
     pub transaction_id: u32,
 }
 
@@ -329,10 +405,12 @@ pub struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
+    /// A reader at the start of `buf`.
     pub fn new(buf: &'a [u8]) -> Reader<'a> {
         Reader { buf, pos: 0 }
     }
 
+    /// The next `n` bytes; [`CodecError::Truncated`] if fewer are left.
     pub fn bytes(&mut self, n: usize) -> Result<&'a [u8], CodecError> {
         let end = self.pos.checked_add(n).filter(|&e| e <= self.buf.len());
         match end {
@@ -348,15 +426,18 @@ impl<'a> Reader<'a> {
         }
     }
 
+    /// The next byte.
     pub fn u8(&mut self) -> Result<u8, CodecError> {
         Ok(self.bytes(1)?[0])
     }
 
+    /// The next little-endian u16.
     pub fn u16(&mut self) -> Result<u16, CodecError> {
         let b = self.bytes(2)?;
         Ok(u16::from_le_bytes([b[0], b[1]]))
     }
 
+    /// The next little-endian u32.
     pub fn u32(&mut self) -> Result<u32, CodecError> {
         let b = self.bytes(4)?;
         Ok(u32::from_le_bytes([b[0], b[1], b[2], b[3]]))
@@ -451,23 +532,39 @@ fn put_u16_array(out: &mut Vec<u8>, a: &[u16]) {
 /// lacks an operation it needs.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct DeviceInfo {
+    /// StandardVersion: the PTP version times 100 (100 = 1.00).
     pub standard_version: u16,
+    /// VendorExtensionID: whose vendor extension the camera speaks (0: none).
     pub vendor_extension_id: u32,
+    /// VendorExtensionVersion: version of that extension, times 100.
     pub vendor_extension_version: u16,
+    /// VendorExtensionDesc: the vendor extension's description string.
     pub vendor_extension_desc: String,
+    /// FunctionalMode: 0 standard, 1 sleep; values with bit 15 set are
+    /// vendor-defined.
     pub functional_mode: u16,
+    /// OperationsSupported: the [`OpCode`]s the camera implements.
     pub operations_supported: Vec<u16>,
+    /// EventsSupported: the [`EventCode`]s the camera may send.
     pub events_supported: Vec<u16>,
+    /// DevicePropertiesSupported: the [`PropCode`]s the camera has.
     pub device_properties_supported: Vec<u16>,
+    /// CaptureFormats: object format codes a capture can produce.
     pub capture_formats: Vec<u16>,
+    /// ImageFormats: object format codes the camera supports for images.
     pub image_formats: Vec<u16>,
+    /// Manufacturer string.
     pub manufacturer: String,
+    /// Model string.
     pub model: String,
+    /// DeviceVersion: the firmware version string.
     pub device_version: String,
+    /// SerialNumber string.
     pub serial_number: String,
 }
 
 impl DeviceInfo {
+    /// The dataset's bytes, fields in ISO 15740 order.
     pub fn encode(&self) -> Vec<u8> {
         let mut o = Vec::new();
         o.extend_from_slice(&self.standard_version.to_le_bytes());
@@ -521,28 +618,49 @@ impl DeviceInfo {
 /// read before GetObject so the frame size is known before the pixels come.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct ObjectInfo {
+    /// StorageID: the storage holding the object.
     pub storage_id: u32,
+    /// ObjectFormat: the object's format code (rigd: [`FORMAT_RIGD_RAW`]).
     pub object_format: u16,
+    /// ProtectionStatus: 0 no protection, 1 read-only.
     pub protection_status: u16,
+    /// ObjectCompressedSize: size of the object's data in bytes (what
+    /// GetObject returns).
     pub compressed_size: u32,
+    /// ThumbFormat: format code of the thumbnail (0: none).
     pub thumb_format: u16,
+    /// ThumbCompressedSize: size of the thumbnail in bytes.
     pub thumb_compressed_size: u32,
+    /// ThumbPixWidth: thumbnail width in pixels.
     pub thumb_width: u32,
+    /// ThumbPixHeight: thumbnail height in pixels.
     pub thumb_height: u32,
+    /// ImagePixWidth: image width in pixels.
     pub image_width: u32,
+    /// ImagePixHeight: image height in pixels.
     pub image_height: u32,
+    /// ImageBitDepth: significant bits per pixel.
     pub image_bit_depth: u32,
+    /// ParentObject: handle of the folder object holding it (0: root).
     pub parent_object: u32,
+    /// AssociationType: for folder-like objects, the kind of association.
     pub association_type: u16,
+    /// AssociationDesc: association-type-specific description.
     pub association_desc: u32,
+    /// SequenceNumber: the object's place in a capture sequence.
     pub sequence_number: u32,
+    /// Filename on the camera's storage.
     pub filename: String,
+    /// CaptureDate as a PTP date string (`YYYYMMDDThhmmss`), or empty.
     pub capture_date: String,
+    /// ModificationDate, same format as `capture_date`, or empty.
     pub modification_date: String,
+    /// Keywords string.
     pub keywords: String,
 }
 
 impl ObjectInfo {
+    /// The dataset's bytes, fields in ISO 15740 order.
     pub fn encode(&self) -> Vec<u8> {
         let mut o = Vec::new();
         o.extend_from_slice(&self.storage_id.to_le_bytes());
@@ -567,6 +685,7 @@ impl ObjectInfo {
         o
     }
 
+    /// Decodes an ObjectInfo dataset; trailing bytes are refused.
     pub fn decode(buf: &[u8]) -> Result<ObjectInfo, CodecError> {
         let mut r = Reader::new(buf);
         let d = ObjectInfo {
@@ -602,9 +721,13 @@ impl ObjectInfo {
 /// `firmware-protocols/ptp-camera.md`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RawFrame {
+    /// Width in pixels.
     pub width: u32,
+    /// Height in pixels.
     pub height: u32,
+    /// Significant bits per pixel, 1..=16.
     pub bit_depth: u8,
+    /// The pixel values, row-major.
     pub pixels: Vec<u16>,
 }
 

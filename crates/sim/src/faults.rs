@@ -35,10 +35,16 @@ impl fmt::Display for FaultKind {
 /// until [`FaultInjector::clear`], like a tripped limit switch.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FaultRule {
+    /// Name of the device the fault hits (e.g. `arm`).
     pub device: String,
+    /// The operation whose calls are counted (e.g. `move`); `None`: every
+    /// call of the device counts.
     pub op: Option<String>,
+    /// The call, counted from 1, on which the fault first fires.
     pub at_call: u64,
+    /// What goes wrong.
     pub kind: FaultKind,
+    /// Keep failing every later matching call until cleared.
     pub sticky: bool,
 }
 
@@ -95,6 +101,7 @@ pub struct FaultInjector {
 }
 
 impl FaultInjector {
+    /// An injector armed with `rules`; call counters start at zero.
     pub fn new(rules: Vec<FaultRule>) -> FaultInjector {
         FaultInjector {
             state: Mutex::new(State {

@@ -25,6 +25,7 @@ pub struct World {
 pub struct SharedWorld(Arc<Mutex<World>>);
 
 impl SharedWorld {
+    /// An empty world: no axis, arm, lamp or plate reported yet.
     pub fn new() -> SharedWorld {
         SharedWorld::default()
     }
@@ -34,6 +35,7 @@ impl SharedWorld {
         self.0.lock().unwrap_or_else(|p| p.into_inner())
     }
 
+    /// A copy of the world as it is now.
     pub fn snapshot(&self) -> World {
         self.lock().clone()
     }
@@ -50,14 +52,18 @@ impl SharedWorld {
         }
     }
 
+    /// Records the arm's joint values in degrees, in profile order.
     pub fn set_arm(&self, joints: Vec<f64>) {
         self.lock().arm = Some(joints);
     }
 
+    /// Puts the laser calibration plate in place at `height_mm` over the
+    /// turntable, or takes it away (`None`).
     pub fn set_plate(&self, height_mm: Option<f64>) {
         self.lock().plate_mm = height_mm;
     }
 
+    /// Records whether the relay of the lamp (or laser) `name` is on.
     pub fn set_lamp(&self, name: &str, on: bool) {
         self.lock().lamps_on.insert(name.to_string(), on);
     }

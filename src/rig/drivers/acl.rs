@@ -38,6 +38,7 @@ pub const TARGET: &str = "RIGD";
 /// One joint as the driver sees it.
 #[derive(Debug, Clone)]
 pub struct AclJointConfig {
+    /// The joint's name in the profile, used in errors.
     pub name: String,
     /// Soft limits in degrees; set-points outside are refused before sending.
     pub limits: Limits,
@@ -102,23 +103,52 @@ impl AclConfig {
 /// What went wrong talking to the arm, in the driver's own terms.
 #[derive(Debug, thiserror::Error)]
 pub enum AclError {
+    /// No complete answer (up to the prompt) to a command, or a move or
+    /// homing that did not finish, before its deadline.
     #[error("no answer to {what} within {timeout:?}")]
-    Timeout { what: String, timeout: Duration },
+    Timeout {
+        /// The command or wait that timed out.
+        what: String,
+        /// The deadline it had.
+        timeout: Duration,
+    },
+    /// The link reached end of file: the controller closed it.
     #[error("link closed by the device")]
     Disconnected,
+    /// Reading or writing the link failed.
     #[error("link I/O error: {0}")]
     Io(#[from] std::io::Error),
+    /// The controller answered a command with a `*** text` error line
+    /// (not homed, impact protection, position out of range, …).
     #[error("`{command}`: *** {message}")]
-    Device { command: String, message: String },
+    Device {
+        /// The command it refused.
+        command: String,
+        /// The controller's text after `***`.
+        message: String,
+    },
+    /// A set-point outside a joint's soft limits; refused before sending.
     #[error("joint {joint} target {target} deg outside soft limits [{min}, {max}]")]
     OutOfLimits {
+        /// The joint's name.
         joint: String,
+        /// The requested angle, degrees.
         target: f64,
+        /// The joint's lower soft limit, degrees.
         min: f64,
+        /// The joint's upper soft limit, degrees.
         max: f64,
     },
+    /// A move was given a different number of joint values than the arm has.
     #[error("{got} joint values given, the arm has {expected}")]
-    JointCount { expected: usize, got: usize },
+    JointCount {
+        /// Joints the arm has.
+        expected: usize,
+        /// Values given.
+        got: usize,
+    },
+    /// An answer the driver cannot parse or did not expect (no status or
+    /// joint line, a wrong joint count, an unexpected reply).
     #[error("unexpected reply: {0}")]
     Protocol(String),
 }

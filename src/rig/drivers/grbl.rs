@@ -82,25 +82,58 @@ impl GrblConfig {
 /// What went wrong talking to GRBL, in the driver's own terms.
 #[derive(Debug, thiserror::Error)]
 pub enum GrblError {
+    /// No reply to a line or status query, or a move or homing cycle not
+    /// finished, before its deadline.
     #[error("no answer to {what} within {timeout:?}")]
-    Timeout { what: String, timeout: Duration },
+    Timeout {
+        /// The line or wait that timed out.
+        what: String,
+        /// The deadline it had.
+        timeout: Duration,
+    },
+    /// The link reached end of file: the controller closed it.
     #[error("link closed by the device")]
     Disconnected,
+    /// Reading or writing the link failed.
     #[error("link I/O error: {0}")]
     Io(#[from] std::io::Error),
+    /// GRBL answered a line with `error:N`.
     #[error("`{command}` refused with error:{} ({})", .code.0, .code.meaning())]
-    Refused { command: String, code: ErrorCode },
+    Refused {
+        /// The line it refused.
+        command: String,
+        /// GRBL's error code.
+        code: ErrorCode,
+    },
+    /// GRBL raised `ALARM:N` (hard or soft limit, abort during a cycle,
+    /// homing failure): it locks out motion until unlocked or homed.
     #[error("ALARM:{} ({}){}", .code.0, .code.meaning(), .detail.as_deref().map(|d| format!(": {d}")).unwrap_or_default())]
     Alarm {
+        /// GRBL's alarm code.
         code: AlarmCode,
+        /// The `[MSG:…]` lines that followed the alarm, if any.
         detail: Option<String>,
     },
+    /// A status report showed a machine state (e.g. `Alarm`, `Door`) where
+    /// the named states were expected.
     #[error("machine in state {0} where {1} was expected")]
     State(MachineState, &'static str),
+    /// A welcome banner arrived unasked: the controller reset and its
+    /// position is lost until it is homed again.
     #[error("controller reset (welcome banner); position lost, home again")]
     Reset,
+    /// A set-point outside the axis's soft limits; refused before sending.
     #[error("target {target} deg outside soft limits [{min}, {max}]")]
-    OutOfLimits { target: f64, min: f64, max: f64 },
+    OutOfLimits {
+        /// The requested position, degrees.
+        target: f64,
+        /// The lower soft limit, degrees.
+        min: f64,
+        /// The upper soft limit, degrees.
+        max: f64,
+    },
+    /// A reply the driver cannot use: unparseable, a status without
+    /// `MPos`, a GRBL version other than 1.1, a line too long to send.
     #[error("unexpected reply: {0}")]
     Protocol(String),
 }

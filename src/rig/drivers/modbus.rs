@@ -80,20 +80,48 @@ where
 /// What went wrong talking to the module, in the driver's own terms.
 #[derive(Debug, thiserror::Error)]
 pub enum ModbusError {
+    /// A connect or a request that got no answer before its deadline.
     #[error("no answer to {what} within {timeout:?}")]
-    Timeout { what: String, timeout: Duration },
+    Timeout {
+        /// The connect or request that timed out.
+        what: String,
+        /// The deadline it had.
+        timeout: Duration,
+    },
+    /// Connecting or talking to the module failed at the transport.
     #[error("link lost: {0}")]
     Io(io::Error),
+    /// The module answered with a Modbus exception (e.g. a coil or
+    /// register that is not wired).
     #[error("{what} refused with Modbus exception {}", exception_name(.code))]
-    Exception { what: String, code: ExceptionCode },
+    Exception {
+        /// The request it refused.
+        what: String,
+        /// The exception code of the reply.
+        code: ExceptionCode,
+    },
+    /// A reply of the wrong shape or length for its request.
     #[error("malformed or mismatched reply: {0}")]
     Protocol(String),
+    /// Reading the coil back after a write gave the other state.
     #[error("coil {coil} reads {read} after writing {wanted}")]
-    NotConfirmed { coil: u16, wanted: bool, read: bool },
+    NotConfirmed {
+        /// The coil written.
+        coil: u16,
+        /// The state written.
+        wanted: bool,
+        /// The state read back.
+        read: bool,
+    },
+    /// While waiting for a lamp, the module set its fault bit (the coil
+    /// number).
     #[error("the module reports a fault on this lamp (fault bit {0} set): check ballast and bulb")]
     LampFault(u16),
+    /// A lamp's ready bit did not come within its warm-up plus slack (the
+    /// time waited).
     #[error("lamp not ready {0:?} after switch-on")]
     NotReady(Duration),
+    /// Waiting for a lamp that this driver has not switched on.
     #[error("lamp is switched off; switch it on before waiting for it")]
     Off,
 }
@@ -126,6 +154,7 @@ impl ModbusError {
         }
     }
 
+    /// As a [`DeviceError`] of the device `name`, with its engine kind.
     pub fn into_device(self, name: &str) -> DeviceError {
         DeviceError::new(name, self.kind(), self.to_string())
     }
@@ -240,6 +269,7 @@ pub struct ModbusLamp {
 }
 
 impl ModbusLamp {
+    /// A lamp on `cfg.coil` of the module behind `bus`, taken as off.
     pub fn new(cfg: ModbusConfig, clock: Clock, bus: SharedBus) -> ModbusLamp {
         ModbusLamp {
             coil: Coil { cfg, clock, bus },
@@ -308,6 +338,7 @@ pub struct ModbusLaser {
 }
 
 impl ModbusLaser {
+    /// A laser line on `cfg.coil` of the module behind `bus`.
     pub fn new(cfg: ModbusConfig, clock: Clock, bus: SharedBus) -> ModbusLaser {
         ModbusLaser {
             coil: Coil { cfg, clock, bus },

@@ -64,33 +64,65 @@ impl Default for PtpConfig {
 /// engine's [`ErrorKind`].
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum PtpError {
+    /// An operation (or the capture's events) got no answer before its
+    /// deadline.
     #[error("{op} got no answer within {after:?}")]
-    Timeout { op: OpCode, after: Duration },
+    Timeout {
+        /// The operation that timed out.
+        op: OpCode,
+        /// The deadline it had.
+        after: Duration,
+    },
+    /// A USB transfer failed (the camera was unplugged, the pipe broke).
     #[error("{0}")]
     Usb(UsbError),
+    /// The camera answered an operation with a response code other than OK.
     #[error("{op} answered {code} (0x{:04X})", .code.0)]
-    Response { op: OpCode, code: ResponseCode },
+    Response {
+        /// The operation answered.
+        op: OpCode,
+        /// The camera's response code.
+        code: ResponseCode,
+    },
+    /// A data phase ended before the length its header declared.
     #[error("{op}: data phase truncated: {got} of {declared} bytes")]
     Truncated {
+        /// The operation whose data phase it was.
         op: OpCode,
+        /// Bytes received.
         got: usize,
+        /// Bytes the container header declared.
         declared: usize,
     },
+    /// The image arrived but is unusable: missing, undecodable, of another
+    /// size or depth than announced, or with out-of-range values.
     #[error("bad frame: {0}")]
     BadFrame(String),
+    /// A container that does not decode or does not fit the transaction
+    /// (wrong code, missing data phase, unexpected events).
     #[error("{op}: protocol error: {message}")]
-    Protocol { op: OpCode, message: String },
+    Protocol {
+        /// The operation in progress.
+        op: OpCode,
+        /// What was wrong.
+        message: String,
+    },
+    /// The camera's DeviceInfo lacks an operation the driver needs.
     #[error("the camera does not support {0}")]
     Unsupported(OpCode),
+    /// An exposure time (seconds) outside what the camera can set.
     #[error("exposure {0} s cannot be set (0.1 ms to 119 h)")]
     BadExposure(f64),
+    /// An operation was called before `connect` opened a session.
     #[error("no session: connect first")]
     NotConnected,
+    /// A frame was fetched with no captured object pending.
     #[error("nothing was exposed")]
     NothingExposed,
 }
 
 impl PtpError {
+    /// The kind the run engine acts on.
     pub fn kind(&self) -> ErrorKind {
         match self {
             PtpError::Timeout { .. } => ErrorKind::Timeout,

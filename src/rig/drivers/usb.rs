@@ -24,7 +24,12 @@ pub enum UsbError {
     Io(String),
     /// No device with this vendor/product id is attached.
     #[error("no USB device {vendor_id:04x}:{product_id:04x}")]
-    NotFound { vendor_id: u16, product_id: u16 },
+    NotFound {
+        /// The vendor id looked for.
+        vendor_id: u16,
+        /// The product id looked for.
+        product_id: u16,
+    },
     /// The device has no Still Image interface with the endpoints PTP needs.
     #[error("no Still Image interface with bulk-in, bulk-out and interrupt-in endpoints")]
     NoStillImageInterface,
@@ -79,9 +84,14 @@ impl UsbPipe for MemoryPipe {
 /// One attached USB device, as enumeration reports it.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct UsbDeviceSummary {
+    /// USB vendor id.
     pub vendor_id: u16,
+    /// USB product id.
     pub product_id: u16,
+    /// The product string descriptor, if the device has one.
     pub product: Option<String>,
+    /// The serial number string descriptor, if the device has one; what a
+    /// profile's `transport.serial` matches.
     pub serial: Option<String>,
     /// True when one of its interfaces is of the Still Image class.
     pub still_image: bool,

@@ -56,10 +56,16 @@ fn png(bytes: Vec<u8>) -> Response {
         .into_response()
 }
 
+/// Image `index` of run `id` as stored: the frame's PNG, raw sensor values.
+/// 400 when `index` is not a plain integer; 404 for an unknown run, an
+/// index past the run's image count, or a frame not taken yet.
 pub async fn raw(d: &Daemon, id: &str, index: &str) -> Result<Response, ApiError> {
     read_frame(d, id, index).await.map(png)
 }
 
+/// Image `index` of run `id` as an 8-bit PNG, box-filtered to at most
+/// [`PREVIEW_MAX`] pixels on its longer side and stretched to its own
+/// brightest pixel; the errors of [`raw`].
 pub async fn preview(d: &Daemon, id: &str, index: &str) -> Result<Response, ApiError> {
     let bytes = read_frame(d, id, index).await?;
     let out = tokio::task::spawn_blocking(move || make_preview(&bytes, PREVIEW_MAX))

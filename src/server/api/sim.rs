@@ -23,6 +23,8 @@ pub struct RenderQuery {
     pub camera: Option<String>,
     /// Effect switches: `all`, `none`, or `+interreflection,-noise`.
     pub effects: Option<String>,
+    /// Seed of the frame's sensor noise (shot and read noise); the same seed
+    /// renders the same frame (default 0).
     pub seed: Option<u64>,
     /// Exposure relative to nominal.
     pub exposure: Option<f64>,
@@ -115,7 +117,9 @@ fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, St
 /// A built-in scene and the effects it can show.
 #[derive(Debug, serde::Serialize, utoipa::ToSchema)]
 pub struct SceneView {
+    /// The scene's name, as the `scene` parameter of `/api/v1/sim/render` takes it.
     pub name: String,
+    /// What the scene shows, in a line (relief, material).
     pub description: String,
     /// Effects frames of this scene can pay for.
     pub effects: Vec<String>,

@@ -42,9 +42,13 @@ pub struct TradeoffRequest {
 /// The answer to a start.
 #[derive(Debug, Clone, Serialize, ToSchema)]
 pub struct TradeoffStarted {
+    /// The scene of the simulated captures.
     pub scene: String,
+    /// Normtexture side in texels.
     pub texture: usize,
+    /// Held-out (light, view) pairs the BTF error is measured on.
     pub held_out: usize,
+    /// Frame size of the fidelity renders, `[width, height]` in pixels.
     pub render_size: [u32; 2],
 }
 

@@ -12,18 +12,22 @@ use super::AppState;
 use crate::postprocess::viewer::{self, ViewerError, DEFAULT_DENSITY};
 use crate::server::error::{ApiError, ApiPath};
 
+/// The BTF viewer page, served at `/viewer/{run}`.
 pub const VIEWER_HTML: &str = include_str!("../dashboard/viewer.html");
+/// The viewer page's script, served at `/viewer.js`.
 pub const VIEWER_JS: &str = include_str!("../dashboard/viewer.js");
 
 /// Most components the viewer is sent per slot unless it asks for fewer.
 const MAX_COMPONENTS: usize = 64;
 
+/// Query of `GET /api/v1/runs/{id}/btf` and `GET /api/v1/runs/{id}/btf/data`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 pub struct BtfQuery {
     /// Send at most this many PCA components per view slot (default: all stored).
     pub components: Option<usize>,
 }
 
+/// Query of `GET /api/v1/runs/{id}/btf/mesh/{kind}`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 pub struct MeshQuery {
     /// Material tiles per world unit (default 1; the flat sample is 2 units across).

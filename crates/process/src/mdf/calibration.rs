@@ -5,6 +5,7 @@ use super::*;
 /// The result of [`calibrate_plane`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlaneCalibration {
+    /// The fitted laser plane, world frame (metres).
     pub plane: LaserPlane,
     /// Angle between the laser plane and the reference plane `z = 0`,
     /// degrees (Wang et al.'s calibrated quantity).
@@ -89,8 +90,8 @@ pub(super) fn line_points_3d(
 }
 
 /// The laser plane from its line seen on the reference plane `z = 0`
-/// (`line_at_0`) and on a raised plane `z = height` (`line_at_h`), seed
-/// §3.2 ("project the laser strip onto two planes with different
+/// (`line_at_0`) and on a raised plane `z = height` (`line_at_h`), Wang
+/// et al., §3.2 ("project the laser strip onto two planes with different
 /// heights"): both image lines back-project to 3-D lines; the plane is
 /// the least-squares plane through points sampled along both. Errors when
 /// a line is too short, does not back-project, `height` is not positive,
@@ -174,8 +175,8 @@ pub enum PlaneConstraint {
 }
 
 /// A scan frame's laser plane from its line detected in the reference
-/// region (on the plane `z = reference_z`, normally the turntable, 0), seed
-/// §3.2 "projecting the laser line … to the 3D reference plane".
+/// region (on the plane `z = reference_z`, normally the turntable, 0), Wang
+/// et al., §3.2: "projecting the laser line … to the 3D reference plane".
 pub fn plane_from_line(
     camera: &PinholeCamera,
     line: &LineFit,

@@ -9,12 +9,15 @@ pub struct PinholeCamera {
     pub centre: [f64; 3],
     /// Unit image axes: `right` = `+x`, `up` = `−y` (image rows grow down).
     pub right: [f64; 3],
+    /// Unit image up axis, `−y` (image rows grow down).
     pub up: [f64; 3],
     /// Unit optical axis (the way the camera looks).
     pub forward: [f64; 3],
     /// Focal length, pixels.
     pub focal_px: f64,
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
 }
 

@@ -6,7 +6,10 @@ use super::*;
 /// arbitrary).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LaserPlane {
+    /// Unit plane normal, world frame; its sign is arbitrary.
     pub normal: [f64; 3],
+    /// `normal · x` for every point `x` of the plane, metres: the plane's
+    /// signed distance from the origin along `normal`.
     pub offset: f64,
 }
 

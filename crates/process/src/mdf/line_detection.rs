@@ -28,6 +28,7 @@ pub struct LineFit {
     pub rms_px: f64,
     /// Candidates rejected as outliers.
     pub rejected: usize,
+    /// Whether the peaks were found one per row or one per column.
     pub scan: ScanAxis,
 }
 

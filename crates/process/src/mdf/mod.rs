@@ -76,36 +76,84 @@ pub const MAX_CALIBRATION_LINE_ANGLE_DEG: f64 = 2.0;
 /// Fewest inlier points of a detected line.
 pub const MIN_LINE_POINTS: usize = 5;
 
+/// Errors of the MDF pipeline.
 #[derive(Debug, thiserror::Error)]
 pub enum MdfError {
+    /// An argument is empty, out of range or inconsistent (no frames, a region
+    /// outside the image, a non-finite option, a negative weight, …); the
+    /// text says which.
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// A [`PinholeCamera`] has non-finite values, a non-positive focal length
+    /// or size, or axes that are not unit and orthogonal, or a view direction
+    /// gives no camera; the text says which.
     #[error("invalid camera: {0}")]
     InvalidCamera(String),
+    /// [`space_time`] got a different number of frames and laser planes.
     #[error("{frames} frames but {planes} laser planes (one plane per frame expected)")]
-    FrameCount { frames: usize, planes: usize },
+    FrameCount {
+        /// Frames given.
+        frames: usize,
+        /// Laser planes given.
+        planes: usize,
+    },
+    /// A scan frame's size differs from the camera's.
     #[error("frame {index} is {got:?} (width, height, channels) but {expected:?} was expected")]
     FrameSize {
+        /// Index of the frame in the scan.
         index: usize,
+        /// The camera's (width, height), pixels.
         expected: (usize, usize),
+        /// The frame's (width, height, channels).
         got: (usize, usize, usize),
     },
+    /// [`merge`] or [`merge_weighted`] got a different number of displacement
+    /// images and source positions or weights.
     #[error("{count} displacement images but {sources} source positions / weights")]
-    SourceCount { count: usize, sources: usize },
+    SourceCount {
+        /// Displacement images given.
+        count: usize,
+        /// Source positions or weights given.
+        sources: usize,
+    },
+    /// A displacement image's size differs from the others', or its depth or
+    /// weight buffer does not hold width · height values.
     #[error("displacement image {index} is {got:?} (width, height) but {expected:?} was expected, or its buffers have the wrong length")]
     DisplacementSize {
+        /// Index of the displacement image.
         index: usize,
+        /// The expected (width, height), pixels.
         expected: (usize, usize),
+        /// Its (width, height), pixels.
         got: (usize, usize),
     },
+    /// A laser plane has a zero or non-finite normal or a non-finite offset.
     #[error("laser plane {index} is invalid: {reason}")]
-    InvalidPlane { index: usize, reason: String },
+    InvalidPlane {
+        /// Index of the plane (its frame); 0 from [`LaserPlane::through`].
+        index: usize,
+        /// The offending values.
+        reason: String,
+    },
+    /// [`detect_line`] found too few collinear peaks above the threshold in
+    /// the reference region(s).
     #[error("no laser line in region {region:?}: {reason}")]
-    NoLine { region: [usize; 4], reason: String },
+    NoLine {
+        /// The first region searched, `[x0, y0, x1, y1]` in pixels (ends
+        /// exclusive).
+        region: [usize; 4],
+        /// How many candidates there were and how many are needed.
+        reason: String,
+    },
+    /// The laser plane cannot be calibrated or built from the lines: a line
+    /// too short or not seeing its plane, a non-positive height, 3-D lines
+    /// that are not parallel, or an emitter on the line; the text says which.
     #[error("degenerate calibration: {0}")]
     DegenerateCalibration(String),
+    /// Writing a float displacement `.npy` file failed.
     #[error(transparent)]
     Npy(#[from] NpyError),
+    /// Writing an 8-bit displacement PNG failed.
     #[error(transparent)]
     Image(#[from] ImageError),
 }

@@ -6,7 +6,9 @@ use super::*;
 /// camera pixel, row-major.
 #[derive(Debug, Clone, PartialEq)]
 pub struct DisplacementImage {
+    /// Width, camera pixels.
     pub width: usize,
+    /// Height, camera pixels.
     pub height: usize,
     /// Distance along the view ray from the reference plane to the
     /// surface, metres; [`NO_DEPTH`] (−1) where there is no measurement.
@@ -43,8 +45,8 @@ impl DisplacementImage {
 /// Parameters of [`space_time`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SpaceTimeOptions {
-    /// A pixel's brightest frame must exceed this grey value (seed: "the
-    /// prescribed threshold"); otherwise the pixel is occluded → −1.
+    /// A pixel's brightest frame must exceed this grey value (Wang et al.:
+    /// "the prescribed threshold"); otherwise the pixel is occluded → −1.
     pub threshold: f64,
     /// Height of the MDF reference plane, metres (above the mesostructure).
     pub reference_height: f64,
@@ -80,6 +82,7 @@ impl SpaceTimeOptions {
 /// What happened to the pixels in [`space_time`].
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct SpaceTimeStats {
+    /// Pixels that got a depth.
     pub measured: usize,
     /// No frame above the threshold (occluded or outside the scan).
     pub dark: usize,

@@ -87,6 +87,8 @@ const LUMA: [f64; 3] = [0.2126, 0.7152, 0.0722];
 /// Where `rigd process photometric-stereo` finds its inputs.
 #[derive(Debug, Clone, Default)]
 pub struct PsInputs {
+    /// Folder holding the images; without `names_file` every `.png` in it
+    /// (except the mask) is one.
     pub images_dir: PathBuf,
     /// One `x y z` direction per line, in image order.
     pub lights_file: PathBuf,
@@ -104,6 +106,8 @@ pub struct PsInputs {
 pub struct PsDataset {
     /// Names used in errors and the report (file paths when loaded).
     pub image_names: Vec<String>,
+    /// The images, in light order: all the same size, 1 or 3 channels,
+    /// linear values in `[0, 1]`.
     pub images: Vec<Image>,
     /// Unit light directions (see the module doc for the frame).
     pub lights: Vec<[f64; 3]>,
@@ -121,6 +125,9 @@ pub type Progress<'a> = &'a (dyn Fn(usize, usize) + Sync);
 /// Solver settings; [`Default`] gives plain mode with the documented limits.
 #[derive(Clone, Copy)]
 pub struct PsOptions<'a> {
+    /// Use the robust mode of the module doc (per-pixel rejection of
+    /// saturated, shadowed and outlying samples) instead of plain least
+    /// squares.
     pub robust: bool,
     /// Largest accepted condition number of the whole light matrix.
     pub max_condition: f64,
@@ -136,6 +143,7 @@ pub struct PsOptions<'a> {
     pub residual_tolerance: f64,
     /// Robust mode: residual threshold in robust standard deviations.
     pub residual_sigmas: f64,
+    /// Called with `(rows_done, total_rows)` while solving.
     pub progress: Option<Progress<'a>>,
 }
 
@@ -158,104 +166,199 @@ impl Default for PsOptions<'_> {
 /// What was solved and how; written as `report.json`.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct PsReport {
+    /// Whether the robust mode was used.
     pub robust: bool,
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
+    /// Channels of the input images: 1 (grey) or 3 (RGB).
     pub channels: usize,
+    /// Image names, in light order.
     pub images: Vec<String>,
+    /// Unit light directions (module-doc frame), in image order.
     pub lights: Vec<[f64; 3]>,
+    /// Per-image `[r, g, b]` light intensities, when a table was given.
     pub intensities: Option<Vec<[f64; 3]>>,
+    /// Condition number `σ_max/σ_min` of the N×3 light matrix.
     pub condition_number: f64,
+    /// RMS luminance residual over the samples used, averaged over the valid
+    /// pixels (0 with exactly 3 lights).
     pub mean_residual: f64,
+    /// Pixels in the image: width · height.
     pub pixels_total: usize,
+    /// Pixels with a solved normal.
     pub pixels_valid: usize,
+    /// Pixels the mask excludes.
     pub pixels_masked: usize,
+    /// Pixels with every sample 0, or a zero solution.
     pub pixels_dark: usize,
+    /// Pixels with every sample saturated in some channel.
     pub pixels_saturated: usize,
+    /// Pixels whose solution faces away from the camera (`n_z ≤ 0`).
     pub pixels_facing_away: usize,
+    /// Robust mode: pixels that fell back to the plain solution from all
+    /// lights.
     pub pixels_fallback: usize,
+    /// Robust mode: samples rejected as shadowed (dark, or an outlier
+    /// below the fit).
     pub samples_rejected_shadow: u64,
+    /// Robust mode: samples rejected as specular (an outlier above the fit).
     pub samples_rejected_specular: u64,
+    /// Robust mode: samples rejected as saturated.
     pub samples_rejected_saturated: u64,
 }
 
 /// Solver output; all arrays are row-major, `width × height` pixels.
 #[derive(Debug, Clone)]
 pub struct PsResult {
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
     /// Unit normals (module-doc frame).
     pub normals: Vec<[f32; 3]>,
     /// `albedo_channels` values per pixel (1 for grey input, 3 for RGB).
     pub albedo: Vec<f32>,
+    /// Albedo values per pixel: 1 for grey input, 3 for RGB.
     pub albedo_channels: usize,
+    /// Gradient `∂z/∂x = −n_x/n_z` per pixel, height units per pixel.
     pub p: Vec<f32>,
+    /// Gradient `∂z/∂y = −n_y/n_z` per pixel (`y` up, so minus the slope
+    /// along increasing rows).
     pub q: Vec<f32>,
     /// Frankot–Chellappa height, zero mean, in pixel units.
     pub height_map: Vec<f32>,
+    /// Per pixel: `true` where a normal was solved (not masked, dark,
+    /// saturated or facing away).
     pub valid: Vec<bool>,
+    /// Counts and diagnostics, as written to `report.json`.
     pub report: PsReport,
 }
 
+/// Why photometric stereo could not load its inputs, solve or write.
 #[derive(Debug, thiserror::Error)]
 pub enum PsError {
+    /// A text file or the images folder could not be read.
     #[error("cannot read {}: {source}", path.display())]
     Read {
+        /// The file or folder.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
+    /// A line of the lights or intensities table is malformed: the wrong
+    /// number of values, not a number, a zero-length light or a non-positive
+    /// intensity.
     #[error("{}:{line}: {reason}", path.display())]
     Parse {
+        /// The table file.
         path: PathBuf,
+        /// 1-based line number.
         line: usize,
+        /// What is wrong with the line.
         reason: String,
     },
+    /// The images folder holds no `.png`, or the names file lists no image.
     #[error("{}: no .png images found", path.display())]
-    NoImages { path: PathBuf },
+    NoImages {
+        /// The folder or names file.
+        path: PathBuf,
+    },
+    /// The lights or intensities table has a different number of entries than
+    /// there are images.
     #[error("{} has {found} {what} but there are {expected} images ({images})", path.display())]
     CountMismatch {
+        /// The table file.
         path: PathBuf,
+        /// Which table: `light directions` or `intensities`.
         what: &'static str,
+        /// Entries in the table.
         found: usize,
+        /// Images listed.
         expected: usize,
+        /// Where the images were listed: the names file or the images folder.
         images: String,
     },
+    /// An image or the mask could not be loaded, or an output PNG could not
+    /// be written.
     #[error(transparent)]
     Image(#[from] ImageError),
+    /// An image differs in size or channel count from the first image.
     #[error("{image}: {found} does not match the first image's {expected}")]
     ImageMismatch {
+        /// Name of the image.
         image: String,
+        /// Size and kind of the first image, e.g. `640x480 RGB`.
         expected: String,
+        /// Size and kind of this image.
         found: String,
     },
+    /// The mask's size differs from the images'.
     #[error("mask {mask}: {found} does not match the images' {expected}")]
     MaskMismatch {
+        /// The mask file (`mask` for a dataset built in code).
         mask: String,
+        /// The images' size.
         expected: String,
+        /// The mask's size.
         found: String,
     },
+    /// Fewer than three light directions were given.
     #[error("{origin}: {count} light directions; photometric stereo needs at least 3")]
-    TooFewLights { origin: String, count: usize },
+    TooFewLights {
+        /// Where the lights came from (the lights file when loaded).
+        origin: String,
+        /// Light directions given.
+        count: usize,
+    },
+    /// The light matrix's condition number exceeds
+    /// [`PsOptions::max_condition`]: near-coplanar or repeated lights.
     #[error("{origin}: light directions are near-coplanar or repeated: condition number {condition:.3e} exceeds the limit {max:.1e}")]
     IllConditioned {
+        /// Where the lights came from (the lights file when loaded).
         origin: String,
+        /// The condition number `σ_max/σ_min`.
         condition: f64,
+        /// The limit it exceeds.
         max: f64,
     },
+    /// faer's SVD of the light matrix failed.
     #[error("{origin}: SVD of the light matrix failed: {reason}")]
-    Svd { origin: String, reason: String },
+    Svd {
+        /// Where the lights came from (the lights file when loaded).
+        origin: String,
+        /// faer's error.
+        reason: String,
+    },
+    /// A dataset is inconsistent (names, lights or intensities not matching
+    /// the images, a zero light, a non-positive intensity, no or empty images)
+    /// or the gradients to integrate do not fit the grid.
     #[error("{origin}: {reason}")]
-    InvalidInput { origin: String, reason: String },
+    InvalidInput {
+        /// Which input is wrong: the lights' origin, an image name, `images` or
+        /// `Frankot–Chellappa`.
+        origin: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// Writing an output `.npy` array failed.
     #[error(transparent)]
     Npy(#[from] NpyError),
+    /// The output folder could not be created.
     #[error("cannot create {}: {source}", path.display())]
     CreateDir {
+        /// The folder.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
+    /// `report.json` could not be written.
     #[error("cannot write {}: {source}", path.display())]
     Write {
+        /// The file.
         path: PathBuf,
+        /// The I/O error.
         source: std::io::Error,
     },
 }

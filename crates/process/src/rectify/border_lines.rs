@@ -7,7 +7,10 @@ use super::*;
 /// running to the square's corners.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BorderLines {
+    /// Distance of the centrelines from the sample centre along x and y,
+    /// plate metres.
     pub offset: [f64; 2],
+    /// Half a line's width, metres.
     pub half_width_m: f64,
 }
 

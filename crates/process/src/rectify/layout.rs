@@ -61,9 +61,13 @@ impl MarkerLayout {
 /// An axis-aligned rectangle on the plate, metres.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Region {
+    /// Left edge (smallest x), metres.
     pub x_min: f64,
+    /// Right edge (largest x), metres.
     pub x_max: f64,
+    /// Bottom edge (smallest y; `+y` is up), metres.
     pub y_min: f64,
+    /// Top edge (largest y), metres.
     pub y_max: f64,
 }
 

@@ -66,35 +66,65 @@ pub const MAX_OUTPUT_SIDE: usize = 16384;
 /// A 3×3 homography, row-major, plate metres → pixels.
 pub type Homography = [[f64; 3]; 3];
 
+/// Why a frame could not be registered or rectified.
 #[derive(Debug, thiserror::Error)]
 pub enum RectifyError {
+    /// Fewer than four markers were found.
     #[error(
         "only {found} of {total} markers found (at least 4 needed); missing markers {missing:?}"
     )]
     TooFewMarkers {
+        /// Markers found.
         found: usize,
+        /// Markers in the layout.
         total: usize,
+        /// Layout indices of the markers not found.
         missing: Vec<usize>,
     },
+    /// No four of the markers are in general position (near-collinear), so
+    /// they determine no homography.
     #[error("the {found} markers found ({used:?}) are degenerate: no 4 of them are in general position (near-collinear)")]
-    Degenerate { found: usize, used: Vec<usize> },
+    Degenerate {
+        /// Markers found.
+        found: usize,
+        /// Layout indices of the markers the fit tried.
+        used: Vec<usize>,
+    },
+    /// After outlier rejection the worst reprojection residual still exceeds
+    /// [`RegisterOptions::max_residual_px`].
     #[error("markers inconsistent: worst residual {max_px:.2} px exceeds {limit_px:.2} px with {used} markers used ({found} found, rejected {rejected:?})")]
     Inconsistent {
+        /// Markers found.
         found: usize,
+        /// Markers used in the final fit.
         used: usize,
+        /// Layout indices of the markers rejected as outliers.
         rejected: Vec<usize>,
+        /// Worst residual of the final fit, pixels.
         max_px: f64,
+        /// The limit it exceeds, pixels.
         limit_px: f64,
     },
+    /// The fitted homography folds over the plate: the plate reaches (or
+    /// comes too near) the camera's horizon, `w ≤ 0`.
     #[error("the homography from {found} markers folds over the plate (the plate reaches the camera's horizon)")]
-    Folded { found: usize },
+    Folded {
+        /// Markers found.
+        found: usize,
+    },
+    /// faer's SVD in the DLT failed.
     #[error("SVD failed: {0}")]
     Svd(String),
+    /// An argument is invalid (sizes, non-finite values, an ROI outside the
+    /// texture, a bad bit depth, …); the text says which.
     #[error("invalid input: {0}")]
     InvalidInput(String),
+    /// [`require_all`]: some frames of a set could not be registered.
     #[error("{} of {total} frames could not be registered: {}", failures.len(), failures.iter().map(|(n, e)| format!("{n}: {e}")).collect::<Vec<_>>().join("; "))]
     Frames {
+        /// Frames checked.
         total: usize,
+        /// (frame name, reason) of each frame that failed.
         failures: Vec<(String, String)>,
     },
 }

@@ -21,8 +21,11 @@ pub enum Filter {
     Area,
 }
 
+/// Options of [`rectify`].
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct RectifyOptions {
+    /// How each texel is computed from the frame ([`Filter::Area`] by
+    /// default).
     pub filter: Filter,
     /// Cap on taps per texel axis for [`Filter::Area`].
     pub max_taps: usize,
@@ -40,6 +43,8 @@ impl Default for RectifyOptions {
 /// A frontal texture and how much of it the frame covered.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rectified {
+    /// The frontal texture: row 0 is the region's `+y` edge, column 0 its
+    /// `−x` edge; channels as the input.
     pub texture: Image,
     /// Mean over texels of the fraction of their taps that fell inside the
     /// frame (1 = fully covered). Uncovered taps are left out of a texel's

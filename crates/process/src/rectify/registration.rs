@@ -8,6 +8,7 @@ pub struct RegisterOptions {
     /// A marker is an outlier candidate when its residual exceeds
     /// `max(outlier_px, outlier_median_factor × median residual)`.
     pub outlier_px: f64,
+    /// Multiple of the median residual in that threshold (see `outlier_px`).
     pub outlier_median_factor: f64,
     /// After rejection, a worst residual above this fails the frame.
     pub max_residual_px: f64,
@@ -37,9 +38,11 @@ pub struct Registration {
     pub residuals_px: Vec<Option<f64>>,
     /// RMS and maximum residual over the markers used.
     pub rms_px: f64,
+    /// Largest residual over the markers used, pixels.
     pub max_px: f64,
     /// Markers found, and used in the final fit.
     pub found: usize,
+    /// Markers used in the final fit (found minus rejected).
     pub used: usize,
     /// Layout indices of the markers rejected as outliers.
     pub rejected: Vec<usize>,

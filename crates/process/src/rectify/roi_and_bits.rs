@@ -5,9 +5,13 @@ use super::*;
 /// A rectangle of texels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Roi {
+    /// Column of the left edge, texels.
     pub x: usize,
+    /// Row of the top edge, texels.
     pub y: usize,
+    /// Width, texels.
     pub width: usize,
+    /// Height, texels.
     pub height: usize,
 }
 
@@ -189,7 +193,11 @@ pub enum Quantisation {
     /// then `min(code >> shift, 255)`. For a 12-bit sensor `shift: 2` keeps
     /// the central 8 bits (bits 2..=9) as in Sattler et al.: codes ≥ 1020
     /// saturate to 255 (never wrap); `shift: 4` keeps the top 8 bits.
-    Bits8 { shift: u8 },
+    Bits8 {
+        /// Low bits dropped from the sensor code before clipping to 255 (2: the
+        /// central 8 of 12 bits).
+        shift: u8,
+    },
 }
 
 /// Applies `q` to a texture whose values are linear in `[0, 1]` of a

@@ -5,7 +5,9 @@ use super::*;
 /// A row label of the error table.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub enum FitMethod {
+    /// The 6-coefficient biquadratic PTM of Malzbender et al.
     Ptm,
+    /// Meseth et al.'s eq. 1 with this many lobes.
     Lobes(usize),
 }
 
@@ -21,6 +23,7 @@ impl fmt::Display for FitMethod {
 /// One row of Meseth et al. Table 1 for one view slot.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ErrorRow {
+    /// Which model the row is for.
     pub method: FitMethod,
     /// Mean over texels and lights of |model − value|, input units: the
     /// paper's "average luminance difference between data and model" (the
@@ -38,9 +41,13 @@ pub struct ErrorRow {
 /// Meseth et al. Table 1 for one view slot: one row per method.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ErrorTable {
+    /// Texels in the slot.
     pub texels: usize,
+    /// Lights (values) per texel.
     pub lights: usize,
+    /// Threads of the rayon pool the fits ran on.
     pub threads: usize,
+    /// PTM first, then one row per lobe count asked for, in that order.
     pub rows: Vec<ErrorRow>,
 }
 

@@ -104,20 +104,48 @@ pub const LUMINANCE_WEIGHTS: [f64; 3] = [0.2126, 0.7152, 0.0722];
 /// Invalid input to a fit.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum FitError {
+    /// The light list is empty.
     #[error("no light directions")]
     NoLights,
+    /// A light direction is zero or not finite.
     #[error("light {index} is not a finite non-zero vector: {direction:?}")]
-    InvalidLight { index: usize, direction: [f64; 3] },
+    InvalidLight {
+        /// Index of the light.
+        index: usize,
+        /// The direction as given.
+        direction: [f64; 3],
+    },
+    /// The values (or an LM step) do not have the length the lights (or the
+    /// model's parameters) need; for a slot, they are not a whole number of
+    /// texels.
     #[error("expected {expected} values, got {got}")]
-    LengthMismatch { expected: usize, got: usize },
+    LengthMismatch {
+        /// The length needed (for a slot, the next whole number of texels).
+        expected: usize,
+        /// The length given.
+        got: usize,
+    },
+    /// A measured value is NaN or infinite.
     #[error("value {index} is not finite ({value})")]
-    NonFiniteValue { index: usize, value: f32 },
+    NonFiniteValue {
+        /// Index of the value.
+        index: usize,
+        /// The value.
+        value: f32,
+    },
+    /// A lobe count outside 1 ..= [`MAX_LOBES`].
     #[error("lobe count {0} outside 1..={MAX_LOBES}")]
     InvalidLobeCount(usize),
+    /// A [`FitOptions`] field is out of range; the text says which.
     #[error("invalid fit option: {0}")]
     InvalidOptions(&'static str),
+    /// [`Lobe::new`] or [`Lobe::from_paper_coefficients`] got a zero or
+    /// non-finite axis, an amplitude outside `[0, MAX_AMPLITUDE]`, a NaN
+    /// exponent or non-finite coefficients; the text says which.
     #[error("invalid lobe: {0}")]
     InvalidLobe(&'static str),
+    /// The SVD of the PTM design matrix did not converge or gave a
+    /// non-finite pseudo-inverse.
     #[error("PTM pseudo-inverse: the SVD did not converge")]
     PtmSvd,
 }
@@ -344,6 +372,7 @@ impl LobeModel {
         self.lobes.len()
     }
 
+    /// The `k` lobes (unused ones have amplitude 0).
     pub fn lobes(&self) -> &[Lobe] {
         &self.lobes
     }
@@ -435,7 +464,10 @@ pub enum Fallback {
     DiffuseOnly,
     /// Fewer lights than `k · PARAMS_PER_LOBE`: only `lights /
     /// PARAMS_PER_LOBE` lobes are fitted, the others have amplitude 0.
-    ReducedLobes { active: usize },
+    ReducedLobes {
+        /// Lobes actually fitted.
+        active: usize,
+    },
 }
 
 /// Result of one texel's fit.
@@ -459,13 +491,16 @@ pub struct TexelFit {
     /// Lobes that were fitted (0 for a dark texel); the rest of the `k`
     /// lobes are zero.
     pub active_lobes: usize,
+    /// Why the texel was not fitted with the full model; `None` when it was.
     pub fallback: Option<Fallback>,
 }
 
 /// Results for all texels of one view slot, texel-major.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SlotFit {
+    /// Lobes per texel model.
     pub k: usize,
+    /// One fit per texel, texel-major as the slot's values.
     pub texels: Vec<TexelFit>,
 }
 
@@ -480,6 +515,7 @@ impl SlotFit {
         mean(self.texels.iter().map(|t| t.rms_error * t.rms_error)).sqrt()
     }
 
+    /// Number of texels whose fit converged.
     pub fn converged_texels(&self) -> usize {
         self.texels.iter().filter(|t| t.converged).count()
     }
@@ -545,7 +581,10 @@ pub fn initial_model(
 /// `colour_scale · model`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RgbTexelFit {
+    /// The fit of the texel's luminance ([`LUMINANCE_WEIGHTS`]).
     pub luminance: TexelFit,
+    /// Linear RGB factors of unit luminance that turn the luminance model
+    /// into colour (the texel's average colour).
     pub colour_scale: [f64; 3],
 }
 

@@ -7,6 +7,7 @@ use super::*;
 /// `(lu, lv)` are the x, y components of the unit light direction.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PtmFit {
+    /// `[a0, …, a5]` of the polynomial above, in input units.
     pub coefficients: [f64; PTM_COEFFICIENTS],
     /// RMS over lights of model − value, in input units.
     pub rms_error: f64,
@@ -15,6 +16,8 @@ pub struct PtmFit {
 }
 
 impl PtmFit {
+    /// The PTM's value for the unit light direction `light` (only its x and
+    /// y components enter).
     pub fn evaluate(&self, light: [f64; 3]) -> f64 {
         ptm_row(light)
             .iter()
@@ -35,6 +38,8 @@ pub struct PtmBasis {
 }
 
 impl PtmBasis {
+    /// The pseudo-inverse for `lights` (normalised here); errors on no
+    /// lights, an invalid light or a failed SVD.
     pub fn new(lights: &[[f64; 3]]) -> Result<Self, FitError> {
         let lights = unit_lights(lights)?;
         let design =
@@ -56,10 +61,13 @@ impl PtmBasis {
         })
     }
 
+    /// The unit light directions the basis was built for.
     pub fn lights(&self) -> &[[f64; 3]] {
         &self.lights
     }
 
+    /// Fits one texel: `values` holds one value per light, in
+    /// [`PtmBasis::lights`] order.
     pub fn fit(&self, values: &[f32]) -> Result<PtmFit, FitError> {
         check_values(values, self.lights.len())?;
         Ok(self.fit_checked(values))
@@ -87,14 +95,17 @@ impl PtmBasis {
 /// PTM results for all texels of one view slot, texel-major.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PtmSlotFit {
+    /// One fit per texel, texel-major.
     pub texels: Vec<PtmFit>,
 }
 
 impl PtmSlotFit {
+    /// Mean over texels and lights of |model − value|.
     pub fn mean_abs_error(&self) -> f64 {
         mean(self.texels.iter().map(|t| t.mean_abs_error))
     }
 
+    /// RMS over texels and lights of model − value.
     pub fn rms_error(&self) -> f64 {
         mean(self.texels.iter().map(|t| t.rms_error * t.rms_error)).sqrt()
     }

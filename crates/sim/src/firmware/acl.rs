@@ -26,6 +26,7 @@ pub struct AclJoint {
     pub counts_per_deg: f64,
     /// Limits in degrees (the controller's own, checked on every move).
     pub min_deg: f64,
+    /// Upper limit in degrees (the lower one is `min_deg`).
     pub max_deg: f64,
     /// Motion model in degrees and seconds.
     pub motion: Trapezoid,

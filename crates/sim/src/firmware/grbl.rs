@@ -29,7 +29,10 @@ use rigd_core::motion::Trapezoid;
 
 /// The banner's version and the `$I` answers of the simulated build.
 pub const VERSION: &str = "1.1h";
+/// The `[VER:…]` line's content in the answer to `$I`.
 pub const BUILD_VERSION: &str = "1.1h.20190830:";
+/// The `[OPT:…]` line's content in the answer to `$I` (variable spindle,
+/// 15 planner blocks, 128-byte receive buffer).
 pub const BUILD_OPTIONS: &str = "V,15,128";
 /// GRBL's message after a reset that left it locked.
 pub const UNLOCK_HINT: &str = "'$H'|'$X' to unlock";

@@ -52,14 +52,19 @@ pub const DEFAULT_UNIT: u8 = 1;
 /// One lamp on the module: its coil is its index in [`ModuleConfig::lamps`].
 #[derive(Debug, Clone)]
 pub struct LampSpec {
+    /// The lamp's device name, under which faults are armed.
     pub name: String,
+    /// Seconds from switch-on until the lamp's ready bit is set.
     pub warm_up_s: f64,
+    /// Relay switch time in seconds; a write is answered after it.
     pub switch_s: f64,
 }
 
 /// What is wired to the module.
 #[derive(Debug, Clone)]
 pub struct ModuleConfig {
+    /// The Modbus unit id the module answers to; it also answers 0xFF and
+    /// executes broadcasts (unit 0) without answering.
     pub unit: u8,
     /// Lamps on coils 0..n (at most 16: the bitmask registers are 16 bits).
     pub lamps: Vec<LampSpec>,
@@ -126,6 +131,7 @@ enum Answer {
 }
 
 impl ModbusModule {
+    /// A module with every coil off, its times measured on `clock`.
     pub fn new(cfg: ModuleConfig, clock: Clock, faults: Arc<FaultInjector>) -> ModbusModule {
         let lamps = vec![LampState::default(); cfg.lamps.len()];
         ModbusModule {

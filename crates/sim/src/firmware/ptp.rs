@@ -41,9 +41,13 @@ pub const FIRST_HANDLE: u32 = 0x0001_0001;
 pub struct PtpCameraSpec {
     /// The device name faults are armed for.
     pub name: String,
+    /// Manufacturer string of the DeviceInfo dataset.
     pub manufacturer: String,
+    /// Model string of the DeviceInfo dataset.
     pub model: String,
+    /// DeviceVersion (firmware version) string of the DeviceInfo dataset.
     pub version: String,
+    /// SerialNumber string of the DeviceInfo dataset.
     pub serial: String,
     /// Exposure (also the nominal one frames are scaled against), readout
     /// and transfer times.
@@ -95,6 +99,9 @@ enum Next {
 }
 
 impl PtpFirmware {
+    /// A camera with no session open, its exposure set to the nominal one,
+    /// rendering the built-in default scene; `shot` is asked for the light
+    /// and view at each InitiateCapture.
     pub fn new(spec: PtpCameraSpec, ctx: SimContext, shot: ShotSource) -> PtpFirmware {
         let exposure_units = exposure_to_prop(spec.times.exposure_s).unwrap_or(1);
         PtpFirmware {

@@ -28,6 +28,7 @@ pub enum Effect {
 }
 
 impl Effect {
+    /// Every effect, in the order of declaration.
     pub const ALL: [Effect; 9] = [
         Effect::Relief,
         Effect::Shadows,
@@ -40,6 +41,8 @@ impl Effect {
         Effect::Noise,
     ];
 
+    /// The effect's name in effect switches, JSON and the CLI (`relief`,
+    /// `visibility-maps`, …).
     pub fn name(self) -> &'static str {
         match self {
             Effect::Relief => "relief",
@@ -83,32 +86,40 @@ impl std::str::FromStr for Effect {
 pub struct EffectSet(u16);
 
 impl EffectSet {
+    /// The empty set.
     pub const NONE: EffectSet = EffectSet(0);
 
+    /// The set of every effect.
     pub fn all() -> EffectSet {
         Effect::ALL.into_iter().collect()
     }
 
+    /// True when `e` is in the set.
     pub fn contains(self, e: Effect) -> bool {
         self.0 & e.bit() != 0
     }
 
+    /// Adds `e` to the set.
     pub fn insert(&mut self, e: Effect) {
         self.0 |= e.bit();
     }
 
+    /// Takes `e` out of the set.
     pub fn remove(&mut self, e: Effect) {
         self.0 &= !e.bit();
     }
 
+    /// The effects in the set, in the order of [`Effect::ALL`].
     pub fn iter(self) -> impl Iterator<Item = Effect> {
         Effect::ALL.into_iter().filter(move |e| self.contains(*e))
     }
 
+    /// The names of the effects in the set, in the order of [`Effect::ALL`].
     pub fn names(self) -> Vec<&'static str> {
         self.iter().map(Effect::name).collect()
     }
 
+    /// True when the set holds no effect.
     pub fn is_empty(self) -> bool {
         self.0 == 0
     }
@@ -142,7 +153,9 @@ impl Serialize for EffectSet {
 /// What a frame request asks for beyond the defaults.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct EffectSwitches {
+    /// Effects to render even if they are off by default.
     pub want: EffectSet,
+    /// Effects never to render; this wins over `want`.
     pub forbid: EffectSet,
 }
 
@@ -173,12 +186,14 @@ impl std::str::FromStr for EffectSwitches {
 /// The effects live for one frame, and why the others are not.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct EffectPlan {
+    /// The effects this frame renders.
     pub live: EffectSet,
     /// What the scene could show for this frame.
     pub possible: EffectSet,
 }
 
 impl EffectPlan {
+    /// True when `e` is live for this frame.
     pub fn has(&self, e: Effect) -> bool {
         self.live.contains(e)
     }

@@ -45,15 +45,32 @@ const BUILTIN: &[(&str, &str)] = &[
 /// The scene simulated cameras render when a profile names none.
 pub const DEFAULT_SCENE: &str = "flat-calibration";
 
+/// Why a scene could not be loaded.
 #[derive(Debug, thiserror::Error)]
 pub enum SceneError {
+    /// The scene file does not parse, a value is out of range or an image
+    /// it names cannot be read.
     #[error("{origin}: {message}")]
-    Invalid { origin: String, message: String },
+    Invalid {
+        /// The file's path or the built-in scene's name.
+        origin: String,
+        /// The offending key and what is wrong with it.
+        message: String,
+    },
+    /// The name is neither a built-in scene nor a path to a scene file.
     #[error("unknown scene `{name}` (built in: {known}; or give a path to a .toml file)")]
-    Unknown { name: String, known: String },
+    Unknown {
+        /// The name that was asked for.
+        name: String,
+        /// The built-in scene names, comma-separated.
+        known: String,
+    },
+    /// A scene file could not be read.
     #[error("{path}: {source}")]
     Io {
+        /// The scene file.
         path: PathBuf,
+        /// The I/O error reading it.
         source: std::io::Error,
     },
 }
@@ -68,7 +85,9 @@ fn invalid(origin: &str, message: impl Into<String>) -> SceneError {
 /// The glossy lobe in renderer units.
 #[derive(Debug, Clone, Copy)]
 pub struct Specular {
+    /// Reflectance of the lobe (Ward's ρ_s), in [0, 1].
     pub strength: f64,
+    /// Ward's roughness α along and across the tangent.
     pub alpha: [f64; 2],
     /// Unit tangent in the sample plane.
     pub tangent: [f64; 2],
@@ -77,10 +96,13 @@ pub struct Specular {
 /// A scene ready to render: grids baked, visibility maps computed.
 #[derive(Debug)]
 pub struct Scene {
+    /// The scene's name (e.g. `corduroy`).
     pub name: String,
+    /// A line saying what the sample is.
     pub description: String,
     /// Half the sample's sides, metres.
     pub sample_half: [f64; 2],
+    /// The holder plate under the sample, with its registration markers.
     pub holder: Holder,
     pub(crate) relief: Option<Relief>,
     pub(crate) albedo: Grid,
@@ -93,6 +115,7 @@ pub struct Scene {
     pub(crate) forbid: EffectSet,
     /// The heightfield as specified, for analytic checks.
     pub heightfield: HeightSpec,
+    /// The macro folds as specified, if any, for analytic checks.
     pub macro_shape: Option<MacroSpec>,
 }
 

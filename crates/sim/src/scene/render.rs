@@ -27,6 +27,7 @@ pub const WHITE_LEVEL: f64 = 0.8;
 pub struct LaserSheet {
     /// Where the emitter is, metres, sample frame.
     pub emitter: [f64; 3],
+    /// Unit normal of the light sheet, sample frame.
     pub normal: [f64; 3],
     /// Full width of the line at half its peak, metres.
     pub width_m: f64,
@@ -43,8 +44,11 @@ pub struct Shot {
     pub light: [f64; 3],
     /// Towards the camera.
     pub view: [f64; 3],
+    /// Frame width in pixels.
     pub width: u32,
+    /// Frame height in pixels.
     pub height: u32,
+    /// Bits per pixel of the sensor; pixels clip at `2^bit_depth − 1`.
     pub bit_depth: u8,
     /// Exposure relative to the camera's nominal exposure.
     pub relative_exposure: f64,
@@ -53,16 +57,20 @@ pub struct Shot {
     /// Focal length in pixels of this frame, with `camera_distance_m` a
     /// pinhole camera; `None` an orthographic view of the whole plate.
     pub focal_px: Option<f64>,
+    /// Distance from the sample centre to the camera, metres (used with
+    /// `focal_px`).
     pub camera_distance_m: Option<f64>,
     /// A point lamp at this distance (irradiance falls off with the square
     /// of the distance); `None` a directional light.
     pub lamp_distance_m: Option<f64>,
+    /// The laser line emitter's sheet of light, if the laser is on.
     pub laser: Option<LaserSheet>,
     /// A flat matte plate at this height over the holder hides the sample:
     /// the laser calibration plate of Wang et al., §3.2.
     pub plate_height_m: Option<f64>,
     /// Mixed into the scene's noise seed: one stream per frame.
     pub seed: u64,
+    /// Effects this frame's request wants or forbids beyond the scene's.
     pub effects: EffectSwitches,
 }
 
@@ -88,6 +96,7 @@ impl Default for Shot {
 }
 
 impl Shot {
+    /// True when a lamp lights the frame: `light` points above the horizon.
     pub fn lamp_on(&self) -> bool {
         self.light[2] > 0.0
     }
@@ -96,11 +105,15 @@ impl Shot {
 /// A rendered frame and the effects it paid for.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rendered {
+    /// Frame width in pixels.
     pub width: u32,
+    /// Frame height in pixels.
     pub height: u32,
+    /// Bits per pixel; no value exceeds `2^bit_depth − 1`.
     pub bit_depth: u8,
     /// Row-major, top row first, one value per pixel at the bit depth.
     pub pixels: Vec<u16>,
+    /// Which effects the frame rendered, and which it could have.
     pub plan: EffectPlan,
 }
 

@@ -5,15 +5,22 @@
 pub use rigd_core::holder::HolderSpec;
 use serde::Deserialize;
 
+/// A whole scene file.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SceneSpec {
+    /// The scene's name (e.g. `corduroy`).
     pub name: String,
+    /// A line saying what the sample is, shown by `rigd sim scenes`.
     #[serde(default)]
     pub description: String,
+    /// The sample (`[sample]`).
     pub sample: SampleSpec,
+    /// The holder plate and its markers (`[holder]`); absent: the standard
+    /// plate.
     #[serde(default)]
     pub holder: HolderSpec,
+    /// Sensor noise and vignetting (`[sensor]`); absent: none.
     #[serde(default)]
     pub sensor: SensorSpec,
     /// Effects the scene forbids (`false`) or wants even when they are off
@@ -22,6 +29,8 @@ pub struct SceneSpec {
     pub effects: std::collections::BTreeMap<String, bool>,
 }
 
+/// The sample on the holder (`[sample]`): its size, pattern, relief and
+/// gloss.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SampleSpec {
@@ -30,9 +39,12 @@ pub struct SampleSpec {
     /// Texels across the longer side of the sampled height and albedo grids.
     #[serde(default = "default_resolution")]
     pub resolution: usize,
+    /// The diffuse reflectance pattern.
     pub albedo: AlbedoSpec,
+    /// The mesostructure relief; absent: flat.
     #[serde(default)]
     pub heightfield: HeightSpec,
+    /// The glossy lobe; absent: matte.
     #[serde(default)]
     pub specular: Option<SpecularSpec>,
     /// Standard deviation of the subsurface blur of the irradiance, mm.
@@ -47,36 +59,65 @@ fn default_resolution() -> usize {
     512
 }
 
+/// The sample's diffuse reflectance, chosen by `pattern`. Reflectances are
+/// in [0, 1].
 #[derive(Debug, Clone, Deserialize)]
 #[serde(tag = "pattern", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum AlbedoSpec {
     /// One reflectance everywhere.
-    Uniform { value: f64 },
+    Uniform {
+        /// The reflectance.
+        value: f64,
+    },
     /// A printed calibration pattern: checks with a fine thread print.
     Checks {
+        /// Reflectance at the pattern's darkest point (dark check, thread
+        /// trough).
         dark: f64,
+        /// Reflectance at the pattern's lightest point (light check, thread
+        /// crest).
         light: f64,
+        /// Side of one check, mm.
         check_mm: f64,
+        /// Period of the thread print along x, mm.
         thread_mm: f64,
     },
     /// Dyed yarn: a base colour varying along and across the wales/loops
     /// of the heightfield, darker in its valleys.
     Yarn {
+        /// The mean reflectance.
         base: f64,
+        /// Relative variation of the noise: the reflectance spans
+        /// `base × (1 ± variation)`.
         variation: f64,
+        /// Fraction by which the reflectance drops at the bottom of the
+        /// relief (0: none; 1: black there).
         #[serde(default)]
         valley_darkening: f64,
     },
     /// Mottled: value noise around a base.
     Mottled {
+        /// The mean reflectance.
         base: f64,
+        /// Absolute amplitude of the noise: the reflectance spans
+        /// `base ± variation`.
         variation: f64,
+        /// Size of the mottling's features, mm.
         feature_mm: f64,
     },
     /// A greyscale PNG stretched over the sample, scaled to [min, max].
-    Image { path: String, min: f64, max: f64 },
+    Image {
+        /// The PNG, relative to the scene file.
+        path: String,
+        /// Reflectance of black.
+        min: f64,
+        /// Reflectance of white.
+        max: f64,
+    },
 }
 
+/// The sample's mesostructure relief, chosen by `kind`. Heights are above
+/// the relief's base (height 0).
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
 pub enum HeightSpec {
@@ -85,30 +126,52 @@ pub enum HeightSpec {
     None,
     /// Parallel rounded ridges (corduroy wales) along `direction_deg`.
     Ridges {
+        /// Height of a wale above the grooves, mm.
         amplitude_mm: f64,
+        /// Distance between neighbouring wales, mm.
         period_mm: f64,
+        /// Direction the wales run in the sample plane, degrees from +x.
         #[serde(default)]
         direction_deg: f64,
     },
     /// Interlocking V-shaped knit loops (stockinette).
     Knit {
+        /// Height of the yarn's crest, mm.
         amplitude_mm: f64,
+        /// Width of one stitch (along x), mm.
         stitch_width_mm: f64,
+        /// Height of one stitch row (along y), mm.
         stitch_height_mm: f64,
+        /// Radius of the yarn in the sample plane, mm.
         yarn_radius_mm: f64,
     },
     /// Shallow cellular relief (grained leather).
-    Cells { amplitude_mm: f64, cell_mm: f64 },
+    Cells {
+        /// Height of the grains above the creases between them, mm.
+        amplitude_mm: f64,
+        /// Size of one grain cell, mm.
+        cell_mm: f64,
+    },
     /// Spherical caps on a grid: normals known in closed form.
     Domes {
+        /// Radius of the sphere each cap is cut from, mm.
         radius_mm: f64,
+        /// Height of a cap above the base, mm (at most `radius_mm`).
         height_mm: f64,
+        /// Caps per side: `count × count` caps in equal cells of a 100 mm
+        /// square.
         count: usize,
     },
     /// A greyscale PNG: black = 0, white = `amplitude_mm`.
-    Image { path: String, amplitude_mm: f64 },
+    Image {
+        /// The PNG, relative to the scene file.
+        path: String,
+        /// Height of white, mm.
+        amplitude_mm: f64,
+    },
 }
 
+/// The glossy lobe: Ward's anisotropic model.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SpecularSpec {
@@ -121,12 +184,16 @@ pub struct SpecularSpec {
     pub tangent_deg: f64,
 }
 
+/// A macro shape: sinusoidal folds of the whole sample (a folded cloth).
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MacroSpec {
     /// Fold height above the holder, crest to trough, mm.
     pub fold_height_mm: f64,
+    /// Distance from one fold crest to the next, mm.
     pub wavelength_mm: f64,
+    /// Direction across the folds (along which the height varies), degrees
+    /// from +x.
     #[serde(default)]
     pub direction_deg: f64,
     /// Binary visibility maps (Ganster et al., hemisphere model).
@@ -134,6 +201,7 @@ pub struct MacroSpec {
     pub visibility: VisibilitySpec,
 }
 
+/// Resolution of a macro shape's binary visibility maps (Ganster et al.).
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct VisibilitySpec {
@@ -141,6 +209,7 @@ pub struct VisibilitySpec {
     pub vertices: usize,
     /// Hemisphere cells: polar rings and azimuth sectors.
     pub theta_cells: usize,
+    /// Azimuth sectors of the hemisphere.
     pub phi_cells: usize,
 }
 
@@ -154,6 +223,8 @@ impl Default for VisibilitySpec {
     }
 }
 
+/// The simulated sensor's noise and vignetting (`[sensor]`); zero turns
+/// each off.
 #[derive(Debug, Clone, Default, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SensorSpec {

@@ -9,10 +9,13 @@ use super::spec::{AlbedoSpec, HeightSpec, MacroSpec};
 /// sampled bilinearly; outside the sample it reads as its edge value.
 #[derive(Debug, Clone)]
 pub struct Grid {
+    /// Texels along x.
     pub nx: usize,
+    /// Texels along y.
     pub ny: usize,
     /// Texel size, metres.
     pub texel: f64,
+    /// The texel values, row-major (`data[j * nx + i]`), rows along +y.
     pub data: Vec<f32>,
 }
 
@@ -77,6 +80,7 @@ impl Grid {
         }
     }
 
+    /// The largest texel value, or 0 if none is positive.
     pub fn max(&self) -> f64 {
         self.data.iter().copied().fold(0f32, f32::max) as f64
     }
