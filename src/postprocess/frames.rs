@@ -5,7 +5,8 @@ use std::path::{Path, PathBuf};
 use rigd_process::image_io::Image;
 
 use super::ProcessError;
-use crate::store::{decode_png, read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
+use crate::rig::hal::decode_png;
+use crate::store::{read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
 
 /// A run's metadata and every frame it wrote, in capture order.
 pub struct RunFrames {

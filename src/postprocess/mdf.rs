@@ -438,7 +438,7 @@ pub fn mdf_run(
     let json = serde_json::to_vec_pretty(&report)
         .map_err(|e| ProcessError::Invalid(format!("report: {e}")))?;
     let path = out.join("report.json");
-    rigd_process::atomic::write(&path, &json).map_err(|e| io_error(&path, e))?;
+    rigd_core::atomic::write(&path, &json).map_err(|e| io_error(&path, e.error))?;
     Ok(report)
 }
 

@@ -226,6 +226,45 @@ impl fmt::Debug for Rig {
     }
 }
 
+/// Encodes a frame as a greyscale PNG: 8-bit for cameras of 8 bits or
+/// fewer, else 16-bit holding the raw sensor values (not rescaled).
+pub fn encode_png(frame: &Frame) -> Result<Vec<u8>, String> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, frame.width, frame.height);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_compression(png::Compression::Fast);
+        let data: Vec<u8> = if frame.bit_depth <= 8 {
+            enc.set_depth(png::BitDepth::Eight);
+            frame.pixels.iter().map(|&v| v.min(255) as u8).collect()
+        } else {
+            enc.set_depth(png::BitDepth::Sixteen);
+            frame.pixels.iter().flat_map(|v| v.to_be_bytes()).collect()
+        };
+        let mut w = enc.write_header().map_err(|e| e.to_string())?;
+        w.write_image_data(&data).map_err(|e| e.to_string())?;
+    }
+    Ok(out)
+}
+
+/// Decodes a frame PNG written by [`encode_png`] back to pixel values.
+pub fn decode_png(bytes: &[u8]) -> Result<(u32, u32, Vec<u16>), String> {
+    let dec = png::Decoder::new(bytes);
+    let mut reader = dec.read_info().map_err(|e| e.to_string())?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
+    let data = &buf[..info.buffer_size()];
+    let pixels = match info.bit_depth {
+        png::BitDepth::Sixteen => data
+            .chunks_exact(2)
+            .map(|c| u16::from_be_bytes([c[0], c[1]]))
+            .collect(),
+        png::BitDepth::Eight => data.iter().map(|&b| b as u16).collect(),
+        d => return Err(format!("unsupported PNG depth {d:?}")),
+    };
+    Ok((info.width, info.height, pixels))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -12,8 +12,8 @@ use serde::Serialize;
 
 use crate::kinematics::camera::{camera_geometry, CameraGeometry};
 use crate::model::profile::Profile;
+use crate::rig::hal::encode_png;
 use crate::rig::hal::Frame;
-use crate::store::{encode_png, write_atomic};
 use rigd_core::geometry::Direction;
 
 /// Why a frame could not be rendered or written.
@@ -308,8 +308,8 @@ impl RenderOutput {
         let mut json =
             serde_json::to_vec_pretty(&self.meta()).map_err(|e| werr(&meta_path, e.to_string()))?;
         json.push(b'\n');
-        write_atomic(out, &png).map_err(|e| werr(out, e.to_string()))?;
-        write_atomic(&meta_path, &json).map_err(|e| werr(&meta_path, e.to_string()))?;
+        rigd_core::atomic::write(out, &png).map_err(|e| werr(out, e.to_string()))?;
+        rigd_core::atomic::write(&meta_path, &json).map_err(|e| werr(&meta_path, e.to_string()))?;
         Ok(meta_path)
     }
 }

@@ -29,7 +29,7 @@ use crate::kinematics::Setpoints;
 use crate::model::profile::Profile;
 use crate::model::run_state::{IllegalTransition, RunState};
 use crate::plan::Plan;
-use crate::rig::hal::Frame;
+use crate::rig::hal::{encode_png, Frame};
 use rigd_core::geometry::Direction;
 
 /// Format tag of `run.json` and `manifest.json`.
@@ -292,68 +292,18 @@ pub fn now_rfc3339() -> String {
 /// Writes `bytes` to `path` atomically: a temporary file, fsync, rename, and
 /// an fsync of the directory so the rename itself survives a crash.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), StoreError> {
-    // A bare file name has the empty path as its parent.
-    let dir = path
-        .parent()
-        .filter(|d| !d.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let tmp = dir.join(format!(".{name}.tmp"));
-    {
-        let mut f = File::create(&tmp).map_err(io(&tmp, "create"))?;
-        f.write_all(bytes).map_err(io(&tmp, "write"))?;
-        f.sync_all().map_err(io(&tmp, "fsync"))?;
+    rigd_core::atomic::write(path, bytes)?;
+    Ok(rigd_core::atomic::sync_parent(path)?)
+}
+
+impl From<rigd_core::atomic::WriteError> for StoreError {
+    fn from(e: rigd_core::atomic::WriteError) -> StoreError {
+        StoreError::Io {
+            path: e.path,
+            op: e.op,
+            error: e.error,
+        }
     }
-    fs::rename(&tmp, path).map_err(io(path, "rename"))?;
-    sync_dir(dir)
-}
-
-fn sync_dir(dir: &Path) -> Result<(), StoreError> {
-    File::open(dir)
-        .and_then(|d| d.sync_all())
-        .map_err(io(dir, "fsync directory"))
-}
-
-/// Encodes a frame as a greyscale PNG: 8-bit for cameras of 8 bits or
-/// fewer, else 16-bit holding the raw sensor values (not rescaled).
-pub fn encode_png(frame: &Frame) -> Result<Vec<u8>, String> {
-    let mut out = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut out, frame.width, frame.height);
-        enc.set_color(png::ColorType::Grayscale);
-        enc.set_compression(png::Compression::Fast);
-        let data: Vec<u8> = if frame.bit_depth <= 8 {
-            enc.set_depth(png::BitDepth::Eight);
-            frame.pixels.iter().map(|&v| v.min(255) as u8).collect()
-        } else {
-            enc.set_depth(png::BitDepth::Sixteen);
-            frame.pixels.iter().flat_map(|v| v.to_be_bytes()).collect()
-        };
-        let mut w = enc.write_header().map_err(|e| e.to_string())?;
-        w.write_image_data(&data).map_err(|e| e.to_string())?;
-    }
-    Ok(out)
-}
-
-/// Decodes a frame PNG written by [`encode_png`] back to pixel values.
-pub fn decode_png(bytes: &[u8]) -> Result<(u32, u32, Vec<u16>), String> {
-    let dec = png::Decoder::new(bytes);
-    let mut reader = dec.read_info().map_err(|e| e.to_string())?;
-    let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).map_err(|e| e.to_string())?;
-    let data = &buf[..info.buffer_size()];
-    let pixels = match info.bit_depth {
-        png::BitDepth::Sixteen => data
-            .chunks_exact(2)
-            .map(|c| u16::from_be_bytes([c[0], c[1]]))
-            .collect(),
-        png::BitDepth::Eight => data.iter().map(|&b| b as u16).collect(),
-        d => return Err(format!("unsupported PNG depth {d:?}")),
-    };
-    Ok((info.width, info.height, pixels))
 }
 
 /// Lowercase hex SHA-256 of `bytes`, as in [`FrameEntry::sha256`].
@@ -440,6 +390,7 @@ impl RunDir {
         }
         recovery.retake = bad;
         remove_temporaries(&root.join(FRAMES_DIR))?;
+        remove_temporaries(root)?;
         if let Some(s) = state {
             recovery.physical_s = recovery.physical_s.max(s.physical_s);
         }
@@ -706,11 +657,13 @@ pub fn read_journal(path: &Path) -> Result<(Vec<FrameEntry>, u64), StoreError> {
     Ok((entries, torn))
 }
 
-fn remove_temporaries(frames: &Path) -> Result<(), StoreError> {
-    for entry in fs::read_dir(frames).map_err(io(frames, "read directory"))? {
-        let entry = entry.map_err(io(frames, "read directory"))?;
+/// Removes what a crash left half-written in `dir`: frames (`.NNNNNN.png.tmp`)
+/// and records (`.state.json.tmp.PID.N`, from `rigd_core::atomic`).
+fn remove_temporaries(dir: &Path) -> Result<(), StoreError> {
+    for entry in fs::read_dir(dir).map_err(io(dir, "read directory"))? {
+        let entry = entry.map_err(io(dir, "read directory"))?;
         let name = entry.file_name().to_string_lossy().into_owned();
-        if name.starts_with('.') && name.ends_with(".tmp") {
+        if name.starts_with('.') && (name.ends_with(".tmp") || name.contains(".tmp.")) {
             fs::remove_file(entry.path()).map_err(io(&entry.path(), "remove"))?;
         }
     }
@@ -759,7 +712,7 @@ mod tests {
                 pixels: vec![0, 1, max, 7, 100, max / 2],
             };
             let bytes = encode_png(&f).unwrap_or_default();
-            let (w, h, px) = decode_png(&bytes).unwrap_or_else(|e| panic!("{e}"));
+            let (w, h, px) = crate::rig::hal::decode_png(&bytes).unwrap_or_else(|e| panic!("{e}"));
             assert_eq!((w, h, px), (3, 2, f.pixels.clone()));
         }
     }

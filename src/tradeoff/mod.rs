@@ -40,6 +40,7 @@ use crate::plan::{self, Plan, H2_THETAS, HEMISPHERE_RING_COUNTS};
 use crate::postprocess::truth::true_texture;
 use crate::postprocess::ProcessError;
 use crate::schedule::{self, Schedule};
+use crate::store::StoreError;
 use rigd_core::geometry::Direction;
 
 /// Settings of a trade-off run.
@@ -784,11 +785,14 @@ fn fidelity(scene: &Scene, size: [u32; 2]) -> Vec<Row> {
 }
 
 fn write_outputs(out: &Path, report: &Report) -> Result<(), ProcessError> {
-    let io = |e: std::io::Error| ProcessError::Invalid(format!("{}: {e}", out.display()));
-    std::fs::create_dir_all(out).map_err(io)?;
+    std::fs::create_dir_all(out).map_err(|error| StoreError::Io {
+        path: out.to_path_buf(),
+        op: "create directory",
+        error,
+    })?;
     let json =
         serde_json::to_vec_pretty(report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
-    rigd_process::atomic::write(&out.join("tradeoff.json"), &json).map_err(io)?;
+    rigd_core::atomic::write(&out.join("tradeoff.json"), &json).map_err(StoreError::from)?;
     let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
     let mut csv =
         String::from("family,setting,images,physical_s,bytes,error,unit,compute_s,detail\n");
@@ -806,8 +810,10 @@ fn write_outputs(out: &Path, report: &Report) -> Result<(), ProcessError> {
             r.detail.clone().unwrap_or_default().replace('"', "'")
         ));
     }
-    rigd_process::atomic::write(&out.join("tradeoff.csv"), csv.as_bytes()).map_err(io)?;
-    rigd_process::atomic::write(&out.join("tradeoff.svg"), svg(report).as_bytes()).map_err(io)?;
+    rigd_core::atomic::write(&out.join("tradeoff.csv"), csv.as_bytes())
+        .map_err(StoreError::from)?;
+    rigd_core::atomic::write(&out.join("tradeoff.svg"), svg(report).as_bytes())
+        .map_err(StoreError::from)?;
     Ok(())
 }
 

@@ -62,3 +62,18 @@ pub fn assert_complete_run(dir: &Path, expected_frames: usize) -> Manifest {
 }
 
 pub mod http;
+
+/// A device error's kind as the protocol transcripts in
+/// `firmware-protocols/` name it.
+pub fn kind_name(k: rigd::rig::hal::ErrorKind) -> &'static str {
+    use rigd::rig::hal::ErrorKind;
+    match k {
+        ErrorKind::Timeout => "timeout",
+        ErrorKind::Disconnected => "disconnected",
+        ErrorKind::DeviceFault => "device_fault",
+        ErrorKind::OutOfLimits => "out_of_limits",
+        ErrorKind::BadFrame => "bad_frame",
+        ErrorKind::NotReady => "not_ready",
+        ErrorKind::Storage => "storage",
+    }
+}

@@ -341,7 +341,7 @@ async fn a_run_completes_with_steps_frames_and_manifest() {
     let on_disk =
         std::fs::read(s.data.join("runs").join(&id).join("frames/000004.png")).expect("frame");
     assert_eq!(png, on_disk);
-    let (w, h, _) = rigd::store::decode_png(&png).expect("decodes");
+    let (w, h, _) = rigd::rig::hal::decode_png(&png).expect("decodes");
     assert_eq!((w, h), (16, 12));
     let (status, ct, prev) = s
         .get_bytes(&format!("/api/v1/runs/{id}/frames/4/preview"))
@@ -992,7 +992,7 @@ async fn sim_render_returns_a_frame_with_its_effects() {
         "{effects}"
     );
     let png = resp.bytes().await.expect("body");
-    let (w, h, pixels) = rigd::store::decode_png(&png).expect("a PNG");
+    let (w, h, pixels) = rigd::rig::hal::decode_png(&png).expect("a PNG");
     assert_eq!((w, h), (64, 48));
     assert!(pixels.iter().any(|&p| p > 0));
     // The flat default scene pays for nothing.

@@ -356,7 +356,7 @@ fn sim_render_writes_a_frame_and_its_metadata() {
         .expect("rigd");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let (w, h, pixels) =
-        rigd::store::decode_png(&std::fs::read(&out).expect("png")).expect("decodes");
+        rigd::rig::hal::decode_png(&std::fs::read(&out).expect("png")).expect("decodes");
     assert_eq!((w, h), (96, 72));
     assert!(
         pixels.iter().any(|&p| p > 0) && pixels.iter().all(|&p| p <= 255),

@@ -145,7 +145,7 @@ fn virtex_default_plan_is_one_frame_per_lamp() {
     // Each frame is lit: brighter than the unlit holder.
     for f in &m.frames {
         let bytes = std::fs::read(out.join(&f.file)).expect("frame");
-        let (_, _, px) = rigd::store::decode_png(&bytes).expect("png");
+        let (_, _, px) = rigd::rig::hal::decode_png(&bytes).expect("png");
         assert!(
             px.iter().copied().max().unwrap_or(0) > 1000,
             "{} is dark",

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use rigd::model::profile::{Limits, Motion};
 use rigd::rig::drivers::grbl::{GrblAxis, GrblConfig};
-use rigd::rig::hal::{Axis, DeviceError, ErrorKind};
+use rigd::rig::hal::{Axis, DeviceError};
 use rigd_core::Clock;
 use rigd_proto::grbl::LineSplitter;
 use rigd_sim::firmware::grbl::{serve, GrblParams};
@@ -245,18 +245,6 @@ async fn play_device(mut io: DuplexStream, steps: Vec<Step>) -> Result<(), Strin
     }
 }
 
-fn kind_name(k: ErrorKind) -> &'static str {
-    match k {
-        ErrorKind::Timeout => "timeout",
-        ErrorKind::Disconnected => "disconnected",
-        ErrorKind::DeviceFault => "device_fault",
-        ErrorKind::OutOfLimits => "out_of_limits",
-        ErrorKind::BadFrame => "bad_frame",
-        ErrorKind::NotReady => "not_ready",
-        ErrorKind::Storage => "storage",
-    }
-}
-
 fn check(title: &str, call: &str, expect: &str, got: &Result<Option<f64>, DeviceError>) {
     let (what, arg) = match expect.split_once(' ') {
         Some((w, a)) => (w, Some(a)),
@@ -274,7 +262,11 @@ fn check(title: &str, call: &str, expect: &str, got: &Result<Option<f64>, Device
             }
         }
         (kind, Err(e)) if kind != "ok" => {
-            assert_eq!(kind_name(e.kind), kind, "{title}: {call}: {e}");
+            assert_eq!(
+                crate::common::kind_name(e.kind),
+                kind,
+                "{title}: {call}: {e}"
+            );
             if let Some(text) = arg {
                 assert!(
                     e.message.contains(text),

@@ -9,7 +9,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use rigd::rig::drivers::modbus::{all_off, rtu_bus, tcp_bus, ModbusConfig, ModbusLamp, SharedBus};
-use rigd::rig::hal::{DeviceError, ErrorKind, Lamp};
+use rigd::rig::hal::{DeviceError, Lamp};
 use rigd_core::Clock;
 use rigd_proto::modbus::Framing;
 use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
@@ -209,18 +209,6 @@ async fn play_device(mut io: DuplexStream, steps: Vec<Step>, clock: Clock) -> Re
     }
 }
 
-fn kind_name(k: ErrorKind) -> &'static str {
-    match k {
-        ErrorKind::Timeout => "timeout",
-        ErrorKind::Disconnected => "disconnected",
-        ErrorKind::DeviceFault => "device_fault",
-        ErrorKind::OutOfLimits => "out_of_limits",
-        ErrorKind::BadFrame => "bad_frame",
-        ErrorKind::NotReady => "not_ready",
-        ErrorKind::Storage => "storage",
-    }
-}
-
 fn check(call: &str, expect: &str, got: &Result<(), DeviceError>) -> Result<(), String> {
     let (what, text) = match expect.split_once(' ') {
         Some((w, t)) => (w, Some(t)),
@@ -229,7 +217,7 @@ fn check(call: &str, expect: &str, got: &Result<(), DeviceError>) -> Result<(), 
     match (what, got) {
         ("ok", Ok(())) => Ok(()),
         (kind, Err(e)) if kind != "ok" => {
-            if kind_name(e.kind) != kind {
+            if crate::common::kind_name(e.kind) != kind {
                 return Err(format!("{call}: expected {expect}, got {e}"));
             }
             match text {

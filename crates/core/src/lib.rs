@@ -9,6 +9,7 @@
 //! so the hardware path builds without the simulator.
 #![warn(missing_docs)]
 
+pub mod atomic;
 pub mod camera;
 pub mod clock;
 pub mod geometry;

@@ -1027,8 +1027,8 @@ fn write_atomically(
     path: &Path,
     fill: impl FnOnce(&mut io::BufWriter<&fs::File>) -> io::Result<()>,
 ) -> Result<(), BtfError> {
-    crate::atomic::write_with(path, fill).map_err(|source| BtfError::Io {
+    rigd_core::atomic::write_with(path, fill).map_err(|e| BtfError::Io {
         path: path.to_path_buf(),
-        source,
+        source: e.error,
     })
 }

@@ -216,7 +216,7 @@ pub fn write(
             }
             let options = zip::write::SimpleFileOptions::default()
                 .compression_method(zip::CompressionMethod::Stored);
-            crate::atomic::write_with(out, |file| {
+            rigd_core::atomic::write_with(out, |file| {
                 let mut zip = zip::ZipWriter::new(file);
                 for t in textures {
                     let name = ubo_name(t.light, t.view);

@@ -267,9 +267,9 @@ pub fn encode_png(image: &Image, depth: PngDepth, path: &Path) -> Result<Vec<u8>
 /// Writes an image as PNG, atomically.
 pub fn write_png(path: &Path, image: &Image, depth: PngDepth) -> Result<(), ImageError> {
     let bytes = encode_png(image, depth, path)?;
-    crate::atomic::write(path, &bytes).map_err(|source| ImageError::Write {
+    rigd_core::atomic::write(path, &bytes).map_err(|e| ImageError::Write {
         path: path.to_path_buf(),
-        source,
+        source: e.error,
     })
 }
 

@@ -4,7 +4,6 @@
 //! daemon and the trade-off report.
 #![warn(missing_docs)]
 
-pub mod atomic;
 pub mod btf;
 pub mod directions;
 pub mod export;

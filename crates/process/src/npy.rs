@@ -215,9 +215,9 @@ pub fn write(path: &Path, shape: &[usize], data: &[f32], dtype: Dtype) -> Result
         path: path.to_path_buf(),
         source,
     })?;
-    crate::atomic::write(path, &bytes).map_err(|source| NpyError::Write {
+    rigd_core::atomic::write(path, &bytes).map_err(|e| NpyError::Write {
         path: path.to_path_buf(),
-        source,
+        source: e.error,
     })
 }
 

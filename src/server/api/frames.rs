@@ -8,9 +8,10 @@ use axum::response::{IntoResponse, Response};
 use axum::extract::State;
 
 use super::AppState;
+use crate::rig::hal::decode_png;
 use crate::server::error::{ApiError, ApiPath, ErrorBody};
 use crate::server::supervisor::Daemon;
-use crate::store::{decode_png, frame_file};
+use crate::store::frame_file;
 
 /// Longest side of a preview, pixels.
 pub const PREVIEW_MAX: u32 = 256;
@@ -148,7 +149,7 @@ mod tests {
             bit_depth: 12,
             pixels: (0..600 * 300).map(|i| (i % 4096) as u16).collect(),
         };
-        let png16 = crate::store::encode_png(&frame).expect("encode");
+        let png16 = crate::rig::hal::encode_png(&frame).expect("encode");
         let out = make_preview(&png16, 256).expect("preview");
         let dec = png::Decoder::new(&out[..]);
         let reader = dec.read_info().expect("png");

@@ -88,10 +88,10 @@ pub fn write_outputs(result: &PsResult, out_dir: &Path) -> Result<Vec<PathBuf>, 
     )?;
 
     let path = out_dir.join("report.json");
-    crate::atomic::write(&path, report_json(&result.report).as_bytes()).map_err(|source| {
+    rigd_core::atomic::write(&path, report_json(&result.report).as_bytes()).map_err(|e| {
         PsError::Write {
             path: path.clone(),
-            source,
+            source: e.error,
         }
     })?;
     written.push(path);
