@@ -44,14 +44,33 @@ pub struct SlotSummary {
     pub rms_by_components: Vec<f64>,
 }
 
+/// What the compression may hold in memory for the slots it works on at
+/// once: each slot in flight holds its images (f32), its factors (f64 and
+/// their f32 copies) and one block of its centred matrix, 35 MB for 81
+/// lights at 256² and C = 16; at most one slot per core is in flight, and
+/// fewer if this budget says so.
+pub const BTF_MEMORY_BUDGET_BYTES: usize = 384 << 20;
+
+/// Bytes one slot in flight holds: images in f32, the mean in f64, the
+/// eigen-textures in f64 and f32, and a 4096-row block of the centred
+/// matrix in f64.
+fn slot_bytes(values: usize, lights: usize, components: usize) -> usize {
+    values
+        .saturating_mul(4 * lights + 12 * components + 8)
+        .saturating_add(4096 * lights * 8)
+}
+
 /// Compresses a rectified run's BTF: a PCA per view slot with `components`
-/// components (Sattler et al., §4.1), streamed slot by slot into
-/// `processed/btf/`, and its report.
+/// components (Sattler et al., §4.1), into `processed/btf/`, and its report.
+/// Slots are read and compressed in parallel, as many at a time as there are
+/// cores and [`BTF_MEMORY_BUDGET_BYTES`] allows, and written in slot order as
+/// they finish; `progress(done, total)` follows the slots written.
 pub fn btf_run(
     run: &Path,
     components: usize,
     progress: &dyn Fn(usize, usize),
 ) -> Result<BtfReport, ProcessError> {
+    use rayon::prelude::*;
     use rigd_process::btf::{compress_slot, BtfWriter, TextureShape};
     use rigd_process::directions::{Direction as PDir, DirectionTable};
     let index = NormtextureIndex::read(run)?;
@@ -70,24 +89,36 @@ pub fn btf_run(
     let started = std::time::Instant::now();
     let mut writer = BtfWriter::create(&dir, shape, &lights, &views, components)
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-    let mut per_slot = Vec::with_capacity(index.views.len());
-    for (slot, view) in index.views.iter().enumerate() {
+    let slots = index.views.len();
+    let in_flight = (BTF_MEMORY_BUDGET_BYTES
+        / slot_bytes(shape.values(), index.lights.len(), components).max(1))
+    .clamp(1, rayon::current_num_threads().max(1));
+    let compress = |slot: usize| -> Result<_, ProcessError> {
         let images = (0..index.lights.len())
             .map(|l| index.load(run, slot, l).map(|img| img.data))
             .collect::<Result<Vec<_>, _>>()?;
         let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
-        let pca = compress_slot(&refs, shape, components)
-            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
-        writer
-            .write_slot(slot, &pca)
-            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
-        per_slot.push(SlotSummary {
-            slot,
-            view: *view,
-            eigenvalues: pca.eigenvalues().into_iter().take(32).collect(),
-            rms_by_components: pca.rms_error_curve(32),
-        });
-        progress(slot + 1, index.views.len());
+        compress_slot(&refs, shape, components)
+            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))
+    };
+    let mut per_slot = Vec::with_capacity(slots);
+    for first in (0..slots).step_by(in_flight) {
+        let batch = (first..(first + in_flight).min(slots))
+            .into_par_iter()
+            .map(compress)
+            .collect::<Result<Vec<_>, _>>()?;
+        for (pca, slot) in batch.into_iter().zip(first..) {
+            writer
+                .write_slot(slot, &pca)
+                .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
+            per_slot.push(SlotSummary {
+                slot,
+                view: index.views[slot],
+                eigenvalues: pca.eigenvalues().into_iter().take(32).collect(),
+                rms_by_components: pca.rms_error_curve(32),
+            });
+            progress(slot + 1, slots);
+        }
     }
     writer
         .finish()

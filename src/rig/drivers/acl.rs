@@ -86,9 +86,8 @@ impl AclConfig {
         }
     }
 
-    /// Worst case for a joint-interpolated move to finish: twice the
-    /// slowest joint's modelled time plus a command timeout and a poll.
-    fn motion_deadline(&self, from: &[f64], to: &[f64]) -> Duration {
+    /// The modelled time of a joint-interpolated move: the slowest joint's.
+    fn modelled_move_time(&self, from: &[f64], to: &[f64]) -> Duration {
         let t = self
             .joints
             .iter()
@@ -96,6 +95,13 @@ impl AclConfig {
             .map(|(j, (f, t))| rigd_core::Trapezoid::from(j.motion).move_time(t - f))
             .filter(|t| t.is_finite())
             .fold(0.0, f64::max);
+        Duration::from_secs_f64(t)
+    }
+
+    /// Worst case for a joint-interpolated move to finish: twice the
+    /// slowest joint's modelled time plus a command timeout and a poll.
+    fn motion_deadline(&self, from: &[f64], to: &[f64]) -> Duration {
+        let t = self.modelled_move_time(from, to).as_secs_f64();
         Duration::from_secs_f64(2.0 * t) + self.command_timeout + self.poll_interval
     }
 }
@@ -495,8 +501,9 @@ where
         };
         self.expect(&mv, Reply::Done, t).await?;
         let deadline = self.cfg.motion_deadline(&from, joints);
+        let modelled = self.cfg.modelled_move_time(&from, joints);
         let clock = self.clock.clone();
-        match clock.deadline(deadline, self.wait_still()).await {
+        match clock.deadline(deadline, self.wait_still(modelled)).await {
             Ok(r) => r?,
             Err(_) => {
                 return Err(AclError::Timeout {
@@ -508,13 +515,21 @@ where
         self.read_joints().await
     }
 
-    /// Polls `STATUS` every poll interval until the controller reports no motion.
-    async fn wait_still(&mut self) -> Result<(), AclError> {
+    /// Polls `STATUS` until the controller reports no motion, on the poll
+    /// interval's grid from the `MOVE`, skipping the polls that
+    /// [`super::quiet_polls`] says fall inside the modelled move.
+    async fn wait_still(&mut self, modelled: Duration) -> Result<(), AclError> {
+        let interval = self.cfg.poll_interval;
+        let mut skip = super::quiet_polls(modelled, interval);
         loop {
-            self.clock.sleep(self.cfg.poll_interval).await;
+            self.clock.sleep(interval).await;
             let s = self.status().await?;
             if !s.moving {
                 return Ok(());
+            }
+            if skip > 0 {
+                self.clock.sleep(interval.saturating_mul(skip)).await;
+                skip = 0;
             }
         }
     }

@@ -65,16 +65,21 @@ impl GrblConfig {
         }
     }
 
+    /// The modelled time of a move of `distance` degrees (0 if the model
+    /// cannot say).
+    fn modelled_move_time(&self, distance: f64) -> Duration {
+        let travel = rigd_core::Trapezoid::from(self.motion).move_time(distance);
+        if travel.is_finite() && travel >= 0.0 {
+            Duration::from_secs_f64(travel)
+        } else {
+            Duration::ZERO
+        }
+    }
+
     /// Worst-case time for a move of `distance` degrees to reach Idle:
     /// twice the modelled time plus one command timeout of slack.
     fn motion_deadline(&self, distance: f64) -> Duration {
-        let m = self.motion;
-        let travel = rigd_core::Trapezoid::from(m).move_time(distance);
-        let t = if travel.is_finite() && travel >= 0.0 {
-            travel
-        } else {
-            0.0
-        };
+        let t = self.modelled_move_time(distance).as_secs_f64();
         Duration::from_secs_f64(2.0 * t) + self.command_timeout + self.poll_interval
     }
 }
@@ -600,7 +605,8 @@ where
             .await?;
         let clock = self.clock.clone();
         let timeout = self.cfg.motion_deadline(target - from);
-        let r = clock.deadline(timeout, self.wait_idle()).await;
+        let modelled = self.cfg.modelled_move_time(target - from);
+        let r = clock.deadline(timeout, self.wait_idle(modelled)).await;
         let s = self.deadline_result(r, "motion to reach Idle", timeout)?;
         Self::x_of(&s)
     }
@@ -622,15 +628,22 @@ where
     async fn wait_sweep(&mut self) -> Result<f64, GrblError> {
         let clock = self.clock.clone();
         let timeout = SWEEP_WAIT_LIMIT;
-        let r = clock.deadline(timeout, self.wait_idle()).await;
+        // A sweep's length is the caller's: poll it all the way.
+        let r = clock
+            .deadline(timeout, self.wait_idle(Duration::ZERO))
+            .await;
         let s = self.deadline_result(r, "sweep to reach Idle", timeout)?;
         Self::x_of(&s)
     }
 
-    /// Polls `?` every poll interval until the controller reports Idle.
-    async fn wait_idle(&mut self) -> Result<Status, GrblError> {
+    /// Polls `?` until the controller reports Idle, on the poll interval's
+    /// grid from the command, skipping the polls that
+    /// [`super::quiet_polls`] says fall inside the `modelled` move.
+    async fn wait_idle(&mut self, modelled: Duration) -> Result<Status, GrblError> {
+        let interval = self.cfg.poll_interval;
+        let mut skip = super::quiet_polls(modelled, interval);
         loop {
-            self.clock.sleep(self.cfg.poll_interval).await;
+            self.clock.sleep(interval).await;
             let s = self.status_exchange().await?;
             match s.state {
                 MachineState::Idle => return Ok(s),
@@ -638,6 +651,10 @@ where
                 // deadline bounds a hold that is never released).
                 MachineState::Run | MachineState::Jog | MachineState::Hold(_) => {}
                 other => return Err(GrblError::State(other, "Run or Idle")),
+            }
+            if skip > 0 {
+                self.clock.sleep(interval.saturating_mul(skip)).await;
+                skip = 0;
             }
         }
     }

@@ -4,8 +4,8 @@ use std::path::Path;
 
 use proptest::prelude::*;
 use rigd_process::btf::{
-    compress_slot, compress_to_dir, BtfError, BtfHeader, BtfStore, BtfWriter, SlotPca,
-    TextureShape, HEADER_FILE, MAX_REPORTED_COMPONENTS,
+    compress_slot, compress_slot_by, compress_to_dir, BtfError, BtfHeader, BtfStore, BtfWriter,
+    PcaRoute, SlotPca, TextureShape, HEADER_FILE, MAX_REPORTED_COMPONENTS,
 };
 use rigd_process::directions::{
     h1, h2, ring_directions, Direction, DirectionError, DirectionTable, Interpolation,
@@ -500,6 +500,148 @@ fn rank_deficient_slots_are_finite_and_clamped() {
     assert_eq!(pca.components(), 1);
     assert!(all_finite(&pca));
     assert!(explicit_rms(&pca, &pixels, 1) < 1e-5);
+}
+
+#[test]
+fn the_gram_route_agrees_with_the_thin_svd() {
+    // A realistic tall slot (values ≫ lights): a smooth BTF plus 8-bit-sized
+    // noise, so the spectrum decays over the whole range the report covers.
+    let shape = TextureShape::new(24, 20, 1).unwrap();
+    let lights = DirectionTable::new(h1()).unwrap();
+    assert_eq!(
+        PcaRoute::for_shape(shape.values(), lights.len()),
+        PcaRoute::Gram
+    );
+    assert_eq!(PcaRoute::for_shape(100, 81), PcaRoute::ThinSvd);
+    let mut rng = Lcg(11);
+    let images: Vec<Vec<f32>> = analytic_slot(shape, &lights, Direction::new(40.0, 300.0))
+        .into_iter()
+        .map(|img| img.into_iter().map(|v| v + 0.004 * rng.next()).collect())
+        .collect();
+    let gram = compress_slot_by(PcaRoute::Gram, &refs(&images), shape, 16).unwrap();
+    let svd = compress_slot_by(PcaRoute::ThinSvd, &refs(&images), shape, 16).unwrap();
+    let (lg, ls) = (gram.eigenvalues(), svd.eigenvalues());
+    assert_eq!(lg.len(), ls.len());
+    for k in 0..16 {
+        let relative = (lg[k] - ls[k]).abs() / ls[k];
+        assert!(
+            relative < 1e-9,
+            "λ{k}: Gram {} against SVD {}",
+            lg[k],
+            ls[k]
+        );
+    }
+    let (cg, cs) = (gram.rms_error_curve(32), svd.rms_error_curve(32));
+    for (c, (g, s)) in cg.iter().zip(&cs).enumerate() {
+        assert!(
+            (g - s).abs() <= 1e-6 * s + 1e-9,
+            "C = {}: {g} against {s}",
+            c + 1
+        );
+    }
+    for light in 0..lights.len() {
+        let (a, b) = (
+            gram.reconstruct_measured(light).unwrap(),
+            svd.reconstruct_measured(light).unwrap(),
+        );
+        assert!(max_abs_diff(&a, &b) < 1e-5, "light {light}");
+    }
+    // The Gram route's reconstruction error is what its singular values say.
+    for c in [1, 4, 16] {
+        let explicit = explicit_rms(&gram, &images, c);
+        assert!((explicit - gram.rms_error(c)).abs() <= 1e-4 * explicit + 1e-7);
+    }
+}
+
+#[test]
+fn the_viewer_reference_render_is_the_same_by_either_route() {
+    use rigd_process::mesh::{Mesh, MeshKind};
+    use rigd_process::relight::{relight, RelightSettings};
+    let shape = TextureShape::new(8, 8, 3).unwrap();
+    let lights = DirectionTable::new(h1()).unwrap();
+    let views = DirectionTable::new(h1()).unwrap();
+    let store_by = |route: PcaRoute| {
+        let mut rng = Lcg(21);
+        let slots = views
+            .directions()
+            .iter()
+            .map(|&view| {
+                let images: Vec<Vec<f32>> = analytic_slot(shape, &lights, view)
+                    .into_iter()
+                    .map(|img| img.into_iter().map(|v| v + 0.004 * rng.next()).collect())
+                    .collect();
+                compress_slot_by(route, &refs(&images), shape, 8).unwrap()
+            })
+            .collect();
+        BtfStore::new(shape, lights.clone(), views.clone(), slots).unwrap()
+    };
+    let (gram, svd) = (store_by(PcaRoute::Gram), store_by(PcaRoute::ThinSvd));
+    for (kind, light, view) in [
+        (
+            MeshKind::Flat,
+            Direction::new(40.0, 30.0),
+            Direction::new(35.0, 270.0),
+        ),
+        (
+            MeshKind::Cylinder,
+            Direction::new(85.0, 100.0),
+            Direction::new(40.0, 250.0),
+        ),
+        (
+            MeshKind::Cloth,
+            Direction::new(45.0, 359.9),
+            Direction::new(0.0, 123.0),
+        ),
+    ] {
+        let mesh = Mesh::build(kind, 1.0);
+        let settings = RelightSettings {
+            width: 96,
+            height: 96,
+            light,
+            view,
+            ..RelightSettings::default()
+        };
+        let (a, b) = (
+            relight(&gram, &mesh, &settings).unwrap(),
+            relight(&svd, &mesh, &settings).unwrap(),
+        );
+        assert_eq!(a.covered, b.covered);
+        let largest = a
+            .pixels
+            .iter()
+            .zip(&b.pixels)
+            .map(|(x, y)| x.abs_diff(*y))
+            .max()
+            .unwrap_or(0);
+        // Reconstructions agree to 1e-5, so an 8-bit pixel moves at most by
+        // one level where the value sits on a rounding boundary.
+        assert!(largest <= 1, "{kind:?}: pixels differ by {largest} levels");
+    }
+}
+
+#[test]
+fn both_routes_handle_rank_deficient_slots() {
+    let shape = TextureShape::new(8, 8, 1).unwrap();
+    let mut rng = Lcg(5);
+    let image = rng.texture(shape.values());
+    let constant = vec![vec![0.25f32; shape.values()]; 7];
+    let scaled: Vec<Vec<f32>> = (0..7)
+        .map(|i| image.iter().map(|v| v * (1.0 + i as f32)).collect())
+        .collect();
+    for route in [PcaRoute::Gram, PcaRoute::ThinSvd] {
+        let pca = compress_slot_by(route, &refs(&constant), shape, 4).unwrap();
+        assert!(all_finite(&pca), "{route:?}");
+        assert!(pca.singular_values().iter().all(|&s| s == 0.0), "{route:?}");
+        assert_eq!(pca.reconstruct_measured(2).unwrap(), constant[2]);
+
+        let pca = compress_slot_by(route, &refs(&scaled), shape, 4).unwrap();
+        assert!(all_finite(&pca), "{route:?}");
+        for k in 1..4 {
+            let zero = pca.eigen_texture(k).unwrap().iter().all(|&v| v == 0.0);
+            assert!(zero, "{route:?}: component {k} of a rank-1 slot");
+        }
+        assert!(explicit_rms(&pca, &scaled, 1) < 1e-5, "{route:?}");
+    }
 }
 
 #[test]
