@@ -3,7 +3,9 @@
 //! `cargo bench -p rigd-sim --bench render`. Each frame is one criterion
 //! iteration, so frames/s = 1 / the reported time. The per-effect group
 //! renders knitted-wool at 512×512 with every effect live, then with one
-//! effect forbidden at a time: the difference is that effect's cost.
+//! effect forbidden at a time: the difference is that effect's cost. The
+//! capture group renders one frame as a simulated capture takes it: the
+//! Bonn camera scaled to 384×288, 12 bits, the scene's default effects.
 
 use criterion::{criterion_group, criterion_main, BenchmarkId, Criterion};
 use rigd_sim::scene::{Effect, EffectSwitches, LaserSheet, Scene, Shot};
@@ -33,6 +35,35 @@ fn shot(w: u32, h: u32, effects: EffectSwitches, laser: bool) -> Shot {
         effects,
         ..Shot::default()
     }
+}
+
+/// The Bonn rig's camera (3032 px, f = 11000 px, 12 bits, on a 1.6 m rail;
+/// the lamp 2.5 m away) scaled to the frame, with the scene's default
+/// effects: what each frame of a simulated capture costs.
+fn capture_shot(w: u32, h: u32) -> Shot {
+    Shot {
+        light: dir(45.0, 30.0),
+        view: dir(30.0, 200.0),
+        width: w,
+        height: h,
+        bit_depth: 12,
+        focal_px: Some(11000.0 * f64::from(w) / 3032.0),
+        camera_distance_m: Some(1.6),
+        lamp_distance_m: Some(2.5),
+        seed: 7,
+        ..Shot::default()
+    }
+}
+
+fn capture_frame(c: &mut Criterion) {
+    let mut g = c.benchmark_group("capture");
+    g.sample_size(10);
+    let corduroy = Scene::load("corduroy").expect("built-in scene");
+    let s = capture_shot(384, 288);
+    g.bench_with_input(BenchmarkId::new("corduroy", "384x288"), &s, |b, s| {
+        b.iter(|| corduroy.render(s))
+    });
+    g.finish();
 }
 
 fn frames_per_second(c: &mut Criterion) {
@@ -103,5 +134,5 @@ fn per_effect_cost(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, frames_per_second, per_effect_cost);
+criterion_group!(benches, frames_per_second, capture_frame, per_effect_cost);
 criterion_main!(benches);

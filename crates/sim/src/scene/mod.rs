@@ -5,8 +5,15 @@
 //! and the request call for ([`effects`]). [`truth`] gives what a perfect
 //! rig would measure, for judging the post-processing.
 
+mod coverage;
 pub mod effects;
+mod exposure;
+mod march;
+mod noise;
+mod rays;
 mod render;
+mod sensor;
+mod shade;
 pub mod spec;
 mod surface;
 pub mod truth;
@@ -20,6 +27,7 @@ pub use render::{LaserSheet, Rendered, Shot, WHITE_LEVEL};
 pub use rigd_core::holder::{Holder, Marker};
 pub use spec::SceneSpec;
 use spec::{AlbedoSpec, HeightSpec, MacroSpec, SensorSpec};
+use surface::SurfaceTexels;
 pub use surface::{dome, dome_normal, Grid, DOME_FIELD_MM};
 use visibility::VisibilityMaps;
 
@@ -130,6 +138,9 @@ pub(crate) struct Relief {
     pub top: f64,
     /// The steepest slope, which bounds how far a ray can safely step.
     pub max_slope: f64,
+    /// Albedo, gradient and height interleaved for shading, when their
+    /// grids share a layout.
+    pub texels: Option<SurfaceTexels>,
 }
 
 impl Scene {
@@ -246,12 +257,14 @@ impl Scene {
                     .map(|(a, b)| (*a as f64).hypot(*b as f64))
                     .fold(0.0, f64::max);
                 let top = height.max();
+                let texels = SurfaceTexels::new(&albedo, &grad_x, &grad_y, &height);
                 (top > 0.0).then_some(Relief {
                     height,
                     grad_x,
                     grad_y,
                     top,
                     max_slope,
+                    texels,
                 })
             }
         };

@@ -46,15 +46,27 @@ impl Grid {
     }
 
     /// Bilinear value at (x, y), metres.
+    #[inline(always)]
     pub fn sample(&self, x: f64, y: f64) -> f64 {
-        let u = x / self.texel + self.nx as f64 / 2.0 - 0.5;
-        let v = y / self.texel + self.ny as f64 / 2.0 - 0.5;
-        let (i0, j0) = (u.floor(), v.floor());
-        let (fu, fv) = (u - i0, v - j0);
-        let (i0, j0) = (i0 as isize, j0 as isize);
-        let a = self.at(i0, j0) * (1.0 - fu) + self.at(i0 + 1, j0) * fu;
-        let b = self.at(i0, j0 + 1) * (1.0 - fu) + self.at(i0 + 1, j0 + 1) * fu;
-        a * (1.0 - fv) + b * fv
+        self.sampler().sample(x, y)
+    }
+
+    /// This grid ready for hot loops: see [`Sampler`].
+    #[inline(always)]
+    pub(crate) fn sampler(&self) -> Sampler<'_> {
+        Sampler {
+            data: &self.data,
+            nx: self.nx,
+            ny: self.ny,
+            texel: self.texel,
+            centre: [self.nx as f64 / 2.0, self.ny as f64 / 2.0],
+        }
+    }
+
+    /// True when `other` has this grid's size and texel, so the same point
+    /// falls on the same texels of both.
+    pub(crate) fn same_layout(&self, other: &Grid) -> bool {
+        self.nx == other.nx && self.ny == other.ny && self.texel == other.texel
     }
 
     /// Central-difference gradient of the baked field.
@@ -83,6 +95,207 @@ impl Grid {
     /// The largest texel value, or 0 if none is positive.
     pub fn max(&self) -> f64 {
         self.data.iter().copied().fold(0f32, f32::max) as f64
+    }
+}
+
+/// A [`Grid`] for hot loops, with the constants of its layout (which
+/// [`Grid::sample`] would convert from integers on every call) worked out
+/// once. Sampling is [`Grid::sample`]'s arithmetic in the same order, so
+/// values are bit for bit the same.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Sampler<'a> {
+    data: &'a [f32],
+    nx: usize,
+    ny: usize,
+    texel: f64,
+    /// Half the grid's texels along x and y.
+    centre: [f64; 2],
+}
+
+impl Sampler<'_> {
+    /// Bilinear value at (x, y), metres.
+    #[inline(always)]
+    pub(crate) fn sample(&self, x: f64, y: f64) -> f64 {
+        self.sample_at(&self.footprint(x, y))
+    }
+
+    /// Where (x, y) falls on the grid, for [`Sampler::sample_at`].
+    #[inline(always)]
+    fn footprint(&self, x: f64, y: f64) -> Footprint {
+        let u = x / self.texel + self.centre[0] - 0.5;
+        let v = y / self.texel + self.centre[1] - 0.5;
+        let ((i0, fi), (j0, fj)) = (floor_index(u), floor_index(v));
+        Footprint {
+            i0,
+            j0,
+            fu: u - fi,
+            fv: v - fj,
+        }
+    }
+
+    /// Bilinear value at a footprint taken on this grid.
+    #[inline(always)]
+    fn sample_at(&self, f: &Footprint) -> f64 {
+        let [c00, c10, c01, c11] = self.corners(f.i0, f.j0);
+        let (fu, fv) = (f.fu, f.fv);
+        let a = c00 * (1.0 - fu) + c10 * fu;
+        let b = c01 * (1.0 - fu) + c11 * fu;
+        a * (1.0 - fv) + b * fv
+    }
+
+    /// The four texels around (i0, j0), (i0 + 1, j0 + 1): read straight
+    /// from two rows inside the grid, clamped to the edge outside it.
+    #[inline(always)]
+    fn corners(&self, i0: isize, j0: isize) -> [f64; 4] {
+        // 0 ≤ i0 < nx − 1 and 0 ≤ j0 < ny − 1, a negative index wrapping
+        // to a huge unsigned one.
+        if (i0 as usize) < self.nx.wrapping_sub(1) && (j0 as usize) < self.ny.wrapping_sub(1) {
+            let base = j0 as usize * self.nx + i0 as usize;
+            if let Some(s) = self.data.get(base..base + self.nx + 2) {
+                if let (Some(lo), Some(hi)) = (s.first_chunk::<2>(), s.last_chunk::<2>()) {
+                    return [lo[0] as f64, lo[1] as f64, hi[0] as f64, hi[1] as f64];
+                }
+            }
+        }
+        [
+            self.at(i0, j0),
+            self.at(i0 + 1, j0),
+            self.at(i0, j0 + 1),
+            self.at(i0 + 1, j0 + 1),
+        ]
+    }
+
+    fn at(&self, i: isize, j: isize) -> f64 {
+        let i = i.clamp(0, self.nx as isize - 1) as usize;
+        let j = j.clamp(0, self.ny as isize - 1) as usize;
+        self.data.get(j * self.nx + i).map_or(0.0, |v| *v as f64)
+    }
+}
+
+/// The sample's albedo, height gradient and height interleaved texel by
+/// texel, for shading: a hit point's normal and albedo (or a blur tap's
+/// height and normal) then come from two cache lines instead of six, one
+/// per row per grid. Built from grids of one layout; sampling reads the
+/// same values with the same arithmetic as [`Grid::sample`] on each.
+#[derive(Debug, Clone)]
+pub(crate) struct SurfaceTexels {
+    nx: usize,
+    ny: usize,
+    texel: f64,
+    /// `[albedo, ∂h/∂x, ∂h/∂y, height]` per texel, row-major.
+    data: Vec<[f32; 4]>,
+}
+
+/// One point of the surface, read from [`SurfaceTexels`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct SurfaceSample {
+    pub albedo: f64,
+    pub grad: [f64; 2],
+    pub height: f64,
+}
+
+impl SurfaceTexels {
+    /// The interleaved texels of four grids, or None unless they share one
+    /// layout.
+    pub(crate) fn new(
+        albedo: &Grid,
+        grad_x: &Grid,
+        grad_y: &Grid,
+        height: &Grid,
+    ) -> Option<SurfaceTexels> {
+        let same = [grad_x, grad_y, height]
+            .iter()
+            .all(|g| g.same_layout(albedo));
+        same.then(|| SurfaceTexels {
+            nx: albedo.nx,
+            ny: albedo.ny,
+            texel: albedo.texel,
+            data: albedo
+                .data
+                .iter()
+                .zip(&grad_x.data)
+                .zip(&grad_y.data)
+                .zip(&height.data)
+                .map(|(((a, gx), gy), h)| [*a, *gx, *gy, *h])
+                .collect(),
+        })
+    }
+
+    /// The surface at (x, y), as [`Grid::sample`] reads each grid there.
+    #[inline(always)]
+    pub(crate) fn sample(&self, x: f64, y: f64) -> SurfaceSample {
+        let centre = [self.nx as f64 / 2.0, self.ny as f64 / 2.0];
+        let u = x / self.texel + centre[0] - 0.5;
+        let v = y / self.texel + centre[1] - 0.5;
+        let ((i0, fi), (j0, fj)) = (floor_index(u), floor_index(v));
+        let (fu, fv) = (u - fi, v - fj);
+        let [c00, c10, c01, c11] = self.corners(i0, j0);
+        let channel = |c: usize| {
+            let a = c00[c] as f64 * (1.0 - fu) + c10[c] as f64 * fu;
+            let b = c01[c] as f64 * (1.0 - fu) + c11[c] as f64 * fu;
+            a * (1.0 - fv) + b * fv
+        };
+        SurfaceSample {
+            albedo: channel(0),
+            grad: [channel(1), channel(2)],
+            height: channel(3),
+        }
+    }
+
+    /// The four texels around (i0, j0), (i0 + 1, j0 + 1), clamped to the
+    /// edge outside the grid.
+    #[inline(always)]
+    fn corners(&self, i0: isize, j0: isize) -> [[f32; 4]; 4] {
+        let (nx, ny) = (self.nx as isize, self.ny as isize);
+        if (i0 as usize) < self.nx.wrapping_sub(1) && (j0 as usize) < self.ny.wrapping_sub(1) {
+            let base = j0 as usize * self.nx + i0 as usize;
+            if let Some(s) = self.data.get(base..base + self.nx + 2) {
+                if let (Some(lo), Some(hi)) = (s.first_chunk::<2>(), s.last_chunk::<2>()) {
+                    return [lo[0], lo[1], hi[0], hi[1]];
+                }
+            }
+        }
+        let at = |i: isize, j: isize| {
+            let i = i.clamp(0, nx - 1) as usize;
+            let j = j.clamp(0, ny - 1) as usize;
+            self.data.get(j * self.nx + i).copied().unwrap_or_default()
+        };
+        [
+            at(i0, j0),
+            at(i0 + 1, j0),
+            at(i0, j0 + 1),
+            at(i0 + 1, j0 + 1),
+        ]
+    }
+}
+
+/// Where a point falls on a [`Grid`]: the texel below and left of it and
+/// the bilinear weights towards the next ones.
+#[derive(Debug, Clone, Copy)]
+struct Footprint {
+    i0: isize,
+    j0: isize,
+    fu: f64,
+    fv: f64,
+}
+
+/// `u.floor()` (exactly, signed zero included) and the same value as an
+/// index (saturating, as `as isize` converts it), from one float-to-integer
+/// conversion, without the libm call baseline x86-64 (no SSE4.1 `roundsd`)
+/// makes for `floor`: every grid lookup floors twice.
+#[inline(always)]
+fn floor_index(u: f64) -> (isize, f64) {
+    if u.abs() < 4_503_599_627_370_496.0 {
+        let whole = u as i64;
+        let t = whole as f64;
+        if t > u {
+            ((whole - 1) as isize, t - 1.0)
+        } else {
+            (whole as isize, t.copysign(u))
+        }
+    } else {
+        let f = u.floor();
+        (f as isize, f)
     }
 }
 
@@ -327,6 +540,73 @@ mod tests {
         let (gx, gy) = g.gradient();
         assert!((gx.sample(0.003, 0.002) - 2.0).abs() < 1e-4);
         assert!((gy.sample(0.003, 0.002) + 3.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn fast_floor_is_floor() {
+        let cases = [
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            1.5,
+            -1.5,
+            2.999_999_999_999_999_6,
+            -2.999_999_999_999_999_6,
+            1e-300,
+            -1e-300,
+            4_503_599_627_370_495.5,
+            -4_503_599_627_370_495.5,
+            4_503_599_627_370_496.0,
+            1e300,
+            -1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::MIN_POSITIVE,
+            -f64::MIN_POSITIVE,
+        ];
+        for u in cases {
+            let (i, f) = floor_index(u);
+            assert_eq!(
+                (i, f.to_bits()),
+                (u.floor() as isize, u.floor().to_bits()),
+                "{u}"
+            );
+        }
+        let (i, f) = floor_index(f64::NAN);
+        assert!(i == 0 && f.is_nan());
+        let mut x = 0.123_456_789_f64;
+        for _ in 0..10_000 {
+            x = (x * 7919.0 + 0.3137).rem_euclid(2048.0) - 1024.0;
+            let (i, f) = floor_index(x);
+            assert_eq!(
+                (i, f.to_bits()),
+                (x.floor() as isize, x.floor().to_bits()),
+                "{x}"
+            );
+        }
+    }
+
+    #[test]
+    fn sampling_at_a_footprint_is_sampling() {
+        let g = Grid::bake(37, 23, 0.002, |x, y| (x * 311.0).sin() + y * y * 1e3);
+        for k in 0..2000 {
+            let x = -0.05 + 1e-4 * (k as f64 * 0.7);
+            let y = 0.03 - 1e-4 * (k as f64 * 0.31);
+            let reference = {
+                let u = x / g.texel + g.nx as f64 / 2.0 - 0.5;
+                let v = y / g.texel + g.ny as f64 / 2.0 - 0.5;
+                let (i0, j0) = (u.floor(), v.floor());
+                let (fu, fv) = (u - i0, v - j0);
+                let (i0, j0) = (i0 as isize, j0 as isize);
+                let a = g.at(i0, j0) * (1.0 - fu) + g.at(i0 + 1, j0) * fu;
+                let b = g.at(i0, j0 + 1) * (1.0 - fu) + g.at(i0 + 1, j0 + 1) * fu;
+                a * (1.0 - fv) + b * fv
+            };
+            assert_eq!(g.sample(x, y).to_bits(), reference.to_bits(), "({x}, {y})");
+        }
     }
 
     #[test]

@@ -12,7 +12,8 @@
 use super::effects::{Effect, EffectSwitches};
 use rigd_core::geometry::{add, normalize, scale};
 
-use super::render::{Frame, Shot};
+use super::render::Shot;
+use super::shade::Frame;
 use super::{Marker, Scene};
 
 impl Scene {
