@@ -23,6 +23,30 @@ pub struct Camera {
     vignette_focal: f64,
 }
 
+/// The numbers [`Camera::ray`] and [`Camera::vignetting`] are made of, for
+/// code that sets up many rays at once and must give the same bits.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraParts {
+    /// Image +x, sample frame.
+    pub right: [f64; 3],
+    /// Image +y, sample frame.
+    pub up: [f64; 3],
+    /// The viewing direction, from the camera towards the sample.
+    pub forward: [f64; 3],
+    /// Pinhole position, or the view direction's far point for orthographic.
+    pub origin: [f64; 3],
+    /// Focal length, pixels; `None` for an orthographic view.
+    pub focal: Option<f64>,
+    /// Metres per pixel of an orthographic view.
+    pub metres_per_px: f64,
+    /// Half the frame's width, pixels.
+    pub half_w: f64,
+    /// Half the frame's height, pixels.
+    pub half_h: f64,
+    /// Focal length that sets the vignetting's fall-off, pixels.
+    pub vignette_focal: f64,
+}
+
 impl Camera {
     /// A camera looking at the sample centre along `view` (towards the
     /// camera, z the sample normal), for frames of `size` pixels: a pinhole
@@ -59,6 +83,21 @@ impl Camera {
             half_w: w / 2.0,
             half_h: h / 2.0,
             vignette_focal: focal.unwrap_or(w.max(h)),
+        }
+    }
+
+    /// What the camera is made of (see [`CameraParts`]).
+    pub fn parts(&self) -> CameraParts {
+        CameraParts {
+            right: self.right,
+            up: self.up,
+            forward: self.forward,
+            origin: self.origin,
+            focal: self.focal,
+            metres_per_px: self.scale,
+            half_w: self.half_w,
+            half_h: self.half_h,
+            vignette_focal: self.vignette_focal,
         }
     }
 

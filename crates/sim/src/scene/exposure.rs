@@ -13,7 +13,7 @@ use rigd_core::geometry::scale;
 use super::coverage::Coverage;
 use super::effects::{Effect, EffectPlan};
 use super::rays::{RayFan, Row};
-use super::render::{camera, field_half, Shot, WHITE_LEVEL};
+use super::render::{camera, Shot, WHITE_LEVEL};
 use super::sensor::max_code;
 use super::shade::{direct, Frame, Incidence, Primary, Shadow, Surface};
 use super::Scene;
@@ -49,14 +49,7 @@ impl<'a> Exposure<'a> {
         let gain =
             WHITE_LEVEL * max_code(shot) * shot.relative_exposure.max(0.0) * shot.gain.max(0.0);
         let camera = camera(scene, shot);
-        let rays = RayFan::new(
-            camera,
-            shot.view,
-            [shot.width, shot.height],
-            shot.focal_px,
-            shot.camera_distance_m,
-            field_half(scene),
-        );
+        let rays = RayFan::new(camera, [shot.width, shot.height]);
         let frame = Frame::new(scene, shot);
         let vignette = frame
             .plan

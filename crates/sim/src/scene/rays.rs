@@ -5,13 +5,13 @@
 //! cannot inline, each with a square root and a division on its critical
 //! path, and they were a third of a flat frame's time).
 //!
-//! The basis is rebuilt from the shot as [`Camera::new`] builds it, and the
-//! fan checks itself against the camera at the frame's corners and centre.
-//! Should the camera model ever change, the check fails and the renderer
-//! asks the camera for every pixel, as before: slower, never different.
+//! The fan takes the camera's own numbers ([`Camera::parts`]) and checks
+//! itself against the camera at the frame's corners and centre. Should the
+//! camera's arithmetic ever change, the check fails and the renderer asks
+//! the camera for every pixel, as before: slower, never different.
 
-use rigd_core::camera::Camera;
-use rigd_core::geometry::{add, cross, normalize, scale};
+use rigd_core::camera::{Camera, CameraParts};
+use rigd_core::geometry::{add, normalize, scale};
 
 /// Rays [`RayFan::rays`] computes at a time.
 const RUN: usize = 64;
@@ -55,17 +55,15 @@ pub(crate) struct Row {
 }
 
 impl RayFan {
-    /// The fan of `camera`, which [`Camera::new`] built from these
-    /// arguments.
-    pub(crate) fn new(
-        camera: Camera,
-        view: [f64; 3],
-        size: [u32; 2],
-        focal_px: Option<f64>,
-        distance_m: Option<f64>,
-        field_half: f64,
-    ) -> RayFan {
-        let model = Model::new(view, size, focal_px, distance_m, field_half);
+    /// The fan of `camera`, for frames of `size` pixels (the size the
+    /// camera was made for).
+    pub(crate) fn new(camera: Camera, size: [u32; 2]) -> RayFan {
+        RayFan::checked(camera, camera.parts(), size)
+    }
+
+    /// The fan made of `parts`, used only if it gives what `camera` gives.
+    fn checked(camera: Camera, parts: CameraParts, size: [u32; 2]) -> RayFan {
+        let model = Model::from(parts);
         let (w, h) = (size[0].max(1) as usize, size[1].max(1) as usize);
         let probes = [
             (0, 0),
@@ -186,45 +184,25 @@ impl RayFan {
     }
 }
 
-impl Model {
-    /// [`Camera::new`]'s arithmetic.
-    fn new(
-        view: [f64; 3],
-        size: [u32; 2],
-        focal_px: Option<f64>,
-        distance_m: Option<f64>,
-        field_half: f64,
-    ) -> Model {
-        let v = normalize(view);
-        let (right, up) = if v[0].hypot(v[1]) < 1e-9 {
-            ([1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-        } else {
-            let up = normalize([-v[2] * v[0], -v[2] * v[1], 1.0 - v[2] * v[2]]);
-            (cross(up, v), up)
-        };
-        let (w, h) = (size[0].max(1) as f64, size[1].max(1) as f64);
-        let (projection, origin, focal) = match (focal_px, distance_m) {
-            (Some(f), Some(d)) if f > 0.0 && d > 0.0 => {
-                (Projection::Pinhole(f), scale(v, d), Some(f))
-            }
-            _ => (
-                Projection::Orthographic(2.0 * field_half / w.min(h)),
-                scale(v, 10.0),
-                None,
-            ),
-        };
+impl From<CameraParts> for Model {
+    fn from(parts: CameraParts) -> Model {
         Model {
-            projection,
-            right,
-            up,
-            forward: scale(v, -1.0),
-            origin,
-            half_w: w / 2.0,
-            half_h: h / 2.0,
-            vignette_focal: focal.unwrap_or(w.max(h)),
+            projection: match parts.focal {
+                Some(f) => Projection::Pinhole(f),
+                None => Projection::Orthographic(parts.metres_per_px),
+            },
+            right: parts.right,
+            up: parts.up,
+            forward: parts.forward,
+            origin: parts.origin,
+            half_w: parts.half_w,
+            half_h: parts.half_h,
+            vignette_focal: parts.vignette_focal,
         }
     }
+}
 
+impl Model {
     #[inline]
     fn row(&self, j: usize) -> Row {
         let t = self.half_h - j as f64 - 0.5;
@@ -298,7 +276,7 @@ mod tests {
             for (focal, distance) in optics {
                 let size = [97, 61];
                 let camera = Camera::new(view, size, focal, distance, 0.088);
-                let fan = RayFan::new(camera, view, size, focal, distance, 0.088);
+                let fan = RayFan::new(camera, size);
                 assert!(fan.is_fast(), "{view:?} {focal:?}");
                 for j in 0..61 {
                     let row = fan.row(j);
@@ -320,7 +298,7 @@ mod tests {
         for (focal, distance) in [(Some(1393.0), Some(1.6)), (None, None)] {
             let (view, size) = (dir(30.0, 200.0), [150, 20]);
             let camera = Camera::new(view, size, focal, distance, 0.088);
-            let fan = RayFan::new(camera, view, size, focal, distance, 0.088);
+            let fan = RayFan::new(camera, size);
             let row = fan.row(7);
             let (mut origins, mut dirs) = ([[0.0; 3]; 143], [[0.0; 3]; 143]);
             fan.rays(5, &row, &mut origins, &mut dirs);
@@ -334,15 +312,9 @@ mod tests {
     #[test]
     fn a_fan_that_disagrees_with_its_camera_asks_the_camera() {
         let camera = Camera::new(dir(30.0, 200.0), [32, 24], Some(100.0), Some(1.0), 0.088);
-        // Built for another view than the camera's.
-        let fan = RayFan::new(
-            camera,
-            dir(31.0, 200.0),
-            [32, 24],
-            Some(100.0),
-            Some(1.0),
-            0.088,
-        );
+        // Made of another view's camera.
+        let other = Camera::new(dir(31.0, 200.0), [32, 24], Some(100.0), Some(1.0), 0.088);
+        let fan = RayFan::checked(camera, other.parts(), [32, 24]);
         assert!(!fan.is_fast());
         let row = fan.row(5);
         assert!(same_bits(fan.ray(7, &row).1, camera.ray(7, 5).1));

@@ -129,7 +129,7 @@ pub(crate) fn camera(scene: &Scene, shot: &Shot) -> Camera {
 }
 
 /// Half the field of an orthographic view: just wider than the holder.
-pub(crate) fn field_half(scene: &Scene) -> f64 {
+fn field_half(scene: &Scene) -> f64 {
     1.1 * scene.holder.half
 }
 
