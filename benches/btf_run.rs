@@ -155,7 +155,7 @@ fn before_gram_route(run: &Path) -> Duration {
     let index = NormtextureIndex::read(run).expect("index");
     let table = DirectionTable::new(h2()).expect("H2 table");
     let shape = TextureShape::new(SIDE, SIDE, 1).expect("shape");
-    let dir = work_dir(run);
+    let dir = run.join("processed").join("btf-before");
     let start = Instant::now();
     let mut writer = BtfWriter::create(&dir, shape, &table, &table, COMPONENTS).expect("writer");
     for slot in 0..table.len() {
@@ -172,21 +172,11 @@ fn before_gram_route(run: &Path) -> Duration {
     took
 }
 
-fn work_dir(run: &Path) -> std::path::PathBuf {
-    run.join("processed").join("btf-before")
-}
-
-/// Peak resident memory since the last reset, bytes (Linux).
-fn peak_rss() -> Option<u64> {
+/// A memory field of `/proc/self/status` (`VmHWM`, the peak since the last
+/// reset; `VmRSS`, the current), bytes (Linux).
+fn status_bytes(field: &str) -> Option<u64> {
     let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
-}
-
-fn current_rss() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmRSS:"))?;
+    let line = status.lines().find(|l| l.starts_with(field))?;
     let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     Some(kib * 1024)
 }
@@ -228,18 +218,20 @@ fn main() {
     for _ in 0..REPEATS {
         let _ = std::fs::remove_dir_all(rigd::store::processed::btf_dir(&run));
         reset_peak_rss();
-        let before = current_rss().unwrap_or(0);
+        let before = status_bytes("VmRSS:").unwrap_or(0);
         let start = Instant::now();
         let report = btf_run(&run, COMPONENTS, &|_, _| {}).expect("btf_run");
         times.push(start.elapsed());
-        peak_added = peak_added.max(peak_rss().unwrap_or(0).saturating_sub(before));
+        peak_added = peak_added.max(status_bytes("VmHWM:").unwrap_or(0).saturating_sub(before));
         assert_eq!(report.slots, n);
     }
     times.sort();
     reset_peak_rss();
-    let before_rss = current_rss().unwrap_or(0);
+    let before_rss = status_bytes("VmRSS:").unwrap_or(0);
     let before = before_gram_route(&run);
-    let before_peak = peak_rss().unwrap_or(0).saturating_sub(before_rss);
+    let before_peak = status_bytes("VmHWM:")
+        .unwrap_or(0)
+        .saturating_sub(before_rss);
     let best = times[0];
     println!(
         "btf_run/h2_256_c16: best {best:.2?} of {REPEATS} (all {times:.2?}); peak memory added {:.0} MiB",

@@ -46,19 +46,10 @@ pub struct SlotSummary {
 
 /// What the compression may hold in memory for the slots it works on at
 /// once: each slot in flight holds its images (f32), its factors (f64 and
-/// their f32 copies) and one block of its centred matrix, 35 MB for 81
+/// their f32 copies) and one block of its centred matrix, 37 MB for 81
 /// lights at 256² and C = 16; at most one slot per core is in flight, and
 /// fewer if this budget says so.
 pub const BTF_MEMORY_BUDGET_BYTES: usize = 384 << 20;
-
-/// Bytes one slot in flight holds: images in f32, the mean in f64, the
-/// eigen-textures in f64 and f32, and a 4096-row block of the centred
-/// matrix in f64.
-fn slot_bytes(values: usize, lights: usize, components: usize) -> usize {
-    values
-        .saturating_mul(4 * lights + 12 * components + 8)
-        .saturating_add(4096 * lights * 8)
-}
 
 /// Compresses a rectified run's BTF: a PCA per view slot with `components`
 /// components (Sattler et al., §4.1), into `processed/btf/`, and its report.
@@ -71,7 +62,7 @@ pub fn btf_run(
     progress: &dyn Fn(usize, usize),
 ) -> Result<BtfReport, ProcessError> {
     use rayon::prelude::*;
-    use rigd_process::btf::{compress_slot, BtfWriter, TextureShape};
+    use rigd_process::btf::{compress_slot, slot_memory_bytes, BtfWriter, TextureShape};
     use rigd_process::directions::{Direction as PDir, DirectionTable};
     let index = NormtextureIndex::read(run)?;
     let table = |dirs: &[Direction]| {
@@ -91,7 +82,7 @@ pub fn btf_run(
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let slots = index.views.len();
     let in_flight = (BTF_MEMORY_BUDGET_BYTES
-        / slot_bytes(shape.values(), index.lights.len(), components).max(1))
+        / slot_memory_bytes(shape.values(), index.lights.len(), components).max(1))
     .clamp(1, rayon::current_num_threads().max(1));
     let compress = |slot: usize| -> Result<_, ProcessError> {
         let images = (0..index.lights.len())

@@ -432,6 +432,18 @@ fn svd_factors(centred: &Mat<f64>, stored: usize) -> Result<SlotFactors, BtfErro
     })
 }
 
+/// Bytes [`compress_slot`] holds for one slot of `lights` images of
+/// `values` values keeping `components` components by the Gram route, the
+/// images included: the images in f32, the mean in f64, the eigen-textures
+/// in f64 and f32, and one block of the centred matrix in f64. (The thin
+/// SVD, for tiny textures only, holds the whole centred matrix instead.)
+pub fn slot_memory_bytes(values: usize, lights: usize, components: usize) -> usize {
+    let stored = stored_components(components, lights, values);
+    values
+        .saturating_mul(4 * lights + 12 * stored + 8)
+        .saturating_add(GRAM_BLOCK_ROWS.min(values) * lights * 8)
+}
+
 /// Rows of the centred matrix the Gram route holds at once: 4096 × 81
 /// lights in f64 is 2.6 MB, which stays in cache while it is multiplied.
 const GRAM_BLOCK_ROWS: usize = 4096;

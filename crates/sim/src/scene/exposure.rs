@@ -49,7 +49,7 @@ impl<'a> Exposure<'a> {
         let gain =
             WHITE_LEVEL * max_code(shot) * shot.relative_exposure.max(0.0) * shot.gain.max(0.0);
         let camera = camera(scene, shot);
-        let rays = RayFan::new(camera, [shot.width, shot.height]);
+        let rays = RayFan::new(camera);
         let frame = Frame::new(scene, shot);
         let vignette = frame
             .plan

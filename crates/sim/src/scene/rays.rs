@@ -55,16 +55,17 @@ pub(crate) struct Row {
 }
 
 impl RayFan {
-    /// The fan of `camera`, for frames of `size` pixels (the size the
-    /// camera was made for).
-    pub(crate) fn new(camera: Camera, size: [u32; 2]) -> RayFan {
-        RayFan::checked(camera, camera.parts(), size)
+    /// The fan of `camera`.
+    pub(crate) fn new(camera: Camera) -> RayFan {
+        RayFan::checked(camera, camera.parts())
     }
 
     /// The fan made of `parts`, used only if it gives what `camera` gives.
-    fn checked(camera: Camera, parts: CameraParts, size: [u32; 2]) -> RayFan {
+    fn checked(camera: Camera, parts: CameraParts) -> RayFan {
         let model = Model::from(parts);
-        let (w, h) = (size[0].max(1) as usize, size[1].max(1) as usize);
+        // The camera's frame, whose halves it keeps (exact for integers).
+        let size = |half: f64| ((2.0 * half) as usize).max(1);
+        let (w, h) = (size(parts.half_w), size(parts.half_h));
         let probes = [
             (0, 0),
             (w - 1, 0),
@@ -276,7 +277,7 @@ mod tests {
             for (focal, distance) in optics {
                 let size = [97, 61];
                 let camera = Camera::new(view, size, focal, distance, 0.088);
-                let fan = RayFan::new(camera, size);
+                let fan = RayFan::new(camera);
                 assert!(fan.is_fast(), "{view:?} {focal:?}");
                 for j in 0..61 {
                     let row = fan.row(j);
@@ -298,7 +299,7 @@ mod tests {
         for (focal, distance) in [(Some(1393.0), Some(1.6)), (None, None)] {
             let (view, size) = (dir(30.0, 200.0), [150, 20]);
             let camera = Camera::new(view, size, focal, distance, 0.088);
-            let fan = RayFan::new(camera, size);
+            let fan = RayFan::new(camera);
             let row = fan.row(7);
             let (mut origins, mut dirs) = ([[0.0; 3]; 143], [[0.0; 3]; 143]);
             fan.rays(5, &row, &mut origins, &mut dirs);
@@ -314,7 +315,7 @@ mod tests {
         let camera = Camera::new(dir(30.0, 200.0), [32, 24], Some(100.0), Some(1.0), 0.088);
         // Made of another view's camera.
         let other = Camera::new(dir(31.0, 200.0), [32, 24], Some(100.0), Some(1.0), 0.088);
-        let fan = RayFan::checked(camera, other.parts(), [32, 24]);
+        let fan = RayFan::checked(camera, other.parts());
         assert!(!fan.is_fast());
         let row = fan.row(5);
         assert!(same_bits(fan.ray(7, &row).1, camera.ray(7, 5).1));
