@@ -215,6 +215,10 @@ pub struct Engine {
     reason: Option<String>,
     /// Where the rig stands (or was last sent).
     pos: Setpoints,
+    /// The set-points of the last step whose every move succeeded, while
+    /// nothing else has moved the rig since (no pause, fault, sweep or
+    /// homing): a device whose next set-point is the same is not commanded.
+    settled: Option<Setpoints>,
     /// Physical time the last frame was taken, once the plan is through.
     finished_at_s: Option<f64>,
     /// Whether `pos.plate_mm` is known. A laser run starts not knowing (a
@@ -298,6 +302,7 @@ impl Engine {
                 lamp: String::new(),
                 plate_mm: None,
             },
+            settled: None,
             finished_at_s: None,
             plate_known: !laser_plan,
             storage_fault: None,
@@ -448,6 +453,8 @@ impl Engine {
                 .filter(|_| sweep_next.is_none())
                 .map(|i| self.schedule.triggers[i].setpoints.clone());
             let finishing = pending.take();
+            // Whatever this step brings, only its own success settles the rig.
+            let settled = self.settled.take();
             let (moved, finished) = {
                 let timing = Timing::new(&self.profile, self.meta.exposure_s);
                 let Rig {
@@ -474,6 +481,7 @@ impl Engine {
                                 },
                                 &mut lights,
                                 &self.pos,
+                                settled.as_ref(),
                                 to,
                             )
                             .await
@@ -553,6 +561,7 @@ impl Engine {
                     Flow::Stop => return Ok(self.outcome()),
                 }
             }
+            self.settled = target;
             let t_s = self.t();
             let cams = self.cameras_of(i);
             let exposed = {
@@ -590,6 +599,7 @@ impl Engine {
     /// video rate, recording the tilt measured just before and after each
     /// exposure (their mean). A fault retakes the whole sweep.
     async fn sweep(&mut self, queue: &mut VecDeque<usize>) -> Result<(), StepFault> {
+        self.settled = None;
         let Some(&head) = queue.front() else {
             return Ok(());
         };
@@ -639,6 +649,7 @@ impl Engine {
                 },
                 &mut Lights { lamps, lasers },
                 &self.pos,
+                None,
                 &start,
             )
             .await?
@@ -768,6 +779,7 @@ impl Engine {
     /// Homes every axis and arm, sets exposures, and switches on and warms
     /// up the first trigger's lamp. Returns where the rig stands.
     async fn prepare(&mut self, first: Option<usize>) -> Result<Setpoints, StepFault> {
+        self.settled = None;
         let clock = &self.clock;
         let Rig {
             axes,
@@ -852,6 +864,7 @@ impl Engine {
     /// Pauses for a fault; after the operator resumes, the rig is prepared
     /// again (re-homed, lamp warmed) before the run goes on.
     async fn fault_pause(&mut self, reason: String) -> Result<Flow, EngineError> {
+        self.settled = None;
         self.go(RunState::Paused, Some(reason))?;
         if !self.wait_in_pause().await? {
             return Ok(Flow::Stop);
@@ -912,6 +925,8 @@ impl Engine {
         pending: &mut Option<Pending>,
         queue: &mut VecDeque<usize>,
     ) -> Result<Option<Flow>, EngineError> {
+        // An operator may touch the rig while it waits.
+        self.settled = None;
         if let Err(refused) = check_command(self.state, cmd) {
             self.emit(EventKind::Refused {
                 command: refused.command,
@@ -1168,6 +1183,7 @@ async fn goto(
     movers: Movers<'_>,
     lights: &mut Lights<'_>,
     from: &Setpoints,
+    settled: Option<&Setpoints>,
     to: &Setpoints,
 ) -> Result<Setpoints, StepFault> {
     let Movers {
@@ -1180,9 +1196,16 @@ async fn goto(
     let from_plate = plate_known.then_some(from.plate_mm);
     place_plate(clock, fixture, from_plate, to.plate_mm).await?;
     let budget = timing.motion_s(from, to) * 2.0 + DEADLINE_SLACK_S;
+    // A device already settled where this step wants it is left alone: on
+    // a serial line each command is a round trip the step waits for.
+    let stays = |name: &String, x: f64| {
+        from.axes.contains_key(name) && settled.and_then(|s| s.axes.get(name)) == Some(&x)
+    };
+    let arm_stays = from.arm.is_some() && settled.and_then(|s| s.arm.as_ref()) == to.arm.as_ref();
     let axis_moves = join_all(
         axes.iter_mut()
             .filter_map(|(name, a)| to.axes.get(name).map(|&x| (name, a, x)))
+            .filter(|(name, _, x)| !stays(name, *x))
             .map(|(name, a, x)| async move {
                 deadline(clock, name, budget, a.move_to(x))
                     .await
@@ -1191,6 +1214,7 @@ async fn goto(
     );
     let arm_move = async {
         match (&to.arm, arms.iter_mut().next()) {
+            (Some(_), Some(_)) if arm_stays => Ok(from.arm.clone()),
             (Some(q), Some((name, arm))) => deadline(clock, name, budget, arm.move_joints(q))
                 .await
                 .map(Some),

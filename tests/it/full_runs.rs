@@ -153,3 +153,65 @@ fn virtex_default_plan_is_one_frame_per_lamp() {
         );
     }
 }
+
+/// A step commands only the devices whose set-point changed: on the MSRA
+/// rig the grid's lights change more often than its views, and every move
+/// not made is a round trip the serial line is spared. Counted at the
+/// simulated GRBL firmware, against the set-points the frames record.
+#[tokio::test(start_paused = true)]
+async fn devices_already_in_place_are_not_commanded() {
+    use rigd::engine::launch::{prepare_new, NewRun};
+    use rigd::engine::PausePolicy;
+    use rigd::model::profile::Profile;
+    use rigd::model::run_state::RunState;
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("grid");
+    let p = prepare_new(
+        NewRun {
+            profile: Profile::load("msra-btf-mdf").expect("profile"),
+            profile_source: "<embedded msra-btf-mdf>".into(),
+            plan: "grid12x8".into(),
+            sample: "moves".into(),
+            operator: None,
+            notes: None,
+            exposure_s: None,
+            frame_size: Some([1, 1]),
+            out: out.clone(),
+            simulated: true,
+            order: None,
+        },
+        vec![],
+        rigd_core::Clock::virtual_time(),
+        PausePolicy::Return,
+    )
+    .await
+    .expect("prepare");
+    let faults = p.sim.as_ref().expect("simulated rig").faults.clone();
+    let outcome = p.engine.run().await.expect("run");
+    assert_eq!(outcome.state, RunState::Completed);
+    let m = assert_complete_run(&out, 9216);
+    // One pose per trigger, in the order they were taken.
+    let mut poses = std::collections::BTreeMap::new();
+    for f in &m.frames {
+        poses.insert((f.t_s.to_bits(), f.trigger), f.positions.clone());
+    }
+    assert_eq!(poses.len(), 1152);
+    for axis in ["turntable", "light_arc"] {
+        let mut last = None;
+        let mut changes = 0u64;
+        for pose in poses.values() {
+            let at = pose.axes.get(axis).copied();
+            if at != last {
+                changes += 1;
+                last = at;
+            }
+        }
+        let moves = faults.calls(axis, "move");
+        assert_eq!(
+            moves, changes,
+            "{axis}: moves sent against poses that changed"
+        );
+        assert!(moves < 1152, "{axis} was commanded on every trigger");
+    }
+}

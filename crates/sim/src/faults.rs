@@ -154,6 +154,16 @@ impl FaultInjector {
         None
     }
 
+    /// How many calls of `op` `device` has had so far (what the simulated
+    /// firmware was asked to do, for tests that count protocol traffic).
+    pub fn calls(&self, device: &str, op: &str) -> u64 {
+        self.lock()
+            .calls
+            .get(&(device.to_string(), op.to_string()))
+            .copied()
+            .unwrap_or(0)
+    }
+
     /// The operator fixed `device`: its sticky faults stop firing.
     pub fn clear(&self, device: &str) {
         self.lock()

@@ -186,6 +186,9 @@ pub struct AclArm<S> {
     pending: usize,
     /// `DEFP RIGD` was done on this link.
     defined: bool,
+    /// The counts each joint of `RIGD` holds, as far as this link has set
+    /// them (`None`: unknown, e.g. a `SETPV` that got no answer).
+    target_counts: Vec<Option<i64>>,
     last_status: Option<Status>,
     last_joints: Option<Vec<f64>>,
 }
@@ -216,6 +219,7 @@ where
             lines: VecDeque::new(),
             pending: 0,
             defined: false,
+            target_counts: Vec::new(),
             last_status: None,
             last_joints: None,
         };
@@ -233,6 +237,7 @@ where
         self.lines.clear();
         self.pending = 0;
         self.defined = false;
+        self.target_counts.clear();
         self.last_status = None;
         self.last_joints = None;
         let r = self.sync().await;
@@ -481,8 +486,18 @@ where
             self.expect(&Command::Defp(TARGET.into()), Reply::Done, t)
                 .await?;
             self.defined = true;
+            self.target_counts.clear();
+        }
+        // A joint whose value `RIGD` already holds is not set again: each
+        // `SETPV` is a round trip on the serial line.
+        if self.target_counts.len() != counts.len() {
+            self.target_counts = vec![None; counts.len()];
         }
         for (i, c) in counts.iter().enumerate() {
+            if self.target_counts[i] == Some(*c) {
+                continue;
+            }
+            self.target_counts[i] = None;
             let cmd = Command::Setpv {
                 name: TARGET.into(),
                 joint: u8::try_from(i + 1)
@@ -490,6 +505,7 @@ where
                 counts: *c,
             };
             self.expect(&cmd, Reply::Done, t).await?;
+            self.target_counts[i] = Some(*c);
         }
         let from = match self.last_joints.clone() {
             Some(j) => j,

@@ -19,7 +19,7 @@ use super::shade::{direct, Frame, Incidence, Primary, Shadow, Surface};
 use super::Scene;
 
 /// Rows a render thread takes at a time.
-const BAND_ROWS: usize = 8;
+pub(crate) const BAND_ROWS: usize = 8;
 
 /// Columns of a tile: a band is rendered tile by tile, each tile row by
 /// row, so neighbouring rays' texel reads share cache lines and pages.
@@ -106,32 +106,38 @@ impl<'a> Exposure<'a> {
         read_out: impl Fn(&[f32], u64, &mut [T]) + Sync,
     ) {
         let w = self.width;
-        out.par_chunks_mut(w * BAND_ROWS).enumerate().for_each_init(
-            Scratch::default,
-            |scratch, (band_index, band)| {
-                let Scratch { run, linear } = scratch;
-                let first_row = band_index * BAND_ROWS;
-                for tile_start in (0..w).step_by(TILE_COLUMNS) {
-                    let tile_end = (tile_start + TILE_COLUMNS).min(w);
-                    for (r, row) in band.chunks_mut(w).enumerate() {
-                        let j = first_row + r;
-                        let (lit_start, lit_end) = self.coverage.span(j);
-                        let columns = tile_start.max(lit_start)..tile_end.min(lit_end);
-                        run.shade(self, j, columns);
-                        let tile = &mut linear[..tile_end - tile_start];
-                        tile.fill(0.0);
-                        let shaded = run.first.saturating_sub(tile_start);
-                        if let Some(dst) = tile.get_mut(shaded..shaded + run.len) {
-                            dst.copy_from_slice(&run.value[..run.len]);
-                        }
-                        let first_index = (j * w + tile_start) as u64;
-                        if let Some(out) = row.get_mut(tile_start..tile_end) {
-                            read_out(tile, first_index, out);
-                        }
+        let band_len = w * BAND_ROWS;
+        let fill_band = |scratch: &mut Scratch, (band_index, band): (usize, &mut [T])| {
+            let Scratch { run, linear } = scratch;
+            let first_row = band_index * BAND_ROWS;
+            for tile_start in (0..w).step_by(TILE_COLUMNS) {
+                let tile_end = (tile_start + TILE_COLUMNS).min(w);
+                for (r, row) in band.chunks_mut(w).enumerate() {
+                    let j = first_row + r;
+                    let (lit_start, lit_end) = self.coverage.span(j);
+                    let columns = tile_start.max(lit_start)..tile_end.min(lit_end);
+                    run.shade(self, j, columns);
+                    let tile = &mut linear[..tile_end - tile_start];
+                    tile.fill(0.0);
+                    let shaded = run.first.saturating_sub(tile_start);
+                    if let Some(dst) = tile.get_mut(shaded..shaded + run.len) {
+                        dst.copy_from_slice(&run.value[..run.len]);
+                    }
+                    let first_index = (j * w + tile_start) as u64;
+                    if let Some(out) = row.get_mut(tile_start..tile_end) {
+                        read_out(tile, first_index, out);
                     }
                 }
-            },
-        );
+            }
+        };
+        if out.len() <= band_len {
+            // One band: handing it to other threads costs more than it saves.
+            fill_band(&mut Scratch::default(), (0, out));
+        } else {
+            out.par_chunks_mut(band_len)
+                .enumerate()
+                .for_each_init(Scratch::default, fill_band);
+        }
     }
 }
 

@@ -162,11 +162,13 @@ impl Scene {
     }
 
     /// Renders a frame at the shot's bit depth, on the renderer's own
-    /// threads ([`render_pool`]).
+    /// threads ([`render_pool`]); a frame of one band of rows renders on
+    /// the caller's thread, since handing it over costs more than it saves.
     pub fn render(&self, shot: &Shot) -> Rendered {
+        let one_band = shot.height as usize <= super::exposure::BAND_ROWS;
         match render_pool() {
-            Some(pool) => pool.install(|| self.render_here(shot)),
-            None => self.render_here(shot),
+            Some(pool) if !one_band => pool.install(|| self.render_here(shot)),
+            _ => self.render_here(shot),
         }
     }
 
