@@ -42,6 +42,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
+use futures::future::join_all;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio_modbus::client::Context;
 use tokio_modbus::Slave;
@@ -178,15 +179,45 @@ pub fn acl_joints(dev: &Device) -> Vec<AclJointConfig> {
         .collect()
 }
 
+/// One line device or camera, connected.
+enum Connected {
+    Axis(Box<dyn Axis>, Arc<dyn EmergencyStop>),
+    Arm(Box<dyn Arm>, Arc<dyn EmergencyStop>),
+    Camera(Box<dyn Camera>),
+}
+
+/// How a device is reached, checked before anything is opened.
+enum Wiring<'a> {
+    /// A line device or a camera, connected on its own link.
+    Own(&'a Device, Link),
+    /// A coil on the Modbus bus of that name.
+    Coil(&'a Device, String),
+}
+
+/// A Modbus bus to open: its opener, framing, unit, and the first device on
+/// it in profile order (its errors are reported under that device's name).
+struct BusLink {
+    opener: Arc<dyn Opener>,
+    framing: Framing,
+    unit: u8,
+    first_device: String,
+}
+
 /// Connects every device of a profile through its link and returns the rig,
 /// with one emergency stop per line device and per Modbus bus.
+///
+/// Every device and bus connects at once, each under its own deadlines, so
+/// bringing up a rig takes its slowest device's time, not the sum (three
+/// GRBL boards waiting for their banners, eight cameras opening sessions).
+/// When devices fail, the first in profile order is the error returned; the
+/// others are logged.
 pub async fn build_rig(
     profile: &Profile,
     links: &BTreeMap<String, Link>,
     clock: &Clock,
 ) -> Result<Rig, DeviceError> {
-    let mut rig = Rig::default();
-    let mut buses: BTreeMap<String, Arc<Bus>> = BTreeMap::new();
+    let mut wiring: Vec<(&String, Wiring<'_>)> = Vec::new();
+    let mut bus_links: BTreeMap<String, BusLink> = BTreeMap::new();
     for (name, dev) in &profile.devices {
         let link = links.get(name).cloned().ok_or_else(|| {
             DeviceError::new(
@@ -196,43 +227,12 @@ pub async fn build_rig(
             )
         })?;
         match (dev.kind, link) {
-            (DeviceKind::Axis, Link::Line(opener)) => {
-                let (Some(limits), Some(motion)) = (dev.limits, dev.motion) else {
-                    return Err(DeviceError::new(
-                        name,
-                        ErrorKind::NotReady,
-                        "an axis needs limits and motion",
-                    ));
-                };
-                let stream = open_stream(clock, name, opener.as_ref()).await?;
-                let cfg = GrblConfig::new(name, limits, motion);
-                let axis = GrblAxis::connect(stream, cfg, clock.clone()).await?;
-                tracing::info!(device = %name, version = ?axis.version(), "GRBL axis connected");
-                rig.stops.insert(name.clone(), Arc::new(axis.stopper()));
-                rig.axes.insert(
-                    name.clone(),
-                    Box::new(LinkedAxis {
-                        axis,
-                        link: Relink::new(name, opener, clock),
-                    }),
-                );
-            }
-            (DeviceKind::Arm, Link::Line(opener)) => {
-                let stream = open_stream(clock, name, opener.as_ref()).await?;
-                let cfg = AclConfig::new(name, acl_joints(dev));
-                let arm = AclArm::connect(stream, cfg, clock.clone()).await?;
-                tracing::info!(device = %name, "ACL arm connected");
-                rig.stops.insert(name.clone(), Arc::new(arm.stopper()));
-                rig.arms.insert(
-                    name.clone(),
-                    Box::new(LinkedArm {
-                        arm,
-                        link: Relink::new(name, opener, clock),
-                    }),
-                );
+            (DeviceKind::Axis | DeviceKind::Arm, link @ Link::Line(_))
+            | (DeviceKind::Camera, link @ Link::Usb(_)) => {
+                wiring.push((name, Wiring::Own(dev, link)));
             }
             (
-                kind @ (DeviceKind::Lamp | DeviceKind::Laser),
+                DeviceKind::Lamp | DeviceKind::Laser,
                 Link::Modbus {
                     bus,
                     opener,
@@ -240,27 +240,96 @@ pub async fn build_rig(
                     unit,
                 },
             ) => {
-                let coil = dev.coil.unwrap_or(0);
-                let shared = match buses.get(&bus) {
-                    Some(b) => b.clone(),
-                    None => {
-                        let stream = open_stream(clock, name, opener.as_ref()).await?;
-                        let b = Arc::new(Bus {
-                            name: bus.clone(),
-                            bus: Arc::new(tokio::sync::Mutex::new(modbus_context(
-                                stream, framing, unit,
-                            ))),
-                            opener,
-                            framing,
-                            unit,
-                            clock: clock.clone(),
-                            lost: AtomicBool::new(false),
-                            coils: std::sync::atomic::AtomicU16::new(0),
-                        });
-                        buses.insert(bus.clone(), b.clone());
-                        b
-                    }
+                bus_links.entry(bus.clone()).or_insert_with(|| BusLink {
+                    opener,
+                    framing,
+                    unit,
+                    first_device: name.clone(),
+                });
+                wiring.push((name, Wiring::Coil(dev, bus)));
+            }
+            (kind, _) => {
+                return Err(DeviceError::new(
+                    name,
+                    ErrorKind::NotReady,
+                    format!(
+                        "{} cannot use protocol `{}` over this transport",
+                        kind.with_article(),
+                        dev.protocol
+                    ),
+                ))
+            }
+        }
+    }
+    let devices = join_all(wiring.iter().filter_map(|(name, w)| match w {
+        Wiring::Own(dev, link) => Some(async move {
+            (
+                name.to_string(),
+                connect_device(name, dev, link.clone(), clock).await,
+            )
+        }),
+        Wiring::Coil(..) => None,
+    }));
+    let streams = join_all(bus_links.iter().map(|(bus, l)| async move {
+        let stream = open_stream(clock, &l.first_device, l.opener.as_ref()).await;
+        (bus.clone(), stream)
+    }));
+    let (devices, streams) = tokio::join!(devices, streams);
+    let mut devices: BTreeMap<String, Result<Connected, DeviceError>> =
+        devices.into_iter().collect();
+    let mut buses: BTreeMap<String, Arc<Bus>> = BTreeMap::new();
+    let mut bus_failures: BTreeMap<String, DeviceError> = BTreeMap::new();
+    for (bus, stream) in streams {
+        let Some(l) = bus_links.remove(&bus) else {
+            continue;
+        };
+        match stream {
+            Ok(stream) => {
+                let shared = Arc::new(Bus {
+                    name: bus.clone(),
+                    bus: Arc::new(tokio::sync::Mutex::new(modbus_context(
+                        stream, l.framing, l.unit,
+                    ))),
+                    opener: l.opener,
+                    framing: l.framing,
+                    unit: l.unit,
+                    clock: clock.clone(),
+                    lost: AtomicBool::new(false),
+                    coils: std::sync::atomic::AtomicU16::new(0),
+                });
+                buses.insert(bus, shared);
+            }
+            Err(e) => {
+                bus_failures.insert(bus, e);
+            }
+        }
+    }
+    let mut rig = Rig::default();
+    let mut failures = Vec::new();
+    for (name, w) in wiring {
+        match w {
+            Wiring::Own(..) => match devices.remove(name) {
+                Some(Ok(Connected::Axis(axis, stop))) => {
+                    rig.stops.insert(name.clone(), stop);
+                    rig.axes.insert(name.clone(), axis);
+                }
+                Some(Ok(Connected::Arm(arm, stop))) => {
+                    rig.stops.insert(name.clone(), stop);
+                    rig.arms.insert(name.clone(), arm);
+                }
+                Some(Ok(Connected::Camera(cam))) => {
+                    rig.cameras.insert(name.clone(), cam);
+                }
+                Some(Err(e)) => failures.push(e),
+                None => {}
+            },
+            Wiring::Coil(dev, bus) => {
+                let Some(shared) = buses.get(&bus) else {
+                    // Reported once, under the bus's first device.
+                    failures.extend(bus_failures.remove(&bus));
+                    continue;
                 };
+                let coil = dev.coil.unwrap_or(0);
                 shared.coils.fetch_max(coil + 1, Ordering::SeqCst);
                 let cfg = ModbusConfig::new(
                     name,
@@ -268,7 +337,7 @@ pub async fn build_rig(
                     Duration::from_secs_f64(dev.warm_up_s.unwrap_or(0.0)),
                     Duration::from_secs_f64(dev.switch_s.unwrap_or(0.0)),
                 );
-                if kind == DeviceKind::Lamp {
+                if dev.kind == DeviceKind::Lamp {
                     let lamp = ModbusLamp::new(cfg, clock.clone(), shared.bus.clone());
                     rig.lamps.insert(
                         name.clone(),
@@ -288,43 +357,91 @@ pub async fn build_rig(
                     );
                 }
             }
-            (DeviceKind::Camera, Link::Usb(opener)) => {
-                let pipe = open_pipe(clock, name, opener.as_ref()).await?;
-                let mut cam = PtpCamera::new(name, pipe, clock.clone(), PtpConfig::default());
-                let info = cam
-                    .connect()
-                    .await
-                    .map_err(|e| DeviceError::new(name, e.kind(), e.to_string()))?;
-                tracing::info!(device = %name, model = %info.model, serial = %info.serial_number, "PTP camera connected");
-                rig.cameras.insert(
-                    name.clone(),
-                    Box::new(LinkedCamera {
-                        name: name.clone(),
-                        cam,
-                        opener,
-                        clock: clock.clone(),
-                        lost: false,
-                        exposure_s: None,
-                    }),
-                );
-            }
-            (kind, _) => {
-                return Err(DeviceError::new(
-                    name,
-                    ErrorKind::NotReady,
-                    format!(
-                        "{} cannot use protocol `{}` over this transport",
-                        kind.with_article(),
-                        dev.protocol
-                    ),
-                ))
-            }
         }
+    }
+    let mut failures = failures.into_iter();
+    if let Some(first) = failures.next() {
+        for other in failures {
+            tracing::error!("{other}");
+        }
+        return Err(first);
     }
     for (name, bus) in buses {
         rig.stops.insert(name, Arc::new(BusStop(bus)));
     }
     Ok(rig)
+}
+
+/// Opens and connects one line device or camera.
+async fn connect_device(
+    name: &str,
+    dev: &Device,
+    link: Link,
+    clock: &Clock,
+) -> Result<Connected, DeviceError> {
+    match (dev.kind, link) {
+        (DeviceKind::Axis, Link::Line(opener)) => {
+            let (Some(limits), Some(motion)) = (dev.limits, dev.motion) else {
+                return Err(DeviceError::new(
+                    name,
+                    ErrorKind::NotReady,
+                    "an axis needs limits and motion",
+                ));
+            };
+            let stream = open_stream(clock, name, opener.as_ref()).await?;
+            let cfg = GrblConfig::new(name, limits, motion);
+            let axis = GrblAxis::connect(stream, cfg, clock.clone()).await?;
+            tracing::info!(device = %name, version = ?axis.version(), "GRBL axis connected");
+            let stop = Arc::new(axis.stopper());
+            Ok(Connected::Axis(
+                Box::new(LinkedAxis {
+                    axis,
+                    link: Relink::new(name, opener, clock),
+                }),
+                stop,
+            ))
+        }
+        (DeviceKind::Arm, Link::Line(opener)) => {
+            let stream = open_stream(clock, name, opener.as_ref()).await?;
+            let cfg = AclConfig::new(name, acl_joints(dev));
+            let arm = AclArm::connect(stream, cfg, clock.clone()).await?;
+            tracing::info!(device = %name, "ACL arm connected");
+            let stop = Arc::new(arm.stopper());
+            Ok(Connected::Arm(
+                Box::new(LinkedArm {
+                    arm,
+                    link: Relink::new(name, opener, clock),
+                }),
+                stop,
+            ))
+        }
+        (DeviceKind::Camera, Link::Usb(opener)) => {
+            let pipe = open_pipe(clock, name, opener.as_ref()).await?;
+            let mut cam = PtpCamera::new(name, pipe, clock.clone(), PtpConfig::default());
+            let info = cam
+                .connect()
+                .await
+                .map_err(|e| DeviceError::new(name, e.kind(), e.to_string()))?;
+            tracing::info!(device = %name, model = %info.model, serial = %info.serial_number, "PTP camera connected");
+            Ok(Connected::Camera(Box::new(LinkedCamera {
+                name: name.to_string(),
+                cam,
+                opener,
+                clock: clock.clone(),
+                lost: false,
+                exposure_s: None,
+            })))
+        }
+        (kind, _) => Err(DeviceError::new(
+            name,
+            ErrorKind::NotReady,
+            format!(
+                "{} cannot use protocol `{}` over this transport",
+                kind.with_article(),
+                dev.protocol
+            ),
+        )),
+    }
 }
 
 /// True when a call failed because the link is gone (so the next call

@@ -617,3 +617,87 @@ impl Fixture for SimPlate {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    /// A link that takes `delay` to open, like a board that resets when its
+    /// port opens and boots before it answers.
+    struct SlowLine(Arc<dyn Opener>, Clock, Duration);
+
+    #[async_trait]
+    impl Opener for SlowLine {
+        fn describe(&self) -> String {
+            self.0.describe()
+        }
+        async fn open(&self) -> std::io::Result<ByteStream> {
+            self.1.sleep(self.2).await;
+            self.0.open().await
+        }
+    }
+
+    /// A camera that takes `delay` to enumerate.
+    struct SlowPipe(Arc<dyn PipeOpener>, Clock, Duration);
+
+    #[async_trait]
+    impl PipeOpener for SlowPipe {
+        fn describe(&self) -> String {
+            self.0.describe()
+        }
+        async fn open(&self) -> Result<BoxPipe, UsbError> {
+            self.1.sleep(self.2).await;
+            self.0.open().await
+        }
+    }
+
+    fn slow(link: Link, clock: &Clock, delay: Duration) -> Link {
+        let c = clock.clone();
+        match link {
+            Link::Line(o) => Link::Line(Arc::new(SlowLine(o, c, delay))),
+            Link::Modbus {
+                bus,
+                opener,
+                framing,
+                unit,
+            } => Link::Modbus {
+                bus,
+                opener: Arc::new(SlowLine(opener, c, delay)),
+                framing,
+                unit,
+            },
+            Link::Usb(o) => Link::Usb(Arc::new(SlowPipe(o, c, delay))),
+        }
+    }
+
+    /// Physical seconds `build_rig` takes on the MSRA rig when every link
+    /// takes `delay` to open.
+    async fn msra_connect_time(delay: Duration) -> f64 {
+        let profile = Profile::load("msra-btf-mdf").expect("profile");
+        let solver = Arc::new(Solver::new(&profile).expect("solver"));
+        let clock = Clock::virtual_time();
+        let faults = Arc::new(FaultInjector::new(vec![]));
+        let parts = firmware(&profile, solver, Some([1, 1]), &clock, &faults).expect("firmware");
+        let links = parts
+            .links
+            .into_iter()
+            .map(|(name, link)| (name, slow(link, &clock, delay)))
+            .collect();
+        let t0 = clock.now_s();
+        let rig = build_rig(&profile, &links, &clock).await.expect("connect");
+        assert_eq!((rig.axes.len(), rig.cameras.len()), (3, 8));
+        assert_eq!((rig.lamps.len(), rig.lasers.len()), (8, 1));
+        clock.now_s() - t0
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_rig_connects_in_its_slowest_devices_time_not_the_sum() {
+        let at_once = msra_connect_time(Duration::ZERO).await;
+        let slow = msra_connect_time(Duration::from_secs(1)).await;
+        // Three axes, eight cameras and one relay module one after another
+        // would add 12 s; at once they add the one second.
+        let added = slow - at_once;
+        assert!((1.0..1.5).contains(&added), "1 s per link added {added} s");
+    }
+}
