@@ -248,17 +248,7 @@ pub async fn build_rig(
                 });
                 wiring.push((name, Wiring::Coil(dev, bus)));
             }
-            (kind, _) => {
-                return Err(DeviceError::new(
-                    name,
-                    ErrorKind::NotReady,
-                    format!(
-                        "{} cannot use protocol `{}` over this transport",
-                        kind.with_article(),
-                        dev.protocol
-                    ),
-                ))
-            }
+            _ => return Err(wrong_transport(name, dev)),
         }
     }
     let devices = join_all(wiring.iter().filter_map(|(name, w)| match w {
@@ -432,16 +422,21 @@ async fn connect_device(
                 exposure_s: None,
             })))
         }
-        (kind, _) => Err(DeviceError::new(
-            name,
-            ErrorKind::NotReady,
-            format!(
-                "{} cannot use protocol `{}` over this transport",
-                kind.with_article(),
-                dev.protocol
-            ),
-        )),
+        _ => Err(wrong_transport(name, dev)),
     }
+}
+
+/// A device kind and link that do not go together (a lamp on a serial line).
+fn wrong_transport(name: &str, dev: &Device) -> DeviceError {
+    DeviceError::new(
+        name,
+        ErrorKind::NotReady,
+        format!(
+            "{} cannot use protocol `{}` over this transport",
+            dev.kind.with_article(),
+            dev.protocol
+        ),
+    )
 }
 
 /// True when a call failed because the link is gone (so the next call
