@@ -789,17 +789,20 @@ impl Engine {
             cameras,
             ..
         } = &mut self.rig;
-        let homing = join_all(
-            axes.iter_mut()
-                .map(|(name, a)| deadline(clock, name, HOMING_DEADLINE_S, a.home())),
-        );
+        let homing = join_all(axes.iter_mut().map(|(name, a)| async move {
+            deadline(clock, name, HOMING_DEADLINE_S, a.home())
+                .await
+                .map(|x| (name.clone(), x))
+        }));
         let arm_homing = join_all(
             arms.iter_mut()
                 .map(|(name, a)| deadline(clock, name, HOMING_DEADLINE_S, a.home())),
         );
         let (h, ah) = tokio::join!(homing, arm_homing);
+        let mut homed = BTreeMap::new();
         for r in h {
-            r?;
+            let (name, x) = r?;
+            homed.insert(name, x);
         }
         for r in ah {
             r?;
@@ -811,6 +814,9 @@ impl Engine {
         }
         let timing = Timing::new(&self.profile, self.meta.exposure_s);
         let mut at = timing.home_setpoints();
+        // Where each axis reports it stands: an axis without homing is
+        // wherever the operator zeroed it, not necessarily at its home.
+        at.axes.extend(homed);
         // Homing moves no plate.
         at.plate_mm = self.pos.plate_mm;
         // Every lamp off, the needed one too: a known state after a crash,

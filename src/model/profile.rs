@@ -212,6 +212,12 @@ pub struct Device {
     /// Where an axis stands after homing, in degrees.
     #[serde(default)]
     pub home_deg: Option<f64>,
+    /// Axis: whether the controller homes it (GRBL `$H`, which needs `$22=1`
+    /// and a home switch). With `false` rigd never homes it: the operator
+    /// sets the axis at its 0° mark and zeroes the controller there, and
+    /// rigd takes the machine position as it is. Default `true`.
+    #[serde(default)]
+    pub homing: Option<bool>,
     /// Arm joints, in the order the arm's protocol expects them.
     #[serde(default)]
     pub joints: Option<Vec<Joint>>,
@@ -726,6 +732,12 @@ impl Device {
                 format!("{} needs `{what}` ({expect})", self.kind.with_article()),
             ))
         };
+        if self.homing.is_some() && self.kind != DeviceKind::Axis {
+            return Err((
+                format!("{key}.homing"),
+                format!("`homing` is for axes, not {}", self.kind.with_article()),
+            ));
+        }
         match self.kind {
             DeviceKind::Axis => {
                 let Some(limits) = self.limits else {
@@ -736,6 +748,12 @@ impl Device {
                     return missing("motion", "{max_velocity, acceleration, settle_s}");
                 };
                 check_motion(&format!("{key}.motion"), motion)?;
+                if self.homing == Some(false) && self.home_deg.is_some_and(|h| h != 0.0) {
+                    return Err((
+                        format!("{key}.home_deg"),
+                        "an axis without homing (`homing = false`) is zeroed at its 0° mark; leave `home_deg` out".into(),
+                    ));
+                }
                 if let Some(h) = self.home_deg {
                     if !limits.contains(h) {
                         return Err((

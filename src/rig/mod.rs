@@ -379,7 +379,8 @@ async fn connect_device(
                 ));
             };
             let stream = open_stream(clock, name, opener.as_ref()).await?;
-            let cfg = GrblConfig::new(name, limits, motion);
+            let mut cfg = GrblConfig::new(name, limits, motion);
+            cfg.homing = dev.homing.unwrap_or(true);
             let axis = GrblAxis::connect(stream, cfg, clock.clone()).await?;
             tracing::info!(device = %name, version = ?axis.version(), "GRBL axis connected");
             let stop = Arc::new(axis.stopper());

@@ -285,6 +285,9 @@ pub(crate) fn firmware(
                         home_position: home,
                         physical_start: home,
                         start_homed: false,
+                        // A controller that homes is set up to; one that
+                        // does not keeps GRBL's factory `$22=0`.
+                        homing_enabled: dev.homing.unwrap_or(true),
                         world: Some(shared.clone()),
                     },
                     clock: clock.clone(),

@@ -186,6 +186,20 @@ fn broken_profiles_name_file_key_and_expectation() {
             "unknown plan `h9`",
         ),
         ("syntax.toml", "[rig]", "[rig", "", "line"),
+        (
+            "homing-lamp.toml",
+            "[devices.hmi]\nkind = \"lamp\"",
+            "[devices.hmi]\nkind = \"lamp\"\nhoming = false",
+            "devices.hmi.homing",
+            "`homing` is for axes",
+        ),
+        (
+            "homing-off-with-home.toml",
+            "home_deg = 90.0",
+            "home_deg = 90.0\nhoming = false",
+            "devices.rail.home_deg",
+            "zeroed at its 0° mark",
+        ),
     ];
     for (file, from, to, key, what) in cases {
         let path = broken_profile(tmp.path(), file, from, to);

@@ -215,3 +215,50 @@ async fn devices_already_in_place_are_not_commanded() {
         assert!(moves < 1152, "{axis} was commanded on every trigger");
     }
 }
+
+/// A turntable on a GRBL board as it ships (`$22=0`, no home switch) with
+/// `homing = false`: the run never sends it `$H`, takes its zero from the
+/// operator, and completes through the real driver.
+#[tokio::test(start_paused = true)]
+async fn a_turntable_without_homing_completes_a_run() {
+    use rigd::engine::launch::{prepare_new, NewRun};
+    use rigd::engine::PausePolicy;
+    use rigd::model::profile::Profile;
+    use rigd::model::run_state::RunState;
+
+    let text = std::fs::read_to_string(common::repo_file("rig-profiles/msra-btf-mdf.toml"))
+        .expect("read profile");
+    let from = "[devices.turntable]\nkind = \"axis\"\n";
+    assert!(text.contains(from), "fixture drifted");
+    let text = text.replacen(from, &format!("{from}homing = false\n"), 1);
+    let profile = Profile::parse(&text, "msra-no-turntable-homing.toml").expect("profile");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("grid");
+    let p = prepare_new(
+        NewRun {
+            profile,
+            profile_source: "msra-no-turntable-homing.toml".into(),
+            plan: "grid12x8".into(),
+            sample: "stock-grbl".into(),
+            operator: None,
+            notes: None,
+            exposure_s: None,
+            frame_size: Some([1, 1]),
+            out: out.clone(),
+            simulated: true,
+            order: None,
+        },
+        vec![],
+        rigd_core::Clock::virtual_time(),
+        PausePolicy::Return,
+    )
+    .await
+    .expect("prepare");
+    let faults = p.sim.as_ref().expect("simulated rig").faults.clone();
+    let outcome = p.engine.run().await.expect("run");
+    assert_eq!(outcome.state, RunState::Completed);
+    assert_complete_run(&out, 9216);
+    assert_eq!(faults.calls("turntable", "home"), 0, "`$H` sent");
+    assert!(faults.calls("light_arc", "home") >= 1);
+    assert!(faults.calls("turntable", "move") > 0);
+}

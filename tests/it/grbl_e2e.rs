@@ -29,6 +29,7 @@ fn params() -> GrblParams {
         home_position: 0.0,
         physical_start: 25.0,
         start_homed: false,
+        homing_enabled: true,
         world: None,
     }
 }
@@ -316,4 +317,55 @@ mod robustness {
             prop_assert_eq!(garbage_then_status(s.into_bytes()), Ok(()));
         }
     }
+}
+
+/// An axis without homing on a controller as it ships (`$22=0`): `home`
+/// takes the Idle controller's position and never sends `$H`; after a
+/// reconnect the zero may be gone, so motion is refused until the operator
+/// has zeroed the axis again and `home` is called (what a resume does).
+#[tokio::test(start_paused = true)]
+async fn an_axis_without_homing_takes_its_zero_from_the_operator() {
+    let clock = Clock::virtual_time();
+    let stock = GrblParams {
+        homing_enabled: false,
+        physical_start: 0.0,
+        ..params()
+    };
+    let faults: Arc<FaultInjector> = Arc::default();
+    let (host, _) = start_sim(stock.clone(), &clock, faults.clone());
+    let mut cfg = config();
+    cfg.homing = false;
+    let mut axis = GrblAxis::connect(host, cfg.clone(), clock.clone())
+        .await
+        .expect("connect");
+    assert_eq!(axis.home().await.expect("reference"), 0.0);
+    assert_eq!(axis.move_to(30.0).await.expect("move"), 30.0);
+
+    // The link drops and the board resets somewhere else: MPos 0 there.
+    let (host, _) = start_sim(
+        GrblParams {
+            physical_start: 30.0,
+            ..stock.clone()
+        },
+        &clock,
+        faults.clone(),
+    );
+    axis.reconnect(host).await.expect("reconnect");
+    let e = axis.move_to(40.0).await.expect_err("zero may be gone");
+    assert_eq!(e.kind, ErrorKind::DeviceFault);
+    assert!(e.message.contains("0° mark"), "{e}");
+    // The operator zeroed it at the mark and resumed.
+    assert_eq!(axis.home().await.expect("reference"), 0.0);
+    assert_eq!(axis.move_to(40.0).await.expect("move"), 40.0);
+    assert_eq!(faults.calls("turntable", "home"), 0, "`$H` was sent");
+
+    // A controller that does home (`$22=1`) starts locked: the profile's
+    // `homing = false` then gets the fix in the error.
+    let (host, _) = start_sim(params(), &clock, Arc::default());
+    let mut locked = GrblAxis::connect(host, cfg, clock.clone())
+        .await
+        .expect("connect");
+    let e = locked.home().await.expect_err("alarm");
+    assert_eq!(e.kind, ErrorKind::DeviceFault);
+    assert!(e.message.contains("`$X`"), "{e}");
 }

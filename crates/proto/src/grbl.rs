@@ -131,6 +131,8 @@ pub const ERR_EXPECTED_LETTER: ErrorCode = ErrorCode(1);
 pub const ERR_BAD_NUMBER: ErrorCode = ErrorCode(2);
 /// `error:3`: a `$` system command not recognised or not supported.
 pub const ERR_INVALID_STATEMENT: ErrorCode = ErrorCode(3);
+/// `error:5`: `$H` while homing is disabled (`$22=0`, the factory setting).
+pub const ERR_HOMING_DISABLED: ErrorCode = ErrorCode(5);
 /// `error:9`: G-code locked out during the alarm or jog state.
 pub const ERR_ALARM_LOCK: ErrorCode = ErrorCode(9);
 /// `error:11`: the line is longer than [`LINE_BUFFER_SIZE`].

@@ -50,6 +50,10 @@ pub struct GrblConfig {
     /// Status poll interval while waiting for motion to complete. GRBL's
     /// documentation recommends polling at no more than 5 Hz.
     pub poll_interval: Duration,
+    /// Whether the controller homes the axis (`$H`). Without homing the
+    /// operator sets the axis at its 0° mark and zeroes the controller
+    /// there; the driver takes the machine position as it is.
+    pub homing: bool,
 }
 
 impl GrblConfig {
@@ -62,6 +66,7 @@ impl GrblConfig {
             command_timeout: Duration::from_secs(2),
             home_timeout: Duration::from_secs(120),
             poll_interval: Duration::from_millis(200),
+            homing: true,
         }
     }
 
@@ -127,6 +132,10 @@ pub enum GrblError {
     /// position is lost until it is homed again.
     #[error("controller reset (welcome banner); position lost, home again")]
     Reset,
+    /// An axis without homing whose controller may have reset since the
+    /// operator zeroed it (its link was lost, or it sent its banner).
+    #[error("no homing on this axis (`homing = false`) and its controller may have reset: set the axis at its 0° mark, zero the controller there, then resume")]
+    Unreferenced,
     /// A set-point outside the axis's soft limits; refused before sending.
     #[error("target {target} deg outside soft limits [{min}, {max}]")]
     OutOfLimits {
@@ -152,7 +161,8 @@ impl GrblError {
             GrblError::Refused { .. }
             | GrblError::Alarm { .. }
             | GrblError::State(..)
-            | GrblError::Reset => ErrorKind::DeviceFault,
+            | GrblError::Reset
+            | GrblError::Unreferenced => ErrorKind::DeviceFault,
             GrblError::OutOfLimits { .. } => ErrorKind::OutOfLimits,
             GrblError::Protocol(_) => ErrorKind::BadFrame,
         }
@@ -176,6 +186,10 @@ pub struct GrblAxis<S> {
     version: Option<String>,
     options: Option<String>,
     last_status: Option<Status>,
+    /// An axis without homing still stands where the operator zeroed it:
+    /// true from connect (bring-up is when the operator zeroes it), false
+    /// once its controller may have reset, until the next `home`.
+    referenced: bool,
 }
 
 impl<S> std::fmt::Debug for GrblAxis<S> {
@@ -209,6 +223,7 @@ where
             version: None,
             options: None,
             last_status: None,
+            referenced: true,
         };
         let r = axis.handshake().await;
         axis.map(r)?;
@@ -226,6 +241,8 @@ where
         self.in_flight.clear();
         self.desync = false;
         self.last_status = None;
+        // Without homing nothing restores the position a reset lost.
+        self.referenced = self.cfg.homing;
         let r = self.handshake().await;
         self.map(r)
     }
@@ -425,7 +442,21 @@ where
     fn reset_seen(&mut self) -> GrblError {
         self.in_flight.clear();
         self.last_status = None;
-        GrblError::Reset
+        if self.cfg.homing {
+            GrblError::Reset
+        } else {
+            self.referenced = false;
+            GrblError::Unreferenced
+        }
+    }
+
+    /// Refuses motion on an axis without homing whose zero may be gone.
+    fn check_referenced(&self) -> Result<(), GrblError> {
+        if self.cfg.homing || self.referenced {
+            Ok(())
+        } else {
+            Err(GrblError::Unreferenced)
+        }
     }
 
     /// After `ALARM:N` GRBL has flushed its buffers; its explanation, if
@@ -574,9 +605,29 @@ where
 
     async fn home_inner(&mut self) -> Result<f64, GrblError> {
         self.settle_link().await?;
+        if !self.cfg.homing {
+            return self.take_reference().await;
+        }
         self.command(&Command::Home, self.cfg.home_timeout).await?;
         let s = self.query_status().await?;
         Self::x_of(&s)
+    }
+
+    /// An axis without homing: the operator has set it at its 0° mark and
+    /// zeroed the controller (at bring-up, or before resuming), so an Idle
+    /// controller's machine position is taken as it is.
+    async fn take_reference(&mut self) -> Result<f64, GrblError> {
+        let s = self.query_status().await?;
+        match s.state {
+            MachineState::Idle => {
+                self.referenced = true;
+                Self::x_of(&s)
+            }
+            other => Err(GrblError::State(
+                other,
+                "Idle (an axis without homing: set it at its 0° mark, zero the controller there, and unlock it with `$X` if it is in Alarm)",
+            )),
+        }
     }
 
     /// Refuses a target outside the soft limits before anything is sent.
@@ -595,6 +646,7 @@ where
 
     async fn move_inner(&mut self, target: f64) -> Result<f64, GrblError> {
         self.check_target(target)?;
+        self.check_referenced()?;
         self.resync().await?;
         let from = self
             .last_status
@@ -615,6 +667,7 @@ where
     /// answers `ok` as soon as it is planned.
     async fn sweep_inner(&mut self, target: f64, velocity: f64) -> Result<(), GrblError> {
         self.check_target(target)?;
+        self.check_referenced()?;
         self.resync().await?;
         let feed = velocity.abs().min(self.cfg.motion.max_velocity) * 60.0;
         self.command(&Command::Jog { x: target, feed }, self.cfg.command_timeout)
@@ -751,6 +804,7 @@ mod tests {
             version: None,
             options: None,
             last_status: None,
+            referenced: true,
         }
     }
 

@@ -18,7 +18,8 @@ use std::time::Duration;
 
 use rigd_proto::grbl::{
     parse_command, AlarmCode, Command, MachineState, Realtime, Reply, Status, ALARM_HARD_LIMIT,
-    ALARM_RESET_IN_MOTION, ERR_ALARM_LOCK, ERR_LINE_OVERFLOW, LINE_BUFFER_SIZE, RX_BUFFER_SIZE,
+    ALARM_RESET_IN_MOTION, ERR_ALARM_LOCK, ERR_HOMING_DISABLED, ERR_LINE_OVERFLOW,
+    LINE_BUFFER_SIZE, RX_BUFFER_SIZE,
 };
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 
@@ -51,6 +52,9 @@ pub struct GrblParams {
     /// Start homed and Idle at `physical_start` (a controller that kept its
     /// position), instead of GRBL's usual Alarm with MPos 0.
     pub start_homed: bool,
+    /// `$22`: homing enabled. GRBL ships with it off: the controller then
+    /// starts Idle (not locked) at MPos 0 and refuses `$H` with `error:5`.
+    pub homing_enabled: bool,
     /// Where to publish the physical position (under `name`) for the
     /// simulated cameras.
     pub world: Option<SharedWorld>,
@@ -69,6 +73,7 @@ impl Default for GrblParams {
             home_position: 0.0,
             physical_start: 10.0,
             start_homed: false,
+            homing_enabled: true,
             world: None,
         }
     }
@@ -161,7 +166,8 @@ where
     S: AsyncRead + AsyncWrite + Unpin,
 {
     let mut m = Machine {
-        alarm: !params.start_homed,
+        // Power-up locks the controller only when homing is enabled.
+        alarm: !params.start_homed && params.homing_enabled,
         offset: if params.start_homed {
             0.0
         } else {
@@ -428,6 +434,9 @@ impl Machine {
             Some(FaultKind::BadFrame) => {}
         }
         match cmd {
+            Command::Home if !self.params.homing_enabled => {
+                self.reply(Reply::Error(ERR_HOMING_DISABLED));
+            }
             Command::Home => {
                 let physical = self.position() + self.offset;
                 let t = self
@@ -573,6 +582,23 @@ mod tests {
             stats,
             clock,
         )
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn factory_settings_start_idle_at_zero_and_refuse_homing() {
+        let p = GrblParams {
+            homing_enabled: false,
+            ..GrblParams::default()
+        };
+        let (mut h, _, _) = start(p, Arc::default());
+        // No unlock hint: `$22=0` starts unlocked.
+        assert_eq!(h.line().await, "Grbl 1.1h ['$' for help]");
+        let s = h.status().await;
+        assert_eq!((s.state, s.x()), (MachineState::Idle, Some(0.0)));
+        h.send(b"$H\n").await;
+        assert_eq!(h.line().await, "error:5");
+        h.send(b"G90 G0 X1\n").await;
+        assert_eq!(h.line().await, "ok");
     }
 
     #[tokio::test(start_paused = true)]
