@@ -293,7 +293,9 @@ impl fmt::Display for MachineState {
 }
 
 /// A realtime status report `<State|MPos:x,y,z|FS:f,s|…>`. Fields rigd does
-/// not use (WPos, WCO, Bf, Ln, Pn, Ov, …) are skipped when parsing.
+/// not use (WPos, Bf, Ln, Pn, A, …) are skipped when parsing; `WCO` and
+/// `Ov`, which stock firmware sends every few reports, are kept so the
+/// simulated firmware can send them too.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Status {
     /// The machine state, the report's first field.
@@ -304,6 +306,11 @@ pub struct Status {
     pub feed: Option<f64>,
     /// Spindle speed, the second value of `FS`, if reported.
     pub spindle: Option<f64>,
+    /// Work coordinate offset per axis (`WCO:`), if this report has it.
+    pub wco: Option<Vec<f64>>,
+    /// Feed, rapid and spindle overrides in percent (`Ov:`), if this report
+    /// has them.
+    pub overrides: Option<[u16; 3]>,
 }
 
 impl Status {
@@ -322,6 +329,13 @@ impl fmt::Display for Status {
         }
         if let Some(feed) = self.feed {
             write!(f, "|FS:{:.0},{:.0}", feed, self.spindle.unwrap_or(0.0))?;
+        }
+        if let Some(w) = &self.wco {
+            let parts: Vec<String> = w.iter().map(|v| coord(*v)).collect();
+            write!(f, "|WCO:{}", parts.join(","))?;
+        }
+        if let Some([feed, rapid, spindle]) = self.overrides {
+            write!(f, "|Ov:{feed},{rapid},{spindle}")?;
         }
         f.write_str(">")
     }
@@ -440,6 +454,8 @@ fn parse_status(line: &str) -> Result<Status, ParseError> {
         mpos: None,
         feed: None,
         spindle: None,
+        wco: None,
+        overrides: None,
     };
     for field in fields {
         let Some((name, value)) = field.split_once(':') else {
@@ -455,7 +471,20 @@ fn parse_status(line: &str) -> Result<Status, ParseError> {
                 status.feed = v.first().copied();
                 status.spindle = v.get(1).copied();
             }
-            // WPos, WCO, Bf, Ln, Pn, Ov, A: not used by rigd.
+            "WCO" => {
+                let v = parse_numbers(value).ok_or_else(|| malformed("WCO", line))?;
+                status.wco = Some(v);
+            }
+            "Ov" => {
+                let v: Option<Vec<u16>> = value.split(',').map(|p| p.trim().parse().ok()).collect();
+                match v.as_deref() {
+                    Some(&[feed, rapid, spindle]) => {
+                        status.overrides = Some([feed, rapid, spindle])
+                    }
+                    _ => return Err(malformed("Ov", line)),
+                }
+            }
+            // WPos, Bf, Ln, Pn, A: not used by rigd.
             _ => {}
         }
     }
@@ -718,6 +747,21 @@ mod tests {
         assert_eq!(s.state, MachineState::Hold(1));
         assert_eq!(s.feed, Some(500.0));
         assert_eq!(s.spindle, Some(8000.0));
+        assert_eq!(s.wco, Some(vec![0.0, 0.0, 0.0]));
+        // What a stock 1.1h board sends: pins, then WCO on one report and
+        // the overrides on the next.
+        let s = status("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Pn:PXYZRHS|WCO:0.000,0.000,0.000>");
+        assert_eq!(
+            (s.state, s.x(), s.overrides),
+            (MachineState::Idle, Some(0.0), None)
+        );
+        let s = status("<Idle|MPos:0.000,0.000,0.000|FS:0,0|Pn:PXYZRHS|Ov:100,100,100>");
+        assert_eq!((s.wco.clone(), s.overrides), (None, Some([100, 100, 100])));
+        assert_eq!(
+            s.to_string(),
+            "<Idle|MPos:0.000,0.000,0.000|FS:0,0|Ov:100,100,100>"
+        );
+        assert!(parse_reply("<Idle|MPos:0,0,0|Ov:100,100>").is_err());
         for (text, st) in [
             ("Run", MachineState::Run),
             ("Jog", MachineState::Jog),
@@ -741,6 +785,8 @@ mod tests {
             mpos: Some(vec![12.3456, 0.0, 0.0]),
             feed: Some(1200.0),
             spindle: Some(0.0),
+            wco: None,
+            overrides: None,
         };
         assert_eq!(st.to_string(), "<Run|MPos:12.346,0.000,0.000|FS:1200,0>");
         for r in [
@@ -833,6 +879,8 @@ mod tests {
                 mpos: Some(vec![x, 0.0, 0.0]),
                 feed: Some(feed.round()),
                 spindle: Some(0.0),
+                wco: None,
+                overrides: None,
             };
             let back = status(&st.to_string());
             prop_assert_eq!(back.state, st.state);

@@ -129,6 +129,10 @@ struct Machine {
     rx: VecDeque<u8>,
     out: Vec<u8>,
     closed: bool,
+    /// Reports until the next `WCO:` and `Ov:` fields, as GRBL counts them
+    /// (both 0 after a reset, so the first report has `WCO:`, the next `Ov:`).
+    wco_countdown: u8,
+    ovr_countdown: u8,
 }
 
 /// Runs the simulated controller until the host closes the stream (or a
@@ -188,6 +192,8 @@ where
         rx: VecDeque::new(),
         out: Vec::new(),
         closed: false,
+        wco_countdown: 0,
+        ovr_countdown: 0,
     };
     m.banner();
     stream.write_all(&std::mem::take(&mut m.out)).await?;
@@ -295,11 +301,36 @@ impl Machine {
         } else {
             (MachineState::Idle, 0.0)
         };
+        // GRBL refreshes these every 10 reports at rest, every 30 (WCO) or
+        // 20 (Ov) while busy; a report with WCO defers Ov to the next one.
+        let busy = matches!(
+            state,
+            MachineState::Home | MachineState::Run | MachineState::Jog | MachineState::Hold(_)
+        );
+        let wco = if self.wco_countdown > 0 {
+            self.wco_countdown -= 1;
+            None
+        } else {
+            self.wco_countdown = if busy { 29 } else { 9 };
+            if self.ovr_countdown == 0 {
+                self.ovr_countdown = 1;
+            }
+            Some(vec![0.0; 3])
+        };
+        let overrides = if self.ovr_countdown > 0 {
+            self.ovr_countdown -= 1;
+            None
+        } else {
+            self.ovr_countdown = if busy { 19 } else { 9 };
+            Some([100; 3])
+        };
         Status {
             state,
             mpos: Some(vec![self.position(), 0.0, 0.0]),
             feed: Some(feed),
             spindle: Some(0.0),
+            wco,
+            overrides,
         }
     }
 
@@ -364,6 +395,8 @@ impl Machine {
 
     fn soft_reset(&mut self) {
         let moving = self.homing_until.is_some() || self.active().is_some();
+        self.wco_countdown = 0;
+        self.ovr_countdown = 0;
         let p = self.position();
         self.pos = p;
         self.segments.clear();
