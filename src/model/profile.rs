@@ -417,6 +417,15 @@ pub struct SimSettings {
     /// resolves the sample (laser scans need it).
     #[serde(default = "default_zoom")]
     pub zoom: f64,
+    /// Whether the simulated GRBL boards reset when their port opens and
+    /// greet with the banner (an Arduino, through DTR), or keep running and
+    /// stay silent until asked (a board without that reset). Default `true`.
+    #[serde(default = "default_true")]
+    pub grbl_reset_on_open: bool,
+}
+
+fn default_true() -> bool {
+    true
 }
 
 fn default_zoom() -> f64 {
@@ -448,6 +457,7 @@ impl Default for SimSettings {
             frame_size: default_sim_frame(),
             faults: Vec::new(),
             scene: None,
+            grbl_reset_on_open: true,
             zoom: default_zoom(),
         }
     }

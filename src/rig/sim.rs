@@ -288,6 +288,7 @@ pub(crate) fn firmware(
                         // A controller that homes is set up to; one that
                         // does not keeps GRBL's factory `$22=0`.
                         homing_enabled: dev.homing.unwrap_or(true),
+                        reset_on_open: profile.sim.grbl_reset_on_open,
                         world: Some(shared.clone()),
                     },
                     clock: clock.clone(),

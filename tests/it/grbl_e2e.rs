@@ -30,6 +30,7 @@ fn params() -> GrblParams {
         physical_start: 25.0,
         start_homed: false,
         homing_enabled: true,
+        reset_on_open: true,
         world: None,
     }
 }
@@ -368,4 +369,45 @@ async fn an_axis_without_homing_takes_its_zero_from_the_operator() {
     let e = locked.home().await.expect_err("alarm");
     assert_eq!(e.kind, ErrorKind::DeviceFault);
     assert!(e.message.contains("`$X`"), "{e}");
+}
+
+/// A board that does not reset when its port opens says nothing until
+/// asked: the driver's first `?` gets its answer, so connecting takes one
+/// round trip instead of a banner timeout, and the controller is not reset
+/// (it keeps its position and its homing).
+#[tokio::test(start_paused = true)]
+async fn a_board_that_kept_running_connects_at_once_without_a_reset() {
+    let clock = Clock::virtual_time();
+    let running = GrblParams {
+        reset_on_open: false,
+        start_homed: true,
+        physical_start: 42.0,
+        ..params()
+    };
+    let (host, stats) = start_sim(running, &clock, Arc::default());
+    let t0 = clock.now_s();
+    let mut axis = GrblAxis::connect(host, config(), clock.clone())
+        .await
+        .expect("connect");
+    let took = clock.now_s() - t0;
+    assert!(took < 0.25, "connecting took {took} s");
+    assert_eq!(
+        axis.last_status().map(|s| (s.state, s.x())),
+        Some((MachineState::Idle, Some(42.0)))
+    );
+    // `$I` and nothing else was executed: no reset, no homing.
+    assert_eq!(stats.lines.load(Ordering::Relaxed), 1);
+    assert_eq!(axis.move_to(50.0).await.expect("move"), 50.0);
+
+    // A board that resets on open still greets with its banner.
+    let (host, _) = start_sim(params(), &clock, Arc::default());
+    let t0 = clock.now_s();
+    let axis = GrblAxis::connect(host, config(), clock.clone())
+        .await
+        .expect("connect");
+    assert!(clock.now_s() - t0 < 0.25);
+    assert_eq!(
+        axis.last_status().map(|s| s.state),
+        Some(MachineState::Alarm)
+    );
 }

@@ -309,8 +309,19 @@ where
     async fn handshake(&mut self) -> Result<(), GrblError> {
         let clock = self.clock.clone();
         let timeout = self.cfg.command_timeout;
-        if clock.deadline(timeout, self.await_banner()).await.is_err() {
-            // No banner: the board did not reset on open. Reset it.
+        // Whichever comes first: the banner of a board that reset when its
+        // port opened, or the status of one that kept running. A silent
+        // controller, or one still busy with an earlier session's motion,
+        // is reset.
+        let reset = match clock.deadline(timeout, self.await_greeting()).await {
+            Ok(Ok(Greeting::Banner)) => false,
+            Ok(Ok(Greeting::Status(state))) => {
+                !matches!(state, MachineState::Idle | MachineState::Alarm)
+            }
+            Ok(Err(e)) => return Err(e),
+            Err(_) => true,
+        };
+        if reset {
             self.send_realtime(Realtime::SoftReset).await?;
             let r = clock.deadline(timeout, self.await_banner()).await;
             self.deadline_result(r, "connect (welcome banner)", timeout)?;
@@ -334,6 +345,32 @@ where
         }
         self.query_status().await?;
         Ok(())
+    }
+
+    /// Asks for a status report every [`GREETING_POLL`] (a board's boot
+    /// loader may eat the first) until the banner or a report arrives.
+    async fn await_greeting(&mut self) -> Result<Greeting, GrblError> {
+        let clock = self.clock.clone();
+        loop {
+            self.send_realtime(Realtime::StatusQuery).await?;
+            let next = async {
+                loop {
+                    match self.next_reply().await? {
+                        Reply::Welcome { .. } => return Ok(Greeting::Banner),
+                        Reply::Status(s) => {
+                            let state = s.state;
+                            self.last_status = Some(s);
+                            return Ok(Greeting::Status(state));
+                        }
+                        _ => {}
+                    }
+                }
+            };
+            // Reading lines is cancel-safe: a late answer is read next time.
+            if let Ok(r) = clock.deadline(GREETING_POLL, next).await {
+                return r;
+            }
+        }
     }
 
     /// Reads until the welcome banner, skipping anything before it.
@@ -711,6 +748,18 @@ where
             }
         }
     }
+}
+
+/// How often a fresh link is asked for a status report until the
+/// controller answers or greets.
+const GREETING_POLL: Duration = Duration::from_millis(250);
+
+/// The first thing a controller says on a fresh link.
+enum Greeting {
+    /// The welcome banner: the board reset when its port opened.
+    Banner,
+    /// A status report: the board kept running, in this state.
+    Status(MachineState),
 }
 
 /// Longest a sweep may run before the driver gives up on it.

@@ -55,6 +55,10 @@ pub struct GrblParams {
     /// `$22`: homing enabled. GRBL ships with it off: the controller then
     /// starts Idle (not locked) at MPos 0 and refuses `$H` with `error:5`.
     pub homing_enabled: bool,
+    /// The board resets when its port opens (an Arduino, through DTR) and
+    /// greets with the banner; without, it was already running and says
+    /// nothing until asked.
+    pub reset_on_open: bool,
     /// Where to publish the physical position (under `name`) for the
     /// simulated cameras.
     pub world: Option<SharedWorld>,
@@ -74,6 +78,7 @@ impl Default for GrblParams {
             physical_start: 10.0,
             start_homed: false,
             homing_enabled: true,
+            reset_on_open: true,
             world: None,
         }
     }
@@ -195,7 +200,9 @@ where
         wco_countdown: 0,
         ovr_countdown: 0,
     };
-    m.banner();
+    if m.params.reset_on_open {
+        m.banner();
+    }
     stream.write_all(&std::mem::take(&mut m.out)).await?;
     let mut buf = [0u8; 256];
     loop {
