@@ -209,8 +209,8 @@ struct BusLink {
 /// Every device and bus connects at once, each under its own deadlines, so
 /// bringing up a rig takes its slowest device's time, not the sum (three
 /// GRBL boards waiting for their banners, eight cameras opening sessions).
-/// When devices fail, the first in profile order is the error returned; the
-/// others are logged.
+/// When devices fail, the first in profile order is the error returned, and
+/// its message names the others (their reasons are logged).
 pub async fn build_rig(
     profile: &Profile,
     links: &BTreeMap<String, Link>,
@@ -350,9 +350,17 @@ pub async fn build_rig(
         }
     }
     let mut failures = failures.into_iter();
-    if let Some(first) = failures.next() {
-        for other in failures {
-            tracing::error!("{other}");
+    if let Some(mut first) = failures.next() {
+        // One error, naming every device that failed (the log has their
+        // reasons), so bring-up sees all that is wrong at once.
+        let others: Vec<String> = failures
+            .map(|e| {
+                tracing::info!("{e}");
+                e.device
+            })
+            .collect();
+        if !others.is_empty() {
+            first.message = format!("{} (also failed: {})", first.message, others.join(", "));
         }
         return Err(first);
     }

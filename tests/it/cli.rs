@@ -325,6 +325,11 @@ fn other_bad_arguments_are_refused() {
         e.contains("cannot open") && e.contains("--sim") && !e.contains("panick"),
         "{e}"
     );
+    // Every device is tried at once, and the one line names all that failed.
+    assert!(
+        e.contains("also failed:") && e.contains("turntable") && e.contains("lamp0"),
+        "{e}"
+    );
     let e = fails_cleanly(&[
         "run",
         "--sim",
