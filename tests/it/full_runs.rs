@@ -154,25 +154,28 @@ fn virtex_default_plan_is_one_frame_per_lamp() {
     }
 }
 
-/// A step commands only the devices whose set-point changed: on the MSRA
-/// rig the grid's lights change more often than its views, and every move
-/// not made is a round trip the serial line is spared. Counted at the
-/// simulated GRBL firmware, against the set-points the frames record.
-#[tokio::test(start_paused = true)]
-async fn devices_already_in_place_are_not_commanded() {
+/// Captures the MSRA rig's grid12x8 in 1×1 frames with `profile` on the
+/// simulated rig, to completion; returns the manifest and the firmware's
+/// fault injector, whose counters say what each device was sent.
+async fn msra_grid_capture(
+    profile: rigd::model::profile::Profile,
+    source: &str,
+) -> (
+    rigd::store::Manifest,
+    std::sync::Arc<rigd_sim::FaultInjector>,
+) {
     use rigd::engine::launch::{prepare_new, NewRun};
     use rigd::engine::PausePolicy;
-    use rigd::model::profile::Profile;
     use rigd::model::run_state::RunState;
 
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("grid");
     let p = prepare_new(
         NewRun {
-            profile: Profile::load("msra-btf-mdf").expect("profile"),
-            profile_source: "<embedded msra-btf-mdf>".into(),
+            profile,
+            profile_source: source.into(),
             plan: "grid12x8".into(),
-            sample: "moves".into(),
+            sample: "grid".into(),
             operator: None,
             notes: None,
             exposure_s: None,
@@ -190,7 +193,17 @@ async fn devices_already_in_place_are_not_commanded() {
     let faults = p.sim.as_ref().expect("simulated rig").faults.clone();
     let outcome = p.engine.run().await.expect("run");
     assert_eq!(outcome.state, RunState::Completed);
-    let m = assert_complete_run(&out, 9216);
+    (assert_complete_run(&out, 9216), faults)
+}
+
+/// A step commands only the devices whose set-point changed: on the MSRA
+/// rig the grid's lights change more often than its views, and every move
+/// not made is a round trip the serial line is spared. Counted at the
+/// simulated GRBL firmware, against the set-points the frames record.
+#[tokio::test(start_paused = true)]
+async fn devices_already_in_place_are_not_commanded() {
+    let profile = rigd::model::profile::Profile::load("msra-btf-mdf").expect("profile");
+    let (m, faults) = msra_grid_capture(profile, "<embedded msra-btf-mdf>").await;
     // One pose per trigger, in the order they were taken.
     let mut poses = std::collections::BTreeMap::new();
     for f in &m.frames {
@@ -221,43 +234,14 @@ async fn devices_already_in_place_are_not_commanded() {
 /// operator, and completes through the real driver.
 #[tokio::test(start_paused = true)]
 async fn a_turntable_without_homing_completes_a_run() {
-    use rigd::engine::launch::{prepare_new, NewRun};
-    use rigd::engine::PausePolicy;
-    use rigd::model::profile::Profile;
-    use rigd::model::run_state::RunState;
-
     let text = std::fs::read_to_string(common::repo_file("rig-profiles/msra-btf-mdf.toml"))
         .expect("read profile");
     let from = "[devices.turntable]\nkind = \"axis\"\n";
     assert!(text.contains(from), "fixture drifted");
     let text = text.replacen(from, &format!("{from}homing = false\n"), 1);
-    let profile = Profile::parse(&text, "msra-no-turntable-homing.toml").expect("profile");
-    let dir = tempfile::tempdir().expect("tempdir");
-    let out = dir.path().join("grid");
-    let p = prepare_new(
-        NewRun {
-            profile,
-            profile_source: "msra-no-turntable-homing.toml".into(),
-            plan: "grid12x8".into(),
-            sample: "stock-grbl".into(),
-            operator: None,
-            notes: None,
-            exposure_s: None,
-            frame_size: Some([1, 1]),
-            out: out.clone(),
-            simulated: true,
-            order: None,
-        },
-        vec![],
-        rigd_core::Clock::virtual_time(),
-        PausePolicy::Return,
-    )
-    .await
-    .expect("prepare");
-    let faults = p.sim.as_ref().expect("simulated rig").faults.clone();
-    let outcome = p.engine.run().await.expect("run");
-    assert_eq!(outcome.state, RunState::Completed);
-    assert_complete_run(&out, 9216);
+    let source = "msra-no-turntable-homing.toml";
+    let profile = rigd::model::profile::Profile::parse(&text, source).expect("profile");
+    let (_, faults) = msra_grid_capture(profile, source).await;
     assert_eq!(faults.calls("turntable", "home"), 0, "`$H` sent");
     assert!(faults.calls("light_arc", "home") >= 1);
     assert!(faults.calls("turntable", "move") > 0);
