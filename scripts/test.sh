@@ -5,22 +5,43 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# System packages: the dashboard's browser test (tests/browser.rs) drives
-# Debian's headless Chromium through chromedriver.
-if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
-    echo "== installing chromium and chromium-driver (for tests/browser.rs)"
+# Debian packages, installed as root or through sudo.
+apt_install() {
     if [ "$(id -u)" -eq 0 ]; then
         SUDO=""
     elif command -v sudo >/dev/null; then
         SUDO="sudo"
     else
-        echo "error: chromium and chromedriver are missing and this is not root (no sudo):" >&2
-        echo "       install the Debian packages chromium and chromium-driver" >&2
+        echo "error: this is not root (no sudo): install the Debian packages $*" >&2
         exit 1
     fi
     $SUDO apt-get update
-    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium chromium-driver
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends "$@"
+}
+
+# System packages: the dashboard's browser test (tests/browser.rs) drives
+# Debian's headless Chromium through chromedriver.
+if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+    echo "== installing chromium and chromium-driver (for tests/browser.rs)"
+    apt_install chromium chromium-driver
 fi
+
+# The Modbus tests run tests/support/relay_module.py, a relay module served by
+# pymodbus, from a venv of their own (target/ is not committed). It is made
+# again only when missing, broken, or at another pymodbus version.
+PYMODBUS_VERSION=3.16.1
+venv=target/test-venv
+if ! "$venv/bin/python" -c "import sys, pymodbus; sys.exit(pymodbus.__version__ != '$PYMODBUS_VERSION')" 2>/dev/null; then
+    echo "== creating $venv with pymodbus $PYMODBUS_VERSION (for tests/support/relay_module.py)"
+    # Debian's python3 leaves venv's pip bootstrap (ensurepip) to python3-venv;
+    # pyenv's CPython has it built in.
+    if ! python3 -c 'import ensurepip, venv' 2>/dev/null; then
+        apt_install python3 python3-venv
+    fi
+    python3 -m venv --clear "$venv"
+    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check "pymodbus==$PYMODBUS_VERSION"
+fi
+export RIGD_TEST_PYTHON="$PWD/$venv/bin/python"
 
 if ! command -v cargo >/dev/null; then
     echo "error: cargo not found; install Rust from https://rustup.rs" >&2

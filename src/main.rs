@@ -9,7 +9,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use cli::{dataset, exit, plan, process, profile, run, serve};
+use cli::{dataset, exit, plan, process, profile, rig, run, serve};
 #[cfg(feature = "sim")]
 use cli::{sim, tradeoff};
 
@@ -38,6 +38,11 @@ enum Cmd {
     Profile {
         #[command(subcommand)]
         command: profile::ProfileCmd,
+    },
+    /// Bring up a rig: check every device without moving anything.
+    Rig {
+        #[command(subcommand)]
+        command: rig::RigCmd,
     },
     /// Capture a BTF: run a plan on a rig into a run directory, or resume one.
     Run(run::RunArgs),
@@ -84,6 +89,7 @@ fn main() -> ExitCode {
     let result = match Cli::parse().command {
         Cmd::Plan { command } => plan::run(command),
         Cmd::Profile { command } => profile::run(command),
+        Cmd::Rig { command } => rig::run(command),
         Cmd::Run(args) => run::run(args),
         Cmd::Serve(args) => serve::run(args),
         Cmd::Export(args) => dataset::export(args),

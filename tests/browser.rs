@@ -335,6 +335,33 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         |v| v.as_u64() == Some(4),
     )
     .await;
+    // "Check rig" connects every device (a fresh simulated rig: nothing is
+    // running yet) and lists one verdict per device.
+    c.find(Locator::Id("rig-check"))
+        .await
+        .expect("#rig-check")
+        .click()
+        .await
+        .expect("click Check rig");
+    wait_js(
+        c,
+        "the rig check's verdict",
+        30,
+        "return document.getElementById('rig-check-summary').textContent",
+        |v| v.as_str() == Some("bonn-gonioreflectometer: all 4 devices usable"),
+    )
+    .await;
+    let rail = js(
+        c,
+        "return document.querySelector('#rig-check-list li[data-device=rail]').textContent",
+    )
+    .await;
+    assert!(
+        rail.as_str().is_some_and(
+            |t| t.starts_with("OK rail (axis): GRBL 1.1h") && t.contains("$110=720.000")
+        ),
+        "{rail}"
+    );
     // The plan select holds the built-in plans (h1 fits the Bonn rig); the
     // daemon solves them in the background and the page asks again until
     // each shows its size.
@@ -525,6 +552,13 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         "frames kept coming while paused"
     );
     assert_eq!(js(c, RUN_STATE).await, json!("paused"));
+    // The paused run holds the rig: manual control is refused (409).
+    open_manual(c).await;
+    click_id(c, "manual-plus").await;
+    manual_says(c, "manual control refused during the run", |t| {
+        t.starts_with("jog: conflict: run") && t.contains("manual control waits")
+    })
+    .await;
     let (_, api_run) = get_json(http, &format!("{base}/api/v1/runs/{run_id}")).await;
     assert_eq!(
         api_run["state"],
@@ -607,6 +641,35 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         10,
         "return document.getElementById('rig-state').textContent",
         |v| v == "rig idle",
+    )
+    .await;
+    // Manual control with the rig free: home and jog the rail, switch the
+    // lamp, take a test frame into the preview.
+    c.find(Locator::Id("manual-axis"))
+        .await
+        .expect("#manual-axis")
+        .select_by_value("rail")
+        .await
+        .expect("choose the rail");
+    click_id(c, "manual-home").await;
+    manual_says(c, "the rail homed", |t| t == "rail homed at 90.00°").await;
+    click_id(c, "manual-plus").await;
+    manual_says(c, "the rail jogged", |t| t == "rail at 95.00°").await;
+    click_id(c, "manual-on").await;
+    manual_says(c, "the lamp on", |t| t == "hmi ON").await;
+    click_id(c, "manual-off").await;
+    manual_says(c, "the lamp off", |t| t == "hmi off").await;
+    click_id(c, "manual-frame").await;
+    manual_says(c, "the test frame", |t| {
+        t.starts_with("test frame from camera: ")
+    })
+    .await;
+    wait_js(
+        c,
+        "the test frame in the preview",
+        10,
+        "const i = document.getElementById('preview'); return i.complete && i.naturalWidth > 0 && i.getAttribute('src')",
+        |v| v.as_str().is_some_and(|s| s.contains("/api/v1/rig/manual/frame")),
     )
     .await;
     let log_lines = js(c, "return document.querySelectorAll('#log li').length").await;
@@ -746,6 +809,36 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
 }
 
 /// Waits for the token dialog, types `token` and saves it.
+async fn click_id(c: &Client, id: &str) {
+    c.find(Locator::Id(id))
+        .await
+        .unwrap_or_else(|e| panic!("#{id}: {e}"))
+        .click()
+        .await
+        .unwrap_or_else(|e| panic!("click #{id}: {e}"));
+}
+
+/// Opens the rig card's "Manual control" section.
+async fn open_manual(c: &Client) {
+    js(
+        c,
+        "document.getElementById('manual').open = true; return true",
+    )
+    .await;
+}
+
+/// Waits for the manual-control status line to satisfy `pred`.
+async fn manual_says(c: &Client, what: &str, pred: fn(&str) -> bool) {
+    wait_js(
+        c,
+        what,
+        30,
+        "return document.getElementById('manual-status').textContent",
+        |v| v.as_str().is_some_and(pred),
+    )
+    .await;
+}
+
 async fn enter_token(c: &Client, token: &str) {
     wait_js(
         c,

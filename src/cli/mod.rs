@@ -8,6 +8,7 @@ pub mod plan;
 pub mod process;
 pub mod profile;
 pub mod progress;
+pub mod rig;
 pub mod run;
 pub mod serve;
 pub mod signal;

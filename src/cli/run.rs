@@ -66,6 +66,11 @@ pub struct RunArgs {
     #[cfg_attr(feature = "sim", arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure", "order"]))]
     #[cfg_attr(not(feature = "sim"), arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "operator", "notes", "exposure", "order"]))]
     pub resume: Option<PathBuf>,
+    /// With --resume on a rig with an axis without homing (`homing =
+    /// false`): confirm that each such axis stands at its 0° mark with its
+    /// controller zeroed there, since no homing can restore it.
+    #[arg(long, requires = "resume")]
+    pub reference_confirmed: bool,
     /// Inject a fault into the simulated firmware: DEVICE:OP:N:KIND[:sticky], fired on
     /// the Nth OP command the device receives. OP: GRBL axes home, move, info;
     /// ACL arm home, move, define, query; Modbus lamps set, ready; PTP cameras
@@ -97,9 +102,22 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
     // hardware unless --sim says otherwise.
     let simulated = match &args.resume {
         Some(dir) => {
-            rigd::store::read_meta(dir)
-                .with_context(|| format!("cannot resume {}", dir.display()))?
-                .simulated
+            let meta = rigd::store::read_meta(dir)
+                .with_context(|| format!("cannot resume {}", dir.display()))?;
+            let unhomed: Vec<&str> = meta
+                .profile
+                .devices
+                .iter()
+                .filter(|(_, d)| d.homing == Some(false))
+                .map(|(n, _)| n.as_str())
+                .collect();
+            if !unhomed.is_empty() && !args.reference_confirmed {
+                return Err(bad_input(format!(
+                    "{} without homing: set each at its 0° mark and zero its controller there, then resume with --reference-confirmed",
+                    unhomed.join(", ")
+                )));
+            }
+            meta.simulated
         }
         None => args.sim || args.profile.is_none(),
     };

@@ -11,6 +11,7 @@
 pub mod command;
 pub mod estop;
 pub mod launch;
+pub mod manual;
 
 use std::collections::{BTreeMap, HashMap, VecDeque};
 use std::future::Future;

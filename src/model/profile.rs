@@ -218,6 +218,16 @@ pub struct Device {
     /// rigd takes the machine position as it is. Default `true`.
     #[serde(default)]
     pub homing: Option<bool>,
+    /// Axis: write the controller settings the profile implies at connect
+    /// (GRBL `$22`, `$20`, `$110`, `$120`, `$130`, `$100`), then read them
+    /// back. Without it, a controller whose settings differ is refused
+    /// with the lines that would fix it. Default `false`.
+    #[serde(default)]
+    pub configure: Option<bool>,
+    /// Axis: motor steps per degree (GRBL `$100`), compared with the
+    /// controller (and written with `configure`) when given.
+    #[serde(default)]
+    pub steps_per_deg: Option<f64>,
     /// Arm joints, in the order the arm's protocol expects them.
     #[serde(default)]
     pub joints: Option<Vec<Joint>>,
@@ -358,6 +368,13 @@ pub enum Transport {
         /// The relay module's Modbus unit (slave) address, 1 if absent.
         #[serde(default = "default_unit")]
         unit: u8,
+        /// Whether the module has rigd's status input registers (IR 0 ready
+        /// bits, IR 1 fault bits). `false` for a coil-only relay module as
+        /// sold: lamp readiness is then timed by rigd from `warm_up_s`, and
+        /// only FC01, FC05 and FC0F go on the wire. Every device on one
+        /// module must agree. Default `true`.
+        #[serde(default = "default_true")]
+        status_registers: bool,
     },
     /// A relay module speaking Modbus TCP.
     ModbusTcp {
@@ -368,6 +385,13 @@ pub enum Transport {
         /// The Modbus unit identifier of the requests, 1 if absent.
         #[serde(default = "default_unit")]
         unit: u8,
+        /// Whether the module has rigd's status input registers (IR 0 ready
+        /// bits, IR 1 fault bits). `false` for a coil-only relay module as
+        /// sold: lamp readiness is then timed by rigd from `warm_up_s`, and
+        /// only FC01, FC05 and FC0F go on the wire. Every device on one
+        /// module must agree. Default `true`.
+        #[serde(default = "default_true")]
+        status_registers: bool,
     },
     /// A PTP (USB Still Image) camera on USB.
     Usb {
@@ -392,6 +416,37 @@ pub enum Transport {
 
 fn default_unit() -> u8 {
     1
+}
+
+impl Transport {
+    /// The relay module a lamp or laser on this transport is wired to, as
+    /// `modbus-rtu:PORT#UNIT` or `modbus-tcp:HOST:PORT#UNIT` (a module on a
+    /// plain serial line speaks RTU as unit 1); None for other transports.
+    /// Devices with the same module share its bus and its emergency stop.
+    pub fn modbus_module(&self) -> Option<String> {
+        match self {
+            Transport::ModbusRtu { port, unit, .. } => Some(format!("modbus-rtu:{port}#{unit}")),
+            Transport::ModbusTcp {
+                host, port, unit, ..
+            } => Some(format!("modbus-tcp:{host}:{port}#{unit}")),
+            Transport::Serial { port, .. } => Some(format!("modbus-rtu:{port}#1")),
+            Transport::Usb { .. } | Transport::PtpTcp { .. } => None,
+        }
+    }
+
+    /// Whether a relay module on this transport has the ready and fault
+    /// input registers (always true for a transport that is no module).
+    pub fn status_registers(&self) -> bool {
+        match self {
+            Transport::ModbusRtu {
+                status_registers, ..
+            }
+            | Transport::ModbusTcp {
+                status_registers, ..
+            } => *status_registers,
+            _ => true,
+        }
+    }
 }
 
 /// Settings of the simulated rig.
@@ -422,6 +477,22 @@ pub struct SimSettings {
     /// stay silent until asked (a board without that reset). Default `true`.
     #[serde(default = "default_true")]
     pub grbl_reset_on_open: bool,
+    /// The simulated GRBL boards' settings at power-up: `configured` (set
+    /// up for their axes: rates, travel and `$22` from the profile) or
+    /// `factory` (as GRBL ships: `$22=0`, `$110=500`, `$120=10`).
+    #[serde(default)]
+    pub grbl_settings: SimGrblSettings,
+}
+
+/// What the simulated GRBL boards have in their EEPROM at power-up.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SimGrblSettings {
+    /// Set up for their axes, from the profile.
+    #[default]
+    Configured,
+    /// GRBL's factory defaults.
+    Factory,
 }
 
 fn default_true() -> bool {
@@ -458,6 +529,7 @@ impl Default for SimSettings {
             faults: Vec::new(),
             scene: None,
             grbl_reset_on_open: true,
+            grbl_settings: SimGrblSettings::Configured,
             zoom: default_zoom(),
         }
     }
@@ -705,6 +777,7 @@ impl Profile {
                 positive("rig.lamp_tolerance_deg", *lamp_tolerance_deg)?;
             }
         }
+        self.validate_modules()?;
         let [w, h] = self.sim.frame_size;
         if w == 0 || h == 0 || w > 8192 || h > 8192 {
             return Err((
@@ -718,6 +791,36 @@ impl Profile {
                 "sim.zoom".into(),
                 format!("expected 0.1 ..= 100, got {zoom}"),
             ));
+        }
+        Ok(())
+    }
+
+    /// Every lamp and laser on one relay module says the same about the
+    /// module's status registers: the module has them or it has not.
+    fn validate_modules(&self) -> Result<(), (String, String)> {
+        let mut seen: BTreeMap<String, (&str, bool)> = BTreeMap::new();
+        for (name, dev) in &self.devices {
+            if !matches!(dev.kind, DeviceKind::Lamp | DeviceKind::Laser) {
+                continue;
+            }
+            let Some(module) = dev.transport.modbus_module() else {
+                continue;
+            };
+            let has = dev.transport.status_registers();
+            match seen.get(&module) {
+                Some(&(other, other_has)) if other_has != has => {
+                    return Err((
+                        format!("devices.{name}.transport.status_registers"),
+                        format!(
+                            "is {has} here but {other_has} on `{other}`, which is on the same module ({module}); every device on one module must agree"
+                        ),
+                    ));
+                }
+                Some(_) => {}
+                None => {
+                    seen.insert(module, (name, has));
+                }
+            }
         }
         Ok(())
     }
@@ -742,11 +845,17 @@ impl Device {
                 format!("{} needs `{what}` ({expect})", self.kind.with_article()),
             ))
         };
-        if self.homing.is_some() && self.kind != DeviceKind::Axis {
-            return Err((
-                format!("{key}.homing"),
-                format!("`homing` is for axes, not {}", self.kind.with_article()),
-            ));
+        for (set, what) in [
+            (self.homing.is_some(), "homing"),
+            (self.configure.is_some(), "configure"),
+            (self.steps_per_deg.is_some(), "steps_per_deg"),
+        ] {
+            if set && self.kind != DeviceKind::Axis {
+                return Err((
+                    format!("{key}.{what}"),
+                    format!("`{what}` is for axes, not {}", self.kind.with_article()),
+                ));
+            }
         }
         match self.kind {
             DeviceKind::Axis => {
@@ -758,6 +867,25 @@ impl Device {
                     return missing("motion", "{max_velocity, acceleration, settle_s}");
                 };
                 check_motion(&format!("{key}.motion"), motion)?;
+                if let Some(steps) = self.steps_per_deg {
+                    if !(steps.is_finite() && steps > 0.0) {
+                        return Err((
+                            format!("{key}.steps_per_deg"),
+                            format!("expected a positive number, got {steps}"),
+                        ));
+                    }
+                    let rate = steps * motion.max_velocity;
+                    if rate > rigd_proto::grbl::MAX_STEP_RATE_HZ {
+                        return Err((
+                            format!("{key}.steps_per_deg"),
+                            format!(
+                                "{steps} steps/deg at motion.max_velocity {} deg/s is {rate:.0} steps/s; GRBL steps at most {:.0}/s (it refuses such settings with error:12)",
+                                motion.max_velocity,
+                                rigd_proto::grbl::MAX_STEP_RATE_HZ
+                            ),
+                        ));
+                    }
+                }
                 if self.homing == Some(false) && self.home_deg.is_some_and(|h| h != 0.0) {
                     return Err((
                         format!("{key}.home_deg"),
@@ -885,5 +1013,44 @@ fn non_negative(key: &str, v: Option<f64>) -> Result<(), (String, String)> {
             format!("expected a non-negative number of seconds, got {x}"),
         )),
         _ => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// One relay module has its status registers or has not: devices on
+    /// it that disagree are refused, naming both; another module may differ.
+    #[test]
+    fn devices_on_one_module_agree_about_its_status_registers() {
+        let text = EMBEDDED
+            .iter()
+            .find(|(n, _)| *n == "virtex-photometric-stereo")
+            .map(|(_, t)| *t)
+            .unwrap_or_default();
+        let rtu = "transport = { type = \"modbus_rtu\", port = \"/dev/ttyUSB1\", baud = 19200, unit = 1 }";
+        assert_eq!(text.matches(rtu).count(), 3, "fixture drifted");
+        let coil_only = rtu.replace(" }", ", status_registers = false }");
+        let all = text.replace(rtu, &coil_only);
+        let p = Profile::parse(&all, "all.toml").expect("all three coil-only");
+        assert!(p
+            .devices
+            .values()
+            .filter(|d| d.kind == DeviceKind::Lamp)
+            .all(|d| !d.transport.status_registers()));
+
+        let one = text.replacen(rtu, &coil_only, 1);
+        let e = Profile::parse(&one, "one.toml").expect_err("disagreement");
+        assert_eq!(e.key, "devices.lamp1.transport.status_registers");
+        assert!(
+            e.message.contains("is true here but false on `lamp0`"),
+            "{e}"
+        );
+        assert!(e.message.contains("modbus-rtu:/dev/ttyUSB1#1"), "{e}");
+
+        // On another unit it is another module.
+        let other = one.replacen("unit = 1 }", "unit = 2 }", 2);
+        Profile::parse(&other, "other.toml").expect("two modules");
     }
 }

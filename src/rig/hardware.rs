@@ -127,36 +127,26 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                     product_id: *product_id,
                     serial: serial.clone(),
                 })),
-                (Transport::ModbusRtu { port, baud, unit }, _) => Link::Modbus {
-                    bus: format!("modbus-rtu:{port}#{unit}"),
-                    opener: Arc::new(SerialOpener {
-                        port: port.clone(),
-                        baud: *baud,
-                    }),
-                    framing: Framing::Rtu,
-                    unit: *unit,
-                },
-                (Transport::ModbusTcp { host, port, unit }, _) => Link::Modbus {
-                    bus: format!("modbus-tcp:{host}:{port}#{unit}"),
-                    opener: Arc::new(TcpOpener {
-                        host: host.clone(),
-                        port: *port,
-                    }),
-                    framing: Framing::Tcp,
-                    unit: *unit,
-                },
-                (Transport::Serial { port, baud }, DeviceKind::Lamp | DeviceKind::Laser) => {
+                (Transport::ModbusRtu { port, baud, .. }, _)
+                | (Transport::Serial { port, baud }, DeviceKind::Lamp | DeviceKind::Laser) => {
                     // A relay module on a plain serial line speaks RTU.
-                    Link::Modbus {
-                        bus: format!("modbus-rtu:{port}#1"),
-                        opener: Arc::new(SerialOpener {
+                    modbus_link(
+                        &dev.transport,
+                        Arc::new(SerialOpener {
                             port: port.clone(),
                             baud: *baud,
                         }),
-                        framing: Framing::Rtu,
-                        unit: 1,
-                    }
+                        Framing::Rtu,
+                    )
                 }
+                (Transport::ModbusTcp { host, port, .. }, _) => modbus_link(
+                    &dev.transport,
+                    Arc::new(TcpOpener {
+                        host: host.clone(),
+                        port: *port,
+                    }),
+                    Framing::Tcp,
+                ),
                 (Transport::PtpTcp { host, port }, _) => Link::Usb(Arc::new(PtpTcpOpener {
                     host: host.clone(),
                     port: *port,
@@ -169,6 +159,26 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
             (name.clone(), link)
         })
         .collect()
+}
+
+/// The link to the relay module a transport names.
+fn modbus_link(transport: &Transport, opener: Arc<dyn Opener>, framing: Framing) -> Link {
+    let unit = match transport {
+        Transport::ModbusRtu { unit, .. } | Transport::ModbusTcp { unit, .. } => *unit,
+        _ => 1,
+    };
+    Link::Modbus {
+        bus: transport.modbus_module().unwrap_or_default(),
+        opener,
+        framing,
+        unit,
+        status_registers: transport.status_registers(),
+    }
+}
+
+/// `rig check` on real hardware: every device connected and reported.
+pub async fn check(profile: &Profile, clock: &Clock) -> super::check::RigCheck {
+    super::check::check_rig(profile, &links(profile), clock).await
 }
 
 /// Opens every device of a profile on real hardware.

@@ -8,6 +8,7 @@
 //! which is how a run resumes after a disconnect once the operator has
 //! fixed the cable.
 
+pub mod check;
 pub mod drivers;
 pub mod hal;
 pub mod hardware;
@@ -105,6 +106,8 @@ pub enum Link {
         framing: Framing,
         /// The module's Modbus unit (slave) address.
         unit: u8,
+        /// Whether the module has the ready and fault input registers.
+        status_registers: bool,
     },
     /// A USB camera.
     Usb(Arc<dyn PipeOpener>),
@@ -179,8 +182,25 @@ pub fn acl_joints(dev: &Device) -> Vec<AclJointConfig> {
         .collect()
 }
 
+/// What a device said of itself at connect, for `rig check`.
+pub(crate) struct Identity {
+    /// Identity, firmware, settings, position: one line.
+    about: String,
+    /// Connected, but not usable as it stands: what is wrong, and the fix.
+    unusable: Option<(String, String)>,
+}
+
+impl Identity {
+    fn usable(about: String) -> Identity {
+        Identity {
+            about,
+            unusable: None,
+        }
+    }
+}
+
 /// One line device or camera, connected.
-enum Connected {
+pub(crate) enum Connected {
     Axis(Box<dyn Axis>, Arc<dyn EmergencyStop>),
     Arm(Box<dyn Arm>, Arc<dyn EmergencyStop>),
     Camera(Box<dyn Camera>),
@@ -200,6 +220,7 @@ struct BusLink {
     opener: Arc<dyn Opener>,
     framing: Framing,
     unit: u8,
+    status_registers: bool,
     first_device: String,
 }
 
@@ -238,12 +259,14 @@ pub async fn build_rig(
                     opener,
                     framing,
                     unit,
+                    status_registers,
                 },
             ) => {
                 bus_links.entry(bus.clone()).or_insert_with(|| BusLink {
                     opener,
                     framing,
                     unit,
+                    status_registers,
                     first_device: name.clone(),
                 });
                 wiring.push((name, Wiring::Coil(dev, bus)));
@@ -255,7 +278,9 @@ pub async fn build_rig(
         Wiring::Own(dev, link) => Some(async move {
             (
                 name.to_string(),
-                connect_device(name, dev, link.clone(), clock).await,
+                connect_device(name, dev, link.clone(), clock)
+                    .await
+                    .map(|(c, _)| c),
             )
         }),
         Wiring::Coil(..) => None,
@@ -283,6 +308,7 @@ pub async fn build_rig(
                     opener: l.opener,
                     framing: l.framing,
                     unit: l.unit,
+                    status_registers: l.status_registers,
                     clock: clock.clone(),
                     lost: AtomicBool::new(false),
                     coils: std::sync::atomic::AtomicU16::new(0),
@@ -321,12 +347,13 @@ pub async fn build_rig(
                 };
                 let coil = dev.coil.unwrap_or(0);
                 shared.coils.fetch_max(coil + 1, Ordering::SeqCst);
-                let cfg = ModbusConfig::new(
+                let mut cfg = ModbusConfig::new(
                     name,
                     coil,
                     Duration::from_secs_f64(dev.warm_up_s.unwrap_or(0.0)),
                     Duration::from_secs_f64(dev.switch_s.unwrap_or(0.0)),
                 );
+                cfg.status_registers = shared.status_registers;
                 if dev.kind == DeviceKind::Lamp {
                     let lamp = ModbusLamp::new(cfg, clock.clone(), shared.bus.clone());
                     rig.lamps.insert(
@@ -370,13 +397,13 @@ pub async fn build_rig(
     Ok(rig)
 }
 
-/// Opens and connects one line device or camera.
-async fn connect_device(
+/// Opens and connects one line device or camera, and says what it found.
+pub(crate) async fn connect_device(
     name: &str,
     dev: &Device,
     link: Link,
     clock: &Clock,
-) -> Result<Connected, DeviceError> {
+) -> Result<(Connected, Identity), DeviceError> {
     match (dev.kind, link) {
         (DeviceKind::Axis, Link::Line(opener)) => {
             let (Some(limits), Some(motion)) = (dev.limits, dev.motion) else {
@@ -389,15 +416,21 @@ async fn connect_device(
             let stream = open_stream(clock, name, opener.as_ref()).await?;
             let mut cfg = GrblConfig::new(name, limits, motion);
             cfg.homing = dev.homing.unwrap_or(true);
+            cfg.configure = dev.configure.unwrap_or(false);
+            cfg.steps_per_deg = dev.steps_per_deg;
             let axis = GrblAxis::connect(stream, cfg, clock.clone()).await?;
             tracing::info!(device = %name, version = ?axis.version(), "GRBL axis connected");
+            let identity = grbl_identity(&axis);
             let stop = Arc::new(axis.stopper());
-            Ok(Connected::Axis(
-                Box::new(LinkedAxis {
-                    axis,
-                    link: Relink::new(name, opener, clock),
-                }),
-                stop,
+            Ok((
+                Connected::Axis(
+                    Box::new(LinkedAxis {
+                        axis,
+                        link: Relink::new(name, opener, clock),
+                    }),
+                    stop,
+                ),
+                identity,
             ))
         }
         (DeviceKind::Arm, Link::Line(opener)) => {
@@ -405,13 +438,23 @@ async fn connect_device(
             let cfg = AclConfig::new(name, acl_joints(dev));
             let arm = AclArm::connect(stream, cfg, clock.clone()).await?;
             tracing::info!(device = %name, "ACL arm connected");
+            let joints = arm.last_joints().map_or("unknown".to_string(), |j| {
+                j.iter()
+                    .map(|x| format!("{x:.3}°"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            });
+            let identity = Identity::usable(format!("ACL arm; joints at {joints}"));
             let stop = Arc::new(arm.stopper());
-            Ok(Connected::Arm(
-                Box::new(LinkedArm {
-                    arm,
-                    link: Relink::new(name, opener, clock),
-                }),
-                stop,
+            Ok((
+                Connected::Arm(
+                    Box::new(LinkedArm {
+                        arm,
+                        link: Relink::new(name, opener, clock),
+                    }),
+                    stop,
+                ),
+                identity,
             ))
         }
         (DeviceKind::Camera, Link::Usb(opener)) => {
@@ -422,17 +465,71 @@ async fn connect_device(
                 .await
                 .map_err(|e| DeviceError::new(name, e.kind(), e.to_string()))?;
             tracing::info!(device = %name, model = %info.model, serial = %info.serial_number, "PTP camera connected");
-            Ok(Connected::Camera(Box::new(LinkedCamera {
-                name: name.to_string(),
-                cam,
-                opener,
-                clock: clock.clone(),
-                lost: false,
-                exposure_s: None,
-            })))
+            let identity = Identity::usable(format!(
+                "PTP camera {} {}, firmware {}, serial {}",
+                info.manufacturer, info.model, info.device_version, info.serial_number
+            ));
+            Ok((
+                Connected::Camera(Box::new(LinkedCamera {
+                    name: name.to_string(),
+                    cam,
+                    opener,
+                    clock: clock.clone(),
+                    lost: false,
+                    exposure_s: None,
+                })),
+                identity,
+            ))
         }
         _ => Err(wrong_transport(name, dev)),
     }
+}
+
+/// A GRBL axis's firmware, settings, homing mode and state; an axis
+/// without homing must stand Idle, where the operator zeroed it.
+fn grbl_identity<S>(axis: &GrblAxis<S>) -> Identity
+where
+    S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+{
+    let cfg = axis.config();
+    let settings = cfg
+        .expected_settings()
+        .iter()
+        .filter_map(|e| {
+            let v = axis.settings().get(&e.number)?;
+            Some(format!(
+                "${}={}",
+                e.number,
+                rigd_proto::grbl::format_setting(e.number, *v)
+            ))
+        })
+        .collect::<Vec<_>>()
+        .join(" ");
+    let homing = if cfg.homing {
+        "homes with `$H`"
+    } else {
+        "no homing: zeroed by the operator at its 0° mark"
+    };
+    let status = axis.last_status();
+    let state = status.map(|s| s.state);
+    let at = status
+        .and_then(|s| s.x())
+        .map_or("unknown".to_string(), |x| format!("{x:.3}°"));
+    let mut state_text = state.map_or("unknown".to_string(), |s| s.to_string());
+    if cfg.homing && state == Some(rigd_proto::grbl::MachineState::Alarm) {
+        state_text.push_str(" (until homed)");
+    }
+    let about = format!(
+        "GRBL {}; settings match the profile ({settings}); {homing}; {state_text} at MPos {at}",
+        axis.version().unwrap_or("?")
+    );
+    let unusable = (!cfg.homing && state != Some(rigd_proto::grbl::MachineState::Idle)).then(|| {
+        (
+            format!("an axis without homing must be Idle, and the controller is {state_text}"),
+            "set the axis at its 0° mark, reset the controller there (MPos 0), and unlock it with `$X` if it is in Alarm".to_string(),
+        )
+    });
+    Identity { about, unusable }
 }
 
 /// A device kind and link that do not go together (a lamp on a serial line).
@@ -581,6 +678,8 @@ struct Bus {
     opener: Arc<dyn Opener>,
     framing: Framing,
     unit: u8,
+    /// Whether the module has the ready and fault input registers.
+    status_registers: bool,
     clock: Clock,
     lost: AtomicBool,
     /// Coils in use (highest coil + 1), for the all-off stop.

@@ -162,6 +162,7 @@ pub async fn serve(
                         host: "127.0.0.1".into(),
                         port,
                         unit: *unit,
+                        status_registers: dev.transport.status_registers(),
                     };
                 }
             }

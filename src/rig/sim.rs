@@ -18,7 +18,7 @@ use rigd_core::Clock;
 use rigd_core::Trapezoid;
 use rigd_sim::devices::{CameraTimes, SimContext};
 use rigd_sim::firmware::acl::{self as acl_fw, AclJoint, AclParams};
-use rigd_sim::firmware::grbl::{self as grbl_fw, GrblParams};
+use rigd_sim::firmware::grbl::{self as grbl_fw, Eeprom, GrblParams};
 use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
 use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
@@ -27,7 +27,7 @@ use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{DeviceKind, Profile, Transport};
+use crate::model::profile::{DeviceKind, Profile, SimGrblSettings, Transport};
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
 
@@ -122,12 +122,7 @@ impl SimWorld {
 
 /// A bus key for devices that share one Modbus module.
 pub(crate) fn bus_key(t: &Transport) -> String {
-    match t {
-        Transport::ModbusRtu { port, unit, .. } => format!("modbus-rtu:{port}#{unit}"),
-        Transport::ModbusTcp { host, port, unit } => format!("modbus-tcp:{host}:{port}#{unit}"),
-        Transport::Serial { port, .. } => format!("serial:{port}"),
-        Transport::Usb { .. } | Transport::PtpTcp { .. } => "usb".into(),
-    }
+    t.modbus_module().unwrap_or_else(|| "usb".into())
 }
 
 /// Builds the simulated rig of a profile: firmware behind every device,
@@ -154,6 +149,18 @@ pub async fn connect(
             world: parts.world,
         },
     ))
+}
+
+/// `rig check` on the simulated rig: its firmware, as it powers up, checked
+/// through the real drivers.
+pub async fn check(
+    profile: &Profile,
+    solver: Arc<Solver>,
+    clock: &Clock,
+) -> Result<super::check::RigCheck, DeviceError> {
+    let faults = Arc::new(FaultInjector::new(profile.sim.fault_rules()));
+    let parts = firmware(profile, solver, Some([1, 1]), clock, &faults)?;
+    Ok(super::check::check_rig(profile, &parts.links, clock).await)
 }
 
 /// The simulated firmware of a profile, ready to be connected: a link per
@@ -245,6 +252,8 @@ pub(crate) fn firmware(
                 lamps: specs,
                 laser: laser.map(|(n, _)| (*n).clone()),
                 laser_switch_s: laser.and_then(|(_, d)| d.switch_s).unwrap_or(0.0),
+                status_registers: devs[0].1.transport.status_registers(),
+                write_multiple_coils: true,
             },
             clock.clone(),
             faults.clone(),
@@ -278,16 +287,28 @@ pub(crate) fn firmware(
         let link = match dev.kind {
             DeviceKind::Axis => {
                 let home = dev.home_deg.unwrap_or(0.0);
+                let motion = Trapezoid::from(dev.motion_or_default());
+                let settings = match profile.sim.grbl_settings {
+                    SimGrblSettings::Factory => Eeprom::factory(),
+                    SimGrblSettings::Configured => {
+                        let travel = dev.limits.map_or(200.0, |l| l.max - l.min);
+                        // A board set up for its axis: its rates, its
+                        // travel, and homing if the axis homes.
+                        let e = Eeprom::configured(motion, dev.homing.unwrap_or(true), travel);
+                        if let Some(steps) = dev.steps_per_deg {
+                            e.set(100, steps);
+                        }
+                        e
+                    }
+                };
                 Link::Line(Arc::new(GrblOpener {
                     params: GrblParams {
                         name: name.clone(),
-                        motion: Trapezoid::from(dev.motion_or_default()),
+                        motion,
                         home_position: home,
                         physical_start: home,
                         start_homed: false,
-                        // A controller that homes is set up to; one that
-                        // does not keeps GRBL's factory `$22=0`.
-                        homing_enabled: dev.homing.unwrap_or(true),
+                        settings,
                         reset_on_open: profile.sim.grbl_reset_on_open,
                         world: Some(shared.clone()),
                     },
@@ -339,6 +360,7 @@ pub(crate) fn firmware(
                     }),
                     framing: m.framing,
                     unit: m.unit,
+                    status_registers: dev.transport.status_registers(),
                 }
             }
             DeviceKind::Camera => {
@@ -665,11 +687,13 @@ mod tests {
                 opener,
                 framing,
                 unit,
+                status_registers,
             } => Link::Modbus {
                 bus,
                 opener: Arc::new(SlowLine(opener, c, delay)),
                 framing,
                 unit,
+                status_registers,
             },
             Link::Usb(o) => Link::Usb(Arc::new(SlowPipe(o, c, delay))),
         }

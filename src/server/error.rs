@@ -14,7 +14,8 @@ use utoipa::ToSchema;
 pub struct ErrorBody {
     /// A short machine-readable code: `bad_request`, `invalid`, `unauthorized`,
     /// `not_found`, `method_not_allowed`, `conflict`, `payload_too_large`,
-    /// `unsupported_media_type`, `unavailable`, `internal`.
+    /// `unsupported_media_type`, `device` (a device failed), `unavailable`,
+    /// `internal`.
     pub error: String,
     /// What went wrong, for a person.
     pub detail: String,
@@ -74,6 +75,7 @@ impl ApiError {
             413 => "payload_too_large",
             415 => "unsupported_media_type",
             422 => "invalid",
+            502 => "device",
             503 => "unavailable",
             s if s >= 500 => "internal",
             _ => "error",
@@ -90,6 +92,7 @@ impl From<crate::server::supervisor::SupervisorError> for ApiError {
             S::Conflict(d) => ApiError::conflict(d),
             S::Unavailable(d) => ApiError::new(StatusCode::SERVICE_UNAVAILABLE, d),
             S::Internal(d) => ApiError::internal(d),
+            S::Device(d) => ApiError::new(StatusCode::BAD_GATEWAY, d),
         }
     }
 }

@@ -14,6 +14,7 @@ pub mod api;
 pub mod auth;
 pub mod error;
 pub mod events;
+pub mod manual_session;
 pub mod model;
 pub mod persist;
 pub mod plan_cache;
@@ -33,7 +34,7 @@ use tokio::task::JoinHandle;
 
 use utoipa_swagger_ui::SwaggerUi;
 
-use api::{daemon, frames, plans, queue, rig, runs, viewer};
+use api::{daemon, frames, manual, plans, queue, rig, runs, viewer};
 #[cfg(feature = "sim")]
 use api::{sim, tradeoff};
 
@@ -157,6 +158,16 @@ const STYLE_CSS: &str = include_str!("dashboard/style.css");
 pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
     let v1 = Router::new()
         .route("/rig", get(rig::rig))
+        .route("/rig/check", get(rig::check))
+        .route("/rig/manual/home", post(manual::home))
+        .route("/rig/manual/jog", post(manual::jog))
+        .route("/rig/manual/pose", post(manual::pose))
+        .route("/rig/manual/lamp", post(manual::lamp))
+        .route(
+            "/rig/manual/frame",
+            get(manual::last_frame).post(manual::take_frame),
+        )
+        .route("/rig/manual/release", post(manual::release))
         .route("/plans", get(plans::plans))
         .route("/plans/{name}", get(plans::plan_detail))
         .route("/runs", get(runs::list_runs).post(runs::create_run))

@@ -247,6 +247,11 @@ pub struct DeviceView {
     pub connected: bool,
     /// Null for devices that do not home (lamps, cameras).
     pub homed: Option<bool>,
+    /// Axes: whether the controller homes it; false for an axis zeroed by
+    /// the operator at its 0° mark (`homing = false`), whose reference a
+    /// resume asks the operator to confirm. Null for other devices.
+    #[serde(default)]
+    pub homing: Option<bool>,
     /// True while a run is preparing or running (the same for every device).
     pub busy: bool,
     /// The fault that paused the run, if it names this device.

@@ -70,7 +70,9 @@ pub struct Daemon {
     pub runs_dir: PathBuf,
     inner: Mutex<Inner>,
     /// Serialises starting runs (prepare happens outside `inner`'s lock).
-    start_gate: tokio::sync::Mutex<()>,
+    pub(crate) start_gate: tokio::sync::Mutex<()>,
+    /// The manual-control rig, between manual actions.
+    pub manual: super::manual_session::ManualSession,
     supervisor: Mutex<Option<JoinHandle<()>>>,
     /// Turns true at the end of shutdown (the engine stopped, or 60 s
     /// passed): the event streams end and the HTTP server stops.
@@ -82,7 +84,7 @@ pub struct Daemon {
     pub tradeoff_busy: std::sync::atomic::AtomicBool,
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
@@ -105,6 +107,9 @@ pub enum SupervisorError {
     /// Something failed inside the daemon (a run directory, the disk).
     #[error("{0}")]
     Internal(String),
+    /// A device failed or did not answer (manual control, rig check).
+    #[error("{0}")]
+    Device(String),
 }
 
 impl SupervisorError {
@@ -173,6 +178,7 @@ impl Daemon {
             runs_dir,
             inner: Mutex::new(inner),
             start_gate: tokio::sync::Mutex::new(()),
+            manual: Default::default(),
             supervisor: Mutex::new(None),
             shutdown_tx,
             tradeoff_busy: std::sync::atomic::AtomicBool::new(false),
@@ -196,7 +202,7 @@ impl Daemon {
         }
     }
 
-    fn clock(&self) -> Clock {
+    pub(crate) fn clock(&self) -> Clock {
         if self.config.sim {
             Clock::scaled(self.config.sim_speed)
         } else {
@@ -298,6 +304,36 @@ impl Daemon {
         })
     }
 
+    /// `rig check` on the daemon's rig (simulated or hardware): every
+    /// device connected and reported, nothing moved. 409 while a run holds
+    /// the rig; a run started meanwhile waits until the check is done.
+    pub async fn check_rig(
+        self: &Arc<Self>,
+    ) -> Result<crate::rig::check::RigCheck, SupervisorError> {
+        let _gate = self.start_gate.lock().await;
+        if let Some(e) = Self::conflict_active(&self.inner()) {
+            return Err(e);
+        }
+        // The check opens every port itself.
+        self.manual.release().await;
+        let clock = self.clock();
+        if !self.config.sim {
+            return Ok(crate::rig::hardware::check(&self.profile, &clock).await);
+        }
+        #[cfg(feature = "sim")]
+        {
+            let solver = crate::kinematics::Solver::new(&self.profile)
+                .map_err(|e| SupervisorError::internal(e.to_string()))?;
+            crate::rig::sim::check(&self.profile, Arc::new(solver), &clock)
+                .await
+                .map_err(|e| SupervisorError::internal(e.to_string()))
+        }
+        #[cfg(not(feature = "sim"))]
+        Err(SupervisorError::unavailable(
+            "this rigd was built without the simulator",
+        ))
+    }
+
     /// Starts a new run now; 409 if one is active.
     pub async fn start_run(self: &Arc<Self>, req: RunRequest) -> Result<RunView, SupervisorError> {
         let plan = self.validate(&req)?;
@@ -311,6 +347,7 @@ impl Daemon {
                 return Err(e);
             }
         }
+        self.manual.release().await;
         let id = {
             let inner = self.inner();
             persist::new_run_id(&self.runs_dir, &req.sample, &plan.name, &|id| {
@@ -707,6 +744,7 @@ impl Daemon {
                 return Err(e);
             }
         }
+        self.manual.release().await;
         let root = self.runs_dir.join(id);
         let clock = self.clock();
         let r = root.clone();
@@ -744,12 +782,19 @@ impl Daemon {
                 .map(|a| (a.id.clone(), a.handle.clone()))
         };
         let Some((id, handle)) = active else {
+            // No run: manual control may be moving something.
+            let report = self.manual.emergency_stop().await;
+            let note = if report.is_some() {
+                "no run active: the manual-control rig stopped"
+            } else {
+                "no run active: nothing moving"
+            };
             self.hub.publish(
                 None,
                 "estop",
-                serde_json::json!({"run": null, "note": "no run active: nothing moving"}),
+                serde_json::json!({"run": null, "note": note, "report": report}),
             );
-            return (None, None);
+            return (None, report);
         };
         let report = handle.emergency_stop().await;
         tracing::warn!(run = %id, latency_s = report.latency_s, "emergency stop");

@@ -20,9 +20,17 @@ pub struct Srv {
 
 /// Starts a daemon in this process on a free loopback port.
 pub async fn start_in(data: &Path, speed: f64) -> Srv {
+    start_with(data, speed, None, true).await
+}
+
+/// [`start_in`] with a profile (a file or an embedded name), on its
+/// simulated rig or (`sim` false) on the hardware it names.
+pub async fn start_with(data: &Path, speed: f64, profile: Option<&str>, sim: bool) -> Srv {
     let mut config = ServerConfig::new(data);
     config.listen = SocketAddr::from(([127, 0, 0, 1], 0));
     config.sim_speed = speed;
+    config.profile = profile.map(str::to_string);
+    config.sim = sim;
     let (addr, handle) = server::start(config).await.expect("server starts");
     let token = handle.token.secret().to_string();
     Srv {

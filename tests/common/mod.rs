@@ -77,3 +77,120 @@ pub fn kind_name(k: rigd::rig::hal::ErrorKind) -> &'static str {
         ErrorKind::Storage => "storage",
     }
 }
+
+/// A child process that is killed when the test ends, even when it fails.
+pub struct Child(pub std::process::Child);
+
+impl Drop for Child {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// Starts `cmd` with stdout piped and reads its lines until `ready` says
+/// so, in a thread so that a silent process fails the test within
+/// `timeout` instead of hanging it. Returns the process and the lines read.
+pub fn spawn_until(
+    mut cmd: Command,
+    what: &str,
+    timeout: std::time::Duration,
+    ready: fn(&str) -> bool,
+) -> (Child, Vec<String>) {
+    use std::io::{BufRead, BufReader};
+    let mut child = cmd
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::inherit())
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {what}: {e}"));
+    let stdout = child.stdout.take().expect("stdout");
+    let child = Child(child);
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut lines = Vec::new();
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            let done = ready(&line);
+            lines.push(line);
+            if done {
+                let _ = tx.send(lines);
+                return;
+            }
+        }
+    });
+    let lines = rx
+        .recv_timeout(timeout)
+        .unwrap_or_else(|_| panic!("{what} never said it was ready"));
+    (child, lines)
+}
+
+/// `rigd sim serve` of a profile at `speed`, writing the profile that
+/// points at its endpoints to `served`: the simulated firmware reached the
+/// way hardware is (ptys, loopback sockets).
+pub fn serve_sim(profile: &Path, served: &Path, speed: f64) -> (Child, Vec<String>) {
+    let mut cmd = rigd();
+    cmd.args(["sim", "serve", "--profile"])
+        .arg(profile)
+        .args(["--speed", &speed.to_string(), "--write-profile"])
+        .arg(served);
+    spawn_until(
+        cmd,
+        "rigd sim serve",
+        std::time::Duration::from_secs(30),
+        |l| l.starts_with("# ready"),
+    )
+}
+
+/// The Python of the test venv with pymodbus: `RIGD_TEST_PYTHON`, which
+/// `scripts/test.sh` sets, or the venv it creates under `target/`.
+pub fn test_python() -> PathBuf {
+    let path = std::env::var_os("RIGD_TEST_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo_file("target/test-venv/bin/python"));
+    assert!(
+        path.exists(),
+        "no Python with pymodbus at {}: run scripts/test.sh once, which creates it",
+        path.display()
+    );
+    path
+}
+
+/// A coil-only relay module served by pymodbus (`tests/support/relay_module.py`)
+/// on 127.0.0.1, logging every write to `log`; `extra` adds options
+/// (`--refuse-fc0f`). Returns the process and its port.
+pub fn relay_module(log: &Path, extra: &[&str]) -> (Child, u16) {
+    let mut cmd = Command::new(test_python());
+    cmd.arg(repo_file("tests/support/relay_module.py"))
+        .args([
+            "--port",
+            "0",
+            "--coils",
+            "8",
+            "--max-seconds",
+            "600",
+            "--log",
+        ])
+        .arg(log)
+        .args(extra);
+    let (child, lines) = spawn_until(
+        cmd,
+        "the pymodbus relay module",
+        std::time::Duration::from_secs(30),
+        |l| l.starts_with("listening "),
+    );
+    let port = lines
+        .last()
+        .and_then(|l| l.rsplit(':').next())
+        .and_then(|p| p.parse().ok())
+        .expect("listening 127.0.0.1:PORT");
+    (child, port)
+}
+
+/// The write requests a relay module logged, one per line.
+pub fn relay_log(log: &Path) -> Vec<String> {
+    std::fs::read_to_string(log)
+        .unwrap_or_default()
+        .lines()
+        .map(str::to_string)
+        .collect()
+}

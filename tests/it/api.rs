@@ -75,6 +75,22 @@ async fn rig_and_plans() {
         assert_eq!(d["connected"], true);
         assert_eq!(d["busy"], false);
     }
+    // Bring-up: every device connected and reported, nothing moved.
+    let (status, check) = s.get("/api/v1/rig/check").await;
+    assert_eq!(status, 200, "{check}");
+    assert_eq!(check["usable"], true, "{check}");
+    let verdicts = check["devices"].as_array().expect("verdicts");
+    assert_eq!(verdicts.len(), devices.len());
+    let rail = verdicts
+        .iter()
+        .find(|d| d["device"] == "rail")
+        .expect("the rail's verdict");
+    assert!(
+        rail["detail"]
+            .as_str()
+            .is_some_and(|t| t.contains("GRBL 1.1h") && t.contains("homes with `$H`")),
+        "{rail}"
+    );
     let cam = devices
         .iter()
         .find(|d| d["kind"] == "camera")
@@ -463,6 +479,10 @@ async fn pause_resume_abort_and_estop() {
     let (status, rig) = s.get("/api/v1/rig").await;
     assert_eq!(status, 200);
     assert_eq!(rig["state"], "paused");
+    // The paused run holds the rig: no check now.
+    let (status, v) = s.get("/api/v1/rig/check").await;
+    assert_eq!(status, 409, "{v}");
+    assert!(v["detail"].as_str().is_some_and(|d| d.contains(&id)), "{v}");
     assert!(rig["devices"]
         .as_array()
         .expect("devices")
@@ -807,6 +827,13 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
     let expected: BTreeSet<&str> = [
         "/api/v1/health",
         "/api/v1/rig",
+        "/api/v1/rig/check",
+        "/api/v1/rig/manual/home",
+        "/api/v1/rig/manual/jog",
+        "/api/v1/rig/manual/pose",
+        "/api/v1/rig/manual/lamp",
+        "/api/v1/rig/manual/frame",
+        "/api/v1/rig/manual/release",
         "/api/v1/plans",
         "/api/v1/plans/{name}",
         "/api/v1/runs",
@@ -932,7 +959,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 27, "operations checked");
+    assert_eq!(checked, 35, "operations checked");
     s.shutdown().await;
 }
 

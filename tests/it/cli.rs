@@ -200,6 +200,21 @@ fn broken_profiles_name_file_key_and_expectation() {
             "devices.rail.home_deg",
             "zeroed at its 0° mark",
         ),
+        (
+            "configure-lamp.toml",
+            "[devices.hmi]\nkind = \"lamp\"",
+            "[devices.hmi]\nkind = \"lamp\"\nconfigure = true",
+            "devices.hmi.configure",
+            "`configure` is for axes",
+        ),
+        (
+            // 5000 steps/deg at the rail's 12 deg/s: 60 kHz, twice GRBL's.
+            "configure-too-fast.toml",
+            "home_deg = 90.0",
+            "home_deg = 90.0\nconfigure = true\nsteps_per_deg = 5000.0",
+            "devices.rail.steps_per_deg",
+            "60000 steps/s; GRBL steps at most 30000/s",
+        ),
     ];
     for (file, from, to, key, what) in cases {
         let path = broken_profile(tmp.path(), file, from, to);

@@ -229,20 +229,38 @@ async fn devices_already_in_place_are_not_commanded() {
     }
 }
 
-/// A turntable on a GRBL board as it ships (`$22=0`, no home switch) with
-/// `homing = false`: the run never sends it `$H`, takes its zero from the
-/// operator, and completes through the real driver.
+/// Three GRBL boards as they ship (factory settings: `$22=0`, `$110=500`,
+/// `$120=10`), a turntable without a home switch (`homing = false`), and
+/// `configure = true` on every axis: rigd writes each board's settings at
+/// connect, never sends the turntable `$H`, takes its zero from the
+/// operator, and the run completes through the real driver.
 #[tokio::test(start_paused = true)]
 async fn a_turntable_without_homing_completes_a_run() {
     let text = std::fs::read_to_string(common::repo_file("rig-profiles/msra-btf-mdf.toml"))
         .expect("read profile");
-    let from = "[devices.turntable]\nkind = \"axis\"\n";
-    assert!(text.contains(from), "fixture drifted");
-    let text = text.replacen(from, &format!("{from}homing = false\n"), 1);
-    let source = "msra-no-turntable-homing.toml";
+    let mut text = text;
+    for axis in ["turntable", "light_arc", "laser_tilt"] {
+        let from = format!("[devices.{axis}]\nkind = \"axis\"\n");
+        assert!(text.contains(&from), "fixture drifted");
+        let homing = if axis == "turntable" {
+            "homing = false\n"
+        } else {
+            ""
+        };
+        text = text.replacen(&from, &format!("{from}{homing}configure = true\n"), 1);
+    }
+    // The turntable's `home_deg = 0.0` is allowed: 0 is its mark.
+    let text = text.replacen("[sim]\n", "[sim]\ngrbl_settings = \"factory\"\n", 1);
+    let source = "msra-stock-grbl.toml";
     let profile = rigd::model::profile::Profile::parse(&text, source).expect("profile");
     let (_, faults) = msra_grid_capture(profile, source).await;
     assert_eq!(faults.calls("turntable", "home"), 0, "`$H` sent");
     assert!(faults.calls("light_arc", "home") >= 1);
     assert!(faults.calls("turntable", "move") > 0);
+    // `$110` and `$120` for all; `$22` for the two that home, and `$130`
+    // where the factory's 200 does not cover the limits (the light arc's
+    // 360°, not the laser tilt's 60°).
+    for (axis, writes) in [("turntable", 2), ("light_arc", 4), ("laser_tilt", 3)] {
+        assert_eq!(faults.calls(axis, "configure"), writes, "{axis}");
+    }
 }

@@ -12,7 +12,7 @@ use rigd::rig::hal::{Axis, ErrorKind};
 use rigd_core::Clock;
 use rigd_core::Trapezoid;
 use rigd_proto::grbl::MachineState;
-use rigd_sim::firmware::grbl::{serve_with_stats, GrblParams, GrblStats};
+use rigd_sim::firmware::grbl::{serve_with_stats, Eeprom, GrblParams, GrblStats};
 use rigd_sim::{FaultInjector, FaultRule};
 use tokio::io::DuplexStream;
 
@@ -29,7 +29,7 @@ fn params() -> GrblParams {
         home_position: 0.0,
         physical_start: 25.0,
         start_homed: false,
-        homing_enabled: true,
+        settings: Eeprom::configured(TRAP, true, 360.0),
         reset_on_open: true,
         world: None,
     }
@@ -221,34 +221,113 @@ async fn reconnect_resyncs_position_from_the_device() {
 
 #[tokio::test(start_paused = true)]
 async fn soft_reset_mid_move_leaves_the_axis_in_alarm() {
-    // A driver whose motion deadline is far too short gives up on a long
-    // move while the axis still runs; the soft reset then stops it.
+    // Someone slows the controller down behind rigd's back (`$110` written
+    // from another terminal after connect): the motion deadline, sized from
+    // the rates read at connect, expires while the axis still runs, and the
+    // soft reset then stops it.
     let clock = Clock::virtual_time();
-    let (host, _) = start_sim(
-        GrblParams {
-            start_homed: true,
-            physical_start: 0.0,
-            ..params()
-        },
-        &clock,
-        Arc::default(),
-    );
+    let p = GrblParams {
+        start_homed: true,
+        physical_start: 0.0,
+        ..params()
+    };
+    let eeprom = p.settings.clone();
+    let (host, _) = start_sim(p, &clock, Arc::default());
     let mut cfg = config();
-    cfg.motion.max_velocity = 1e9; // deadline too short for the real move
-    cfg.motion.acceleration = 1e9;
-    cfg.motion.settle_s = 0.0;
     cfg.command_timeout = Duration::from_millis(500);
     cfg.poll_interval = Duration::from_millis(100);
-    let mut fast = GrblAxis::connect(host, cfg, clock.clone())
+    let mut axis = GrblAxis::connect(host, cfg, clock.clone())
         .await
         .expect("connect");
-    let e = fast.move_to(300.0).await.expect_err("deadline");
+    eeprom.set(110, 60.0); // 1 deg/s instead of 30
+    let e = axis.move_to(300.0).await.expect_err("deadline");
     assert_eq!(e.kind, ErrorKind::Timeout);
-    let s = fast.soft_reset().await.expect("reset");
+    let s = axis.soft_reset().await.expect("reset");
     assert_eq!(s.state, MachineState::Alarm);
     let x = s.x().unwrap_or(f64::NAN);
     assert!(x > 0.0 && x < 300.0, "stopped at {x}");
-    assert_eq!(fast.home().await.expect("home"), 0.0);
+    assert_eq!(axis.home().await.expect("home"), 0.0);
+}
+
+/// The controller's rates, not the profile's, size the motion deadline: a
+/// board set up slower than the profile models is refused at connect
+/// (naming each setting and the line that fixes it), and with `configure`
+/// it is set up, read back, and a long move then finishes in its time.
+#[tokio::test(start_paused = true)]
+async fn settings_are_compared_with_the_profile_and_configured_on_request() {
+    let clock = Clock::virtual_time();
+    let stock = || GrblParams {
+        settings: Eeprom::factory(),
+        physical_start: 0.0,
+        ..params()
+    };
+    let mut cfg = config();
+    cfg.homing = false;
+    let (host, stats) = start_sim(stock(), &clock, Arc::default());
+    let e = GrblAxis::connect(host, cfg.clone(), clock.clone())
+        .await
+        .expect_err("factory rates differ from the profile");
+    assert_eq!(e.kind, ErrorKind::DeviceFault);
+    for part in [
+        "$110 (X max rate, deg/min) is 500.000 on the controller, the profile needs 1800.000",
+        "$120 (X acceleration, deg/s²) is 10.000 on the controller, the profile needs 60.000",
+        "`$110=1800.000`",
+        "`configure = true`",
+    ] {
+        assert!(e.message.contains(part), "{part}: {e}");
+    }
+    // `$22=0` is what the profile wants here: not named.
+    assert!(!e.message.contains("$22"), "{e}");
+    assert_eq!(
+        stats.lines.load(Ordering::Relaxed),
+        2,
+        "`$I`, `$$`; nothing written"
+    );
+
+    let board = stock();
+    let eeprom = board.settings.clone();
+    let (host, _) = start_sim(board, &clock, Arc::default());
+    cfg.configure = true;
+    let mut axis = GrblAxis::connect(host, cfg.clone(), clock.clone())
+        .await
+        .expect("configured");
+    assert_eq!(eeprom.get(110), Some(1800.0));
+    assert_eq!(eeprom.get(120), Some(60.0));
+    assert_eq!(axis.settings().get(&110), Some(&1800.0));
+    assert_eq!(axis.rates().max_velocity, 30.0);
+    assert_eq!(axis.home().await.expect("reference"), 0.0);
+    let t0 = clock.now_s();
+    assert_eq!(axis.move_to(300.0).await.expect("move"), 300.0);
+    let took = clock.now_s() - t0;
+    let modelled = TRAP.move_time(300.0);
+    assert!(
+        took >= modelled && took < modelled + 0.5,
+        "{took} vs {modelled}"
+    );
+
+    // A homing axis also needs `$22=1`, written first, and the travel.
+    let board = stock();
+    let eeprom = board.settings.clone();
+    let (host, _) = start_sim(board, &clock, Arc::default());
+    cfg.homing = true;
+    GrblAxis::connect(host, cfg.clone(), clock.clone())
+        .await
+        .expect("configured for homing");
+    assert_eq!(eeprom.get(22), Some(1.0));
+    assert_eq!(eeprom.get(130), Some(360.0));
+    assert_eq!(eeprom.get(20), Some(0.0));
+
+    // A value the controller refuses (faster than its step generator) is
+    // an error naming the line, and the board keeps its settings.
+    let board = stock();
+    let eeprom = board.settings.clone();
+    let (host, _) = start_sim(board, &clock, Arc::default());
+    cfg.steps_per_deg = Some(2000.0); // 2000 × 30 deg/s = 60 kHz
+    let e = GrblAxis::connect(host, cfg, clock.clone())
+        .await
+        .expect_err("error:12");
+    assert!(e.message.contains("error:12"), "{e}");
+    assert_eq!(eeprom.get(100), Some(250.0));
 }
 
 mod robustness {
@@ -327,8 +406,9 @@ mod robustness {
 #[tokio::test(start_paused = true)]
 async fn an_axis_without_homing_takes_its_zero_from_the_operator() {
     let clock = Clock::virtual_time();
+    // Homing off as shipped; the rates set up for the axis.
     let stock = GrblParams {
-        homing_enabled: false,
+        settings: Eeprom::configured(TRAP, false, 360.0),
         physical_start: 0.0,
         ..params()
     };
@@ -360,15 +440,14 @@ async fn an_axis_without_homing_takes_its_zero_from_the_operator() {
     assert_eq!(axis.move_to(40.0).await.expect("move"), 40.0);
     assert_eq!(faults.calls("turntable", "home"), 0, "`$H` was sent");
 
-    // A controller that does home (`$22=1`) starts locked: the profile's
-    // `homing = false` then gets the fix in the error.
+    // A controller that homes (`$22=1`) does not match `homing = false`:
+    // refused at connect, with the line that fixes it.
     let (host, _) = start_sim(params(), &clock, Arc::default());
-    let mut locked = GrblAxis::connect(host, cfg, clock.clone())
+    let e = GrblAxis::connect(host, cfg, clock.clone())
         .await
-        .expect("connect");
-    let e = locked.home().await.expect_err("alarm");
+        .expect_err("$22 differs");
     assert_eq!(e.kind, ErrorKind::DeviceFault);
-    assert!(e.message.contains("`$X`"), "{e}");
+    assert!(e.message.contains("`$22=0`"), "{e}");
 }
 
 /// A board that does not reset when its port opens says nothing until
@@ -395,8 +474,8 @@ async fn a_board_that_kept_running_connects_at_once_without_a_reset() {
         axis.last_status().map(|s| (s.state, s.x())),
         Some((MachineState::Idle, Some(42.0)))
     );
-    // `$I` and nothing else was executed: no reset, no homing.
-    assert_eq!(stats.lines.load(Ordering::Relaxed), 1);
+    // `$I` and `$$` and nothing else were executed: no reset, no homing.
+    assert_eq!(stats.lines.load(Ordering::Relaxed), 2);
     assert_eq!(axis.move_to(50.0).await.expect("move"), 50.0);
 
     // A board that resets on open still greets with its banner.

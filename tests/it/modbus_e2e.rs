@@ -23,6 +23,16 @@ const WARM_UP: Duration = Duration::from_secs(180);
 const SWITCH: Duration = Duration::from_millis(500);
 
 fn module(clock: &Clock, faults: &[&str]) -> ModbusModule {
+    module_as_sold(clock, faults, true, true)
+}
+
+/// A module with or without the status registers and FC0F.
+fn module_as_sold(
+    clock: &Clock,
+    faults: &[&str],
+    status_registers: bool,
+    write_multiple_coils: bool,
+) -> ModbusModule {
     let rules = faults
         .iter()
         .map(|f| f.parse().expect("fault rule"))
@@ -38,6 +48,8 @@ fn module(clock: &Clock, faults: &[&str]) -> ModbusModule {
             lamps: vec![lamp("hmi"), lamp("lamp1")],
             laser: Some("laser".into()),
             laser_switch_s: 0.01,
+            status_registers,
+            write_multiple_coils,
         },
         clock.clone(),
         Arc::new(FaultInjector::new(rules)),
@@ -101,6 +113,103 @@ async fn all_off_drops_every_coil_in_one_request() {
         .await
         .expect("all off");
     assert_eq!(m.coils(), vec![false, false, false]);
+}
+
+/// A coil-only module (no status registers, no FC0F), on a TCP bus.
+fn coil_only_rig() -> (Clock, ModbusModule, SharedBus) {
+    let clock = Clock::virtual_time();
+    let m = module_as_sold(&clock, &[], false, false);
+    let bus = tcp_bus(link(&m, Framing::Tcp), 1);
+    (clock, m, bus)
+}
+
+fn coil_only_lamp(clock: &Clock, bus: &SharedBus, name: &str, coil: u16) -> ModbusLamp {
+    let mut cfg = ModbusConfig::new(name, coil, WARM_UP, SWITCH);
+    cfg.status_registers = false;
+    ModbusLamp::new(cfg, clock.clone(), bus.clone())
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_coil_only_module_times_the_warm_up_from_the_read_back() {
+    let (clock, m, bus) = coil_only_rig();
+    // The module really has no registers: asking for them is refused.
+    let refused = bus
+        .lock()
+        .await
+        .read_input_registers(0, 2)
+        .await
+        .expect("transport");
+    assert!(refused.is_err(), "{refused:?}");
+    let mut hmi = coil_only_lamp(&clock, &bus, "hmi", 0);
+    let t0 = clock.now_s();
+    hmi.set(true).await.expect("on");
+    let switched = clock.now_s() - t0;
+    assert!((switched - 0.5).abs() < 0.01, "switch time {switched}");
+    hmi.wait_ready()
+        .await
+        .expect("ready after the timed warm-up");
+    let waited = clock.now_s() - t0;
+    assert!(
+        (180.5..180.6).contains(&waited),
+        "warm-up timed from the read-back: {waited}"
+    );
+    // Switching on again does not restart the warm-up.
+    hmi.set(true).await.expect("on again");
+    let t1 = clock.now_s();
+    hmi.wait_ready().await.expect("still ready");
+    assert!(clock.now_s() - t1 < 0.1);
+    hmi.set(false).await.expect("off");
+    assert_eq!(m.coils(), vec![false, false, false]);
+    let e = hmi.wait_ready().await.expect_err("off lamp");
+    assert_eq!(e.kind, ErrorKind::NotReady);
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_coil_only_lamp_whose_relay_dropped_during_warm_up_is_not_ready() {
+    let (clock, _m, bus) = coil_only_rig();
+    let mut hmi = coil_only_lamp(&clock, &bus, "hmi", 0);
+    hmi.set(true).await.expect("on");
+    // Someone switches the relay off at the module's panel.
+    bus.lock()
+        .await
+        .write_single_coil(0, false)
+        .await
+        .expect("transport")
+        .expect("reply");
+    let e = hmi.wait_ready().await.expect_err("relay dropped");
+    assert_eq!(e.kind, ErrorKind::DeviceFault);
+    assert!(e.message.contains("coil 0 reads false"), "{e}");
+}
+
+#[tokio::test(start_paused = true)]
+async fn a_module_that_refuses_fc0f_gets_its_coils_off_one_by_one() {
+    let (clock, m, bus) = coil_only_rig();
+    coil_only_lamp(&clock, &bus, "hmi", 0)
+        .set(true)
+        .await
+        .expect("on");
+    coil_only_lamp(&clock, &bus, "lamp1", 1)
+        .set(true)
+        .await
+        .expect("on");
+    assert_eq!(m.coils(), vec![true, true, false]);
+    let t0 = clock.now_s();
+    all_off(&clock, &bus, 3, Duration::from_secs(2))
+        .await
+        .expect("all off, one coil at a time");
+    assert_eq!(m.coils(), vec![false, false, false]);
+    // Three FC05 writes, each answered after its relay switched.
+    let took = clock.now_s() - t0;
+    assert!((1.0..1.1).contains(&took), "{took}");
+    // Too short a deadline for one by one is a timeout, not a hang.
+    coil_only_lamp(&clock, &bus, "hmi", 0)
+        .set(true)
+        .await
+        .expect("on");
+    let e = all_off(&clock, &bus, 3, Duration::from_millis(700))
+        .await
+        .expect_err("deadline");
+    assert!(e.to_string().contains("within"), "{e}");
 }
 
 #[tokio::test(start_paused = true)]

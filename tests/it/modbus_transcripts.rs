@@ -119,6 +119,8 @@ fn module(clock: &Clock, t: &Transcript) -> ModbusModule {
             lamps,
             laser: Some("laser".into()),
             laser_switch_s: 0.01,
+            status_registers: true,
+            write_multiple_coils: true,
         },
         clock.clone(),
         Arc::new(FaultInjector::new(rules)),

@@ -4,65 +4,16 @@
 
 use crate::common;
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{assert_complete_run, repo_file, rigd};
+use common::{assert_complete_run, repo_file, rigd, serve_sim};
 use tokio_modbus::client::Reader;
-
-/// Stops the server even when an assertion fails.
-struct Server(Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 #[test]
 fn served_msra_rig_answers_a_modbus_client_and_completes_a_run() {
     let tmp = tempfile::tempdir().expect("tempdir");
     let served = tmp.path().join("served.toml");
-    let mut child = rigd()
-        .args([
-            "sim",
-            "serve",
-            "--profile",
-            repo_file("rig-profiles/msra-btf-mdf.toml")
-                .to_str()
-                .expect("utf8"),
-            "--speed",
-            "20",
-            "--write-profile",
-            served.to_str().expect("utf8"),
-        ])
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .expect("start rigd sim serve");
-    let stdout = child.stdout.take().expect("stdout");
-    let _server = Server(child);
-
-    // Read the banner up to "ready", in a thread so a silent server fails
-    // the test instead of hanging it.
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut lines = Vec::new();
-        for line in BufReader::new(stdout).lines() {
-            let Ok(line) = line else { break };
-            let ready = line.starts_with("# ready");
-            lines.push(line);
-            if ready {
-                let _ = tx.send(lines);
-                return;
-            }
-        }
-    });
-    let lines = rx
-        .recv_timeout(Duration::from_secs(30))
-        .expect("rigd sim serve never said it was ready");
+    let (_server, lines) = serve_sim(&repo_file("rig-profiles/msra-btf-mdf.toml"), &served, 20.0);
     let modbus = lines
         .iter()
         .find(|l| l.contains("Modbus TCP"))

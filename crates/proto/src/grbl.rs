@@ -88,9 +88,73 @@ pub enum Command {
         /// Feed rate in units/min (rigd: degrees/min); must be positive.
         feed: f64,
     },
+    /// `$$`: list every setting (`$N=V` lines, then `ok`).
+    ReadSettings,
+    /// `$N=V`: store setting `N` in the controller's EEPROM.
+    WriteSetting {
+        /// The setting's number (`110` for X's maximum rate).
+        number: u16,
+        /// The value to store.
+        value: f64,
+    },
     /// A line that parses but moves nothing (empty, or modal words only);
     /// GRBL acknowledges it with `ok`.
     Nop,
+}
+
+/// GRBL 1.1's settings, as `(number, factory value)`, in the order `$$`
+/// lists them: the defaults a board ships with (`DEFAULTS_GENERIC`).
+pub const FACTORY_SETTINGS: &[(u16, f64)] = &[
+    (0, 10.0),
+    (1, 25.0),
+    (2, 0.0),
+    (3, 0.0),
+    (4, 0.0),
+    (5, 0.0),
+    (6, 0.0),
+    (10, 1.0),
+    (11, 0.010),
+    (12, 0.002),
+    (13, 0.0),
+    (20, 0.0),
+    (21, 0.0),
+    (22, 0.0),
+    (23, 0.0),
+    (24, 25.0),
+    (25, 500.0),
+    (26, 250.0),
+    (27, 1.0),
+    (30, 1000.0),
+    (31, 0.0),
+    (32, 0.0),
+    (100, 250.0),
+    (101, 250.0),
+    (102, 250.0),
+    (110, 500.0),
+    (111, 500.0),
+    (112, 500.0),
+    (120, 10.0),
+    (121, 10.0),
+    (122, 10.0),
+    (130, 200.0),
+    (131, 200.0),
+    (132, 200.0),
+];
+
+/// Whether GRBL stores and prints setting `number` as a decimal (`250.000`)
+/// rather than an integer or mask (`10`).
+pub fn setting_is_decimal(number: u16) -> bool {
+    matches!(number, 11 | 12 | 24 | 25 | 27 | 100..=132)
+}
+
+/// A setting's value as GRBL prints it: three decimals for decimal
+/// settings, an integer for the others.
+pub fn format_setting(number: u16, value: f64) -> String {
+    if setting_is_decimal(number) {
+        format!("{value:.3}")
+    } else {
+        format!("{}", value.round() as i64)
+    }
 }
 
 /// Formats a coordinate like GRBL's reports: three decimals. Non-finite
@@ -108,6 +172,10 @@ impl Command {
             Command::BuildInfo => "$I".into(),
             Command::Rapid { x } => format!("G90 G0 X{}", coord(*x)),
             Command::Jog { x, feed } => format!("$J=G90 X{} F{}", coord(*x), coord(*feed)),
+            Command::ReadSettings => "$$".into(),
+            Command::WriteSetting { number, value } => {
+                format!("${number}={}", format_setting(*number, *value))
+            }
             Command::Nop => String::new(),
         }
     }
@@ -131,12 +199,23 @@ pub const ERR_EXPECTED_LETTER: ErrorCode = ErrorCode(1);
 pub const ERR_BAD_NUMBER: ErrorCode = ErrorCode(2);
 /// `error:3`: a `$` system command not recognised or not supported.
 pub const ERR_INVALID_STATEMENT: ErrorCode = ErrorCode(3);
+/// `error:4`: a negative value where a positive one is required.
+pub const ERR_NEGATIVE_VALUE: ErrorCode = ErrorCode(4);
 /// `error:5`: `$H` while homing is disabled (`$22=0`, the factory setting).
 pub const ERR_HOMING_DISABLED: ErrorCode = ErrorCode(5);
+/// `error:8`: a `$` command that is only valid while Idle.
+pub const ERR_NOT_IDLE: ErrorCode = ErrorCode(8);
 /// `error:9`: G-code locked out during the alarm or jog state.
 pub const ERR_ALARM_LOCK: ErrorCode = ErrorCode(9);
+/// `error:10`: soft limits (`$20=1`) while homing is disabled.
+pub const ERR_SOFT_LIMIT_WITHOUT_HOMING: ErrorCode = ErrorCode(10);
 /// `error:11`: the line is longer than [`LINE_BUFFER_SIZE`].
 pub const ERR_LINE_OVERFLOW: ErrorCode = ErrorCode(11);
+/// GRBL's step generator limit (`MAX_STEP_RATE_HZ`): it refuses settings
+/// whose `$100 × $110 / 60` would exceed it with `error:12`.
+pub const MAX_STEP_RATE_HZ: f64 = 30_000.0;
+/// `error:12`: a setting that would step faster than the build allows.
+pub const ERR_MAX_STEP_RATE: ErrorCode = ErrorCode(12);
 /// `error:16`: a jog without `=` or with a prohibited G-code.
 pub const ERR_INVALID_JOG: ErrorCode = ErrorCode(16);
 /// `error:20`: unsupported or invalid G-code command.
@@ -365,6 +444,13 @@ pub enum Reply {
     },
     /// `<…>` status report.
     Status(Status),
+    /// `$N=V`: one setting, a line of the answer to `$$`.
+    Setting {
+        /// The setting's number.
+        number: u16,
+        /// Its value.
+        value: f64,
+    },
 }
 
 impl fmt::Display for Reply {
@@ -379,6 +465,9 @@ impl fmt::Display for Reply {
             Reply::Bracket(b) => write!(f, "[{b}]"),
             Reply::Welcome { version } => write!(f, "Grbl {version} ['$' for help]"),
             Reply::Status(s) => write!(f, "{s}"),
+            Reply::Setting { number, value } => {
+                write!(f, "${number}={}", format_setting(*number, *value))
+            }
         }
     }
 }
@@ -527,6 +616,14 @@ pub fn parse_reply(line: &str) -> Result<Reply, ParseError> {
             Reply::Bracket(inner.to_string())
         });
     }
+    if let Some(rest) = line.strip_prefix('$') {
+        let (number, value) = rest
+            .split_once('=')
+            .ok_or_else(|| malformed("setting", line))?;
+        let number = parse_code(number, "setting", line)?;
+        let value = parse_number(value).ok_or_else(|| malformed("setting", line))?;
+        return Ok(Reply::Setting { number, value });
+    }
     if let Some(rest) = line.strip_prefix("Grbl ") {
         let version = rest
             .strip_suffix("['$' for help]")
@@ -568,7 +665,7 @@ fn gcode_words(s: &str) -> Result<Vec<(char, String)>, ErrorCode> {
 
 /// Parses a command line as the firmware receives it (terminator stripped).
 /// This is the subset the simulated GRBL implements: `$H`, `$X`, `$I`,
-/// absolute `G0` on X, and absolute X jogs; anything else gets the error
+/// `$$`, `$N=V`, absolute `G0` on X, and absolute X jogs; anything else gets the error
 /// code real GRBL would send for it or, for valid G-code outside the
 /// subset, `error:20`.
 pub fn parse_command(line: &str) -> Result<Command, ErrorCode> {
@@ -580,7 +677,15 @@ pub fn parse_command(line: &str) -> Result<Command, ErrorCode> {
         if let Some(jog) = sys.strip_prefix("J=").or_else(|| sys.strip_prefix("j=")) {
             return parse_jog(jog);
         }
+        if let Some((number, value)) = sys.split_once('=') {
+            if !number.is_empty() && number.bytes().all(|b| b.is_ascii_digit()) {
+                let number = number.parse().map_err(|_| ERR_INVALID_STATEMENT)?;
+                let value = parse_number(value).ok_or(ERR_BAD_NUMBER)?;
+                return Ok(Command::WriteSetting { number, value });
+            }
+        }
         return match sys.to_ascii_uppercase().as_str() {
+            "$" => Ok(Command::ReadSettings),
             "H" => Ok(Command::Home),
             "X" => Ok(Command::Unlock),
             "I" => Ok(Command::BuildInfo),
@@ -799,6 +904,40 @@ mod tests {
             },
         ] {
             assert_eq!(parse_reply_bytes(&r.encode()), Ok(r.clone()));
+        }
+    }
+
+    #[test]
+    fn settings_lines_round_trip_as_grbl_prints_them() {
+        for (number, value, line) in [
+            (0, 10.0, "$0=10"),
+            (22, 1.0, "$22=1"),
+            (110, 1800.0, "$110=1800.000"),
+            (11, 0.01, "$11=0.010"),
+        ] {
+            let r = Reply::Setting { number, value };
+            assert_eq!(r.to_string(), line);
+            assert_eq!(parse_reply(line), Ok(r.clone()));
+            let cmd = Command::WriteSetting { number, value };
+            assert_eq!(cmd.line(), line);
+            assert_eq!(parse_command(line), Ok(cmd));
+        }
+        assert_eq!(parse_command("$$"), Ok(Command::ReadSettings));
+        assert_eq!(Command::ReadSettings.line(), "$$");
+        assert_eq!(parse_command("$110=fast"), Err(ERR_BAD_NUMBER));
+        assert_eq!(parse_command("$110="), Err(ERR_BAD_NUMBER));
+        assert!(matches!(
+            parse_reply("$110=fast"),
+            Err(ParseError::Malformed {
+                what: "setting",
+                ..
+            })
+        ));
+        assert!(parse_reply("$=1").is_err());
+        // Every factory setting prints and parses back.
+        for &(number, value) in FACTORY_SETTINGS {
+            let r = Reply::Setting { number, value };
+            assert_eq!(parse_reply_bytes(&r.encode()), Ok(r));
         }
     }
 

@@ -16,15 +16,20 @@
 //! - After a (re)connect or an unexpected welcome banner the controller has
 //!   reset, so the position is re-read from `MPos`, never taken from the
 //!   last set-point.
+//! - The controller, not the profile, decides how fast the axis moves: at
+//!   connect the driver reads `$$`, compares the settings with the profile
+//!   (or writes them, with `configure`), and sizes its motion deadlines
+//!   from the controller's own `$110` and `$120`.
 
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
+use std::fmt;
 use std::sync::Arc;
 use std::time::Duration;
 
 use async_trait::async_trait;
 use rigd_proto::grbl::{
-    parse_reply, AlarmCode, Command, ErrorCode, LineSplitter, MachineState, Realtime, Reply,
-    Status, RX_BUFFER_SIZE,
+    format_setting, parse_reply, AlarmCode, Command, ErrorCode, LineSplitter, MachineState,
+    Realtime, Reply, Status, RX_BUFFER_SIZE,
 };
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, ReadHalf, WriteHalf};
 use tokio::sync::Mutex;
@@ -54,6 +59,12 @@ pub struct GrblConfig {
     /// operator sets the axis at its 0° mark and zeroes the controller
     /// there; the driver takes the machine position as it is.
     pub homing: bool,
+    /// Write the settings the profile implies to the controller at connect
+    /// (then read them back), instead of refusing a controller whose
+    /// settings differ.
+    pub configure: bool,
+    /// `$100`, steps per degree, when the profile states it.
+    pub steps_per_deg: Option<f64>,
 }
 
 impl GrblConfig {
@@ -67,25 +78,141 @@ impl GrblConfig {
             home_timeout: Duration::from_secs(120),
             poll_interval: Duration::from_millis(200),
             homing: true,
+            configure: false,
+            steps_per_deg: None,
         }
     }
 
-    /// The modelled time of a move of `distance` degrees (0 if the model
-    /// cannot say).
-    fn modelled_move_time(&self, distance: f64) -> Duration {
-        let travel = rigd_core::Trapezoid::from(self.motion).move_time(distance);
-        if travel.is_finite() && travel >= 0.0 {
-            Duration::from_secs_f64(travel)
-        } else {
-            Duration::ZERO
+    /// The controller settings this axis needs, in the order they are
+    /// written: `$22` first, since GRBL checks `$20` against it.
+    pub fn expected_settings(&self) -> Vec<ExpectedSetting> {
+        let m = self.motion;
+        let mut v = vec![
+            ExpectedSetting {
+                number: 22,
+                what: "homing cycle enable",
+                wanted: Wanted::Exactly(if self.homing { 1.0 } else { 0.0 }),
+                because: format!("homing = {}", self.homing),
+            },
+            ExpectedSetting {
+                number: 20,
+                what: "soft limits enable",
+                wanted: Wanted::Exactly(0.0),
+                because: "rigd checks `limits` itself before every move; GRBL's soft limits assume travel [-$130, 0] from the home switch".into(),
+            },
+            ExpectedSetting {
+                number: 110,
+                what: "X max rate, deg/min",
+                wanted: Wanted::Exactly(m.max_velocity * 60.0),
+                because: format!("motion.max_velocity = {} deg/s", m.max_velocity),
+            },
+            ExpectedSetting {
+                number: 120,
+                what: "X acceleration, deg/s²",
+                wanted: Wanted::Exactly(m.acceleration),
+                because: format!("motion.acceleration = {} deg/s²", m.acceleration),
+            },
+        ];
+        if self.homing {
+            let span = self.limits.max - self.limits.min;
+            v.push(ExpectedSetting {
+                number: 130,
+                what: "X max travel, deg",
+                wanted: Wanted::AtLeast(span),
+                because: format!(
+                    "limits span {span} deg; the homing cycle searches 1.5 × $130 for the switch"
+                ),
+            });
+        }
+        if let Some(steps) = self.steps_per_deg {
+            v.push(ExpectedSetting {
+                number: 100,
+                what: "X steps/deg",
+                wanted: Wanted::Exactly(steps),
+                because: format!("steps_per_deg = {steps}"),
+            });
+        }
+        v
+    }
+}
+
+/// The modelled time of a move of `distance` degrees at `rates` (0 if the
+/// model cannot say).
+fn modelled_move_time(rates: Motion, distance: f64) -> Duration {
+    let travel = rigd_core::Trapezoid::from(rates).move_time(distance);
+    if travel.is_finite() && travel >= 0.0 {
+        Duration::from_secs_f64(travel)
+    } else {
+        Duration::ZERO
+    }
+}
+
+/// What a setting must be.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Wanted {
+    /// This value (to GRBL's three printed decimals).
+    Exactly(f64),
+    /// This value or more.
+    AtLeast(f64),
+}
+
+impl Wanted {
+    /// The value `configure` writes.
+    pub fn value(self) -> f64 {
+        match self {
+            Wanted::Exactly(v) | Wanted::AtLeast(v) => v,
         }
     }
 
-    /// Worst-case time for a move of `distance` degrees to reach Idle:
-    /// twice the modelled time plus one command timeout of slack.
-    fn motion_deadline(&self, distance: f64) -> Duration {
-        let t = self.modelled_move_time(distance).as_secs_f64();
-        Duration::from_secs_f64(2.0 * t) + self.command_timeout + self.poll_interval
+    /// Whether the controller's `value` satisfies it; GRBL keeps settings
+    /// as 32-bit floats and prints three decimals.
+    pub fn accepts(self, value: f64) -> bool {
+        let tol = |w: f64| 0.0015_f64.max(w.abs() * 1e-6);
+        match self {
+            Wanted::Exactly(w) => (value - w).abs() <= tol(w),
+            Wanted::AtLeast(w) => value >= w - tol(w),
+        }
+    }
+}
+
+/// One controller setting an axis needs, and why.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExpectedSetting {
+    /// GRBL's setting number (`110`).
+    pub number: u16,
+    /// What the setting is, in GRBL's terms with rigd's units.
+    pub what: &'static str,
+    /// The value it must have.
+    pub wanted: Wanted,
+    /// The profile key it comes from.
+    pub because: String,
+}
+
+/// A setting the controller has wrong (or lacks).
+#[derive(Debug, Clone, PartialEq)]
+pub struct SettingMismatch {
+    /// What was expected.
+    pub expected: ExpectedSetting,
+    /// The controller's value; None when `$$` did not list the setting.
+    pub controller: Option<f64>,
+}
+
+impl fmt::Display for SettingMismatch {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let e = &self.expected;
+        let n = e.number;
+        let have = self
+            .controller
+            .map_or("missing".to_string(), |v| format_setting(n, v));
+        let want = match e.wanted {
+            Wanted::Exactly(w) => format_setting(n, w),
+            Wanted::AtLeast(w) => format!("at least {}", format_setting(n, w)),
+        };
+        write!(
+            f,
+            "${n} ({}) is {have} on the controller, the profile needs {want} ({})",
+            e.what, e.because
+        )
     }
 }
 
@@ -132,6 +259,13 @@ pub enum GrblError {
     /// position is lost until it is homed again.
     #[error("controller reset (welcome banner); position lost, home again")]
     Reset,
+    /// The controller's settings differ from what the profile needs.
+    #[error("controller settings differ from the profile: {}; send {} on the controller, or put `configure = true` on the device to let rigd write them", list_mismatches(.0), fix_lines(.0))]
+    Settings(Vec<SettingMismatch>),
+    /// `configure = true` wrote the settings, but reading them back still
+    /// shows a difference.
+    #[error("wrote the controller's settings, but reading them back shows: {}", list_mismatches(.0))]
+    NotConfigured(Vec<SettingMismatch>),
     /// An axis without homing whose controller may have reset since the
     /// operator zeroed it (its link was lost, or it sent its banner).
     #[error("no homing on this axis (`homing = false`) and its controller may have reset: set the axis at its 0° mark, zero the controller there, then resume")]
@@ -152,6 +286,24 @@ pub enum GrblError {
     Protocol(String),
 }
 
+fn list_mismatches(m: &[SettingMismatch]) -> String {
+    m.iter()
+        .map(|m| m.to_string())
+        .collect::<Vec<_>>()
+        .join("; ")
+}
+
+/// The lines an operator sends to fix the settings by hand.
+fn fix_lines(m: &[SettingMismatch]) -> String {
+    m.iter()
+        .map(|m| {
+            let n = m.expected.number;
+            format!("`${n}={}`", format_setting(n, m.expected.wanted.value()))
+        })
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
 impl GrblError {
     /// The kind the run engine acts on.
     pub fn kind(&self) -> ErrorKind {
@@ -162,7 +314,9 @@ impl GrblError {
             | GrblError::Alarm { .. }
             | GrblError::State(..)
             | GrblError::Reset
-            | GrblError::Unreferenced => ErrorKind::DeviceFault,
+            | GrblError::Unreferenced
+            | GrblError::Settings(_)
+            | GrblError::NotConfigured(_) => ErrorKind::DeviceFault,
             GrblError::OutOfLimits { .. } => ErrorKind::OutOfLimits,
             GrblError::Protocol(_) => ErrorKind::BadFrame,
         }
@@ -186,6 +340,11 @@ pub struct GrblAxis<S> {
     version: Option<String>,
     options: Option<String>,
     last_status: Option<Status>,
+    /// The controller's settings from its last `$$`.
+    settings: BTreeMap<u16, f64>,
+    /// The controller's own rates (`$110`, `$120`), which size motion
+    /// deadlines; the profile's until `$$` has been read.
+    rates: Motion,
     /// An axis without homing still stands where the operator zeroed it:
     /// true from connect (bring-up is when the operator zeroes it), false
     /// once its controller may have reset, until the next `home`.
@@ -211,8 +370,11 @@ where
     /// firmware with `$I`, and reads the position from a status report.
     pub async fn connect(stream: S, cfg: GrblConfig, clock: Clock) -> Result<Self, DeviceError> {
         let (reader, writer) = tokio::io::split(stream);
+        let rates = cfg.motion;
         let mut axis = GrblAxis {
             cfg,
+            rates,
+            settings: BTreeMap::new(),
             clock,
             reader,
             writer: Arc::new(Mutex::new(writer)),
@@ -255,6 +417,11 @@ where
         }
     }
 
+    /// How the axis is driven.
+    pub fn config(&self) -> &GrblConfig {
+        &self.cfg
+    }
+
     /// The firmware version from `[VER:…]`, e.g. `1.1h.20190830:`.
     pub fn version(&self) -> Option<&str> {
         self.version.as_deref()
@@ -268,6 +435,16 @@ where
     /// The last status report received.
     pub fn last_status(&self) -> Option<&Status> {
         self.last_status.as_ref()
+    }
+
+    /// The controller's settings as read at connect (after `configure`).
+    pub fn settings(&self) -> &BTreeMap<u16, f64> {
+        &self.settings
+    }
+
+    /// The rates motion deadlines are sized from: the controller's.
+    pub fn rates(&self) -> Motion {
+        self.rates
     }
 
     /// Realtime feed hold (`!`): GRBL decelerates and pauses; resume with
@@ -343,8 +520,84 @@ where
             }
             None => return Err(GrblError::Protocol("`$I` gave no [VER:]".into())),
         }
+        self.reconcile_settings().await?;
         self.query_status().await?;
         Ok(())
+    }
+
+    /// Reads `$$`.
+    async fn read_settings(&mut self) -> Result<(), GrblError> {
+        let replies = self
+            .command(&Command::ReadSettings, self.cfg.command_timeout)
+            .await?;
+        self.settings = replies
+            .into_iter()
+            .filter_map(|r| match r {
+                Reply::Setting { number, value } => Some((number, value)),
+                _ => None,
+            })
+            .collect();
+        Ok(())
+    }
+
+    fn mismatches(&self) -> Vec<SettingMismatch> {
+        self.cfg
+            .expected_settings()
+            .into_iter()
+            .filter_map(|expected| {
+                let controller = self.settings.get(&expected.number).copied();
+                match controller {
+                    Some(v) if expected.wanted.accepts(v) => None,
+                    _ => Some(SettingMismatch {
+                        expected,
+                        controller,
+                    }),
+                }
+            })
+            .collect()
+    }
+
+    /// Compares the controller's settings with the profile; with
+    /// `configure`, writes the ones that differ and reads them back. Then
+    /// takes the controller's rates for the motion deadlines.
+    async fn reconcile_settings(&mut self) -> Result<(), GrblError> {
+        self.read_settings().await?;
+        let wrong = self.mismatches();
+        if !wrong.is_empty() {
+            if !self.cfg.configure {
+                return Err(GrblError::Settings(wrong));
+            }
+            for m in &wrong {
+                let write = Command::WriteSetting {
+                    number: m.expected.number,
+                    value: m.expected.wanted.value(),
+                };
+                tracing::info!(device = %self.cfg.name, "configuring: {m}; sending `{}`", write.line());
+                self.command(&write, self.cfg.command_timeout).await?;
+            }
+            self.read_settings().await?;
+            let still = self.mismatches();
+            if !still.is_empty() {
+                return Err(GrblError::NotConfigured(still));
+            }
+        }
+        let get = |n: u16| self.settings.get(&n).copied().filter(|v| *v > 0.0);
+        if let (Some(rate), Some(accel)) = (get(110), get(120)) {
+            self.rates = Motion {
+                max_velocity: rate / 60.0,
+                acceleration: accel,
+                settle_s: self.cfg.motion.settle_s,
+            };
+        }
+        Ok(())
+    }
+
+    /// Worst-case time for a move of `distance` degrees to reach Idle at
+    /// the controller's rates: twice the modelled time plus one command
+    /// timeout of slack.
+    fn motion_deadline(&self, distance: f64) -> Duration {
+        let t = modelled_move_time(self.rates, distance).as_secs_f64();
+        Duration::from_secs_f64(2.0 * t) + self.cfg.command_timeout + self.cfg.poll_interval
     }
 
     /// Asks for a status report every [`GREETING_POLL`] (a board's boot
@@ -420,8 +673,8 @@ where
         }
     }
 
-    /// Next parseable reply; lines the codec does not know (settings
-    /// printouts, noise after a reset) are logged and skipped.
+    /// Next parseable reply; lines the codec does not know (noise
+    /// after a reset, a bootloader's bytes) are logged and skipped.
     async fn next_reply(&mut self) -> Result<Reply, GrblError> {
         loop {
             let line = self.next_line().await?;
@@ -556,7 +809,9 @@ where
                         code,
                     });
                 }
-                Reply::Version(_) | Reply::Options(_) | Reply::Msg(_) => extra.push(r),
+                Reply::Version(_) | Reply::Options(_) | Reply::Msg(_) | Reply::Setting { .. } => {
+                    extra.push(r)
+                }
                 other => self.absorb(other).await?,
             }
         }
@@ -693,8 +948,8 @@ where
         self.command(&Command::Rapid { x: target }, self.cfg.command_timeout)
             .await?;
         let clock = self.clock.clone();
-        let timeout = self.cfg.motion_deadline(target - from);
-        let modelled = self.cfg.modelled_move_time(target - from);
+        let timeout = self.motion_deadline(target - from);
+        let modelled = modelled_move_time(self.rates, target - from);
         let r = clock.deadline(timeout, self.wait_idle(modelled)).await;
         let s = self.deadline_result(r, "motion to reach Idle", timeout)?;
         Self::x_of(&s)
@@ -706,7 +961,7 @@ where
         self.check_target(target)?;
         self.check_referenced()?;
         self.resync().await?;
-        let feed = velocity.abs().min(self.cfg.motion.max_velocity) * 60.0;
+        let feed = velocity.abs().min(self.rates.max_velocity) * 60.0;
         self.command(&Command::Jog { x: target, feed }, self.cfg.command_timeout)
             .await?;
         Ok(())
@@ -843,6 +1098,12 @@ mod tests {
                     settle_s: 0.0,
                 },
             ),
+            rates: Motion {
+                max_velocity: 1.0,
+                acceleration: 1.0,
+                settle_s: 0.0,
+            },
+            settings: BTreeMap::new(),
             clock: Clock::virtual_time(),
             reader,
             writer: Arc::new(Mutex::new(writer)),

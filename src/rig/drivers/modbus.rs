@@ -11,6 +11,10 @@
 //! - The relay being closed does not mean the light is usable: arc lamps
 //!   need minutes, so `wait_ready` polls the module's ready bit, and a set
 //!   fault bit ends the wait at once instead of at the deadline.
+//! - Relay modules as sold have coils only, no status registers: there
+//!   `wait_ready` times the warm-up itself, from the moment the coil read
+//!   back closed, and checks the coil again at the end, so only FC01, FC05
+//!   and FC0F go on the wire.
 //! - Every request runs under a [`Clock`] deadline, so a silent module is a
 //!   `Timeout` in physical time, also under the simulator's paused clock.
 
@@ -175,6 +179,9 @@ pub struct ModbusConfig {
     pub request_timeout: Duration,
     /// Ready-bit poll interval during warm-up.
     pub poll_interval: Duration,
+    /// Whether the module has the ready and fault input registers; without
+    /// them the warm-up is timed from the coil's read-back.
+    pub status_registers: bool,
 }
 
 impl ModbusConfig {
@@ -187,6 +194,7 @@ impl ModbusConfig {
             warm_up,
             request_timeout: Duration::from_secs(1),
             poll_interval: Duration::from_millis(250),
+            status_registers: true,
         }
     }
 }
@@ -243,6 +251,19 @@ impl Coil {
             Box::pin(c.write_single_coil(coil, on))
         })
         .await?;
+        match self.read().await? {
+            r if r == on => Ok(()),
+            r => Err(ModbusError::NotConfirmed {
+                coil,
+                wanted: on,
+                read: r,
+            }),
+        }
+    }
+
+    /// The coil's state, read back with FC01.
+    async fn read(&self) -> Result<bool, ModbusError> {
+        let coil = self.cfg.coil;
         let read = self
             .request(
                 &format!("read coil {coil}"),
@@ -250,22 +271,18 @@ impl Coil {
                 move |c| Box::pin(c.read_coils(coil, 1)),
             )
             .await?;
-        match read.first() {
-            Some(&r) if r == on => Ok(()),
-            Some(&r) => Err(ModbusError::NotConfirmed {
-                coil,
-                wanted: on,
-                read: r,
-            }),
-            None => Err(ModbusError::Protocol("empty coil read-back".into())),
-        }
+        read.first()
+            .copied()
+            .ok_or_else(|| ModbusError::Protocol("empty coil read-back".into()))
     }
 }
 
-/// A lamp switched by a relay coil, with a ready bit for stable output.
+/// A lamp switched by a relay coil, with a ready bit for stable output
+/// (or, on a coil-only module, a warm-up timed by the host).
 pub struct ModbusLamp {
     coil: Coil,
-    on: bool,
+    /// When the coil read back closed (clock time), while the lamp is on.
+    on_since: Option<Duration>,
 }
 
 impl ModbusLamp {
@@ -273,13 +290,16 @@ impl ModbusLamp {
     pub fn new(cfg: ModbusConfig, clock: Clock, bus: SharedBus) -> ModbusLamp {
         ModbusLamp {
             coil: Coil { cfg, clock, bus },
-            on: false,
+            on_since: None,
         }
     }
 
     async fn wait_ready_inner(&mut self) -> Result<(), ModbusError> {
-        if !self.on {
+        let Some(on_since) = self.on_since else {
             return Err(ModbusError::Off);
+        };
+        if !self.coil.cfg.status_registers {
+            return self.wait_warm_up(on_since).await;
         }
         let cfg = &self.coil.cfg;
         let bit = 1u16.checked_shl(u32::from(cfg.coil)).unwrap_or(0);
@@ -316,12 +336,39 @@ impl ModbusLamp {
     }
 }
 
+impl ModbusLamp {
+    /// A coil-only module: the lamp is ready `warm_up` after its coil read
+    /// back closed. The coil is read once more at the end, so a relay that
+    /// dropped (a module power cycle, a panel switch) is not taken as light.
+    async fn wait_warm_up(&self, on_since: Duration) -> Result<(), ModbusError> {
+        let clock = &self.coil.clock;
+        let ready_at = on_since + self.coil.cfg.warm_up;
+        let now = clock.now();
+        if ready_at > now {
+            clock.sleep(ready_at - now).await;
+        }
+        if self.coil.read().await? {
+            Ok(())
+        } else {
+            Err(ModbusError::NotConfirmed {
+                coil: self.coil.cfg.coil,
+                wanted: true,
+                read: false,
+            })
+        }
+    }
+}
+
 #[async_trait]
 impl Lamp for ModbusLamp {
     async fn set(&mut self, on: bool) -> Result<(), DeviceError> {
+        // Switching on an already-on lamp keeps its warm-up under way.
+        let was = self.on_since.take();
         let r = self.coil.set(on).await;
         // Whatever happened, the state is unknown until confirmed.
-        self.on = on && r.is_ok();
+        if on && r.is_ok() {
+            self.on_since = Some(was.unwrap_or_else(|| self.coil.clock.now()));
+        }
         r.map_err(|e| e.into_device(&self.coil.cfg.name))
     }
 
@@ -356,8 +403,53 @@ impl LaserLine for ModbusLaser {
     }
 }
 
+/// A coil's state as its module reports it, read without switching it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CoilProbe {
+    /// The relay is closed.
+    pub on: bool,
+    /// The coil's ready and fault bits (IR 0, IR 1); None on a coil-only
+    /// module.
+    pub status: Option<(bool, bool)>,
+}
+
+/// Reads a coil (FC01) and, if the module has them, its ready and fault
+/// bits (FC04): what `rig check` reports of a lamp or laser.
+pub async fn probe_coil(
+    cfg: ModbusConfig,
+    clock: Clock,
+    bus: SharedBus,
+) -> Result<CoilProbe, ModbusError> {
+    let with_status = cfg.status_registers;
+    let bit = 1u16.checked_shl(u32::from(cfg.coil)).unwrap_or(0);
+    let timeout = cfg.request_timeout;
+    let coil = Coil { cfg, clock, bus };
+    let on = coil.read().await?;
+    let status = if with_status {
+        let regs = coil
+            .request("read ready/fault registers", timeout, |c| {
+                Box::pin(c.read_input_registers(IR_READY, 2))
+            })
+            .await?;
+        match regs.as_slice() {
+            [r, f] => Some((r & bit != 0, f & bit != 0)),
+            _ => {
+                return Err(ModbusError::Protocol(format!(
+                    "{} registers, expected 2",
+                    regs.len()
+                )))
+            }
+        }
+    } else {
+        None
+    };
+    Ok(CoilProbe { on, status })
+}
+
 /// Emergency stop: every coil 0..`coils` off in one FC0F request, so all
-/// relays drop together instead of one round trip per lamp.
+/// relays drop together instead of one round trip per lamp. A module that
+/// refuses FC0F (exception 0x01, illegal function) gets its coils switched
+/// off one by one with FC05, all within the same `timeout`.
 pub async fn all_off(
     clock: &Clock,
     bus: &SharedBus,
@@ -367,14 +459,30 @@ pub async fn all_off(
     let off = vec![false; usize::from(coils)];
     let fut = async {
         let mut ctx = bus.lock().await;
-        ctx.write_multiple_coils(0, &off).await
+        let all = flatten(
+            "write all coils off",
+            ctx.write_multiple_coils(0, &off).await,
+        );
+        match all {
+            Err(ModbusError::Exception {
+                code: ExceptionCode::IllegalFunction,
+                ..
+            }) => {
+                tracing::info!("the module refuses FC0F: switching its coils off one by one");
+                for coil in 0..coils {
+                    let what = format!("write coil {coil} off");
+                    flatten(&what, ctx.write_single_coil(coil, false).await)?;
+                }
+                Ok(())
+            }
+            other => other,
+        }
     };
-    let r = clock
+    clock
         .deadline(timeout, fut)
         .await
         .map_err(|_| ModbusError::Timeout {
             what: "write all coils off".into(),
             timeout,
-        })?;
-    flatten("write all coils off", r)
+        })?
 }

@@ -3,6 +3,7 @@
 
 pub mod daemon;
 pub mod frames;
+pub mod manual;
 pub mod plans;
 pub mod queue;
 pub mod rig;
@@ -33,21 +34,26 @@ pub type AppState = Arc<Daemon>;
 `Authorization: Bearer <token>`; reads are open to loopback clients. Errors are JSON `{error, detail}`.",
     ),
     paths(
-        daemon::health, rig::rig, plans::plans, plans::plan_detail, runs::list_runs,
+        daemon::health, rig::rig, rig::check, plans::plans, plans::plan_detail, runs::list_runs,
         runs::create_run, runs::get_run, runs::run_steps, runs::run_manifest, runs::pause_run,
         runs::resume_run, runs::abort_run, rig::estop, daemon::events_sse, frames::frame_raw,
         frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
-        viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh
+        viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh, manual::home, manual::jog,
+        manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::release
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
         RunRequest, PlanSpec, InlinePlan, PairDto, RunView, RunList, CommandAck, RunSteps, RunStep,
-        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent
+        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent,
+        crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,
+        manual::JogRequest, manual::PoseRequest, manual::SwitchRequest, manual::FrameRequest,
+        manual::Reached, manual::Switched, manual::TestFrame, crate::engine::manual::PoseReached
     )),
     modifiers(&BearerAuth),
     tags(
         (name = "daemon", description = "Health and the event stream"),
         (name = "rig", description = "The rig and its plans"),
+        (name = "manual", description = "Manual control for bring-up: 409 while a run is active"),
         (name = "runs", description = "Runs, their steps, frames and manifests"),
         (name = "queue", description = "Runs waiting for the rig"),
         (name = "sim", description = "The scene simulator: one frame on request"),

@@ -6,7 +6,8 @@ use axum::Json;
 use super::AppState;
 use crate::model::profile::DeviceKind;
 use crate::model::run_state::RunState;
-use crate::server::error::ErrorBody;
+use crate::rig::check::RigCheck;
+use crate::server::error::{ApiError, ErrorBody};
 use crate::server::model::*;
 
 /// The rig: every device with its live state, lamp states and camera settings.
@@ -52,6 +53,7 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
             protocol: dev.protocol.clone(),
             connected: d.config.sim,
             homed: None,
+            homing: (dev.kind == DeviceKind::Axis).then(|| dev.homing.unwrap_or(true)),
             busy,
             fault: fault_for(name),
             position_deg: None,
@@ -108,6 +110,18 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
         devices,
         lamps: serde_json::Value::Object(lamps),
     })
+}
+
+/// Bring-up without moving anything: every device connected through the
+/// same drivers and deadlines as a run and reported on one line (identity,
+/// firmware, controller settings against the profile, homing mode, position
+/// or state), usable or not with the fix. A run started meanwhile waits.
+#[utoipa::path(get, path = "/api/v1/rig/check", tag = "rig",
+    responses((status = 200, description = "One verdict per device; `usable` is true only when every device is", body = RigCheck),
+              (status = 401, description = "Token needed (non-loopback client)", body = ErrorBody),
+              (status = 409, description = "A run holds the rig", body = ErrorBody)))]
+pub async fn check(State(d): State<AppState>) -> Result<Json<RigCheck>, ApiError> {
+    Ok(Json(d.check_rig().await?))
 }
 
 /// Emergency stop: every device stops at once; the active run pauses and re-homes on resume.

@@ -1,7 +1,8 @@
 //! `/runs`: the run history, new runs, a run's steps and manifest, and the
 //! operator's commands (pause, resume, abort).
 
-use axum::extract::State;
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{Query, State};
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
@@ -167,18 +168,55 @@ pub async fn pause_run(
     command(d, id, Command::Pause).await
 }
 
+/// `?reference_confirmed=true` on a resume.
+#[derive(Debug, Default, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ResumeQuery {
+    /// The operator confirms that every axis without homing (`homing =
+    /// false`) stands at its 0° mark with its controller zeroed there:
+    /// required to resume on a rig with such an axis, since no homing can
+    /// restore its reference.
+    #[serde(default)]
+    pub reference_confirmed: bool,
+}
+
 /// Resumes a paused run, or an interrupted/detached one from its directory.
+/// On a rig with an axis without homing, the operator must confirm its
+/// reference (`?reference_confirmed=true`).
 #[utoipa::path(post, path = "/api/v1/runs/{id}/resume", tag = "runs",
-    params(("id" = String, Path, description = "Run id")), security(("bearer" = [])),
+    params(("id" = String, Path, description = "Run id"), ResumeQuery), security(("bearer" = [])),
     responses((status = 200, description = "Restarted from its run directory (a new engine)", body = CommandAck),
               (status = 202, description = "Sent to the live engine", body = CommandAck),
               (status = 401, description = "Missing or wrong token", body = ErrorBody),
               (status = 404, description = "No such run", body = ErrorBody),
-              (status = 409, description = "Not resumable, or another run is active", body = ErrorBody)))]
+              (status = 400, description = "A malformed query", body = ErrorBody),
+              (status = 409, description = "Not resumable, another run is active, or an axis without homing whose reference is not confirmed", body = ErrorBody)))]
 pub async fn resume_run(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
+    query: Result<Query<ResumeQuery>, QueryRejection>,
 ) -> Result<Response, ApiError> {
+    let Query(q) = query.map_err(|r| ApiError::bad_request(r.body_text()))?;
+    if d.view(&id).is_none() {
+        return Err(not_found_run(&id));
+    }
+    if !q.reference_confirmed {
+        let unhomed: Vec<&str> = d
+            .profile
+            .devices
+            .iter()
+            .filter(|(_, dev)| dev.homing == Some(false))
+            .map(|(name, _)| name.as_str())
+            .collect();
+        if !unhomed.is_empty() {
+            return Err(ApiError::conflict(format!(
+                "{} {} no homing: set {} at its 0° mark and zero the controller there, then resume with ?reference_confirmed=true",
+                unhomed.join(", "),
+                if unhomed.len() == 1 { "has" } else { "have" },
+                if unhomed.len() == 1 { "it" } else { "each" },
+            )));
+        }
+    }
     command(d, id, Command::Resume).await
 }
 

@@ -17,6 +17,7 @@ const state = {
   done: new Set(),
   current: null, // last captured step
   queue: [],
+  testFrame: false, // the preview shows a manual test frame
 };
 
 // ---------------------------------------------------------------- API
@@ -322,6 +323,9 @@ const renderHistorySoon = throttle(() => renderHistory(), 1000);
 const refreshPreview = throttle(() => {
   const img = $("preview");
   const cur = state.current;
+  // A manual test frame stays until a run is active again.
+  if (state.testFrame && !state.activeId) return;
+  state.testFrame = false;
   if (!cur || !state.shownId) {
     img.removeAttribute("src");
     img.alt = "No frame captured yet";
@@ -346,6 +350,7 @@ function renderRig() {
   const badge = $("rig-state");
   badge.textContent = `rig ${rig.state}`;
   badge.dataset.state = rig.state;
+  fillManualSelects(rig);
   const tbody = $("rig").tBodies[0];
   tbody.replaceChildren();
   for (const d of rig.devices) {
@@ -783,13 +788,144 @@ async function command(cmd) {
   const id = state.shownId;
   if (!id) return;
   if (cmd === "abort" && !confirm(`Abort run ${id}? Its frames so far are kept; it cannot be resumed.`)) return;
+  let query = "";
+  if (cmd === "resume") {
+    // No homing can restore the zero of an axis without homing: the
+    // operator confirms it stands at its 0° mark.
+    const unhomed = ((state.rig && state.rig.devices) || []).filter((d) => d.homing === false).map((d) => d.name);
+    if (unhomed.length) {
+      if (!confirm(`${unhomed.join(", ")} ${unhomed.length === 1 ? "has" : "have"} no homing. ` +
+        "Is each at its 0° mark, with its controller zeroed there? Resume only if so.")) return;
+      query = "?reference_confirmed=true";
+    }
+  }
   try {
-    await api("POST", `/runs/${encodeURIComponent(id)}/${cmd}`);
+    await api("POST", `/runs/${encodeURIComponent(id)}/${cmd}${query}`);
     log("info", `${cmd} sent to ${id}`);
     await loadRun(id);
   } catch (e) {
     showMessage(`${cmd}: ${errText(e)}`);
   }
+}
+
+// GET /rig/check: one line per device, usable or what is wrong and the fix.
+async function checkRig() {
+  const button = $("rig-check");
+  const summary = $("rig-check-summary");
+  const list = $("rig-check-list");
+  button.disabled = true;
+  summary.className = "";
+  summary.textContent = "Checking every device…";
+  list.replaceChildren();
+  try {
+    const r = await api("GET", "/rig/check");
+    const bad = r.devices.filter((d) => !d.usable).length;
+    summary.textContent = bad === 0
+      ? `${r.profile}: all ${r.devices.length} devices usable`
+      : `${r.profile}: ${bad} of ${r.devices.length} devices not usable`;
+    summary.className = bad === 0 ? "ok-text" : "fault-text";
+    for (const d of r.devices) {
+      const li = text("li", "", { "data-device": d.device, class: d.usable ? "ok" : "fault" });
+      li.append(text("strong", `${d.usable ? "OK" : "FAIL"} ${d.device}`), text("span", ` (${d.kind}): ${d.detail}`));
+      if (d.fix) li.append(text("div", `Fix: ${d.fix}`, { class: "fault-text" }));
+      list.append(li);
+    }
+  } catch (e) {
+    summary.className = "fault-text";
+    summary.textContent = `Rig check: ${errText(e)}`;
+  } finally {
+    button.disabled = false;
+  }
+}
+
+// ---------------------------------------------------------- manual control
+
+// Fills the manual-control selects from the rig's devices (once).
+function fillManualSelects(rig) {
+  const fill = (id, kinds) => {
+    const sel = $(id);
+    if (sel.options.length) return;
+    for (const d of rig.devices.filter((d) => kinds.includes(d.kind))) {
+      sel.append(text("option", d.name, { value: d.name }));
+    }
+  };
+  fill("manual-axis", ["axis", "arm"]);
+  fill("manual-lamp", ["lamp", "laser"]);
+  fill("manual-camera", ["camera"]);
+}
+
+function manualStatus(msg, ok) {
+  const st = $("manual-status");
+  st.textContent = msg;
+  st.className = ok ? "ok-text" : "fault-text";
+}
+
+function parseDir(id) {
+  const parts = $(id).value.split(",").map((x) => Number(x.trim()));
+  if (parts.length !== 2 || parts.some((x) => !Number.isFinite(x))) return null;
+  return { theta_deg: parts[0], phi_deg: parts[1] };
+}
+
+// One manual action: POST, then say what happened (the daemon's words on error).
+async function manual(path, body, describe) {
+  manualStatus("…", true);
+  try {
+    const r = await api("POST", `/rig/manual/${path}`, body);
+    manualStatus(describe(r), true);
+    refreshRig();
+    return r;
+  } catch (e) {
+    manualStatus(`${path}: ${errText(e)}`, false);
+    return null;
+  }
+}
+
+const degs = (r) => r.position_deg.map((x) => `${x.toFixed(2)}°`).join(", ");
+
+function jog(sign) {
+  const device = $("manual-axis").value;
+  const step = Number($("manual-step").value);
+  manual("jog", { device, by_deg: sign * step }, (r) => `${r.device} at ${degs(r)}`);
+}
+
+async function testFrame() {
+  const r = await manual("frame", { camera: $("manual-camera").value || undefined }, (f) =>
+    `test frame from ${f.camera}: ${f.width}×${f.height}, ${f.bit_depth}-bit, min ${f.min}, max ${f.max}, mean ${f.mean.toFixed(1)}, ${(100 * f.saturated).toFixed(1)} % saturated`);
+  if (!r) return;
+  state.testFrame = true;
+  const img = $("preview");
+  img.src = `${API}/rig/manual/frame?t=${Date.now()}`;
+  img.alt = `Test frame from ${r.camera}`;
+  $("preview-caption").textContent = `test frame from ${r.camera} (manual control)`;
+}
+
+function setupManual() {
+  $("manual-home").addEventListener("click", () => {
+    const device = $("manual-axis").value;
+    manual("home", { device }, (r) => `${r.device} homed at ${degs(r)}`);
+  });
+  $("manual-minus").addEventListener("click", () => jog(-1));
+  $("manual-plus").addEventListener("click", () => jog(1));
+  $("manual-goto").addEventListener("click", () => {
+    const device = $("manual-axis").value;
+    manual("jog", { device, to_deg: Number($("manual-to").value) }, (r) => `${r.device} at ${degs(r)}`);
+  });
+  $("manual-pose").addEventListener("click", () => {
+    const light = parseDir("manual-light");
+    const view = parseDir("manual-view");
+    if (!light || !view) {
+      manualStatus("pose: give each direction as θ,φ in degrees", false);
+      return;
+    }
+    manual("pose", { light, view }, (r) =>
+      `pose reached: ${Object.entries(r.axes).map(([n, x]) => `${n} ${x.toFixed(2)}°`).join(", ")}` +
+      `${r.arm ? `, arm ${r.arm.map((x) => x.toFixed(1)).join("/")}°` : ""}; lit by ${r.lamp}, seen by ${r.camera}` +
+      `${r.feasible ? "" : ` (substitute: ${r.reason})`}`);
+  });
+  const sw = (on) => manual("lamp", { device: $("manual-lamp").value, on }, (r) => `${r.device} ${r.on ? "ON" : "off"}`);
+  $("manual-on").addEventListener("click", () => sw(true));
+  $("manual-off").addEventListener("click", () => sw(false));
+  $("manual-frame").addEventListener("click", testFrame);
 }
 
 async function estop() {
@@ -822,6 +958,8 @@ function setup() {
   $("resume").addEventListener("click", () => command("resume"));
   $("abort").addEventListener("click", () => command("abort"));
   $("estop").addEventListener("click", estop);
+  $("rig-check").addEventListener("click", checkRig);
+  setupManual();
   $("tradeoff-start").addEventListener("click", startTradeoff);
   drawHemisphere();
   connect();

@@ -11,15 +11,17 @@
 //! buffer drops bytes exactly like the real firmware (counted in
 //! [`GrblStats`] so tests can prove the host's flow control works).
 
-use std::collections::VecDeque;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use rigd_proto::grbl::{
     parse_command, AlarmCode, Command, MachineState, Realtime, Reply, Status, ALARM_HARD_LIMIT,
-    ALARM_RESET_IN_MOTION, ERR_ALARM_LOCK, ERR_HOMING_DISABLED, ERR_LINE_OVERFLOW,
-    LINE_BUFFER_SIZE, RX_BUFFER_SIZE,
+    ALARM_RESET_IN_MOTION, ERR_ALARM_LOCK, ERR_HOMING_DISABLED, ERR_INVALID_STATEMENT,
+    ERR_LINE_OVERFLOW, ERR_MAX_STEP_RATE, ERR_NEGATIVE_VALUE, ERR_NOT_IDLE,
+    ERR_SOFT_LIMIT_WITHOUT_HOMING, FACTORY_SETTINGS, LINE_BUFFER_SIZE, MAX_STEP_RATE_HZ,
+    RX_BUFFER_SIZE,
 };
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 
@@ -38,12 +40,67 @@ pub const BUILD_OPTIONS: &str = "V,15,128";
 /// GRBL's message after a reset that left it locked.
 pub const UNLOCK_HINT: &str = "'$H'|'$X' to unlock";
 
+/// The controller's settings, its EEPROM: shared by every connection to
+/// one board, so a value written with `$N=V` survives a reconnect, as on
+/// the real board. Its `$110` (max rate, units/min), `$120` (acceleration,
+/// units/s²) and `$22` (homing enabled) decide how the simulated axis
+/// moves and homes.
+#[derive(Debug, Clone)]
+pub struct Eeprom(Arc<Mutex<BTreeMap<u16, f64>>>);
+
+impl Eeprom {
+    /// GRBL as it ships: [`FACTORY_SETTINGS`] (`$22=0`, `$110=500`,
+    /// `$120=10`, `$130=200`).
+    pub fn factory() -> Eeprom {
+        Eeprom(Arc::new(Mutex::new(
+            FACTORY_SETTINGS.iter().copied().collect(),
+        )))
+    }
+
+    /// A board set up for its axis: the factory settings with the axis's
+    /// rates, its travel and, if it homes, homing enabled.
+    pub fn configured(motion: Trapezoid, homing: bool, max_travel: f64) -> Eeprom {
+        let e = Eeprom::factory();
+        e.set(110, motion.max_velocity * 60.0);
+        e.set(120, motion.acceleration);
+        e.set(130, max_travel);
+        e.set(22, if homing { 1.0 } else { 0.0 });
+        e
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u16, f64>> {
+        // Plain data: a panic elsewhere cannot leave it inconsistent.
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Setting `number`'s value, if the build has it.
+    pub fn get(&self, number: u16) -> Option<f64> {
+        self.lock().get(&number).copied()
+    }
+
+    /// Every setting in `$$` order.
+    pub fn all(&self) -> Vec<(u16, f64)> {
+        self.lock().iter().map(|(&n, &v)| (n, v)).collect()
+    }
+
+    /// Stores a value, as `$N=V` does once its checks pass.
+    pub fn set(&self, number: u16, value: f64) {
+        self.lock().insert(number, value);
+    }
+
+    fn homing_enabled(&self) -> bool {
+        self.get(22).is_some_and(|v| v != 0.0)
+    }
+}
+
 /// How the simulated controller is set up.
 #[derive(Debug, Clone)]
 pub struct GrblParams {
     /// Device name for the [`FaultInjector`].
     pub name: String,
-    /// Rapid (G0) motion model, in degrees and seconds.
+    /// The axis's settle time after a move; its rates come from
+    /// [`GrblParams::settings`] (`$110`, `$120`), and [`Eeprom::configured`]
+    /// takes them from here.
     pub motion: Trapezoid,
     /// Machine position after a homing cycle.
     pub home_position: f64,
@@ -52,9 +109,10 @@ pub struct GrblParams {
     /// Start homed and Idle at `physical_start` (a controller that kept its
     /// position), instead of GRBL's usual Alarm with MPos 0.
     pub start_homed: bool,
-    /// `$22`: homing enabled. GRBL ships with it off: the controller then
-    /// starts Idle (not locked) at MPos 0 and refuses `$H` with `error:5`.
-    pub homing_enabled: bool,
+    /// The controller's settings. With `$22=0` (homing disabled, as GRBL
+    /// ships) the controller starts Idle (not locked) at MPos 0 and
+    /// refuses `$H` with `error:5`.
+    pub settings: Eeprom,
     /// The board resets when its port opens (an Arduino, through DTR) and
     /// greets with the banner; without, it was already running and says
     /// nothing until asked.
@@ -67,17 +125,18 @@ pub struct GrblParams {
 impl Default for GrblParams {
     /// The setup the transcripts in `firmware-protocols/grbl.md` assume.
     fn default() -> GrblParams {
+        let motion = Trapezoid {
+            max_velocity: 20.0,
+            acceleration: 40.0,
+            settle_s: 0.05,
+        };
         GrblParams {
             name: "grbl".into(),
-            motion: Trapezoid {
-                max_velocity: 20.0,
-                acceleration: 40.0,
-                settle_s: 0.05,
-            },
+            motion,
             home_position: 0.0,
             physical_start: 10.0,
             start_homed: false,
-            homing_enabled: true,
+            settings: Eeprom::configured(motion, true, 360.0),
             reset_on_open: true,
             world: None,
         }
@@ -176,7 +235,7 @@ where
 {
     let mut m = Machine {
         // Power-up locks the controller only when homing is enabled.
-        alarm: !params.start_homed && params.homing_enabled,
+        alarm: !params.start_homed && params.settings.homing_enabled(),
         offset: if params.start_homed {
             0.0
         } else {
@@ -455,6 +514,8 @@ impl Machine {
             Command::Home => "home",
             Command::Unlock => "unlock",
             Command::BuildInfo => "info",
+            Command::ReadSettings => "settings",
+            Command::WriteSetting { .. } => "configure",
             Command::Rapid { .. } => "move",
             Command::Jog { .. } => "jog",
             Command::Nop => "nop",
@@ -474,15 +535,12 @@ impl Machine {
             Some(FaultKind::BadFrame) => {}
         }
         match cmd {
-            Command::Home if !self.params.homing_enabled => {
+            Command::Home if !self.params.settings.homing_enabled() => {
                 self.reply(Reply::Error(ERR_HOMING_DISABLED));
             }
             Command::Home => {
                 let physical = self.position() + self.offset;
-                let t = self
-                    .params
-                    .motion
-                    .move_time(physical - self.params.home_position);
+                let t = self.rapid().move_time(physical - self.params.home_position);
                 self.segments.clear();
                 self.held = None;
                 self.homing_until = Some(self.now() + t);
@@ -499,13 +557,24 @@ impl Machine {
                 self.reply(Reply::Options(BUILD_OPTIONS.into()));
                 self.reply(Reply::Ok);
             }
+            Command::ReadSettings => {
+                for (number, value) in self.params.settings.all() {
+                    self.reply(Reply::Setting { number, value });
+                }
+                self.reply(Reply::Ok);
+            }
+            Command::WriteSetting { number, value } => {
+                let code = self.write_setting(number, value);
+                self.reply(code.map_or(Reply::Ok, Reply::Error));
+            }
             Command::Nop => self.reply(Reply::Ok),
             Command::Rapid { x } => {
                 let jogging = self.active().is_some_and(|s| s.jog);
                 if self.alarm || jogging {
                     self.reply(Reply::Error(ERR_ALARM_LOCK));
                 } else {
-                    self.queue(x, self.params.motion, false);
+                    let rapid = self.rapid();
+                    self.queue(x, rapid, false);
                     self.reply(Reply::Ok);
                 }
             }
@@ -513,13 +582,55 @@ impl Machine {
                 if self.alarm {
                     self.reply(Reply::Error(ERR_ALARM_LOCK));
                 } else {
-                    let mut motion = self.params.motion;
+                    let mut motion = self.rapid();
                     motion.max_velocity = motion.max_velocity.min(feed / 60.0);
                     self.queue(x, motion, true);
                     self.reply(Reply::Ok);
                 }
             }
         }
+    }
+
+    /// The rapid motion the settings give: `$110` units/min, `$120`
+    /// units/s², and the axis's settle time.
+    fn rapid(&self) -> Trapezoid {
+        let e = &self.params.settings;
+        let fallback = self.params.motion;
+        Trapezoid {
+            max_velocity: e.get(110).map_or(fallback.max_velocity, |v| v / 60.0),
+            acceleration: e.get(120).unwrap_or(fallback.acceleration),
+            settle_s: fallback.settle_s,
+        }
+    }
+
+    /// `$N=V`, with GRBL's checks: a setting the build has, only while
+    /// Idle or in Alarm, no negative value, soft limits only with homing.
+    /// Returns the error code to answer, or None for `ok`.
+    fn write_setting(&mut self, number: u16, value: f64) -> Option<rigd_proto::grbl::ErrorCode> {
+        let idle = self.active().is_none() && self.homing_until.is_none() && self.held.is_none();
+        if !(idle || self.alarm) {
+            return Some(ERR_NOT_IDLE);
+        }
+        if self.params.settings.get(number).is_none() {
+            return Some(ERR_INVALID_STATEMENT);
+        }
+        if value < 0.0 {
+            return Some(ERR_NEGATIVE_VALUE);
+        }
+        if number == 20 && value != 0.0 && !self.params.settings.homing_enabled() {
+            return Some(ERR_SOFT_LIMIT_WITHOUT_HOMING);
+        }
+        // Steps/unit times rate/min may not pass the step generator's limit.
+        let other = match number {
+            100 => self.params.settings.get(110),
+            110 => self.params.settings.get(100),
+            _ => None,
+        };
+        if other.is_some_and(|o| o * value > MAX_STEP_RATE_HZ * 60.0) {
+            return Some(ERR_MAX_STEP_RATE);
+        }
+        self.params.settings.set(number, value);
+        None
     }
 
     /// Appends a move after everything already planned (GRBL's planner
@@ -627,7 +738,7 @@ mod tests {
     #[tokio::test(start_paused = true)]
     async fn factory_settings_start_idle_at_zero_and_refuse_homing() {
         let p = GrblParams {
-            homing_enabled: false,
+            settings: Eeprom::factory(),
             ..GrblParams::default()
         };
         let (mut h, _, _) = start(p, Arc::default());

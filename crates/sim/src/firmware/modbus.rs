@@ -72,6 +72,13 @@ pub struct ModuleConfig {
     pub laser: Option<String>,
     /// Relay switch time of the laser coil.
     pub laser_switch_s: f64,
+    /// Whether the module has the ready, fault and burn-hour input
+    /// registers. Without them (a coil-only relay module as sold) it
+    /// answers FC04 with exception 0x01, illegal function.
+    pub status_registers: bool,
+    /// Whether the module takes FC0F (write multiple coils); some coil-only
+    /// modules answer it with exception 0x01.
+    pub write_multiple_coils: bool,
 }
 
 #[derive(Debug, Clone, Default)]
@@ -291,6 +298,12 @@ impl ModbusModule {
                 self.set_coil(addr, on, self.shared.clock.now_s());
                 Ok(ResponsePdu::WriteSingleCoil { addr, on })
             }
+            RequestPdu::WriteMultipleCoils { .. } if !self.shared.cfg.write_multiple_coils => {
+                Err(Exception::IllegalFunction.into())
+            }
+            RequestPdu::ReadInputRegisters { .. } if !self.shared.cfg.status_registers => {
+                Err(Exception::IllegalFunction.into())
+            }
             RequestPdu::WriteMultipleCoils { addr, values } => {
                 let count = u16::try_from(values.len()).unwrap_or(u16::MAX);
                 if !self.in_range(addr, count, n) {
@@ -442,6 +455,8 @@ mod tests {
                 ],
                 laser: Some("laser".into()),
                 laser_switch_s: 0.01,
+                status_registers: true,
+                write_multiple_coils: true,
             },
             Clock::virtual_time(),
             Arc::new(FaultInjector::new(rules)),
