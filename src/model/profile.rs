@@ -482,6 +482,11 @@ pub struct SimSettings {
     /// `factory` (as GRBL ships: `$22=0`, `$110=500`, `$120=10`).
     #[serde(default)]
     pub grbl_settings: SimGrblSettings,
+    /// Seconds every answer of a simulated GRBL board waits before it goes
+    /// out: a slow controller (one was observed answering each line in
+    /// about 150 ms). Default 0.
+    #[serde(default)]
+    pub grbl_answer_delay_s: f64,
 }
 
 /// What the simulated GRBL boards have in their EEPROM at power-up.
@@ -530,6 +535,7 @@ impl Default for SimSettings {
             scene: None,
             grbl_reset_on_open: true,
             grbl_settings: SimGrblSettings::Configured,
+            grbl_answer_delay_s: 0.0,
             zoom: default_zoom(),
         }
     }
@@ -783,6 +789,13 @@ impl Profile {
             return Err((
                 "sim.frame_size".into(),
                 format!("expected [width, height] between 1 and 8192, got [{w}, {h}]"),
+            ));
+        }
+        let delay = self.sim.grbl_answer_delay_s;
+        if !(delay.is_finite() && (0.0..=1.0).contains(&delay)) {
+            return Err((
+                "sim.grbl_answer_delay_s".into(),
+                format!("expected 0 ..= 1 second (the driver allows 2 s per line), got {delay}"),
             ));
         }
         let zoom = self.sim.zoom;

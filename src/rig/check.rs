@@ -32,6 +32,9 @@ pub struct DeviceCheck {
     /// The fix, when it is not usable and the detail does not already say.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fix: Option<String>,
+    /// Seconds from opening its link to its verdict (for a lamp or laser:
+    /// its module's connection and its own reads).
+    pub connect_s: f64,
 }
 
 /// The whole rig's verdict.
@@ -43,6 +46,9 @@ pub struct RigCheck {
     pub usable: bool,
     /// One entry per device, in profile order.
     pub devices: Vec<DeviceCheck>,
+    /// Seconds the whole check took: about the slowest device's
+    /// `connect_s`, since every device connects at once.
+    pub took_s: f64,
 }
 
 impl RigCheck {
@@ -65,25 +71,22 @@ impl RigCheck {
                     .map(|f| format!("; fix: {f}"))
                     .unwrap_or_default();
                 format!(
-                    "{verdict} {:<width$} {:<6} {}{fix}",
-                    d.device, d.kind, d.detail
+                    "{verdict} {:<width$} {:<6} {}{fix} ({:.2} s)",
+                    d.device, d.kind, d.detail, d.connect_s
                 )
             })
             .collect();
         let bad = self.devices.iter().filter(|d| !d.usable).count();
-        out.push(if bad == 0 {
-            format!(
-                "{}: all {} devices usable",
-                self.profile,
-                self.devices.len()
-            )
+        let slowest = self.devices.iter().map(|d| d.connect_s).fold(0.0, f64::max);
+        let verdict = if bad == 0 {
+            format!("all {} devices usable", self.devices.len())
         } else {
-            format!(
-                "{}: {bad} of {} devices not usable",
-                self.profile,
-                self.devices.len()
-            )
-        });
+            format!("{bad} of {} devices not usable", self.devices.len())
+        };
+        out.push(format!(
+            "{}: {verdict} (checked in {:.2} s; slowest device {slowest:.2} s)",
+            self.profile, self.took_s
+        ));
         out
     }
 }
@@ -123,6 +126,7 @@ fn failed(name: &str, dev: &Device, e: &DeviceError) -> DeviceCheck {
         usable: false,
         detail: e.message.clone(),
         fix: fix_for(name, e),
+        connect_s: 0.0,
     }
 }
 
@@ -164,6 +168,7 @@ async fn check_coil(
                 fix: fault.then(|| {
                     "the module reports a fault on this lamp: check ballast and bulb; switching the lamp off clears the module's latch".to_string()
                 }),
+                connect_s: 0.0,
             }
         }
     }
@@ -175,6 +180,7 @@ pub async fn check_rig(
     links: &BTreeMap<String, Link>,
     clock: &Clock,
 ) -> RigCheck {
+    let start = clock.now_s();
     let own = join_all(profile.devices.iter().filter_map(|(name, dev)| {
         let link = links.get(name)?;
         if matches!(link, Link::Modbus { .. }) {
@@ -182,7 +188,7 @@ pub async fn check_rig(
         }
         let link = link.clone();
         Some(async move {
-            let check = match connect_device(name, dev, link, clock).await {
+            let mut check = match connect_device(name, dev, link, clock).await {
                 Err(e) => failed(name, dev, &e),
                 Ok((_connected, id)) => match id.unusable {
                     None => DeviceCheck {
@@ -191,6 +197,7 @@ pub async fn check_rig(
                         usable: true,
                         detail: id.about,
                         fix: None,
+                        connect_s: 0.0,
                     },
                     Some((problem, fix)) => DeviceCheck {
                         device: name.clone(),
@@ -198,9 +205,11 @@ pub async fn check_rig(
                         usable: false,
                         detail: format!("{}; {problem}", id.about),
                         fix: Some(fix),
+                        connect_s: 0.0,
                     },
                 },
             };
+            check.connect_s = clock.now_s() - start;
             (name.clone(), check)
         })
     }));
@@ -234,7 +243,9 @@ pub async fn check_rig(
         match open_stream(clock, first, opener.as_ref()).await {
             Err(e) => {
                 for (name, dev, _) in &devices {
-                    out.push(((*name).clone(), failed(name, dev, &e)));
+                    let mut check = failed(name, dev, &e);
+                    check.connect_s = clock.now_s() - start;
+                    out.push(((*name).clone(), check));
                 }
             }
             Ok(stream) => {
@@ -242,7 +253,8 @@ pub async fn check_rig(
                     stream, framing, unit,
                 )));
                 for (name, dev, _) in &devices {
-                    let c = check_coil(name, dev, bus.clone(), status_registers, clock).await;
+                    let mut c = check_coil(name, dev, bus.clone(), status_registers, clock).await;
+                    c.connect_s = clock.now_s() - start;
                     out.push(((*name).clone(), c));
                 }
             }
@@ -273,5 +285,6 @@ pub async fn check_rig(
         profile: profile.name.clone(),
         usable: devices.iter().all(|d| d.usable),
         devices,
+        took_s: clock.now_s() - start,
     }
 }

@@ -311,6 +311,7 @@ pub(crate) fn firmware(
                         settings,
                         reset_on_open: profile.sim.grbl_reset_on_open,
                         world: Some(shared.clone()),
+                        answer_delay_s: profile.sim.grbl_answer_delay_s,
                     },
                     clock: clock.clone(),
                     faults: faults.clone(),

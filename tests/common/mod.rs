@@ -194,3 +194,15 @@ pub fn relay_log(log: &Path) -> Vec<String> {
         .map(str::to_string)
         .collect()
 }
+
+/// A plan file of 2 lights × 2 views (4 images) in `dir`.
+pub fn tiny_plan(dir: &Path) -> PathBuf {
+    let plan = dir.join("tiny.json");
+    std::fs::write(
+        &plan,
+        r#"{"lights": [{"theta_deg": 30, "phi_deg": 0}, {"theta_deg": 45, "phi_deg": 90}],
+            "views": [{"theta_deg": 20, "phi_deg": 0}, {"theta_deg": 40, "phi_deg": 180}]}"#,
+    )
+    .expect("write the plan");
+    plan
+}

@@ -215,6 +215,13 @@ fn broken_profiles_name_file_key_and_expectation() {
             "devices.rail.steps_per_deg",
             "60000 steps/s; GRBL steps at most 30000/s",
         ),
+        (
+            "slow-grbl.toml",
+            "[sim]",
+            "[sim]\ngrbl_answer_delay_s = 5.0",
+            "sim.grbl_answer_delay_s",
+            "expected 0 ..= 1 second",
+        ),
     ];
     for (file, from, to, key, what) in cases {
         let path = broken_profile(tmp.path(), file, from, to);

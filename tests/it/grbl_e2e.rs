@@ -32,6 +32,7 @@ fn params() -> GrblParams {
         settings: Eeprom::configured(TRAP, true, 360.0),
         reset_on_open: true,
         world: None,
+        answer_delay_s: 0.0,
     }
 }
 
@@ -328,6 +329,28 @@ async fn settings_are_compared_with_the_profile_and_configured_on_request() {
         .expect_err("error:12");
     assert!(e.message.contains("error:12"), "{e}");
     assert_eq!(eeprom.get(100), Some(250.0));
+}
+
+/// A controller as slow as one observed (each answer about 150 ms late):
+/// connecting, homing and moving still work within the deadlines, and
+/// connecting costs a handful of round trips, not a fixed wait.
+#[tokio::test(start_paused = true)]
+async fn a_slow_controller_answers_within_the_deadlines() {
+    let clock = Clock::virtual_time();
+    let slow = GrblParams {
+        answer_delay_s: 0.15,
+        ..params()
+    };
+    let (host, _) = start_sim(slow, &clock, Arc::default());
+    let t0 = clock.now_s();
+    let mut axis = GrblAxis::connect(host, config(), clock.clone())
+        .await
+        .expect("connect");
+    let took = clock.now_s() - t0;
+    // The banner, `$I`, `$$` and one status report: four late answers.
+    assert!((0.6..1.0).contains(&took), "connecting took {took} s");
+    assert_eq!(axis.home().await.expect("home"), 0.0);
+    assert_eq!(axis.move_to(120.0).await.expect("move"), 120.0);
 }
 
 mod robustness {

@@ -11,7 +11,7 @@ use rigd::rig::drivers::grbl::{GrblAxis, GrblConfig};
 use rigd::rig::hal::{Axis, DeviceError};
 use rigd_core::Clock;
 use rigd_proto::grbl::LineSplitter;
-use rigd_sim::firmware::grbl::{serve, GrblParams};
+use rigd_sim::firmware::grbl::{serve, Eeprom, GrblParams};
 use rigd_sim::{FaultInjector, FaultRule};
 use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
 
@@ -23,6 +23,10 @@ enum Step {
     Expect(String),
     Sleep(f64),
     Fault(String),
+    /// `@ sim KEY=VALUE`: how the simulated board is set up.
+    Sim(String, String),
+    /// `@ driver KEY=VALUE`: how the driver is configured.
+    Driver(String, String),
 }
 
 struct Transcript {
@@ -45,6 +49,13 @@ fn parse_step(line: &str) -> Step {
         Step::Sleep(x.trim().parse().expect("sleep seconds"))
     } else if let Some(x) = line.strip_prefix("@ fault ") {
         Step::Fault(x.to_string())
+    } else if let Some((k, v)) = line.strip_prefix("@ sim ").and_then(|x| x.split_once('=')) {
+        Step::Sim(k.to_string(), v.to_string())
+    } else if let Some((k, v)) = line
+        .strip_prefix("@ driver ")
+        .and_then(|x| x.split_once('='))
+    {
+        Step::Driver(k.to_string(), v.to_string())
     } else {
         panic!("bad transcript line `{line}`")
     }
@@ -152,11 +163,22 @@ async fn replay_against_sim(t: &Transcript) {
             _ => None,
         })
         .collect();
+    let mut params = GrblParams::default();
+    for step in &t.steps {
+        if let Step::Sim(k, v) = step {
+            match (k.as_str(), v.as_str()) {
+                ("reset_on_open", v) => params.reset_on_open = v == "true",
+                ("settings", "factory") => params.settings = Eeprom::factory(),
+                ("answer_delay", v) => params.answer_delay_s = v.parse().expect("seconds"),
+                _ => panic!("{}: unknown `@ sim {k}={v}`", t.title),
+            }
+        }
+    }
     let clock = Clock::virtual_time();
     let (a, b) = tokio::io::duplex(4096);
     tokio::spawn(serve(
         b,
-        GrblParams::default(),
+        params,
         clock.clone(),
         Arc::new(FaultInjector::new(rules)),
     ));
@@ -183,7 +205,11 @@ async fn replay_against_sim(t: &Transcript) {
                 );
             }
             Step::Sleep(s) => clock.sleep_s(*s).await,
-            Step::Call(..) | Step::Expect(_) | Step::Fault(_) => {}
+            Step::Call(..)
+            | Step::Expect(_)
+            | Step::Fault(_)
+            | Step::Sim(..)
+            | Step::Driver(..) => {}
         }
     }
     // Nothing unexpected may follow.
@@ -286,7 +312,7 @@ async fn replay_against_driver(t: &Transcript) {
     let title = t.title.clone();
     let steps = t.steps.clone();
     let driver = async move {
-        let cfg = GrblConfig::new(
+        let mut cfg = GrblConfig::new(
             "grbl",
             Limits {
                 min: -180.0,
@@ -298,6 +324,15 @@ async fn replay_against_driver(t: &Transcript) {
                 settle_s: 0.05,
             },
         );
+        for step in &steps {
+            if let Step::Driver(k, v) = step {
+                match k.as_str() {
+                    "homing" => cfg.homing = v == "true",
+                    "configure" => cfg.configure = v == "true",
+                    _ => panic!("{title}: unknown `@ driver {k}={v}`"),
+                }
+            }
+        }
         let mut stream = Some(drv);
         let mut axis: Option<GrblAxis<DuplexStream>> = None;
         let mut last: Option<(String, Result<Option<f64>, DeviceError>)> = None;

@@ -56,13 +56,7 @@ fn served_msra_rig_answers_a_modbus_client_and_completes_a_run() {
     assert_eq!(coils, vec![false; 9]);
 
     // `rigd run` with the printed profile drives the served rig.
-    let plan = tmp.path().join("tiny.json");
-    std::fs::write(
-        &plan,
-        r#"{"lights": [{"theta_deg": 30, "phi_deg": 0}, {"theta_deg": 45, "phi_deg": 90}],
-            "views": [{"theta_deg": 20, "phi_deg": 0}, {"theta_deg": 40, "phi_deg": 180}]}"#,
-    )
-    .expect("plan");
+    let plan = common::tiny_plan(tmp.path());
     let out = tmp.path().join("run");
     let start = Instant::now();
     let o = rigd()

@@ -361,6 +361,7 @@ function renderRig() {
     const flags = [];
     flags.push(d.connected ? "connected" : "disconnected");
     if (d.homed != null) flags.push(d.homed ? "homed" : "not homed");
+    if (d.homing === false) flags.push("no homing: zeroed by hand at its 0° mark");
     if (d.busy) flags.push("busy");
     const st = text("td", flags.join(", "));
     if (d.fault) {
@@ -826,7 +827,8 @@ async function checkRig() {
     summary.className = bad === 0 ? "ok-text" : "fault-text";
     for (const d of r.devices) {
       const li = text("li", "", { "data-device": d.device, class: d.usable ? "ok" : "fault" });
-      li.append(text("strong", `${d.usable ? "OK" : "FAIL"} ${d.device}`), text("span", ` (${d.kind}): ${d.detail}`));
+      li.append(text("strong", `${d.usable ? "OK" : "FAIL"} ${d.device}`), text("span", ` (${d.kind}): ${d.detail}`),
+        text("span", ` (${d.connect_s.toFixed(2)} s)`, { class: "muted" }));
       if (d.fix) li.append(text("div", `Fix: ${d.fix}`, { class: "fault-text" }));
       list.append(li);
     }

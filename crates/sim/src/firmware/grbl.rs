@@ -120,6 +120,9 @@ pub struct GrblParams {
     /// Where to publish the physical position (under `name`) for the
     /// simulated cameras.
     pub world: Option<SharedWorld>,
+    /// Seconds every answer waits before it goes out: a slow controller
+    /// (one observed answering each line in about 150 ms). 0 by default.
+    pub answer_delay_s: f64,
 }
 
 impl Default for GrblParams {
@@ -139,6 +142,7 @@ impl Default for GrblParams {
             settings: Eeprom::configured(motion, true, 360.0),
             reset_on_open: true,
             world: None,
+            answer_delay_s: 0.0,
         }
     }
 }
@@ -287,6 +291,9 @@ where
         m.execute_lines();
         m.publish();
         if !m.out.is_empty() {
+            if m.params.answer_delay_s > 0.0 {
+                m.clock.sleep_s(m.params.answer_delay_s).await;
+            }
             stream.write_all(&std::mem::take(&mut m.out)).await?;
             stream.flush().await?;
         }
