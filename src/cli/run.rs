@@ -104,13 +104,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
         Some(dir) => {
             let meta = rigd::store::read_meta(dir)
                 .with_context(|| format!("cannot resume {}", dir.display()))?;
-            let unhomed: Vec<&str> = meta
-                .profile
-                .devices
-                .iter()
-                .filter(|(_, d)| d.homing == Some(false))
-                .map(|(n, _)| n.as_str())
-                .collect();
+            let unhomed = meta.profile.axes_without_homing();
             if !unhomed.is_empty() && !args.reference_confirmed {
                 return Err(bad_input(format!(
                     "{} without homing: set each at its 0° mark and zero its controller there, then resume with --reference-confirmed",

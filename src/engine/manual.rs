@@ -12,7 +12,7 @@ use rigd_core::Clock;
 use serde::Serialize;
 
 use super::estop::EStop;
-use super::{deadline, DEADLINE_SLACK_S, HOMING_DEADLINE_S};
+use super::{deadline, goto, Lights, Movers, DEADLINE_SLACK_S, HOMING_DEADLINE_S};
 use crate::kinematics::{Setpoints, Solver};
 use crate::model::profile::{DeviceKind, Profile};
 use crate::rig::hal::{DeviceError, Frame, Rig};
@@ -106,10 +106,6 @@ impl ManualRig {
     /// also while an action is in flight.
     pub fn estop(&self) -> EStop {
         self.estop.clone()
-    }
-
-    fn timing(&self) -> Timing<'_> {
-        Timing::new(&self.profile, None)
     }
 
     fn kind_of(&self, device: &str) -> Result<DeviceKind, ManualError> {
@@ -236,11 +232,13 @@ impl ManualRig {
             self.need_homed(name)?;
         }
         let clock = self.clock.clone();
+        // Where the movers stand now; the lamp and the plate as the pose
+        // wants them, so `goto` only moves.
         let mut from = Setpoints {
             axes: BTreeMap::new(),
             arm: None,
             lamp: to.lamp.clone(),
-            plate_mm: None,
+            plate_mm: to.plate_mm,
         };
         for (name, axis) in self.rig.axes.iter_mut() {
             if to.axes.contains_key(name) {
@@ -253,37 +251,30 @@ impl ManualRig {
                 from.arm = Some(deadline(&clock, name, DEADLINE_SLACK_S, arm.joints()).await?);
             }
         }
-        let budget = self.timing().motion_s(&from, to) * 2.0 + DEADLINE_SLACK_S;
-        let clock = &clock;
-        let axes = futures::future::join_all(
-            self.rig
-                .axes
-                .iter_mut()
-                .filter_map(|(name, a)| to.axes.get(name).map(|&x| (name, a, x)))
-                .map(|(name, a, x)| async move {
-                    deadline(clock, name, budget, a.move_to(x))
-                        .await
-                        .map(|p| (name.clone(), p))
-                }),
-        );
-        let clock2 = self.clock.clone();
-        let arm = async {
-            match (&to.arm, self.rig.arms.iter_mut().next()) {
-                (Some(q), Some((name, arm))) => deadline(&clock2, name, budget, arm.move_joints(q))
-                    .await
-                    .map(Some),
-                _ => Ok(None),
-            }
+        // The same moves, in parallel and under the same deadline, as a
+        // run's step.
+        let timing = Timing::new(&self.profile, None);
+        let rig = &mut self.rig;
+        let movers = Movers {
+            axes: &mut rig.axes,
+            arms: &mut rig.arms,
+            fixture: &mut rig.fixture,
+            plate_known: true,
         };
-        let (axes, arm) = tokio::join!(axes, arm);
-        let mut reached = BTreeMap::new();
-        for r in axes {
-            let (name, p) = r?;
-            reached.insert(name, p);
-        }
+        let mut lights = Lights {
+            lamps: &mut rig.lamps,
+            lasers: &mut rig.lasers,
+        };
+        let reached = goto(&clock, &timing, movers, &mut lights, &from, None, to)
+            .await
+            .map_err(|f| f.error)?;
         Ok(PoseReached {
-            axes: reached,
-            arm: arm?,
+            axes: reached
+                .axes
+                .into_iter()
+                .filter(|(name, _)| to.axes.contains_key(name))
+                .collect(),
+            arm: reached.arm,
             lamp: to.lamp.clone(),
             camera: pose.camera.clone(),
             feasible: pose.feasible,

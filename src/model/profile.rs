@@ -808,6 +808,16 @@ impl Profile {
         Ok(())
     }
 
+    /// The axes without homing (`homing = false`): their zero is the
+    /// operator's, so resuming a run on them needs the operator's word.
+    pub fn axes_without_homing(&self) -> Vec<&str> {
+        self.devices
+            .iter()
+            .filter(|(_, d)| d.homing == Some(false))
+            .map(|(name, _)| name.as_str())
+            .collect()
+    }
+
     /// Every lamp and laser on one relay module says the same about the
     /// module's status registers: the module has them or it has not.
     fn validate_modules(&self) -> Result<(), (String, String)> {

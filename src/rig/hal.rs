@@ -85,6 +85,15 @@ pub struct Frame {
 }
 
 impl Frame {
+    /// The largest value a sample of this bit depth can hold.
+    pub fn full_scale(&self) -> u16 {
+        if self.bit_depth >= 16 {
+            u16::MAX
+        } else {
+            (1u16 << self.bit_depth) - 1
+        }
+    }
+
     /// Checks that the pixel count matches the size and every value fits the depth.
     pub fn validate(&self, camera: &str) -> Result<(), DeviceError> {
         let expected = self.width as usize * self.height as usize;
@@ -101,11 +110,7 @@ impl Frame {
                 ),
             ));
         }
-        let max = if self.bit_depth >= 16 {
-            u16::MAX
-        } else {
-            (1u16 << self.bit_depth) - 1
-        };
+        let max = self.full_scale();
         if let Some(v) = self.pixels.iter().find(|&&v| v > max) {
             return Err(DeviceError::new(
                 camera,

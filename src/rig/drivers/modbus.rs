@@ -334,9 +334,7 @@ impl ModbusLamp {
             self.coil.clock.sleep(cfg.poll_interval).await;
         }
     }
-}
 
-impl ModbusLamp {
     /// A coil-only module: the lamp is ready `warm_up` after its coil read
     /// back closed. The coil is read once more at the end, so a relay that
     /// dropped (a module power cycle, a panel switch) is not taken as light.

@@ -224,11 +224,7 @@ pub async fn take_frame(
             Box::pin(async move { rig.test_frame(req.camera.as_deref(), req.exposure_s).await })
         })
         .await?;
-    let full_scale = if frame.bit_depth >= 16 {
-        u16::MAX
-    } else {
-        (1u16 << frame.bit_depth) - 1
-    };
+    let full_scale = frame.full_scale();
     let n = frame.pixels.len().max(1) as f64;
     let answer = TestFrame {
         camera,

@@ -201,13 +201,7 @@ pub async fn resume_run(
         return Err(not_found_run(&id));
     }
     if !q.reference_confirmed {
-        let unhomed: Vec<&str> = d
-            .profile
-            .devices
-            .iter()
-            .filter(|(_, dev)| dev.homing == Some(false))
-            .map(|(name, _)| name.as_str())
-            .collect();
+        let unhomed = d.profile.axes_without_homing();
         if !unhomed.is_empty() {
             return Err(ApiError::conflict(format!(
                 "{} {} no homing: set {} at its 0° mark and zero the controller there, then resume with ?reference_confirmed=true",
