@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use rayon::prelude::*;
 use rigd::postprocess::btf::btf_run;
-use rigd::postprocess::rectify::{FrameRegistration, NormtextureIndex};
+use rigd::postprocess::rectify::{FrameRegistration, NormtextureIndex, RegistrationMethod};
 use rigd::store::processed::{normtextures_dir, NORMTEXTURE_INDEX};
 use rigd_core::geometry::Direction;
 use rigd_process::directions::h2;
@@ -92,7 +92,9 @@ fn make_run(run: &Path) -> Vec<Vec<f32>> {
             markers_used: 4,
             markers_rejected: Vec::new(),
             coverage: Some(1.0),
-            error: None,
+            method: Some(RegistrationMethod::Markers),
+            error_px: Some(0.1),
+            ..FrameRegistration::new(i, i / n, i % n)
         })
         .collect();
     let index = NormtextureIndex {
@@ -102,6 +104,7 @@ fn make_run(run: &Path) -> Vec<Vec<f32>> {
         lights: dirs.clone(),
         views: dirs,
         frames,
+        summary: None,
     };
     let json = serde_json::to_vec_pretty(&index).expect("index json");
     std::fs::write(out.join(NORMTEXTURE_INDEX), json).expect("write index");

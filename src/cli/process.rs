@@ -327,25 +327,20 @@ fn rectify(args: RectifyArgs) -> Result<()> {
     let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
     let started = Instant::now();
     let index = rigd::postprocess::rectify::rectify_run(&run, &cfg, &progress_line("registering"))?;
-    let rms: Vec<f64> = index.frames.iter().filter_map(|f| f.rms_px).collect();
-    let worst = index
-        .frames
-        .iter()
-        .filter_map(|f| f.max_px)
-        .fold(0.0, f64::max);
     let rejected: usize = index.frames.iter().map(|f| f.markers_rejected.len()).sum();
     println!(
-        "{} frames registered ({} views × {} lights): marker residual RMS mean {:.3} px, worst marker {:.3} px, {} markers rejected as outliers; {}² textures in {} ({:.1} s)",
-        rms.len(),
+        "{} frames ({} views × {} lights) into {}² textures in {} ({:.1} s); {} markers rejected as outliers",
+        index.frames.len(),
         index.views.len(),
         index.lights.len(),
-        rms.iter().sum::<f64>() / rms.len().max(1) as f64,
-        worst,
-        rejected,
         index.size,
         args.run.join("processed/normtextures").display(),
-        started.elapsed().as_secs_f64()
+        started.elapsed().as_secs_f64(),
+        rejected,
     );
+    if let Some(summary) = &index.summary {
+        print!("{}", summary.table());
+    }
     Ok(())
 }
 

@@ -76,7 +76,9 @@ pub struct RunArgs {
     /// ACL arm home, move, define, query; Modbus lamps set, ready; PTP cameras
     /// expose, transfer, set_exposure; or * for any. KIND: timeout (no answer),
     /// disconnect, bad-frame (garbled reply or frame), alarm=TEXT (the device's
-    /// own fault: GRBL ALARM, Modbus exception, PTP GeneralError). Repeatable.
+    /// own fault: GRBL ALARM, Modbus exception, PTP GeneralError); on a camera's
+    /// expose also dark (a valid frame the lamp missed) and mask-markers (a valid
+    /// frame with the holder's markers covered). Repeatable.
     /// See firmware-protocols/README.md.
     #[cfg(feature = "sim")]
     #[arg(long = "sim-fault", value_name = "SPEC")]

@@ -453,8 +453,10 @@ impl Transport {
 #[derive(Debug, Clone, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimSettings {
-    /// Frame size the simulated cameras render, `[width, height]`; small by
-    /// default so a full capture is quick (the real sensors are far larger).
+    /// Frame size the simulated cameras render, `[width, height]`; by
+    /// default 320×240, small so a full capture is quick (the real sensors
+    /// are far larger) and large enough that the holder's markers register
+    /// in every view of an H2 ([`MIN_REGISTRABLE_FRAME`]).
     #[serde(default = "default_sim_frame")]
     pub frame_size: [u32; 2],
     /// Faults the simulated firmware inject, in `--sim-fault` syntax
@@ -487,6 +489,16 @@ pub struct SimSettings {
     /// about 150 ms). Default 0.
     #[serde(default)]
     pub grbl_answer_delay_s: f64,
+    /// Where the holder really sits in the plate plane, millimetres from
+    /// the sample centre the kinematics assume: the placement error a real
+    /// rig has. The markers see it; registration from the rig's pose must
+    /// calibrate it away. Default `[0, 0]`.
+    #[serde(default, skip_serializing_if = "is_zero_offset")]
+    pub holder_offset_mm: [f64; 2],
+}
+
+fn is_zero_offset(o: &[f64; 2]) -> bool {
+    o == &[0.0, 0.0]
 }
 
 /// What the simulated GRBL boards have in their EEPROM at power-up.
@@ -523,8 +535,14 @@ impl SimSettings {
     }
 }
 
+/// The smallest simulated frame, measured on the Bonn rig's H2 views, at
+/// which `rigd process rectify` finds the holder's markers in every view:
+/// at 256×192 about a third of the 75° ring falls back to registration
+/// from the pose (`docs/processing.md`, "Registration").
+pub const MIN_REGISTRABLE_FRAME: [u32; 2] = [288, 216];
+
 fn default_sim_frame() -> [u32; 2] {
-    [96, 64]
+    [320, 240]
 }
 
 impl Default for SimSettings {
@@ -537,6 +555,7 @@ impl Default for SimSettings {
             grbl_settings: SimGrblSettings::Configured,
             grbl_answer_delay_s: 0.0,
             zoom: default_zoom(),
+            holder_offset_mm: [0.0, 0.0],
         }
     }
 }
@@ -789,6 +808,20 @@ impl Profile {
             return Err((
                 "sim.frame_size".into(),
                 format!("expected [width, height] between 1 and 8192, got [{w}, {h}]"),
+            ));
+        }
+        if !self
+            .sim
+            .holder_offset_mm
+            .iter()
+            .all(|v| v.is_finite() && v.abs() <= 10.0)
+        {
+            return Err((
+                "sim.holder_offset_mm".into(),
+                format!(
+                    "expected [x, y] within ±10 mm (a holder that far off leaves the camera's field), got {:?}",
+                    self.sim.holder_offset_mm
+                ),
             ));
         }
         let delay = self.sim.grbl_answer_delay_s;

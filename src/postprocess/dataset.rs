@@ -95,6 +95,7 @@ pub fn import_textures(
         lights,
         views,
         frames,
+        summary: None,
     };
     let mut json =
         serde_json::to_vec_pretty(&index).map_err(|e| ProcessError::Invalid(e.to_string()))?;

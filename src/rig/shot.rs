@@ -223,6 +223,7 @@ pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, Re
         laser,
         seed: req.seed,
         effects: req.effects,
+        holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
         ..Shot::default()
     };
     let started = Instant::now();

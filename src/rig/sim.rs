@@ -395,6 +395,7 @@ pub(crate) fn firmware(
                         geometry,
                         lamp_distance_m: lamp_distances(profile),
                         laser: crate::plan::laser::LaserRig::of(profile),
+                        holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
                     },
                     scene: scene.clone(),
                 });
@@ -524,6 +525,8 @@ struct CameraView {
     lamp_distance_m: BTreeMap<String, f64>,
     /// The laser unit, on rigs that have one.
     laser: Option<crate::plan::laser::LaserRig>,
+    /// `[sim] holder_offset_mm`, metres.
+    holder_offset_m: [f64; 2],
 }
 
 impl CameraView {
@@ -544,8 +547,10 @@ impl CameraView {
             // The source's azimuth in the sample frame, as for a lamp on the arc.
             let azimuth = axis(&rig.light_arc) - axis(&rig.turntable);
             let (emitter, normal) = rig.geometry.plane(azimuth, axis(&rig.tilt_axis))?;
+            // The emitter stands where the rig put it; the plate is offset.
+            let [dx, dy] = self.holder_offset_m;
             Some(LaserSheet {
-                emitter,
+                emitter: [emitter[0] - dx, emitter[1] - dy, emitter[2]],
                 normal,
                 width_m: SIM_LASER_WIDTH_M,
                 power: SIM_LASER_POWER,
@@ -582,6 +587,7 @@ impl CameraView {
             lamp_distance_m: lamp.and_then(|l| self.lamp_distance_m.get(&l).copied()),
             laser,
             plate_height_m: world.plate_mm.map(|h| h * 1e-3),
+            holder_offset_m: self.holder_offset_m,
             ..Shot::default()
         }
     }

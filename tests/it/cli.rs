@@ -222,6 +222,13 @@ fn broken_profiles_name_file_key_and_expectation() {
             "sim.grbl_answer_delay_s",
             "expected 0 ..= 1 second",
         ),
+        (
+            "holder-far-off.toml",
+            "[sim]",
+            "[sim]\nholder_offset_mm = [25.0, 0.0]",
+            "sim.holder_offset_mm",
+            "within ±10 mm",
+        ),
     ];
     for (file, from, to, key, what) in cases {
         let path = broken_profile(tmp.path(), file, from, to);

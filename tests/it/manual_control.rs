@@ -144,7 +144,8 @@ async fn manual_control_moves_switches_and_shoots_and_yields_to_a_run() {
     assert_eq!(frame["camera"], "camera");
     assert_eq!(
         (frame["width"].as_u64(), frame["height"].as_u64()),
-        (Some(96), Some(64))
+        (Some(320), Some(240)),
+        "the profile's [sim] frame_size"
     );
     assert!(frame["max"].as_u64() > Some(0), "a lit frame: {frame}");
     let (status, ct, png) = s.get_bytes("/api/v1/rig/manual/frame").await;

@@ -86,6 +86,14 @@ impl Camera {
         }
     }
 
+    /// The same camera moved by `offset` metres (sample frame), keeping its
+    /// orientation: how a rig whose holder sits `-offset` away from the
+    /// sample centre its kinematics assume sees the plate.
+    pub fn translated(mut self, offset: Vec3) -> Camera {
+        self.origin = add(self.origin, offset);
+        self
+    }
+
     /// What the camera is made of (see [`CameraParts`]).
     pub fn parts(&self) -> CameraParts {
         CameraParts {

@@ -17,6 +17,13 @@ pub enum FaultKind {
     Alarm(String),
     /// The camera delivers a truncated or corrupted frame.
     BadFrame,
+    /// The camera's exposure misses the light: a whole, valid, dark frame
+    /// (a lamp that did not fire). Only a camera's `expose` suffers it.
+    Dark,
+    /// Something covers the holder's point markers (dust, a cable): a
+    /// whole, valid frame with dark spots where they are. Only a camera's
+    /// `expose` suffers it.
+    MaskMarkers,
 }
 
 impl fmt::Display for FaultKind {
@@ -26,6 +33,8 @@ impl fmt::Display for FaultKind {
             FaultKind::Disconnect => f.write_str("disconnect"),
             FaultKind::Alarm(m) => write!(f, "alarm={m}"),
             FaultKind::BadFrame => f.write_str("bad-frame"),
+            FaultKind::Dark => f.write_str("dark"),
+            FaultKind::MaskMarkers => f.write_str("mask-markers"),
         }
     }
 }
@@ -49,14 +58,15 @@ pub struct FaultRule {
 }
 
 /// Parses `DEVICE:OP:N:KIND[:sticky]`, with OP `*` for any operation and KIND
-/// one of `timeout`, `disconnect`, `bad-frame`, `alarm=TEXT`.
+/// one of `timeout`, `disconnect`, `bad-frame`, `dark`, `mask-markers`,
+/// `alarm=TEXT`.
 impl FromStr for FaultRule {
     type Err = String;
 
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         let parts: Vec<&str> = s.split(':').collect();
         let usage = || {
-            format!("bad fault `{s}`: expected DEVICE:OP:N:KIND[:sticky], KIND = timeout | disconnect | bad-frame | alarm=TEXT")
+            format!("bad fault `{s}`: expected DEVICE:OP:N:KIND[:sticky], KIND = timeout | disconnect | bad-frame | dark | mask-markers | alarm=TEXT")
         };
         if !(4..=5).contains(&parts.len()) || parts[0].is_empty() {
             return Err(usage());
@@ -69,6 +79,8 @@ impl FromStr for FaultRule {
             "timeout" => FaultKind::Timeout,
             "disconnect" => FaultKind::Disconnect,
             "bad-frame" => FaultKind::BadFrame,
+            "dark" => FaultKind::Dark,
+            "mask-markers" => FaultKind::MaskMarkers,
             k if k.starts_with("alarm=") => FaultKind::Alarm(k["alarm=".len()..].to_string()),
             _ => return Err(usage()),
         };
@@ -206,6 +218,14 @@ mod tests {
             .parse()
             .unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(any.op, None);
+        for (text, kind) in [
+            ("camera:expose:2:dark", FaultKind::Dark),
+            ("camera:expose:2:mask-markers", FaultKind::MaskMarkers),
+        ] {
+            let r: FaultRule = text.parse().unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(r.kind, kind);
+            assert_eq!(r.kind.to_string(), text.split(':').nth(3).unwrap_or(""));
+        }
     }
 
     #[test]

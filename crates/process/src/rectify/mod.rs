@@ -132,15 +132,19 @@ pub enum RectifyError {
 mod border_lines;
 mod detection;
 mod layout;
+mod pose;
 mod rectification;
 mod registration;
 mod roi_and_bits;
+mod texture_alignment;
 pub use border_lines::*;
 pub use detection::*;
 pub use layout::*;
+pub use pose::*;
 pub use rectification::*;
 pub use registration::*;
 pub use roi_and_bits::*;
+pub use texture_alignment::*;
 
 #[cfg(test)]
 mod tests {

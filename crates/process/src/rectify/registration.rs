@@ -51,7 +51,7 @@ pub struct Registration {
 /// Fewest markers at which an outlier can be identified: with 5 points
 /// every 4-subset fits exactly, so a bad one can be detected (large
 /// residual) but not told apart; from 6 on, leave-one-out separates it.
-pub(super) const MIN_FOR_REJECTION: usize = 6;
+pub const MIN_FOR_REJECTION: usize = 6;
 
 /// Estimates the homography from the detections (indexed like
 /// `layout.points`).
@@ -331,7 +331,7 @@ pub(super) fn apply(t: &[[f64; 3]; 3], p: [f64; 2]) -> [f64; 2] {
     ]
 }
 
-pub(super) fn mul3(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
+pub(crate) fn mul3(a: &[[f64; 3]; 3], b: &[[f64; 3]; 3]) -> [[f64; 3]; 3] {
     let mut m = [[0.0; 3]; 3];
     for (i, row) in m.iter_mut().enumerate() {
         for (j, v) in row.iter_mut().enumerate() {

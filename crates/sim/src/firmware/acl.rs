@@ -259,7 +259,8 @@ impl Machine {
         };
         if let Some(op) = op {
             match self.faults.check(&self.params.name, op) {
-                None => {}
+                // Frame faults are a camera's; a controller ignores them.
+                None | Some(FaultKind::Dark | FaultKind::MaskMarkers) => {}
                 Some(FaultKind::Timeout) => return,
                 Some(FaultKind::Disconnect) => {
                     self.closed = true;

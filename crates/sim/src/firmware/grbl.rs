@@ -539,7 +539,7 @@ impl Machine {
                 self.hard_limit(&text);
                 return;
             }
-            Some(FaultKind::BadFrame) => {}
+            Some(FaultKind::BadFrame | FaultKind::Dark | FaultKind::MaskMarkers) => {}
         }
         match cmd {
             Command::Home if !self.params.settings.homing_enabled() => {

@@ -262,7 +262,7 @@ impl ModbusModule {
     /// Consults the fault injector; `Ok(())` means "behave normally".
     fn fault(&self, device: &str, op: &str) -> Result<(), Refusal> {
         match self.shared.faults.check(device, op) {
-            None | Some(FaultKind::BadFrame) => Ok(()),
+            None | Some(FaultKind::BadFrame | FaultKind::Dark | FaultKind::MaskMarkers) => Ok(()),
             Some(FaultKind::Alarm(_)) => {
                 if let Some(k) = self.shared.cfg.lamps.iter().position(|l| l.name == device) {
                     if let Some(l) = self.lock().lamps.get_mut(k) {

@@ -64,6 +64,8 @@ struct Capture {
     transaction_id: u32,
     shot: Shot,
     timer: Timer,
+    /// A frame fault armed on this exposure (`dark`, `mask-markers`).
+    frame_fault: Option<FaultKind>,
 }
 
 /// The camera's firmware state.
@@ -210,7 +212,7 @@ impl PtpFirmware {
                 respond(dev, ResponseCode::GeneralError, tid, &[])?;
                 return Ok(Next::Continue);
             }
-            Some(FaultKind::BadFrame) | None => {}
+            Some(FaultKind::BadFrame | FaultKind::Dark | FaultKind::MaskMarkers) | None => {}
         }
         if op != OpCode::GetDeviceInfo && op != OpCode::OpenSession && self.session.is_none() {
             respond(dev, ResponseCode::SessionNotOpen, tid, &[])?;
@@ -272,7 +274,9 @@ impl PtpFirmware {
                     respond(dev, ResponseCode::InvalidObjectFormatCode, tid, &[])?;
                 } else {
                     respond(dev, ResponseCode::OK, tid, &[])?;
-                    self.start_capture(tid);
+                    let frame_fault =
+                        fault.filter(|f| matches!(f, FaultKind::Dark | FaultKind::MaskMarkers));
+                    self.start_capture(tid, frame_fault);
                 }
             }
             OpCode::GetObjectInfo => match self.objects.get(&p0) {
@@ -316,7 +320,7 @@ impl PtpFirmware {
         Ok(Next::Continue)
     }
 
-    fn start_capture(&mut self, transaction_id: u32) {
+    fn start_capture(&mut self, transaction_id: u32, frame_fault: Option<FaultKind>) {
         let shot = (self.shot)();
         let busy_s = prop_to_exposure(self.exposure_units) + self.spec.times.readout_s;
         let clock = self.ctx.clock.clone();
@@ -324,6 +328,7 @@ impl PtpFirmware {
             transaction_id,
             shot,
             timer: Box::pin(async move { clock.sleep_s(busy_s).await }),
+            frame_fault,
         });
     }
 
@@ -341,8 +346,17 @@ impl PtpFirmware {
         };
         let handle = self.next_handle;
         shot.seed = u64::from(handle);
+        if cap.frame_fault == Some(FaultKind::Dark) {
+            shot.light = [0.0, 0.0, -1.0];
+        }
         let pixels = match &self.scene {
-            Some(scene) => scene.render(&shot).pixels,
+            Some(scene) => {
+                let mut pixels = scene.render(&shot).pixels;
+                if cap.frame_fault == Some(FaultKind::MaskMarkers) {
+                    mask_markers(scene, &shot, &mut pixels);
+                }
+                pixels
+            }
             None => vec![0; shot.width as usize * shot.height as usize],
         };
         let frame = RawFrame {
@@ -356,6 +370,38 @@ impl PtpFirmware {
         let tid = cap.transaction_id;
         event(dev, EventCode::ObjectAdded, tid, &[handle])?;
         event(dev, EventCode::CaptureComplete, tid, &[])
+    }
+}
+
+/// Paints a black disc of twice its radius over every point marker of the
+/// holder the frame shows: a `mask-markers` fault.
+fn mask_markers(scene: &Scene, shot: &Shot, pixels: &mut [u16]) {
+    let (w, h) = (shot.width as usize, shot.height as usize);
+    let r_m = scene.holder.point_radius;
+    for (marker, centre) in scene.marker_pixels(shot) {
+        let Some([cx, cy]) = centre.filter(|_| marker.kind == "point") else {
+            continue;
+        };
+        // The disc's radius in pixels: how far its rim projects.
+        let rim = scene
+            .plate_pixel(shot, [marker.position[0] + r_m, marker.position[1]])
+            .map_or(3.0, |[x, y]| (x - cx).hypot(y - cy));
+        let r = (2.0 * rim).max(2.0);
+        let (x0, x1) = (
+            (cx - r).floor().max(0.0) as usize,
+            (cx + r).ceil().max(0.0) as usize,
+        );
+        let (y0, y1) = (
+            (cy - r).floor().max(0.0) as usize,
+            (cy + r).ceil().max(0.0) as usize,
+        );
+        for y in y0..y1.min(h) {
+            for x in x0..x1.min(w) {
+                if (x as f64 + 0.5 - cx).hypot(y as f64 + 0.5 - cy) <= r {
+                    pixels[y * w + x] = 0;
+                }
+            }
+        }
     }
 }
 

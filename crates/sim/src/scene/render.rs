@@ -71,6 +71,11 @@ pub struct Shot {
     pub seed: u64,
     /// Effects this frame's request wants or forbids beyond the scene's.
     pub effects: EffectSwitches,
+    /// Where the holder really sits in the plate plane, metres from the
+    /// sample centre the rig's kinematics assume: the placement error a
+    /// real rig has and its pose model does not know (markers see it, the
+    /// pose does not).
+    pub holder_offset_m: [f64; 2],
 }
 
 impl Default for Shot {
@@ -90,6 +95,7 @@ impl Default for Shot {
             plate_height_m: None,
             seed: 0,
             effects: EffectSwitches::default(),
+            holder_offset_m: [0.0, 0.0],
         }
     }
 }
@@ -119,6 +125,9 @@ pub struct Rendered {
 /// The camera of a shot: the sample seen along `shot.view`, with the
 /// field of an orthographic view just wider than the holder.
 pub(crate) fn camera(scene: &Scene, shot: &Shot) -> Camera {
+    let [dx, dy] = shot.holder_offset_m;
+    // The camera aims at the rig's sample centre; in plate coordinates
+    // that is `-offset` when the holder sits at `+offset`.
     Camera::new(
         shot.view,
         [shot.width, shot.height],
@@ -126,6 +135,7 @@ pub(crate) fn camera(scene: &Scene, shot: &Shot) -> Camera {
         shot.camera_distance_m,
         field_half(scene),
     )
+    .translated([-dx, -dy, 0.0])
 }
 
 /// Half the field of an orthographic view: just wider than the holder.
@@ -204,6 +214,11 @@ impl Scene {
             .into_iter()
             .map(|m| (m, camera.project([m.position[0], m.position[1], 0.0])))
             .collect()
+    }
+
+    /// Pixel position of a point of the plate (metres, z = 0) in this frame.
+    pub fn plate_pixel(&self, shot: &Shot, plate: [f64; 2]) -> Option<[f64; 2]> {
+        camera(self, shot).project([plate[0], plate[1], 0.0])
     }
 
     /// All effects this scene's frames could ever pay for, for logs.
