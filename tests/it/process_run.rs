@@ -583,27 +583,27 @@ fn degraded_frames_are_flagged_and_the_btf_still_builds() {
     }
 }
 
+/// The small plan at 64×48 into `DIR/NAME`, with extra `rigd run` arguments.
+fn capture_64x48(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
+    let run = dir.join(name);
+    let plan = plan(dir);
+    let mut args = vec!["run", "--sim", "--frame-size", "64x48", "--sample", "c"];
+    args.extend_from_slice(&["--progress", "none", "--plan", plan.to_str().unwrap()]);
+    args.extend_from_slice(&["--out", run.to_str().unwrap()]);
+    args.extend_from_slice(extra);
+    common::run_ok(&args);
+    run
+}
+
 #[test]
 fn a_view_slot_without_a_usable_frame_is_named() {
     let dir = tempfile::tempdir().unwrap();
     // Every exposure misses the lamp: nothing to fill any slot from.
-    let run = dir.path().join("dark");
-    common::run_ok(&[
-        "run",
-        "--sim",
-        "--frame-size",
-        "64x48",
-        "--sample",
-        "c",
-        "--progress",
-        "none",
-        "--sim-fault",
-        "camera:expose:1:dark:sticky",
-        "--plan",
-        plan(dir.path()).to_str().unwrap(),
-        "--out",
-        run.to_str().unwrap(),
-    ]);
+    let run = capture_64x48(
+        dir.path(),
+        "dark",
+        &["--sim-fault", "camera:expose:1:dark:sticky"],
+    );
     let out = rigd()
         .args(["process", "rectify"])
         .arg(&run)
@@ -629,6 +629,20 @@ fn a_view_slot_without_a_usable_frame_is_named() {
     assert_eq!(out.status.code(), Some(2));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("no registered texture"), "{stderr}");
+
+    // 120 times the nominal exposure: every sample is burnt out.
+    let run = capture_64x48(dir.path(), "burnt", &["--exposure", "30"]);
+    let out = rigd()
+        .args(["process", "rectify", "--size", "64", "--final", "32"])
+        .arg(&run)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("no usable frame") && stderr.contains("saturated: "),
+        "{stderr}"
+    );
 }
 
 /// At 85° views five nearly collinear markers can fit a homography tens of

@@ -1,0 +1,338 @@
+//! Registration and rectification of a run's frames into normtextures
+//! (Sattler et al., §3.2).
+
+use std::path::Path;
+
+use rigd_core::geometry::Direction;
+use rigd_core::holder::{Holder, STANDARD_SAMPLE_MM};
+use rigd_process::image_io::Image;
+use serde::Serialize;
+
+use super::frames::RunFrames;
+use super::ProcessError;
+use crate::store::processed::{normtextures_dir, NORMTEXTURE_INDEX};
+use crate::store::RunMeta;
+
+/// How `rigd process rectify` resamples and stores the textures.
+#[derive(Debug, Clone, Copy)]
+pub struct RectifyConfig {
+    /// Side of the frontal normtexture each frame is resampled to first.
+    pub size: usize,
+    /// Fraction of the normtexture's side kept around its centre.
+    pub roi: f64,
+    /// Side of the stored texture (the ROI scaled).
+    pub final_size: usize,
+    /// Width of the linear edge blend that makes textures tile (Sattler et al.
+    /// §3.2), in final texels; 0 = none.
+    pub blend: usize,
+    /// How the textures are stored: 8-bit PNG or linear `.npy`.
+    pub bits: TextureBits,
+}
+
+/// How rectified textures are stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum TextureBits {
+    /// 8-bit PNG of the top 8 bits of the sensor value (no clipping).
+    Top8,
+    /// 8-bit PNG of `value >> shift`, clipped at 255 (2 = the central 8
+    /// bits of 12, as Sattler et al., §3.2 chose for the linear part of its CCD).
+    Shift(u8),
+    /// Linear float32 `.npy`, 1 = full scale.
+    Float,
+    /// Linear float16 `.npy` (Sattler et al.'s "16-bit floats"), half the bytes.
+    Half,
+}
+
+impl Default for RectifyConfig {
+    fn default() -> Self {
+        RectifyConfig {
+            size: rigd_process::rectify::NORMTEXTURE_SIZE,
+            roi: 1.0,
+            final_size: rigd_process::rectify::FINAL_TEXTURE_SIZE,
+            blend: 0,
+            bits: TextureBits::Top8,
+        }
+    }
+}
+
+/// One frame's registration, as `processed/normtextures/index.json` records it.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct FrameRegistration {
+    /// The frame's image index in the run.
+    pub index: usize,
+    /// Index of its view in the index's `views` (the BTF slot).
+    pub view_slot: usize,
+    /// Index of its light in the index's `lights`.
+    pub light_index: usize,
+    /// The texture file, relative to the normtextures folder; None if the
+    /// frame has no texture (its whole view slot was unusable).
+    pub file: Option<String>,
+    /// RMS reprojection residual of the markers used, pixels; None if the
+    /// markers did not register the frame.
+    pub rms_px: Option<f64>,
+    /// Largest reprojection residual of the markers used, pixels.
+    pub max_px: Option<f64>,
+    /// Holder markers detected in the frame.
+    pub markers_found: usize,
+    /// Markers used in the final fit of the homography.
+    pub markers_used: usize,
+    /// Layout indices of the markers rejected as outliers.
+    pub markers_rejected: Vec<usize>,
+    /// Fraction of the texture the frame covered.
+    pub coverage: Option<f64>,
+    /// Why the frame has no texture at all (its whole view slot was
+    /// unusable); None when it has one.
+    pub error: Option<String>,
+    /// How the frame was registered; None for an index written before
+    /// rigd recorded it (then `markers`).
+    #[serde(default)]
+    pub method: Option<RegistrationMethod>,
+    /// Estimated registration error at the sample, pixels of the frame:
+    /// the marker RMS residual for `markers`; for `pose` and
+    /// `pose+texture` the 95th percentile of how far that method lands
+    /// from the markers on the run's marker-registered frames (None if the
+    /// run has none to measure it on).
+    #[serde(default)]
+    pub error_px: Option<f64>,
+    /// Why the markers did not register the frame (`pose`,
+    /// `pose+texture`), or why the frame is unusable (`interpolated`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub problem: Option<String>,
+    /// The frames an `interpolated` texture was filled from, by image index.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub interpolated_from: Vec<usize>,
+}
+
+/// How a frame's texture came to be (`index.json` `method`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize, serde::Deserialize)]
+pub enum RegistrationMethod {
+    /// The holder's point markers, found in the frame (Sattler et al., §3.2).
+    #[serde(rename = "markers")]
+    Markers,
+    /// The camera model at the achieved pose, corrected by the holder's
+    /// offset that the run's marker-registered frames measure.
+    #[serde(rename = "pose")]
+    Pose,
+    /// `pose`, then shifted onto a marker-registered frame of the same
+    /// view slot by the sample's own texture (phase correlation).
+    #[serde(rename = "pose+texture")]
+    PoseTexture,
+    /// The frame is unusable (lost, black, saturated): its texture is the
+    /// mean of its view slot's nearest lights, weighted by inverse angle.
+    #[serde(rename = "interpolated")]
+    Interpolated,
+}
+
+impl RegistrationMethod {
+    /// The name `index.json` and the summary use.
+    pub fn name(self) -> &'static str {
+        match self {
+            RegistrationMethod::Markers => "markers",
+            RegistrationMethod::Pose => "pose",
+            RegistrationMethod::PoseTexture => "pose+texture",
+            RegistrationMethod::Interpolated => "interpolated",
+        }
+    }
+}
+
+impl FrameRegistration {
+    /// A frame at (view slot, light) with nothing registered yet.
+    pub fn new(index: usize, view_slot: usize, light_index: usize) -> FrameRegistration {
+        FrameRegistration {
+            index,
+            view_slot,
+            light_index,
+            file: None,
+            rms_px: None,
+            max_px: None,
+            markers_found: 0,
+            markers_used: 0,
+            markers_rejected: Vec::new(),
+            coverage: None,
+            error: None,
+            method: None,
+            error_px: None,
+            problem: None,
+            interpolated_from: Vec::new(),
+        }
+    }
+}
+
+/// The index of a run's normtextures: the measured directions and, per
+/// (view slot, light), the texture.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct NormtextureIndex {
+    /// Side of every stored texture, texels.
+    pub size: usize,
+    /// `png8` (8-bit codes / 255), `npy-f32` or `npy-f16` (linear, 1 =
+    /// full scale).
+    pub encoding: String,
+    /// Bit depth of the sensor values the frames were captured with.
+    pub bit_depth: u8,
+    /// Commanded directions (sample frame); BTF slots are views.
+    pub lights: Vec<Direction>,
+    /// Commanded view directions (sample frame), one per BTF slot.
+    pub views: Vec<Direction>,
+    /// Every frame's registration, in run order.
+    pub frames: Vec<FrameRegistration>,
+    /// Frames per method and the residuals; None for an index written
+    /// before rigd recorded it, or imported.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub summary: Option<RegistrationSummary>,
+}
+
+/// What `rigd process rectify` prints and `index.json` keeps: how the
+/// frames were registered and how well.
+#[derive(Debug, Clone, Default, Serialize, serde::Deserialize)]
+pub struct RegistrationSummary {
+    /// Frames per method (`markers`, `pose`, `pose+texture`,
+    /// `interpolated`).
+    pub frames_by_method: std::collections::BTreeMap<String, usize>,
+    /// Frames without a texture (their whole view slot was unusable).
+    pub frames_without_texture: usize,
+    /// Marker RMS residual over the marker-registered frames, pixels:
+    /// median, 95th percentile, worst.
+    pub marker_rms_px: Option<[f64; 3]>,
+    /// Where the holder sits relative to the pose model's sample centre,
+    /// millimetres (plate x, y), measured on the marker-registered frames.
+    pub holder_offset_mm: Option<[f64; 2]>,
+    /// How far the bare camera model (no offset) lands from the markers:
+    /// 95th percentile, pixels.
+    pub uncalibrated_pose_error_px: Option<f64>,
+    /// `pose` against the markers on the same frames: 95th percentile, pixels.
+    pub pose_error_px: Option<f64>,
+    /// `pose+texture` against the markers on marker-registered frames:
+    /// 95th percentile, pixels, and on how many frames it was measured.
+    pub pose_texture_error_px: Option<f64>,
+    /// Frames `pose_texture_error_px` was measured on.
+    pub pose_texture_checked: usize,
+}
+
+impl RegistrationSummary {
+    /// The summary as the table `rigd process rectify` prints.
+    pub fn table(&self) -> String {
+        use std::fmt::Write;
+        let mut out = String::from("method         frames\n");
+        for (m, n) in &self.frames_by_method {
+            let _ = writeln!(out, "{m:<14} {n:>6}");
+        }
+        if self.frames_without_texture > 0 {
+            let _ = writeln!(
+                out,
+                "{:<14} {:>6}",
+                "no texture", self.frames_without_texture
+            );
+        }
+        let px = |v: Option<f64>| v.map_or("not measured".to_string(), |v| format!("{v:.2} px"));
+        if let Some([p50, p95, max]) = self.marker_rms_px {
+            let _ = writeln!(
+                out,
+                "marker residual (RMS per frame): median {p50:.2} px, p95 {p95:.2} px, worst {max:.2} px"
+            );
+        }
+        if let Some([x, y]) = self.holder_offset_mm {
+            let _ = writeln!(
+                out,
+                "holder offset from the pose model: x {x:+.3} mm, y {y:+.3} mm"
+            );
+        }
+        let _ = writeln!(
+            out,
+            "pose vs markers (p95): {} calibrated, {} uncalibrated; pose+texture vs markers (p95): {} on {} frames",
+            px(self.pose_error_px),
+            px(self.uncalibrated_pose_error_px),
+            px(self.pose_texture_error_px),
+            self.pose_texture_checked
+        );
+        out
+    }
+}
+
+impl NormtextureIndex {
+    /// Reads a run's `processed/normtextures/index.json`, written by
+    /// `rigd process rectify`.
+    pub fn read(run: &Path) -> Result<NormtextureIndex, ProcessError> {
+        let path = normtextures_dir(run).join(NORMTEXTURE_INDEX);
+        let bytes = std::fs::read(&path).map_err(|e| ProcessError::Frame {
+            path: path.clone(),
+            message: format!("{e} (run `rigd process rectify` first)"),
+        })?;
+        serde_json::from_slice(&bytes).map_err(|e| ProcessError::Frame {
+            path,
+            message: e.to_string(),
+        })
+    }
+
+    /// The texture of (view slot, light) as linear values.
+    pub fn load(&self, run: &Path, view_slot: usize, light: usize) -> Result<Image, ProcessError> {
+        let frame = self
+            .frames
+            .iter()
+            .find(|f| f.view_slot == view_slot && f.light_index == light);
+        let Some(file) = frame.and_then(|f| f.file.as_ref()) else {
+            return Err(ProcessError::Invalid(format!(
+                "no registered texture for view slot {view_slot}, light {light}{}",
+                frame
+                    .and_then(|f| f.error.as_ref())
+                    .map(|e| format!(" (frame {}: {e})", frame.map_or(0, |f| f.index)))
+                    .unwrap_or_default()
+            )));
+        };
+        let path = normtextures_dir(run).join(file);
+        let frame_err = |message: String| ProcessError::Frame {
+            path: path.clone(),
+            message,
+        };
+        if self.encoding.starts_with("npy-") {
+            let a = rigd_process::npy::read_f32(&path).map_err(|e| frame_err(e.to_string()))?;
+            let (h, w) = (a.shape[0], a.shape.get(1).copied().unwrap_or(1));
+            let mut img = Image::new(w, h, 1);
+            img.data = a.data;
+            Ok(img)
+        } else {
+            rigd_process::image_io::load_png(&path).map_err(|e| frame_err(e.to_string()))
+        }
+    }
+}
+
+/// Index of `d` in `list` (adding it if new), by direction within 1e-6°.
+pub(super) fn slot_of(list: &mut Vec<Direction>, d: Direction) -> usize {
+    let same = |a: &Direction| {
+        (a.theta_deg - d.theta_deg).abs() < 1e-6
+            && ((a.phi_deg - d.phi_deg).abs() < 1e-6 || d.theta_deg.abs() < 1e-9)
+    };
+    match list.iter().position(same) {
+        Some(i) => i,
+        None => {
+            list.push(d);
+            list.len() - 1
+        }
+    }
+}
+
+/// The holder plate the run's frames show and the sample's half-sides
+/// (metres): a simulated run's scene's, the standard plate on hardware.
+fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
+    if meta.simulated {
+        #[cfg(feature = "sim")]
+        {
+            let scene = rigd_sim::scene::Scene::load(meta.profile.sim.scene_name())?;
+            return Ok((scene.holder.clone(), scene.sample_half));
+        }
+        #[cfg(not(feature = "sim"))]
+        return Err(ProcessError::Invalid(
+            "a simulated run shows its scene's holder, and this rigd was built without the \
+             simulator (cargo feature `sim`)"
+                .into(),
+        ));
+    }
+    let half = STANDARD_SAMPLE_MM * 1e-3 / 2.0;
+    Ok((Holder::standard(), [half, half]))
+}
+
+mod run;
+mod steps;
+pub use run::rectify_run;
+pub use steps::{
+    BLACK_FLOOR, BLACK_P99, BLACK_RATIO, MARKER_DOUBT_FACTOR, MARKER_DOUBT_PX, SATURATED_FRACTION,
+};

@@ -1,0 +1,420 @@
+//! The per-frame steps of `rigd process rectify`: reading a frame,
+//! registering it by its markers or from the pose (with the texture
+//! refinement), storing its texture, and filling an unusable one from its
+//! neighbours. [`super::rectify_run`] orders them over the run.
+
+use rigd_core::camera::Camera;
+use rigd_core::geometry::Direction;
+use rigd_core::holder::Holder;
+use rigd_process::image_io::Image;
+use rigd_process::npy::Dtype;
+
+use super::{FrameRegistration, NormtextureIndex, RectifyConfig, RegistrationMethod, TextureBits};
+use crate::kinematics::camera::camera_geometry;
+use crate::postprocess::frames::RunFrames;
+
+/// A frame is black (a lamp that did not fire, a closed shutter) when its
+/// 99th-percentile value is below this fraction of full scale and below
+/// [`BLACK_RATIO`] of the darker of its slot's two nearest lights: a flat
+/// sample under an 85° light is legitimately that dark (0.4 % measured),
+/// but so are its neighbours.
+pub const BLACK_P99: f32 = 0.01;
+/// See [`BLACK_P99`].
+pub const BLACK_RATIO: f32 = 0.25;
+/// Below this 99th percentile a frame is black whatever its neighbours
+/// (a whole slot the lamp missed): a dark frame's noise measured 0.12 %,
+/// a flat sample under an 85° light 0.42 %.
+pub const BLACK_FLOOR: f32 = 0.0025;
+/// A marker registration from at most 5 markers (too few to locate an
+/// outlier) that lands farther than this from the calibrated pose, and
+/// than [`MARKER_DOUBT_FACTOR`] × the median disagreement, is not trusted:
+/// at 85° views five nearly collinear markers fit a homography that is
+/// tens of pixels off at the sample (measured on the demo H1).
+pub const MARKER_DOUBT_PX: f64 = 3.0;
+/// See [`MARKER_DOUBT_PX`].
+pub const MARKER_DOUBT_FACTOR: f64 = 3.0;
+/// A frame whose sample texture is at full scale in more than this
+/// fraction of its texels is saturated.
+pub const SATURATED_FRACTION: f64 = 0.5;
+/// Side of the textures the texture refinement correlates.
+pub(super) const CORRELATION_SIZE: usize = 512;
+/// Largest shift the texture refinement accepts, as a fraction of the
+/// texture's side: the calibrated pose is good to a few texels.
+pub(super) const MAX_TEXTURE_SHIFT: f64 = 0.03;
+/// A frame's texture is aligned only to a frame of its slot whose light is
+/// at most this far from its own: beyond it a relief's shading differs too
+/// much for the correlation to mean the same texture.
+pub(super) const MAX_REFERENCE_LIGHT_DEG: f64 = 20.0;
+/// Marker-registered frames the texture refinement's error is measured on.
+pub(super) const TEXTURE_CHECKS: usize = 16;
+/// An unusable frame is filled from this many nearest lights of its slot.
+pub(super) const FILL_NEIGHBOURS: usize = 3;
+
+/// One frame after the first pass: its registration record and the two
+/// homographies (markers, pose) it has.
+pub(super) struct FirstPass {
+    /// The frame's position in the run's entries.
+    pub(super) position: usize,
+    pub(super) rec: FrameRegistration,
+    pub(super) markers: Option<rigd_process::rectify::Homography>,
+    pub(super) pose: Option<rigd_process::rectify::Homography>,
+    /// The frame cannot be used at all (lost, black, saturated).
+    pub(super) unusable: bool,
+    /// The frame's 99th-percentile value (fraction of full scale).
+    pub(super) p99: f32,
+}
+
+/// Everything the per-frame steps share.
+pub(super) struct Rectifier<'a> {
+    pub(super) run: &'a RunFrames,
+    pub(super) cfg: &'a RectifyConfig,
+    pub(super) holder: Holder,
+    pub(super) layout: rigd_process::rectify::MarkerLayout,
+    pub(super) out_dir: std::path::PathBuf,
+}
+
+impl Rectifier<'_> {
+    /// The frame's camera at its achieved pose.
+    pub(super) fn camera(&self, entry: &crate::store::FrameEntry) -> Result<Camera, String> {
+        let geometry = camera_geometry(
+            &self.run.meta.profile,
+            &entry.camera,
+            [entry.width, entry.height],
+        )
+        .ok_or_else(|| format!("no camera `{}` in the run's profile", entry.camera))?;
+        Ok(Camera::new(
+            entry.achieved_view.to_vector(),
+            [entry.width, entry.height],
+            Some(geometry.focal_px),
+            geometry.distance_m,
+            1.1 * self.holder.half,
+        ))
+    }
+
+    /// Marker registration, as Sattler et al. §3.2 does it.
+    pub(super) fn markers(
+        &self,
+        image: &Image,
+        camera: &Camera,
+        entry: &crate::store::FrameEntry,
+    ) -> Result<rigd_process::rectify::Registration, String> {
+        use rigd_process::rectify as rect;
+        // Where the rig's pose says the markers are; the search finds them
+        // around that.
+        let predicted: Vec<Option<[f64; 2]>> = self
+            .layout
+            .points
+            .iter()
+            .map(|p| camera.project([p[0], p[1], 0.0]))
+            .collect();
+        let radius = (0.03 * f64::from(entry.width.max(entry.height))).max(6.0);
+        let detections = rect::detect_markers(image, &predicted, radius, &Default::default())
+            .map_err(|e| e.to_string())?;
+        rect::register(&self.layout, &detections, &Default::default()).map_err(|e| e.to_string())
+    }
+
+    /// The sample square of `image` through `h` at `side` texels.
+    pub(super) fn sample_texture(
+        &self,
+        image: &Image,
+        h: &rigd_process::rectify::Homography,
+        side: usize,
+    ) -> Result<rigd_process::rectify::Rectified, String> {
+        rigd_process::rectify::rectify(
+            image,
+            h,
+            self.layout.sample_region(),
+            [side, side],
+            &Default::default(),
+        )
+        .map_err(|e| e.to_string())
+    }
+
+    /// Rectifies, cuts, blends and stores a frame's texture through `h`;
+    /// `Err` names why it cannot be used (saturated) or written.
+    pub(super) fn write_texture(
+        &self,
+        rec: &mut FrameRegistration,
+        image: &Image,
+        h: &rigd_process::rectify::Homography,
+        bit_depth: u8,
+    ) -> Result<(), String> {
+        use rigd_process::rectify as rect;
+        let cfg = self.cfg;
+        let full = self.sample_texture(image, h, cfg.size)?;
+        let saturated = full.texture.data.iter().filter(|&&v| v >= 0.995).count() as f64
+            / full.texture.data.len().max(1) as f64;
+        if saturated > SATURATED_FRACTION {
+            return Err(format!(
+                "saturated: {:.0} % of the sample at full scale",
+                100.0 * saturated
+            ));
+        }
+        rec.coverage = Some(full.coverage);
+        let roi = rect::Roi::centred(cfg.size, cfg.size, cfg.roi);
+        // With a blend the ROI is scaled to final + blend texels, whose
+        // extra band is blended into the opposite edge.
+        let side = cfg.final_size + cfg.blend;
+        let texture = rect::roi_cut(&full.texture, roi, [side, side])
+            .and_then(|t| rect::edge_blend(&t, cfg.blend))
+            .map_err(|e| e.to_string())?;
+        self.store(rec, &texture, bit_depth)
+    }
+
+    /// Writes a final texture in the configured encoding.
+    pub(super) fn store(
+        &self,
+        rec: &mut FrameRegistration,
+        texture: &Image,
+        bit_depth: u8,
+    ) -> Result<(), String> {
+        use rigd_process::image_io::{write_png, PngDepth};
+        use rigd_process::rectify::{quantise, Quantisation};
+        let name = format!("v{:03}_l{:03}", rec.view_slot, rec.light_index);
+        let (shift, dtype) = match self.cfg.bits {
+            TextureBits::Top8 => (Some(bit_depth.saturating_sub(8)), Dtype::F32),
+            TextureBits::Shift(s) => (Some(s), Dtype::F32),
+            TextureBits::Float => (None, Dtype::F32),
+            TextureBits::Half => (None, Dtype::F16),
+        };
+        let file = match shift {
+            Some(shift) => {
+                let q = quantise(texture, bit_depth, Quantisation::Bits8 { shift })
+                    .map_err(|e| e.to_string())?;
+                let file = format!("{name}.png");
+                write_png(&self.out_dir.join(&file), &q, PngDepth::Eight)
+                    .map_err(|e| e.to_string())?;
+                file
+            }
+            None => {
+                let file = format!("{name}.npy");
+                rigd_process::npy::write(
+                    &self.out_dir.join(&file),
+                    &[texture.height, texture.width],
+                    &texture.data,
+                    dtype,
+                )
+                .map_err(|e| e.to_string())?;
+                file
+            }
+        };
+        rec.file = Some(file);
+        Ok(())
+    }
+
+    /// First pass over one frame: read it, reject it if black, register
+    /// it by its markers (and write its texture) or keep its pose for the
+    /// second pass.
+    pub(super) fn first_pass(
+        &self,
+        position: usize,
+        view_slot: usize,
+        light_index: usize,
+    ) -> FirstPass {
+        let entry = &self.run.entries[position];
+        let mut out = FirstPass {
+            position,
+            rec: FrameRegistration::new(entry.index, view_slot, light_index),
+            markers: None,
+            pose: None,
+            unusable: false,
+            p99: 0.0,
+        };
+        let image = match self.run.image(entry) {
+            Ok(image) => image,
+            Err(e) => {
+                out.rec.problem = Some(format!("lost: {e}"));
+                out.unusable = true;
+                return out;
+            }
+        };
+        // Whether it is black is decided against its neighbours, later.
+        out.p99 = percentile_f32(&image.data, 0.99);
+        let camera = match self.camera(entry) {
+            Ok(c) => c,
+            Err(e) => {
+                out.rec.problem = Some(e);
+                out.unusable = true;
+                return out;
+            }
+        };
+        out.pose = rigd_process::rectify::pose_homography(
+            |q| camera.project([q[0], q[1], 0.0]),
+            rigd_process::rectify::Region::centred([self.holder.half, self.holder.half]),
+        )
+        .ok();
+        match self.markers(&image, &camera, entry) {
+            Ok(reg) => {
+                out.rec.rms_px = Some(reg.rms_px);
+                out.rec.max_px = Some(reg.max_px);
+                out.rec.markers_found = reg.found;
+                out.rec.markers_used = reg.used;
+                out.rec.markers_rejected = reg.rejected.clone();
+                match self.write_texture(&mut out.rec, &image, &reg.homography, entry.bit_depth) {
+                    Ok(()) => {
+                        out.rec.method = Some(RegistrationMethod::Markers);
+                        out.rec.error_px = Some(reg.rms_px);
+                        out.markers = Some(reg.homography);
+                    }
+                    Err(e) => {
+                        out.rec.problem = Some(e);
+                        out.unusable = true;
+                    }
+                }
+            }
+            Err(e) => {
+                if out.pose.is_none() {
+                    out.unusable = true;
+                    out.rec.problem =
+                        Some(format!("{e}; the pose puts the plate outside the frame"));
+                } else {
+                    out.rec.problem = Some(e);
+                }
+            }
+        }
+        out
+    }
+
+    /// The texture of a marker-registered reference frame at the
+    /// correlation size.
+    pub(super) fn reference_texture(&self, first: &FirstPass) -> Option<Image> {
+        let entry = self.run.entries.get(first.position)?;
+        let image = self.run.image(entry).ok()?;
+        let side = CORRELATION_SIZE.min(self.cfg.size);
+        Some(
+            self.sample_texture(&image, first.markers.as_ref()?, side)
+                .ok()?
+                .texture,
+        )
+    }
+
+    /// The pose homography with the holder offset, refined by the texture
+    /// against `reference` when that finds a clear match.
+    pub(super) fn pose_registration(
+        &self,
+        image: &Image,
+        pose: &rigd_process::rectify::Homography,
+        offset: [f64; 2],
+        reference: Option<&Image>,
+    ) -> (rigd_process::rectify::Homography, RegistrationMethod) {
+        use rigd_process::rectify as rect;
+        let calibrated = rect::shift_plate(pose, offset);
+        let Some(reference) = reference else {
+            return (calibrated, RegistrationMethod::Pose);
+        };
+        let side = reference.width;
+        let Ok(moving) = self.sample_texture(image, &calibrated, side) else {
+            return (calibrated, RegistrationMethod::Pose);
+        };
+        match rect::texture_shift(reference, &moving.texture, MAX_TEXTURE_SHIFT * side as f64) {
+            Ok(Some(shift)) => {
+                let region = self.layout.sample_region();
+                let tx = (region.x_max - region.x_min) / side as f64;
+                let ty = (region.y_max - region.y_min) / side as f64;
+                // Texture +x is plate +x, texture +y (rows) is plate −y.
+                let e = [shift.dx * tx, -shift.dy * ty];
+                (
+                    rect::shift_plate(&calibrated, e),
+                    RegistrationMethod::PoseTexture,
+                )
+            }
+            _ => (calibrated, RegistrationMethod::Pose),
+        }
+    }
+}
+
+/// The `q`-quantile of finite values (0 if none).
+pub(super) fn percentile_f32(values: &[f32], q: f64) -> f32 {
+    let mut v: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    if v.is_empty() {
+        return 0.0;
+    }
+    let k = ((v.len() - 1) as f64 * q).round() as usize;
+    let (_, nth, _) = v.select_nth_unstable_by(k, f32::total_cmp);
+    *nth
+}
+
+/// Median, 95th percentile and maximum of `values` (None if empty).
+pub(super) fn spread(values: &[f64]) -> Option<[f64; 3]> {
+    let mut v: Vec<f64> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    Some([at(0.5), at(0.95), at(1.0)])
+}
+
+/// Fills an unusable frame's texture with the inverse-angle-weighted mean
+/// of the [`FILL_NEIGHBOURS`] nearest usable lights of its view slot, in
+/// the index's encoding; returns their image indices.
+pub(super) fn fill_from_neighbours(
+    rectifier: &Rectifier<'_>,
+    index: &NormtextureIndex,
+    rec: &mut FrameRegistration,
+    lights: &[Direction],
+) -> Result<Vec<usize>, String> {
+    let own = lights[rec.light_index].to_vector();
+    let mut neighbours: Vec<(f64, &FrameRegistration)> = index
+        .frames
+        .iter()
+        .filter(|f| {
+            f.view_slot == rec.view_slot
+                && f.file.is_some()
+                && f.method != Some(RegistrationMethod::Interpolated)
+        })
+        .map(|f| {
+            let l = lights[f.light_index].to_vector();
+            let cos = (own[0] * l[0] + own[1] * l[1] + own[2] * l[2]).clamp(-1.0, 1.0);
+            (cos.acos(), f)
+        })
+        .collect();
+    if neighbours.is_empty() {
+        return Err("no usable frame in its view slot to fill it from".into());
+    }
+    neighbours.sort_by(|a, b| a.0.total_cmp(&b.0));
+    neighbours.truncate(FILL_NEIGHBOURS);
+    let mut sum: Option<Image> = None;
+    let mut weights = 0.0;
+    for (angle, f) in &neighbours {
+        let tex = index
+            .load(&rectifier.run.root, f.view_slot, f.light_index)
+            .map_err(|e| e.to_string())?;
+        // Same light twice (a repeated direction) counts fully.
+        let w = 1.0 / angle.max(1e-3);
+        weights += w;
+        let acc = sum.get_or_insert_with(|| Image::new(tex.width, tex.height, tex.channels));
+        for (a, v) in acc.data.iter_mut().zip(&tex.data) {
+            *a += (w as f32) * v;
+        }
+    }
+    let mut mean = sum.ok_or("no neighbour texture")?;
+    for v in &mut mean.data {
+        *v /= weights as f32;
+    }
+    // Stored values are already quantised: store them as they are (an
+    // 8-bit code / 255 is written back as that code).
+    let bits = if index.encoding == "png8" {
+        8
+    } else {
+        index.bit_depth
+    };
+    let saved = rectifier.cfg.bits;
+    let store_as = match saved {
+        TextureBits::Float | TextureBits::Half => saved,
+        TextureBits::Top8 | TextureBits::Shift(_) => TextureBits::Shift(0),
+    };
+    let cfg = RectifyConfig {
+        bits: store_as,
+        ..*rectifier.cfg
+    };
+    let local = Rectifier {
+        run: rectifier.run,
+        cfg: &cfg,
+        holder: rectifier.holder.clone(),
+        layout: rectifier.layout.clone(),
+        out_dir: rectifier.out_dir.clone(),
+    };
+    local.store(rec, &mean, bits)?;
+    Ok(neighbours.iter().map(|(_, f)| f.index).collect())
+}
