@@ -626,6 +626,10 @@ async fn the_queue_runs_in_order_and_persists() {
                     &dir.path().join("runs").join(r["id"].as_str().unwrap_or("")),
                     n,
                 );
+                // The final state event comes a moment before the engine
+                // lets go of the rig; "starts at once" below needs it free.
+                s.wait_ended(r["id"].as_str().unwrap_or(""), "completed")
+                    .await;
             }
             break;
         }

@@ -203,6 +203,10 @@ pub fn rectify_run(
             f.markers = None;
             f.rec.method = None;
             f.rec.error_px = None;
+            if let Some(doubted) = f.rec.file.take() {
+                // The pose's texture replaces it, or the fill does.
+                let _ = std::fs::remove_file(out_dir.join(doubted));
+            }
             f.rec.problem = Some(format!(
                 "the markers' fit lands {d:.1} px from the calibrated pose at the sample, and {} markers cannot reveal an outlier",
                 f.rec.markers_used
