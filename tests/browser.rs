@@ -1086,24 +1086,6 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
             .is_some_and(|d| d.contains("rigd process btf")),
         "{v}"
     );
-    for args in [
-        vec![
-            "process", "rectify", "--size", "128", "--final", "64", "--bits", "float",
-        ],
-        vec!["process", "btf", "--components", "8"],
-    ] {
-        let o = Command::new(env!("CARGO_BIN_EXE_rigd"))
-            .args(&args)
-            .arg(&run)
-            .output()
-            .expect("spawn rigd");
-        assert!(
-            o.status.success(),
-            "rigd {args:?}: {}",
-            String::from_utf8_lossy(&o.stderr)
-        );
-    }
-
     // A second run holding a photometric-stereo result: bumps on a
     // two-tone albedo, written where `rigd process photometric-stereo RUN`
     // writes.
@@ -1147,11 +1129,42 @@ async fn view_and_compare(
         .await
         .expect("open the dashboard");
     enter_token(c, token).await;
-    let link = format!("#history tr[data-run-id='{run_id}'] [data-testid=open-viewer]");
+    // Processing through the dashboard: the run's Process button queues
+    // the daemon's default steps (rectify, btf), a bar follows them, and
+    // the viewer link appears when they are done.
+    let row = format!("#history tr[data-run-id='{run_id}']");
+    let button = format!("{row} [data-testid=process]");
+    wait_js(
+        c,
+        "the Process button in the run history",
+        20,
+        &format!("return !!document.querySelector(\"{button}\")"),
+        |v| v == &json!(true),
+    )
+    .await;
+    c.find(Locator::Css(&button))
+        .await
+        .expect("Process button")
+        .click()
+        .await
+        .expect("click Process");
+    let bar_seen = wait_js(
+        c,
+        "the processing bar or the result",
+        30,
+        &format!(
+            "const r = document.querySelector(\"{row} [data-testid=processing]\"); \
+             return r ? (r.querySelector('progress') ? 'bar' : r.textContent) : ''"
+        ),
+        |v| v == &json!("bar") || v == &json!("processed"),
+    )
+    .await;
+    eprintln!("after Process: {bar_seen}");
+    let link = format!("{row} [data-testid=open-viewer]");
     wait_js(
         c,
         "the viewer link in the run history",
-        20,
+        240,
         &format!("return !!document.querySelector(\"{link}\")"),
         |v| v == &json!(true),
     )

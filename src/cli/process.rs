@@ -304,19 +304,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
 
 fn rectify(args: RectifyArgs) -> Result<()> {
     use rigd::postprocess::rectify::TextureBits;
-    let bits = match args.bits.as_str() {
-        "top" => TextureBits::Top8,
-        "float" => TextureBits::Float,
-        "half" => TextureBits::Half,
-        s => match s.parse::<u8>() {
-            Ok(shift) if shift <= 8 => TextureBits::Shift(shift),
-            _ => {
-                return Err(bad_input(format!(
-                    "--bits {s}: expected `top`, a shift 0 ..= 8, `float` or `half`"
-                )))
-            }
-        },
-    };
+    let bits = TextureBits::parse(&args.bits).map_err(|e| bad_input(format!("--{e}")))?;
     let cfg = rigd::postprocess::rectify::RectifyConfig {
         size: args.size,
         roi: args.roi,

@@ -34,14 +34,51 @@ pub fn hms(s: f64) -> String {
     }
 }
 
-/// A progress line on stderr for long processing.
+/// Progress of a long processing step on stderr, as `rigd run` shows its
+/// own: a bar on a terminal; otherwise a plain line at every 5 % and at
+/// least every 30 s, so a log never gets carriage returns.
 pub fn progress_line(what: &'static str) -> impl Fn(usize, usize) + Sync {
+    let bar = std::io::stderr().is_terminal().then(|| {
+        let bar = indicatif::ProgressBar::new(0);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(&format!(
+                "{what}: {{bar:40.cyan/blue}} {{pos}}/{{len}}  wall {{elapsed_precise}} eta {{eta}}"
+            ))
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        bar
+    });
+    let logged = std::sync::Mutex::new((u64::MAX, Instant::now()));
+    let started = Instant::now();
     move |done: usize, total: usize| {
-        if done == total || done % 16 == 0 {
-            eprint!("\r{what}: {done}/{total}");
+        if let Some(bar) = &bar {
+            bar.set_length(total as u64);
+            bar.set_position(done as u64);
             if done == total {
-                eprintln!();
+                bar.finish();
             }
+            return;
+        }
+        let pct = done as u64 * 100 / (total as u64).max(1);
+        let mut last = logged.lock().unwrap_or_else(|p| p.into_inner());
+        if pct / 5 != last.0 / 5 || last.1.elapsed() > Duration::from_secs(30) || done == total {
+            if (pct, done == total) == (last.0, true) {
+                return;
+            }
+            let elapsed = started.elapsed().as_secs_f64();
+            let eta = if done > 0 {
+                format!(
+                    ", eta {}",
+                    hms(elapsed / done as f64 * (total - done.min(total)) as f64)
+                )
+            } else {
+                String::new()
+            };
+            eprintln!(
+                "{what}: {done}/{total} ({pct}%), wall {}{eta}",
+                hms(elapsed)
+            );
+            *last = (pct, Instant::now());
         }
     }
 }

@@ -12,6 +12,7 @@ use rigd::engine::{Outcome, PausePolicy};
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
 use rigd::plan::Order;
+use rigd::postprocess::pipeline::{check_frame_size, run_step, ProcessOptions, RunFacts, Step};
 use rigd::rig::FaultRule;
 use rigd::schedule::timing::parse_exposure_s;
 use rigd_core::Clock;
@@ -62,6 +63,13 @@ pub struct RunArgs {
     /// optimised; laser plans keep theirs].
     #[arg(long, value_enum)]
     pub order: Option<Order>,
+    /// Process the run once its capture completes: steps rectify, btf,
+    /// fit, mdf, photometric-stereo (comma-separated), with the daemon's
+    /// defaults (`docs/api.md`, "Processing"); `auto` picks them from the
+    /// plan. Refused before the capture when the frames are too small for
+    /// the holder's markers.
+    #[arg(long, value_delimiter = ',')]
+    pub process: Vec<String>,
     /// Resume the run in this directory (all other run options come from it).
     #[cfg_attr(feature = "sim", arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "scene", "operator", "notes", "exposure", "order"]))]
     #[cfg_attr(not(feature = "sim"), arg(long, conflicts_with_all = ["profile", "plan", "out", "frame_size", "operator", "notes", "exposure", "order"]))]
@@ -133,10 +141,21 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
         } else {
             Clock::real()
         };
+        let mut process = None;
         let prepared = match &args.resume {
-            Some(dir) => launch::prepare_resume(dir, args.faults(), clock, PausePolicy::Return)
-                .await
-                .with_context(|| format!("cannot resume {}", dir.display()))?,
+            Some(dir) => {
+                if !args.process.is_empty() {
+                    let meta = rigd::store::read_meta(dir)
+                        .with_context(|| format!("cannot resume {}", dir.display()))?;
+                    let size = meta
+                        .frame_size
+                        .or(meta.simulated.then_some(meta.profile.sim.frame_size));
+                    process = Some(processing_options(&args.process, &meta.plan, size)?);
+                }
+                launch::prepare_resume(dir, args.faults(), clock, PausePolicy::Return)
+                    .await
+                    .with_context(|| format!("cannot resume {}", dir.display()))?
+            }
             None => {
                 let source = args
                     .profile
@@ -183,11 +202,67 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     simulated,
                     order: args.order,
                 };
-                launch::prepare_new(req, args.faults(), clock, PausePolicy::Return).await?
+                let solved = launch::solve_plan(&req.profile, &req.plan, req.order)?;
+                if !args.process.is_empty() {
+                    let size = args
+                        .frame_size
+                        .or(simulated.then_some(req.profile.sim.frame_size));
+                    process = Some(processing_options(&args.process, &solved.1, size)?);
+                }
+                launch::prepare_new_solved(req, solved, args.faults(), clock, PausePolicy::Return)
+                    .await?
             }
         };
-        drive(prepared, args.progress).await
+        let root = prepared.root.clone();
+        let code = drive(prepared, args.progress).await?;
+        match process {
+            Some(options) if code == ExitCode::SUCCESS => process_run(&root, &options),
+            _ => Ok(code),
+        }
     })
+}
+
+/// The options of `--process` for a run of `plan` with frames of `size`
+/// (None: the camera's own, on hardware), or why they cannot run.
+fn processing_options(
+    steps: &[String],
+    plan: &rigd::plan::Plan,
+    size: Option<[u32; 2]>,
+) -> Result<ProcessOptions> {
+    let mut options = ProcessOptions::default();
+    for s in steps.iter().filter(|s| s.as_str() != "auto") {
+        options
+            .steps
+            .push(Step::parse(s).map_err(|e| bad_input(format!("--process: {e}")))?);
+    }
+    let options = options
+        .resolve(&RunFacts::of_plan(plan))
+        .map_err(|e| bad_input(format!("--process: {e}")))?;
+    if let (true, Some(size)) = (options.steps.contains(&Step::Rectify), size) {
+        check_frame_size(size).map_err(|e| bad_input(format!("--process: {e}")))?;
+    }
+    Ok(options)
+}
+
+/// Runs the steps of `--process` on the completed run at `root`.
+fn process_run(root: &std::path::Path, options: &ProcessOptions) -> Result<ExitCode> {
+    for &step in &options.steps {
+        let started = Instant::now();
+        let progress = super::progress::progress_line(step.name());
+        let summary = run_step(root, step, options, &progress).with_context(|| {
+            format!(
+                "the capture completed in {}, but processing it failed at `{}`",
+                root.display(),
+                step.name()
+            )
+        })?;
+        eprintln!(
+            "{}: {summary} ({:.1} s)",
+            step.name(),
+            started.elapsed().as_secs_f64()
+        );
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 fn plan_stem(plan: &str) -> String {

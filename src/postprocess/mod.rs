@@ -8,6 +8,7 @@ pub mod dataset;
 pub mod fit;
 pub mod frames;
 pub mod mdf;
+pub mod pipeline;
 pub mod ps;
 pub mod rectify;
 #[cfg(feature = "sim")]

@@ -18,6 +18,7 @@ pub mod manual_session;
 pub mod model;
 pub mod persist;
 pub mod plan_cache;
+pub mod processing;
 pub mod supervisor;
 
 use std::net::SocketAddr;
@@ -34,7 +35,7 @@ use tokio::task::JoinHandle;
 
 use utoipa_swagger_ui::SwaggerUi;
 
-use api::{daemon, frames, manual, plans, queue, rig, runs, viewer};
+use api::{daemon, frames, manual, plans, process, queue, rig, runs, viewer};
 #[cfg(feature = "sim")]
 use api::{sim, tradeoff};
 
@@ -177,6 +178,10 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
         .route("/runs/{id}/pause", post(runs::pause_run))
         .route("/runs/{id}/resume", post(runs::resume_run))
         .route("/runs/{id}/abort", post(runs::abort_run))
+        .route(
+            "/runs/{id}/process",
+            get(process::get_job).post(process::submit),
+        )
         .route("/runs/{id}/frames/{index}", get(frames::frame_raw))
         .route(
             "/runs/{id}/frames/{index}/preview",
@@ -269,6 +274,10 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         why: e.to_string(),
     })?;
     let daemon = supervisor::Daemon::new(config, profile, profile_source)?;
+    processing::start_worker(&daemon).map_err(|why| ServerError::DataDir {
+        path: daemon.data_dir.clone(),
+        why: format!("cannot start the processing worker: {why}"),
+    })?;
     let app = router(daemon.clone(), token.clone());
     let mut stop = daemon.shutdown_tx.subscribe();
     let server = tokio::spawn(async move {

@@ -107,6 +107,12 @@ pub struct RunRequest {
     /// model) or `naive` (the plan's nested-loop order).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub order: Option<crate::plan::Order>,
+    /// Process the run when its capture completes (or is aborted): the
+    /// body of `POST /runs/{id}/process` (`{}` for the defaults). Checked
+    /// now: steps the plan cannot take, or frames too small for the
+    /// holder's markers, refuse the run (422).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub process: Option<crate::postprocess::pipeline::ProcessOptions>,
 }
 
 /// A run as the API shows it.
@@ -165,6 +171,10 @@ pub struct RunView {
     /// shows: `btf` or `photometric-stereo`; null before processing.
     #[serde(default)]
     pub processed: Option<String>,
+    /// The run's process job (`POST /api/v1/runs/{id}/process`), if it
+    /// has one: its state, steps and progress.
+    #[serde(default)]
+    pub processing: Option<crate::server::processing::ProcessJob>,
 }
 
 /// `GET /api/v1/runs`.

@@ -217,6 +217,7 @@ pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, Run
         updated_at: state.as_ref().map(|s| s.updated_at.clone()),
         finished_at: manifest.map(|m| m.finished_at),
         processed: None,
+        processing: None,
     };
     Ok((view, meta))
 }
@@ -306,6 +307,7 @@ mod tests {
                 exposure_s: Some(0.5),
                 frame_size: Some([8, 8]),
                 order: Some(crate::plan::Order::Naive),
+                process: None,
             },
             created_at: "2026-01-01T00:00:00Z".into(),
         };

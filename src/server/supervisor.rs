@@ -82,6 +82,8 @@ pub struct Daemon {
     pub plans: Arc<PlanCache>,
     /// A trade-off report is being computed (`POST /api/v1/tradeoff`).
     pub tradeoff_busy: std::sync::atomic::AtomicBool,
+    /// The process jobs (`POST /api/v1/runs/{id}/process`) and their worker.
+    pub processing: super::processing::Jobs,
 }
 
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -166,6 +168,7 @@ impl Daemon {
             inner.runs.insert(view.id.clone(), view);
         }
         inner.queue = persist::load_queue(&data_dir);
+        let processing = super::processing::Jobs::load(&runs_dir, inner.runs.keys());
         let (shutdown_tx, _) = watch::channel(false);
         let plans = PlanCache::new(profile.clone());
         plans.start();
@@ -184,6 +187,7 @@ impl Daemon {
             tradeoff_busy: std::sync::atomic::AtomicBool::new(false),
             schedules: Mutex::new(HashMap::new()),
             plans,
+            processing,
         }))
     }
 
@@ -262,6 +266,35 @@ impl Daemon {
                 ));
             }
         }
+        let plan = self.resolve_plan(req)?;
+        if let Some(options) = &req.process {
+            self.process_after_capture(req, &plan, options.clone())?;
+        }
+        Ok(plan)
+    }
+
+    /// The checked options of a run's `process` field.
+    fn process_after_capture(
+        &self,
+        req: &RunRequest,
+        plan: &plan::Plan,
+        options: crate::postprocess::pipeline::ProcessOptions,
+    ) -> Result<crate::postprocess::pipeline::ProcessOptions, SupervisorError> {
+        use crate::postprocess::pipeline::{check_frame_size, RunFacts, Step};
+        let options = options
+            .resolve(&RunFacts::of_plan(plan))
+            .map_err(|e| SupervisorError::invalid(format!("`process`: {e}")))?;
+        let size = req
+            .frame_size
+            .or(self.config.sim.then_some(self.profile.sim.frame_size));
+        if let (true, Some(size)) = (options.steps.contains(&Step::Rectify), size) {
+            check_frame_size(size)
+                .map_err(|e| SupervisorError::invalid(format!("`process`: {e}")))?;
+        }
+        Ok(options)
+    }
+
+    fn resolve_plan(&self, req: &RunRequest) -> Result<plan::Plan, SupervisorError> {
         match &req.plan {
             PlanSpec::Name(name) => {
                 if !BUILTIN_PLANS.contains(&name.as_str()) && !name.starts_with("laser:") {
@@ -387,8 +420,14 @@ impl Daemon {
         .await
         .map_err(|e| SupervisorError::internal(format!("preparing the run failed: {e}")))?
         .map_err(run_error)?;
-        let (view, _) = persist::load_run(&root, &id, false)
+        let (view, meta) = persist::load_run(&root, &id, false)
             .map_err(|e| SupervisorError::internal(e.to_string()))?;
+        if let Some(options) = &req.process {
+            // Checked in `validate`; queued before the engine starts, so
+            // the job is on disk before the first frame.
+            let options = self.process_after_capture(&req, &meta.plan, options.clone())?;
+            self.queue_after_capture(&id, options)?;
+        }
         let view = self.install(view, prepared, "run_created");
         Ok(view)
     }
@@ -546,9 +585,24 @@ impl Daemon {
             "run_ended",
             serde_json::to_value(&view).unwrap_or_default(),
         );
+        self.processing.notify();
         if !shutting_down {
             self.pump_queue();
         }
+    }
+
+    /// Whether run `id`'s process job may run now: the run has ended, and
+    /// a job queued with the run (`after_capture`) waits for its capture
+    /// to complete or be aborted (a failed run may still be resumed).
+    pub(crate) fn ready_to_process(&self, id: &str, after_capture: bool) -> bool {
+        self.inner().runs.get(id).is_some_and(|v| {
+            !v.active
+                && match v.state {
+                    RunState::Completed | RunState::Aborted => true,
+                    RunState::Failed => !after_capture,
+                    _ => false,
+                }
+        })
     }
 
     /// Starts the next queued run if the rig is free.
@@ -832,6 +886,7 @@ impl Daemon {
     /// Stops taking work, detaches the active run (it is left paused and
     /// resumable), waits for its engine to end, then ends the event streams.
     pub async fn shutdown(&self) {
+        self.processing.stop();
         let commands = {
             let mut inner = self.inner();
             inner.shutting_down = true;

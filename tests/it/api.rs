@@ -847,6 +847,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/pause",
         "/api/v1/runs/{id}/resume",
         "/api/v1/runs/{id}/abort",
+        "/api/v1/runs/{id}/process",
         "/api/v1/estop",
         "/api/v1/events",
         "/api/v1/runs/{id}/frames/{index}",
@@ -963,7 +964,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 35, "operations checked");
+    assert_eq!(checked, 37, "operations checked");
     s.shutdown().await;
 }
 

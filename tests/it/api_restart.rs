@@ -206,3 +206,121 @@ fn serve_help_and_bad_options() {
         assert!(err.contains(want), "{args:?}: {err}");
     }
 }
+
+fn copy_tree(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create copy");
+    for entry in std::fs::read_dir(from).expect("read dir") {
+        let entry = entry.expect("entry");
+        let target = to.join(entry.file_name());
+        if entry.file_type().expect("file type").is_dir() {
+            copy_tree(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target).expect("copy");
+        }
+    }
+}
+
+/// Every file under `dir`, relative, with its bytes.
+fn tree_bytes(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for entry in std::fs::read_dir(&d).expect("read dir") {
+            let p = entry.expect("entry").path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                let rel = p
+                    .strip_prefix(dir)
+                    .expect("under dir")
+                    .display()
+                    .to_string();
+                out.insert(rel, std::fs::read(&p).expect("read"));
+            }
+        }
+    }
+    out
+}
+
+/// A daemon killed (-9) while it processes a run takes the job up again at
+/// its next start, and the BTF it ends with is byte for byte the one the
+/// command line makes from the same frames without interruption.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_mid_processing_resumes_to_the_same_btf() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut d = spawn(dir.path(), 20_000.0);
+    let body = serde_json::json!({"sample": "corduroy", "plan": small_plan(8),
+        "frame_size": [320, 240], "operator": "tester"});
+    let (status, v) = d.post("/api/v1/runs", Some(body)).await;
+    assert_eq!(status, 201, "{v}");
+    let id = v["id"].as_str().expect("id").to_string();
+    d.wait_run(&id, |v| v["state"] == "completed" && v["active"] == false)
+        .await;
+    let run = dir.path().join("runs").join(&id);
+    let reference = tempfile::tempdir().expect("tempdir");
+    let reference = reference.path().join(&id);
+    copy_tree(&run, &reference);
+
+    let options =
+        serde_json::json!({"rectify": {"size": 512, "final": 64}, "btf": {"components": 8}});
+    let (status, job) = d
+        .post(&format!("/api/v1/runs/{id}/process"), Some(options))
+        .await;
+    assert_eq!(status, 202, "{job}");
+    let v = d
+        .wait_run(&id, |v| {
+            v["processing"]["steps"][0]["done"].as_u64() >= Some(4)
+                || v["processing"]["state"] == "done"
+        })
+        .await;
+    assert_eq!(
+        v["processing"]["state"], "running",
+        "killed while the job runs: {v}"
+    );
+    d.child.kill().expect("kill -9");
+    let _ = d.child.wait();
+    drop(d);
+    let on_disk: Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/job.json")).expect("job.json"))
+            .expect("job.json is JSON");
+    assert_eq!(on_disk["state"], "running", "{on_disk}");
+
+    let d = spawn(dir.path(), 20_000.0);
+    let v = d
+        .wait_run(&id, |v| {
+            matches!(v["processing"]["state"].as_str(), Some("done" | "failed"))
+        })
+        .await;
+    assert_eq!(v["processing"]["state"], "done", "{v}");
+    assert_eq!(v["processing"]["resumed"], 1, "{v}");
+    assert_eq!(v["processed"], "btf", "{v}");
+
+    for args in [
+        vec!["process", "rectify", "--size", "512", "--final", "64"],
+        vec!["process", "btf", "--components", "8"],
+    ] {
+        let o = common::rigd()
+            .args(&args)
+            .arg(&reference)
+            .output()
+            .expect("rigd process");
+        assert!(
+            o.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&o.stderr)
+        );
+    }
+    let got = tree_bytes(&run.join("processed/btf"));
+    let want = tree_bytes(&reference.join("processed/btf"));
+    assert_eq!(
+        got.keys().collect::<Vec<_>>(),
+        want.keys().collect::<Vec<_>>()
+    );
+    for (name, bytes) in &want {
+        if name == "report.json" {
+            // Holds the compression's wall time.
+            continue;
+        }
+        assert!(got[name] == *bytes, "processed/btf/{name} differs");
+    }
+}

@@ -27,6 +27,7 @@ mod manual_control;
 mod modbus_e2e;
 mod modbus_transcripts;
 mod pose_solver_hard_cases;
+mod process_jobs;
 mod process_run;
 mod ps_accuracy;
 mod ptp_camera;

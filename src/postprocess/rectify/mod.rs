@@ -43,6 +43,23 @@ pub enum TextureBits {
     Half,
 }
 
+impl TextureBits {
+    /// Parses `top`, a shift `0` … `8`, `float` or `half`.
+    pub fn parse(s: &str) -> Result<TextureBits, String> {
+        match s {
+            "top" => Ok(TextureBits::Top8),
+            "float" => Ok(TextureBits::Float),
+            "half" => Ok(TextureBits::Half),
+            s => match s.parse::<u8>() {
+                Ok(shift) if shift <= 8 => Ok(TextureBits::Shift(shift)),
+                _ => Err(format!(
+                    "bits `{s}`: expected `top`, a shift 0 ..= 8, `float` or `half`"
+                )),
+            },
+        }
+    }
+}
+
 impl Default for RectifyConfig {
     fn default() -> Self {
         RectifyConfig {

@@ -5,6 +5,7 @@ pub mod daemon;
 pub mod frames;
 pub mod manual;
 pub mod plans;
+pub mod process;
 pub mod queue;
 pub mod rig;
 pub mod runs;
@@ -39,7 +40,8 @@ pub type AppState = Arc<Daemon>;
         runs::resume_run, runs::abort_run, rig::estop, daemon::events_sse, frames::frame_raw,
         frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
         viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh, manual::home, manual::jog,
-        manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::release
+        manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::release,
+        process::submit, process::get_job
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
@@ -47,7 +49,12 @@ pub type AppState = Arc<Daemon>;
         QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent,
         crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,
         manual::JogRequest, manual::PoseRequest, manual::SwitchRequest, manual::FrameRequest,
-        manual::Reached, manual::Switched, manual::TestFrame, crate::engine::manual::PoseReached
+        manual::Reached, manual::Switched, manual::TestFrame, crate::engine::manual::PoseReached,
+        crate::server::processing::ProcessJob, crate::server::processing::StepStatus,
+        crate::server::processing::JobState, crate::postprocess::pipeline::ProcessOptions,
+        crate::postprocess::pipeline::Step, crate::postprocess::pipeline::RectifyOptions,
+        crate::postprocess::pipeline::BtfOptions, crate::postprocess::pipeline::FitOptions,
+        crate::postprocess::pipeline::MdfOptions, crate::postprocess::pipeline::PsOptions
     )),
     modifiers(&BearerAuth),
     tags(

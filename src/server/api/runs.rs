@@ -32,11 +32,12 @@ pub async fn list_runs(State(d): State<AppState>) -> Json<RunList> {
 
 /// Fills `processed` from what lies on disk now (`rigd process` runs
 /// outside the daemon).
-fn mark_processed(d: &Daemon, run: &mut RunView) {
+pub(super) fn mark_processed(d: &Daemon, run: &mut RunView) {
     run.processed = d
         .run_root(&run.id)
         .and_then(|root| crate::postprocess::viewer::processed_kind(&root))
         .map(str::to_string);
+    run.processing = d.processing.get(&run.id);
 }
 
 /// Starts a run now.

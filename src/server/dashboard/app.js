@@ -521,7 +521,7 @@ function renderHistory() {
     idCell.append(show);
     const st = text("td", r.state, { class: `state state-${r.state}` });
     if (r.reason) st.title = r.reason;
-    tr.append(idCell, text("td", r.sample), text("td", r.plan), st, text("td", `${r.steps_done} / ${r.steps_total}`), text("td", fmtTime(r.started_at)), text("td", fmtTime(r.finished_at)));
+    tr.append(idCell, text("td", r.sample), text("td", r.plan), st, text("td", `${r.steps_done} / ${r.steps_total}`), text("td", fmtTime(r.started_at)), text("td", fmtTime(r.finished_at)), processCell(r));
     const links = document.createElement("td");
     const base = `${API}/runs/${encodeURIComponent(r.id)}`;
     if (["completed", "aborted"].includes(r.state)) {
@@ -540,6 +540,81 @@ function renderHistory() {
     tr.append(links);
     tbody.append(tr);
   }
+}
+
+/** Where a run's process job is: its latest `process` event, else the job
+ * in the run's view; null without a job. */
+function processStatus(r) {
+  if (r.processEvent) return r.processEvent;
+  const job = r.processing;
+  if (!job) return null;
+  const cur = job.steps.find((s) => s.state === "running" || s.state === "failed") || null;
+  return {
+    state: job.state,
+    step: cur && cur.step,
+    done: cur && cur.done,
+    total: cur && cur.total,
+    eta_s: cur && cur.eta_s,
+    steps_done: job.steps.filter((s) => s.state === "done").length,
+    steps_total: job.steps.length,
+    error: job.error,
+  };
+}
+
+function processCell(r) {
+  const td = text("td", null, { class: "processing", "data-testid": "processing" });
+  const p = processStatus(r);
+  if (p && (p.state === "queued" || p.state === "running")) {
+    const bar = text("progress", null, { "data-testid": "process-progress", "aria-label": `Processing ${r.id}` });
+    bar.max = p.total || 1;
+    bar.value = p.done || 0;
+    let label = "queued";
+    if (p.state === "running" && p.step) {
+      label = `${p.step} ${p.done ?? 0}/${p.total ?? "?"}`;
+      if (p.eta_s != null) label += `, ${fmtDuration(p.eta_s)} left`;
+    }
+    td.append(bar, text("span", `step ${Math.min(p.steps_done + 1, p.steps_total)}/${p.steps_total}: ${label}`, { class: "process-status" }));
+    return td;
+  }
+  if (p && p.state === "done") {
+    const summary = r.processing ? r.processing.steps.map((s) => `${s.step}: ${s.summary || ""}`).join("\n") : "";
+    td.append(text("span", "processed", { class: "state state-completed", title: summary }));
+    return td;
+  }
+  const ended = !r.active && ["completed", "aborted", "failed"].includes(r.state) && r.steps_done > 0;
+  if (!ended) return td;
+  if (p && p.state === "failed") {
+    td.append(text("span", "failed", { class: "state state-failed", title: p.error || "" }), " ");
+  }
+  const b = text("button", p && p.state === "failed" ? "Retry" : "Process", {
+    type: "button", class: "small", "data-testid": "process",
+    title: "Rectify and compress this run (or photometric stereo, or the MDF, as the run calls for) in the daemon",
+  });
+  b.addEventListener("click", async () => {
+    b.disabled = true;
+    try {
+      const job = await api("POST", `/runs/${encodeURIComponent(r.id)}/process`, {});
+      r.processing = job;
+      r.processEvent = null;
+      renderHistory();
+    } catch (e) {
+      showMessage(`process ${r.id}: ${errText(e)}`);
+      b.disabled = false;
+    }
+  });
+  td.append(b);
+  return td;
+}
+
+function onProcessEvent(runId, e) {
+  const r = state.runs.find((x) => x.id === runId);
+  if (!r) return;
+  r.processEvent = e;
+  // The end brings the result (and the viewer link) with the run's view.
+  if (e.state === "done" || e.state === "failed") {
+    r.processEvent = null;
+    loadRun(runId);
+  } else renderHistorySoon();
 }
 
 // --------------------------------------------------------------- log
@@ -575,6 +650,8 @@ function describe(ev) {
       return `${ev.run}: ${e.state}${e.reason ? ` (${e.reason})` : ""}`;
     case "queue_changed":
       return `${(e.items || []).length} queued`;
+    case "process":
+      return `${ev.run}: processing ${e.state}${e.step ? `, ${e.step}${e.total ? ` ${e.done}/${e.total}` : ""}` : ""}${e.error ? `: ${e.error}` : ""}`;
     case "tradeoff":
       return `trade-off report: ${e.state}${e.step ? ` (${e.step})` : ""}${e.error ? `: ${e.error}` : ""}`;
     case "estop":
@@ -631,6 +708,9 @@ function onEvent(ev) {
       break;
     case "tradeoff":
       onTradeoffEvent(e);
+      break;
+    case "process":
+      onProcessEvent(ev.run, e);
       break;
     case "estop":
       showMessage(describe(ev), e.all_stopped ? "info" : "error");

@@ -1,0 +1,498 @@
+//! A run's processing as a list of steps with their options: what the
+//! daemon's process jobs (`POST /api/v1/runs/{id}/process`) run, one step
+//! after another, each exactly as its `rigd process` command runs it.
+//!
+//! Every field has a default, so `{}` is a complete request: the steps
+//! follow from the run (a laser plan: `mdf`; one view only: photometric
+//! stereo; otherwise `rectify` then `btf`), and the rectification sizes are
+//! those of the README's demo (512² resampled, 128² stored).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::frames::RunFrames;
+use super::mdf::{MdfConfig, PlaneModel};
+use super::rectify::{RectifyConfig, TextureBits};
+use super::ProcessError;
+
+/// One processing step.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, ToSchema,
+)]
+#[serde(rename_all = "kebab-case")]
+pub enum Step {
+    /// Register every frame and resample it to a frontal normtexture
+    /// (`rigd process rectify`).
+    Rectify,
+    /// Compress the BTF per view slot (`rigd process btf`); needs `rectify`.
+    Btf,
+    /// Fit the reflectance models per texel (`rigd process fit`); needs
+    /// `rectify`.
+    Fit,
+    /// The mesostructure distance function of a laser run (`rigd process mdf`).
+    Mdf,
+    /// Photometric stereo of a run whose camera looks down on the sample
+    /// (`rigd process photometric-stereo RUN`).
+    PhotometricStereo,
+}
+
+impl Step {
+    /// The step's name, as in the API and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Step::Rectify => "rectify",
+            Step::Btf => "btf",
+            Step::Fit => "fit",
+            Step::Mdf => "mdf",
+            Step::PhotometricStereo => "photometric-stereo",
+        }
+    }
+
+    /// Parses a step's name.
+    pub fn parse(s: &str) -> Result<Step, String> {
+        [
+            Step::Rectify,
+            Step::Btf,
+            Step::Fit,
+            Step::Mdf,
+            Step::PhotometricStereo,
+        ]
+        .into_iter()
+        .find(|step| step.name() == s.trim())
+        .ok_or_else(|| {
+            format!("unknown step `{s}`: expected rectify, btf, fit, mdf or photometric-stereo")
+        })
+    }
+
+    /// Reads the normtextures of `rectify`.
+    pub fn needs_normtextures(self) -> bool {
+        matches!(self, Step::Btf | Step::Fit)
+    }
+}
+
+/// Options of the `rectify` step (`rigd process rectify`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct RectifyOptions {
+    /// Side of the frontal normtexture each frame is resampled to first.
+    pub size: usize,
+    /// Side of the stored textures.
+    #[serde(rename = "final")]
+    pub final_size: usize,
+    /// Fraction of the normtexture kept around its centre, (0, 1].
+    pub roi: f64,
+    /// `top`, a shift `0` … `8`, `float` or `half` (see `rigd process
+    /// rectify --help`).
+    pub bits: String,
+    /// Edge blend in final texels (0 = none).
+    pub blend: usize,
+}
+
+impl Default for RectifyOptions {
+    fn default() -> Self {
+        RectifyOptions {
+            size: 512,
+            final_size: 128,
+            roi: 1.0,
+            bits: "top".into(),
+            blend: 0,
+        }
+    }
+}
+
+impl RectifyOptions {
+    /// The rectification's configuration, or why these options are wrong.
+    pub fn config(&self) -> Result<RectifyConfig, String> {
+        let bits = TextureBits::parse(&self.bits)?;
+        for (name, v) in [("size", self.size), ("final", self.final_size)] {
+            if !(8..=8192).contains(&v) {
+                return Err(format!("rectify.{name} {v}: expected 8 … 8192 texels"));
+            }
+        }
+        if !(self.roi > 0.0 && self.roi <= 1.0) {
+            return Err(format!("rectify.roi {}: expected 0 < roi ≤ 1", self.roi));
+        }
+        if self.blend >= self.final_size {
+            return Err(format!(
+                "rectify.blend {}: must be narrower than the {}-texel texture",
+                self.blend, self.final_size
+            ));
+        }
+        Ok(RectifyConfig {
+            size: self.size,
+            roi: self.roi,
+            final_size: self.final_size,
+            blend: self.blend,
+            bits,
+        })
+    }
+}
+
+/// Options of the `btf` step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct BtfOptions {
+    /// Components kept per view slot, 1 … 256.
+    pub components: usize,
+}
+
+impl Default for BtfOptions {
+    fn default() -> Self {
+        BtfOptions { components: 16 }
+    }
+}
+
+/// Options of the `fit` step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct FitOptions {
+    /// Lobes of the non-linear model, 1 … 8.
+    pub lobes: usize,
+}
+
+impl Default for FitOptions {
+    fn default() -> Self {
+        FitOptions { lobes: 2 }
+    }
+}
+
+/// Options of the `mdf` step (`rigd process mdf`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct MdfOptions {
+    /// `calibrated` or `emitter`.
+    #[schema(value_type = String)]
+    pub planes: PlaneModel,
+    /// Use this many of the run's source positions [default: all].
+    pub sources: Option<usize>,
+    /// Grey level (0–1) a pixel's brightest frame must exceed.
+    pub threshold: f64,
+    /// Grey level (0–1) of the strip in the reference region.
+    pub line_threshold: f64,
+    /// Gaussian filter before the strip search, pixels (0 … 20).
+    pub sigma: f64,
+}
+
+impl Default for MdfOptions {
+    fn default() -> Self {
+        let d = MdfConfig::default();
+        MdfOptions {
+            planes: d.planes,
+            sources: d.sources,
+            threshold: d.threshold,
+            line_threshold: d.line_threshold,
+            sigma: d.sigma_px,
+        }
+    }
+}
+
+/// Options of the `photometric-stereo` step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct PsOptions {
+    /// Reject shadowed and specular samples per pixel.
+    pub robust: bool,
+    /// Refuse light sets whose matrix has a larger condition number.
+    pub max_condition: f64,
+}
+
+impl Default for PsOptions {
+    fn default() -> Self {
+        PsOptions {
+            robust: false,
+            max_condition: rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION,
+        }
+    }
+}
+
+/// What to do with a run: the steps and each step's options.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, ToSchema)]
+#[serde(default, deny_unknown_fields)]
+pub struct ProcessOptions {
+    /// The steps, run in the order rectify, btf, fit, mdf,
+    /// photometric-stereo whatever order they are given in. Empty: chosen
+    /// from the run (see [`default_steps`]).
+    pub steps: Vec<Step>,
+    /// Options of `rectify`.
+    pub rectify: RectifyOptions,
+    /// Options of `btf`.
+    pub btf: BtfOptions,
+    /// Options of `fit`.
+    pub fit: FitOptions,
+    /// Options of `mdf`.
+    pub mdf: MdfOptions,
+    /// Options of `photometric-stereo`.
+    pub photometric_stereo: PsOptions,
+}
+
+/// What the choice and the checks of a run's steps depend on: read from
+/// its frames once captured, or from its plan before.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RunFacts {
+    /// A laser plan (Wang et al., §3.2).
+    pub laser: bool,
+    /// Every frame has the same view (a camera looking down).
+    pub one_view: bool,
+    /// Frames (or, from the plan, images planned).
+    pub frames: usize,
+    /// The run's normtextures are on disk already.
+    pub rectified: bool,
+}
+
+fn same_view(a: rigd_core::geometry::Direction, b: rigd_core::geometry::Direction) -> bool {
+    let (a, b) = (a.canonical(), b.canonical());
+    (a.theta_deg - b.theta_deg).abs() < 1e-6 && (a.phi_deg - b.phi_deg).abs() < 1e-6
+}
+
+impl RunFacts {
+    /// The facts of a captured run.
+    pub fn of_run(run: &RunFrames) -> RunFacts {
+        RunFacts {
+            laser: run.meta.plan.laser.is_some(),
+            one_view: run
+                .entries
+                .windows(2)
+                .all(|w| same_view(w[0].view, w[1].view)),
+            frames: run.entries.len(),
+            rectified: crate::store::processed::normtextures_dir(&run.root)
+                .join(crate::store::processed::NORMTEXTURE_INDEX)
+                .is_file(),
+        }
+    }
+
+    /// The facts of a run still to be captured with `plan`.
+    pub fn of_plan(plan: &crate::plan::Plan) -> RunFacts {
+        RunFacts {
+            laser: plan.laser.is_some(),
+            one_view: plan
+                .pairs
+                .windows(2)
+                .all(|w| same_view(w[0].view, w[1].view)),
+            frames: plan.pairs.len(),
+            rectified: false,
+        }
+    }
+}
+
+/// The steps a run gets when none are asked for: `mdf` for a laser plan,
+/// `photometric-stereo` when every frame has the same view (a camera
+/// looking down, as on the VirTex rig), otherwise `rectify` and `btf`.
+pub fn default_steps(facts: &RunFacts) -> Vec<Step> {
+    if facts.laser {
+        vec![Step::Mdf]
+    } else if facts.one_view && facts.frames >= 3 {
+        vec![Step::PhotometricStereo]
+    } else {
+        vec![Step::Rectify, Step::Btf]
+    }
+}
+
+/// Why `rectify` is refused for frames of `size`: below
+/// [`MIN_REGISTRABLE_FRAME`](crate::model::profile::MIN_REGISTRABLE_FRAME)
+/// the holder's markers are not found at the 75° view ring.
+pub fn check_frame_size(size: [u32; 2]) -> Result<(), String> {
+    let [w, h] = size;
+    let [min_w, min_h] = crate::model::profile::MIN_REGISTRABLE_FRAME;
+    if w < min_w || h < min_h {
+        return Err(format!(
+            "frames of {w}×{h} are too small to process: below {min_w}×{min_h} the holder's markers are not found at the 75° view ring, so most frames would be registered from the pose alone; capture at {min_w}×{min_h} or more, or run `rigd process rectify` by hand to accept pose-only registration"
+        ));
+    }
+    Ok(())
+}
+
+impl ProcessOptions {
+    /// The options with the steps resolved for a run (defaults filled in,
+    /// sorted into their running order), or why they cannot run on it.
+    pub fn resolve(mut self, facts: &RunFacts) -> Result<ProcessOptions, String> {
+        if self.steps.is_empty() {
+            self.steps = default_steps(facts);
+        }
+        let asked = self.steps.len();
+        self.steps.sort();
+        self.steps.dedup();
+        if self.steps.len() != asked {
+            return Err("a step is named twice".into());
+        }
+        if self.steps.contains(&Step::Rectify) {
+            self.rectify.config()?;
+        }
+        for step in &self.steps {
+            if step.needs_normtextures() && !facts.rectified && !self.steps.contains(&Step::Rectify)
+            {
+                return Err(format!(
+                    "{} needs the run's normtextures: add the step `rectify`",
+                    step.name()
+                ));
+            }
+        }
+        if !(1..=256).contains(&self.btf.components) {
+            return Err(format!(
+                "btf.components {}: expected 1 … 256",
+                self.btf.components
+            ));
+        }
+        if !(1..=8).contains(&self.fit.lobes) {
+            return Err(format!("fit.lobes {}: expected 1 … 8", self.fit.lobes));
+        }
+        if !(self.mdf.sigma.is_finite() && (0.0..=20.0).contains(&self.mdf.sigma)) {
+            return Err(format!(
+                "mdf.sigma {}: expected 0 … 20 pixels",
+                self.mdf.sigma
+            ));
+        }
+        if self.steps.contains(&Step::Mdf) && !facts.laser {
+            return Err("mdf needs a run of a laser plan".into());
+        }
+        if !(self.photometric_stereo.max_condition.is_finite()
+            && self.photometric_stereo.max_condition >= 1.0)
+        {
+            return Err(format!(
+                "photometric_stereo.max_condition {}: expected at least 1",
+                self.photometric_stereo.max_condition
+            ));
+        }
+        if facts.frames == 0 {
+            return Err("the run has no frames".into());
+        }
+        Ok(self)
+    }
+}
+
+/// Progress of a step: `(done, total)` in the step's own units (frames,
+/// view slots, sweeps, rows).
+pub type StepProgress<'a> = &'a (dyn Fn(usize, usize) + Sync);
+
+/// Runs one step on the run at `root`, as its `rigd process` command does;
+/// returns a one-line summary of what it wrote.
+pub fn run_step(
+    root: &Path,
+    step: Step,
+    opts: &ProcessOptions,
+    progress: StepProgress<'_>,
+) -> Result<String, ProcessError> {
+    match step {
+        Step::Rectify => {
+            let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
+            let run = RunFrames::open(root)?;
+            let index = super::rectify::rectify_run(&run, &cfg, progress)?;
+            let by_method = index
+                .summary
+                .as_ref()
+                .map(|s| {
+                    s.frames_by_method
+                        .iter()
+                        .map(|(m, n)| format!("{n} {m}"))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                })
+                .unwrap_or_default();
+            Ok(format!(
+                "{} frames into {}² textures ({by_method})",
+                index.frames.len(),
+                index.size
+            ))
+        }
+        Step::Btf => {
+            let r = super::btf::btf_run(root, opts.btf.components, progress)?;
+            Ok(format!(
+                "{} view slots × {} lights, C = {}: {:.1} MB",
+                r.slots,
+                r.lights,
+                r.components,
+                r.bytes as f64 / 1e6
+            ))
+        }
+        Step::Fit => {
+            let rows = super::fit::fit_run(root, opts.fit.lobes, progress)?;
+            Ok(rows
+                .iter()
+                .map(|r| format!("{}: RMS {:.5}", r.method, r.rms_error))
+                .collect::<Vec<_>>()
+                .join(", "))
+        }
+        Step::Mdf => {
+            let run = RunFrames::open(root)?;
+            let m = &opts.mdf;
+            let cfg = MdfConfig {
+                sigma_px: m.sigma,
+                threshold: m.threshold,
+                line_threshold: m.line_threshold,
+                planes: m.planes,
+                sources: m.sources,
+            };
+            let r = super::mdf::mdf_run(&run, &cfg, progress)?;
+            Ok(format!(
+                "{} views{}",
+                r.views.len(),
+                r.mean_error_mm
+                    .map(|e| format!(", mean depth error {e:.3} mm"))
+                    .unwrap_or_default()
+            ))
+        }
+        Step::PhotometricStereo => {
+            use rigd_process::photometric_stereo as ps;
+            let run = RunFrames::open(root)?;
+            let dataset = super::ps::ps_dataset_from_run(&run)?;
+            let ps_opts = ps::PsOptions {
+                robust: opts.photometric_stereo.robust,
+                max_condition: opts.photometric_stereo.max_condition,
+                progress: Some(progress),
+                ..Default::default()
+            };
+            let result =
+                ps::solve(&dataset, &ps_opts).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+            let out = crate::store::processed::ps_dir(root);
+            ps::write_outputs(&result, &out).map_err(|e| ProcessError::Frame {
+                path: out.clone(),
+                message: e.to_string(),
+            })?;
+            let solved = result.valid.iter().filter(|v| **v).count();
+            Ok(format!(
+                "{solved} of {} pixels solved, mean residual {:.4}",
+                result.width * result.height,
+                result.report.mean_residual
+            ))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn steps_parse_and_name_each_other() {
+        for s in ["rectify", "btf", "fit", "mdf", "photometric-stereo"] {
+            assert_eq!(Step::parse(s).map(Step::name), Ok(s));
+        }
+        assert!(Step::parse("sharpen").is_err());
+    }
+
+    #[test]
+    fn an_empty_request_is_complete_and_bad_fields_are_refused() {
+        let o: ProcessOptions = serde_json::from_str("{}").expect("defaults");
+        assert_eq!(o.rectify.size, 512);
+        assert_eq!(o.btf.components, 16);
+        assert!(o.rectify.config().is_ok());
+        let o: ProcessOptions =
+            serde_json::from_str(r#"{"steps": ["btf", "rectify"], "rectify": {"final": 64}}"#)
+                .expect("partial options");
+        assert_eq!(o.rectify.final_size, 64);
+        assert_eq!(o.rectify.size, 512);
+        assert!(serde_json::from_str::<ProcessOptions>(r#"{"rectify": {"sise": 3}}"#).is_err());
+        assert!(serde_json::from_str::<ProcessOptions>(r#"{"steps": ["sharpen"]}"#).is_err());
+        let bad = RectifyOptions {
+            blend: 128,
+            ..Default::default()
+        };
+        assert!(bad.config().is_err());
+        let bad = RectifyOptions {
+            bits: "9".into(),
+            ..Default::default()
+        };
+        assert!(bad.config().is_err());
+    }
+}

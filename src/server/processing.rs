@@ -1,0 +1,491 @@
+//! Process jobs: `POST /api/v1/runs/{id}/process` hands a finished run's
+//! processing (rectify, btf, fit, mdf, photometric stereo) to the daemon.
+//!
+//! - One job runs at a time, in the order they were asked for, on a worker
+//!   thread of its own beside the capture. Its threads run at a lower
+//!   priority (nice 10), so a capture's device calls are scheduled first.
+//! - Each job is kept in `RUN/processed/job.json`, rewritten atomically at
+//!   every step's start and end. A daemon that stops or dies mid-job finds
+//!   the job at its next start and resumes it: the steps done are kept, the
+//!   step that was running runs again from its start (each step writes its
+//!   files atomically and its index last, so a cut step leaves nothing a
+//!   reader would take for a result).
+//! - Asking again for what is queued, running or done with the same
+//!   options returns that job and does no work twice; a failed job asked
+//!   again resumes from the step that failed.
+//! - Progress goes out as `process` events: the job's state, the step, done
+//!   and total in the step's units, and the step's ETA in seconds.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use super::supervisor::{lock, Daemon, SupervisorError};
+use crate::model::run_state::RunState;
+use crate::postprocess::frames::RunFrames;
+use crate::postprocess::pipeline::{self, ProcessOptions, RunFacts, Step};
+
+/// The job's file in `RUN/processed/`.
+pub const JOB_FILE: &str = "job.json";
+/// Least wall time between two progress events of a step.
+const EVENT_INTERVAL: Duration = Duration::from_millis(500);
+/// Niceness of the processing threads (Linux: per thread).
+const NICENESS: i32 = 10;
+/// How often an idle worker looks at the queue without being woken.
+const IDLE_RECHECK: Duration = Duration::from_secs(2);
+
+/// Where a job or one of its steps is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum JobState {
+    /// Waiting for its turn (a step: not started).
+    Queued,
+    /// Running now.
+    Running,
+    /// Finished.
+    Done,
+    /// Stopped by an error (`error` says which).
+    Failed,
+}
+
+/// One step of a job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct StepStatus {
+    /// The step.
+    pub step: Step,
+    /// Where it is.
+    pub state: JobState,
+    /// Units done: frames (rectify), view slots (btf, fit), sweeps (mdf),
+    /// rows (photometric-stereo).
+    pub done: usize,
+    /// Units in all; 0 until the step reports.
+    pub total: usize,
+    /// Wall seconds the step has run (this attempt).
+    pub elapsed_s: f64,
+    /// Estimated wall seconds left in this step, while it runs.
+    pub eta_s: Option<f64>,
+    /// What the step wrote, when done.
+    pub summary: Option<String>,
+}
+
+/// A run's process job, as `RUN/processed/job.json` keeps it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct ProcessJob {
+    /// The run.
+    pub run: String,
+    /// The steps and options, defaults filled in.
+    pub options: ProcessOptions,
+    /// Where the job is.
+    pub state: JobState,
+    /// Its steps, in running order.
+    pub steps: Vec<StepStatus>,
+    /// Why it failed.
+    pub error: Option<String>,
+    /// When it was asked for, RFC 3339 UTC.
+    pub created_at: String,
+    /// When it last changed state, RFC 3339 UTC.
+    pub updated_at: String,
+    /// How often a daemon start took it up again after it was cut short.
+    pub resumed: u32,
+    /// Asked for with the run (`process` in `POST /runs`): it waits for
+    /// the capture to complete or be aborted.
+    #[serde(default)]
+    pub after_capture: bool,
+}
+
+impl ProcessJob {
+    fn new(run: &str, options: ProcessOptions) -> ProcessJob {
+        let now = crate::store::now_rfc3339();
+        ProcessJob {
+            run: run.to_string(),
+            steps: options
+                .steps
+                .iter()
+                .map(|&step| StepStatus {
+                    step,
+                    state: JobState::Queued,
+                    done: 0,
+                    total: 0,
+                    elapsed_s: 0.0,
+                    eta_s: None,
+                    summary: None,
+                })
+                .collect(),
+            options,
+            state: JobState::Queued,
+            error: None,
+            created_at: now.clone(),
+            updated_at: now,
+            resumed: 0,
+            after_capture: false,
+        }
+    }
+
+    /// Queued again: the steps not done start over, the done ones stay.
+    fn requeue(&mut self) {
+        self.state = JobState::Queued;
+        self.error = None;
+        self.updated_at = crate::store::now_rfc3339();
+        for s in &mut self.steps {
+            if s.state != JobState::Done {
+                s.state = JobState::Queued;
+                s.done = 0;
+                s.eta_s = None;
+            }
+        }
+    }
+
+    fn event(&self) -> serde_json::Value {
+        let current = self
+            .steps
+            .iter()
+            .find(|s| s.state == JobState::Running || s.state == JobState::Failed);
+        serde_json::json!({
+            "state": self.state,
+            "step": current.map(|s| s.step.name()),
+            "done": current.map(|s| s.done),
+            "total": current.map(|s| s.total),
+            "eta_s": current.and_then(|s| s.eta_s),
+            "steps_done": self.steps.iter().filter(|s| s.state == JobState::Done).count(),
+            "steps_total": self.steps.len(),
+            "error": self.error,
+        })
+    }
+}
+
+fn job_path(root: &Path) -> PathBuf {
+    crate::store::processed::processed_dir(root).join(JOB_FILE)
+}
+
+/// Reads a run's job file; None when there is none or it cannot be read
+/// (then it is logged, and the run can be processed afresh).
+fn read_job(root: &Path) -> Option<ProcessJob> {
+    let path = job_path(root);
+    let bytes = std::fs::read(&path).ok()?;
+    match serde_json::from_slice(&bytes) {
+        Ok(job) => Some(job),
+        Err(e) => {
+            tracing::warn!("{}: {e}; ignored", path.display());
+            None
+        }
+    }
+}
+
+fn write_job(root: &Path, job: &ProcessJob) -> Result<(), String> {
+    let path = job_path(root);
+    let dir = crate::store::processed::processed_dir(root);
+    std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut json = serde_json::to_vec_pretty(job).map_err(|e| e.to_string())?;
+    json.push(b'\n');
+    crate::store::write_atomic(&path, &json).map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// The daemon's process jobs, by run id, and the worker that runs them.
+#[derive(Default)]
+pub struct Jobs {
+    jobs: Mutex<BTreeMap<String, ProcessJob>>,
+    wake: Condvar,
+    stop: AtomicBool,
+}
+
+impl Jobs {
+    /// The jobs found in the run directories: a job that was running when
+    /// the daemon stopped is queued again (counted in `resumed`).
+    pub fn load<'a>(runs_dir: &Path, ids: impl Iterator<Item = &'a String>) -> Jobs {
+        let mut jobs = BTreeMap::new();
+        for id in ids {
+            let root = runs_dir.join(id);
+            let Some(mut job) = read_job(&root) else {
+                continue;
+            };
+            if job.state == JobState::Running {
+                job.requeue();
+                job.resumed += 1;
+                if let Err(e) = write_job(&root, &job) {
+                    tracing::warn!("process job of {id}: {e}");
+                }
+            }
+            jobs.insert(id.clone(), job);
+        }
+        Jobs {
+            jobs: Mutex::new(jobs),
+            ..Default::default()
+        }
+    }
+
+    /// Run `id`'s job, if it has one.
+    pub fn get(&self, id: &str) -> Option<ProcessJob> {
+        lock(&self.jobs).get(id).cloned()
+    }
+
+    /// Stops the worker after the step it runs (or at once when idle).
+    pub fn stop(&self) {
+        self.stop.store(true, Ordering::SeqCst);
+        self.wake.notify_all();
+    }
+
+    /// Wakes the worker: a job was queued or a run ended.
+    pub fn notify(&self) {
+        self.wake.notify_all();
+    }
+
+    /// The oldest queued job whose run is `ready`; waits for one. A wake-up
+    /// lost between the check and the wait costs at most
+    /// [`IDLE_RECHECK`].
+    fn next_queued(&self, ready: &dyn Fn(&ProcessJob) -> bool) -> Option<String> {
+        let mut jobs = lock(&self.jobs);
+        loop {
+            if self.stop.load(Ordering::SeqCst) {
+                return None;
+            }
+            let next = jobs
+                .values()
+                .filter(|j| j.state == JobState::Queued && ready(j))
+                .min_by(|a, b| a.created_at.cmp(&b.created_at).then(a.run.cmp(&b.run)))
+                .map(|j| j.run.clone());
+            if next.is_some() {
+                return next;
+            }
+            jobs = match self.wake.wait_timeout(jobs, IDLE_RECHECK) {
+                Ok((g, _)) => g,
+                Err(p) => p.into_inner().0,
+            };
+        }
+    }
+
+    /// Changes run `id`'s job under the lock; returns the job after.
+    fn update(&self, id: &str, f: impl FnOnce(&mut ProcessJob)) -> Option<ProcessJob> {
+        let mut jobs = lock(&self.jobs);
+        let job = jobs.get_mut(id)?;
+        f(job);
+        Some(job.clone())
+    }
+}
+
+/// Whether a submission made a new job or found one.
+pub enum Submitted {
+    /// A job was queued (new, or a failed one resumed).
+    Queued(ProcessJob),
+    /// The same job is already queued, running or done.
+    Existing(ProcessJob),
+}
+
+impl Daemon {
+    /// Queues `options` for run `id`, or returns the same job if it is
+    /// already queued, running or done.
+    pub fn submit_processing(
+        &self,
+        id: &str,
+        options: ProcessOptions,
+    ) -> Result<Submitted, SupervisorError> {
+        let root = self
+            .run_root(id)
+            .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
+        let view = self
+            .view(id)
+            .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
+        if view.active
+            || !matches!(
+                view.state,
+                RunState::Completed | RunState::Aborted | RunState::Failed
+            )
+        {
+            return Err(SupervisorError::conflict(format!(
+                "run `{id}` is {}: a run is processed once it has ended (completed, aborted or failed)",
+                view.state
+            )));
+        }
+        let frames =
+            RunFrames::open(&root).map_err(|e| SupervisorError::internal(e.to_string()))?;
+        let options = options
+            .resolve(&RunFacts::of_run(&frames))
+            .map_err(SupervisorError::invalid)?;
+        if options.steps.contains(&Step::Rectify) {
+            if let Some(size) = view.frame_size {
+                pipeline::check_frame_size(size).map_err(SupervisorError::invalid)?;
+            }
+        }
+        let mut jobs = lock(&self.processing.jobs);
+        let job = match jobs.get(id) {
+            Some(j) if j.options == options && j.state != JobState::Failed => {
+                return Ok(Submitted::Existing(j.clone()));
+            }
+            Some(j) if j.state == JobState::Running => {
+                return Err(SupervisorError::conflict(format!(
+                    "run `{id}` is being processed with other options; ask again when it has ended"
+                )));
+            }
+            Some(j) if j.options == options => {
+                let mut j = j.clone();
+                j.requeue();
+                j
+            }
+            _ => ProcessJob::new(id, options),
+        };
+        write_job(&root, &job).map_err(SupervisorError::internal)?;
+        jobs.insert(id.to_string(), job.clone());
+        drop(jobs);
+        self.hub.publish(Some(id), "process", job.event());
+        self.processing.wake.notify_all();
+        Ok(Submitted::Queued(job))
+    }
+}
+
+impl Daemon {
+    /// Queues run `id`'s processing to start when its capture ends (the
+    /// options resolved and checked against its plan).
+    pub(crate) fn queue_after_capture(
+        &self,
+        id: &str,
+        options: ProcessOptions,
+    ) -> Result<(), SupervisorError> {
+        let root = self.runs_dir.join(id);
+        let mut job = ProcessJob::new(id, options);
+        job.after_capture = true;
+        write_job(&root, &job).map_err(SupervisorError::internal)?;
+        lock(&self.processing.jobs).insert(id.to_string(), job.clone());
+        self.hub.publish(Some(id), "process", job.event());
+        Ok(())
+    }
+}
+
+/// Starts the worker thread that runs the queued jobs one at a time.
+pub fn start_worker(daemon: &Arc<Daemon>) -> Result<(), String> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("rigd-process-{i}"))
+        .start_handler(|_| lower_priority())
+        .build()
+        .map_err(|e| e.to_string())?;
+    let d = daemon.clone();
+    std::thread::Builder::new()
+        .name("rigd-process".into())
+        .spawn(move || {
+            lower_priority();
+            let ready = |job: &ProcessJob| d.ready_to_process(&job.run, job.after_capture);
+            while let Some(id) = d.processing.next_queued(&ready) {
+                run_job(&d, &pool, &id);
+            }
+        })
+        .map_err(|e| e.to_string())?;
+    Ok(())
+}
+
+fn lower_priority() {
+    // SAFETY: setpriority on the calling thread (who = 0); a failure only
+    // leaves the thread at normal priority.
+    #[cfg(target_os = "linux")]
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, NICENESS);
+    }
+}
+
+fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
+    let Some(root) = d.run_root(id) else {
+        d.processing.update(id, |j| {
+            j.state = JobState::Failed;
+            j.error = Some("the run is gone".into());
+        });
+        return;
+    };
+    let persist = |job: &ProcessJob| {
+        if let Err(e) = write_job(&root, job) {
+            tracing::warn!("process job of {id}: {e}");
+        }
+        d.hub.publish(Some(id), "process", job.event());
+    };
+    let Some(job) = d.processing.update(id, |j| {
+        j.state = JobState::Running;
+        j.updated_at = crate::store::now_rfc3339();
+    }) else {
+        return;
+    };
+    persist(&job);
+    for (k, status) in job.steps.iter().enumerate() {
+        if status.state == JobState::Done {
+            continue;
+        }
+        if d.processing.stop.load(Ordering::SeqCst) {
+            // Left running on disk: the next start resumes here.
+            return;
+        }
+        let step = status.step;
+        if let Some(j) = d.processing.update(id, |j| {
+            j.steps[k].state = JobState::Running;
+            j.updated_at = crate::store::now_rfc3339();
+        }) {
+            persist(&j);
+        }
+        let started = Instant::now();
+        let last_event = Mutex::new(Instant::now() - EVENT_INTERVAL);
+        let progress = |done: usize, total: usize| {
+            let elapsed = started.elapsed().as_secs_f64();
+            let eta =
+                (done > 0 && total >= done).then(|| elapsed / done as f64 * (total - done) as f64);
+            let job = d.processing.update(id, |j| {
+                let s = &mut j.steps[k];
+                s.done = done;
+                s.total = total;
+                s.elapsed_s = elapsed;
+                s.eta_s = eta;
+            });
+            let mut last = lock(&last_event);
+            if done == total || last.elapsed() >= EVENT_INTERVAL {
+                *last = Instant::now();
+                if let Some(job) = job {
+                    d.hub.publish(Some(id), "process", job.event());
+                }
+            }
+        };
+        let options = job.options.clone();
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            pool.install(|| pipeline::run_step(&root, step, &options, &progress))
+        }));
+        let outcome = match result {
+            Ok(Ok(summary)) => Ok(summary),
+            Ok(Err(e)) => Err(format!("{}: {e}", step.name())),
+            Err(_) => Err(format!(
+                "{}: internal error (a panic; see the log)",
+                step.name()
+            )),
+        };
+        let elapsed = started.elapsed().as_secs_f64();
+        let failed = outcome.is_err();
+        if let Some(j) = d.processing.update(id, |j| {
+            let s = &mut j.steps[k];
+            s.elapsed_s = elapsed;
+            s.eta_s = None;
+            match outcome {
+                Ok(summary) => {
+                    s.state = JobState::Done;
+                    s.done = s.total;
+                    s.summary = Some(summary);
+                }
+                Err(e) => {
+                    tracing::warn!("processing {id}: {e}");
+                    s.state = JobState::Failed;
+                    j.state = JobState::Failed;
+                    j.error = Some(e);
+                }
+            }
+            j.updated_at = crate::store::now_rfc3339();
+        }) {
+            persist(&j);
+        }
+        if failed {
+            return;
+        }
+    }
+    if let Some(j) = d.processing.update(id, |j| {
+        j.state = JobState::Done;
+        j.updated_at = crate::store::now_rfc3339();
+    }) {
+        persist(&j);
+    }
+}
