@@ -228,41 +228,62 @@ pub(super) struct Blob {
     pub(super) touches_border: bool,
 }
 
+thread_local! {
+    /// A window-sized mask per thread, all false between uses: a
+    /// textured frame sends hundreds of candidate peaks through [`grow`]
+    /// and [`rings`], and clearing a fresh window-sized mask for each was
+    /// a visible share of a large frame's registration.
+    static MASK: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// Runs `f` with a zeroed mask of `len` entries; `f` returns the indices
+/// it set, which are zeroed again afterwards.
+fn with_mask<T>(len: usize, f: impl FnOnce(&mut [u8]) -> (T, Vec<usize>)) -> T {
+    MASK.with(|m| {
+        let mut mask = m.borrow_mut();
+        if mask.len() < len {
+            mask.resize(len, 0);
+        }
+        let (out, touched) = f(&mut mask[..len]);
+        for i in touched {
+            mask[i] = 0;
+        }
+        out
+    })
+}
+
 /// The 8-connected region above `threshold` around `seed`, or `None` when it
 /// grows beyond `max_pixels`.
 pub(super) fn grow(win: &Window, seed: usize, threshold: f32, max_pixels: usize) -> Option<Blob> {
     let (w, h) = (win.w, win.h);
-    // A mask, not a hash set: a window holds a few thousand pixels and a
-    // textured frame sends hundreds of candidate peaks through here.
-    let mut inside = vec![false; w * h];
-    let mut pixels = vec![seed];
-    inside[seed] = true;
-    let mut touches_border = false;
-    let mut k = 0;
-    while k < pixels.len() {
-        let i = pixels[k];
-        k += 1;
-        let (x, y) = (i % w, i / w);
-        if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
-            touches_border = true;
-        }
+    with_mask(w * h, |inside| {
+        let mut pixels = vec![seed];
+        inside[seed] = 1;
+        let mut touches_border = false;
         let mut overflow = false;
-        for_neighbours(i, w, h, |j| {
-            if win.v[j] > threshold && !inside[j] {
-                inside[j] = true;
-                pixels.push(j);
-                if pixels.len() > max_pixels {
-                    overflow = true;
-                }
+        let mut k = 0;
+        while k < pixels.len() && !overflow {
+            let i = pixels[k];
+            k += 1;
+            let (x, y) = (i % w, i / w);
+            if x == 0 || y == 0 || x + 1 == w || y + 1 == h {
+                touches_border = true;
             }
-        });
-        if overflow {
-            return None;
+            for_neighbours(i, w, h, |j| {
+                if win.v[j] > threshold && inside[j] == 0 {
+                    inside[j] = 1;
+                    pixels.push(j);
+                    if pixels.len() > max_pixels {
+                        overflow = true;
+                    }
+                }
+            });
         }
-    }
-    Some(Blob {
-        pixels,
-        touches_border,
+        let blob = (!overflow).then(|| Blob {
+            pixels: pixels.clone(),
+            touches_border,
+        });
+        (blob, pixels)
     })
 }
 
@@ -271,31 +292,33 @@ pub(super) fn rings(win: &Window, blob: &[usize]) -> (Vec<usize>, Vec<usize>) {
     const INSIDE: u8 = 1;
     const RING1: u8 = 2;
     const RING2: u8 = 3;
-    let mut mark = vec![0u8; win.w * win.h];
-    for &i in blob {
-        mark[i] = INSIDE;
-    }
-    let mut r1 = Vec::new();
-    for &i in blob {
-        for_neighbours(i, win.w, win.h, |j| {
-            if mark[j] == 0 {
-                mark[j] = RING1;
-                r1.push(j);
-            }
-        });
-    }
-    let mut r2 = Vec::new();
-    for &i in &r1 {
-        for_neighbours(i, win.w, win.h, |j| {
-            if mark[j] == 0 {
-                mark[j] = RING2;
-                r2.push(j);
-            }
-        });
-    }
-    r1.sort_unstable();
-    r2.sort_unstable();
-    (r1, r2)
+    with_mask(win.w * win.h, |mark| {
+        for &i in blob {
+            mark[i] = INSIDE;
+        }
+        let mut r1 = Vec::new();
+        for &i in blob {
+            for_neighbours(i, win.w, win.h, |j| {
+                if mark[j] == 0 {
+                    mark[j] = RING1;
+                    r1.push(j);
+                }
+            });
+        }
+        let mut r2 = Vec::new();
+        for &i in &r1 {
+            for_neighbours(i, win.w, win.h, |j| {
+                if mark[j] == 0 {
+                    mark[j] = RING2;
+                    r2.push(j);
+                }
+            });
+        }
+        r1.sort_unstable();
+        r2.sort_unstable();
+        let touched = blob.iter().chain(&r1).chain(&r2).copied().collect();
+        ((r1, r2), touched)
+    })
 }
 
 pub(super) fn median_f32(mut v: Vec<f32>) -> Option<f32> {

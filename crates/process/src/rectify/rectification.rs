@@ -109,9 +109,14 @@ pub fn rectify(
                                     opts.max_taps
                                 }
                             };
+                            // sqrt of the sum of squares, not hypot: this
+                            // runs per texel, the values are pixel scales
+                            // (no overflow), and libm's hypot was a tenth
+                            // of a 3032×2008 frame's rectification.
+                            let len = |a: f64, b: f64| (a * a + b * b).sqrt();
                             (
-                                col((j[0][0] * dx).hypot(j[1][0] * dx)),
-                                col((j[0][1] * dy).hypot(j[1][1] * dy)),
+                                col(len(j[0][0] * dx, j[1][0] * dx)),
+                                col(len(j[0][1] * dy, j[1][1] * dy)),
                             )
                         }
                         None => (1, 1),
