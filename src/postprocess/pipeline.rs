@@ -389,10 +389,16 @@ pub fn run_step(
                         .join(", ")
                 })
                 .unwrap_or_default();
+            let resumed = index.summary.as_ref().map_or(0, |s| s.resumed_frames);
             Ok(format!(
-                "{} frames into {}² textures ({by_method})",
+                "{} frames into {}² textures ({by_method}){}",
                 index.frames.len(),
-                index.size
+                index.size,
+                if resumed > 0 {
+                    format!("; {resumed} taken from the interrupted run")
+                } else {
+                    String::new()
+                }
             ))
         }
         Step::Btf => {

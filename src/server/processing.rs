@@ -7,9 +7,10 @@
 //! - Each job is kept in `RUN/processed/job.json`, rewritten atomically at
 //!   every step's start and end. A daemon that stops or dies mid-job finds
 //!   the job at its next start and resumes it: the steps done are kept, the
-//!   step that was running runs again from its start (each step writes its
-//!   files atomically and its index last, so a cut step leaves nothing a
-//!   reader would take for a result).
+//!   step that was running runs again (each step writes its index last, so
+//!   a cut step leaves nothing a reader would take for a result; `rectify`
+//!   keeps each frame's first pass and registers only the frames it had
+//!   not done).
 //! - Asking again for what is queued, running or done with the same
 //!   options returns that job and does no work twice; a failed job asked
 //!   again resumes from the step that failed.

@@ -293,6 +293,24 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
         .await;
     assert_eq!(v["processing"]["state"], "done", "{v}");
     assert_eq!(v["processing"]["resumed"], 1, "{v}");
+    // The frames registered before the kill were not registered again.
+    let summary = v["processing"]["steps"][0]["summary"]
+        .as_str()
+        .unwrap_or("");
+    let taken: usize = summary
+        .split("; ")
+        .nth(1)
+        .and_then(|t| t.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(0);
+    assert!(
+        taken >= 4,
+        "frames taken from the interrupted run: {summary}"
+    );
+    assert!(
+        !run.join("processed/normtextures/first-pass").exists(),
+        "the first-pass store is removed with the step's end"
+    );
     assert_eq!(v["processed"], "btf", "{v}");
 
     for args in [

@@ -223,6 +223,10 @@ pub struct RegistrationSummary {
     pub pose_texture_error_px: Option<f64>,
     /// Frames `pose_texture_error_px` was measured on.
     pub pose_texture_checked: usize,
+    /// Frames whose first pass came from an earlier run of the step that
+    /// was cut short (not registered again).
+    #[serde(default)]
+    pub resumed_frames: usize,
 }
 
 impl RegistrationSummary {
@@ -232,6 +236,13 @@ impl RegistrationSummary {
         let mut out = String::from("method         frames\n");
         for (m, n) in &self.frames_by_method {
             let _ = writeln!(out, "{m:<14} {n:>6}");
+        }
+        if self.resumed_frames > 0 {
+            let _ = writeln!(
+                out,
+                "{} frames taken from an interrupted run of this step",
+                self.resumed_frames
+            );
         }
         if self.frames_without_texture > 0 {
             let _ = writeln!(
@@ -347,6 +358,7 @@ fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
     Ok((Holder::standard(), [half, half]))
 }
 
+mod resume;
 mod run;
 mod steps;
 pub use run::rectify_run;

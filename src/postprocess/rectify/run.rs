@@ -2,6 +2,7 @@
 //! [`super::steps`], in the order that lets the fallbacks learn from the
 //! frames the markers registered.
 
+use super::resume::FirstPassStore;
 use super::steps::*;
 use super::*;
 
@@ -85,12 +86,26 @@ pub fn rectify_run(
     };
     let bit_depth = run.entries.first().map_or(8, |e| e.bit_depth);
 
-    // 1. Markers, where they are found.
+    // 1. Markers, where they are found; frames an interrupted run of this
+    // step had done come from its store.
+    let store = FirstPassStore::new(&out_dir, cfg);
+    let resumed = std::sync::atomic::AtomicUsize::new(0);
     let mut first: Vec<FirstPass> = slots
         .par_iter()
         .enumerate()
         .map(|(position, &(view_slot, light_index))| {
-            let f = rectifier.first_pass(position, view_slot, light_index);
+            let entry = &run.entries[position];
+            let f = match store.load(entry, position, view_slot, light_index) {
+                Some(f) => {
+                    resumed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                    f
+                }
+                None => {
+                    let f = rectifier.first_pass(position, view_slot, light_index);
+                    store.keep(entry, view_slot, light_index, &f);
+                    f
+                }
+            };
             // Progress follows this pass, which reads every frame; the
             // fallbacks after it are a few frames in a healthy run.
             tick();
@@ -396,6 +411,7 @@ pub fn rectify_run(
         pose_error_px,
         pose_texture_error_px,
         pose_texture_checked: texture_errors.len(),
+        resumed_frames: resumed.into_inner(),
     };
     let index = NormtextureIndex {
         frames,
@@ -407,6 +423,7 @@ pub fn rectify_run(
         serde_json::to_vec_pretty(&index).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     json.push(b'\n');
     crate::store::write_atomic(&path, &json)?;
+    store.remove();
     if !failed_slots.is_empty() {
         let described: Vec<String> = failed_slots
             .iter()
