@@ -1160,6 +1160,8 @@ async fn view_and_compare(
     )
     .await;
     eprintln!("after Process: {bar_seen}");
+    let png = c.screenshot().await.expect("screenshot");
+    std::fs::write(out.join("dashboard-processing.png"), png).expect("write the screenshot");
     let link = format!("{row} [data-testid=open-viewer]");
     wait_js(
         c,

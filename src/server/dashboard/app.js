@@ -585,8 +585,12 @@ function processCell(r) {
   if (!ended) return td;
   if (p && p.state === "failed") {
     td.append(text("span", "failed", { class: "state state-failed", title: p.error || "" }), " ");
+  } else if (r.processed) {
+    // Processed outside the daemon (`rigd process`).
+    td.append(text("span", "processed", { class: "state state-completed", title: "by rigd process" }), " ");
   }
-  const b = text("button", p && p.state === "failed" ? "Retry" : "Process", {
+  const label = p && p.state === "failed" ? "Retry" : r.processed ? "Process again" : "Process";
+  const b = text("button", label, {
     type: "button", class: "small", "data-testid": "process",
     title: "Rectify and compress this run (or photometric stereo, or the MDF, as the run calls for) in the daemon",
   });
