@@ -49,6 +49,12 @@ pub(super) const MAX_REFERENCE_LIGHT_DEG: f64 = 20.0;
 pub(super) const TEXTURE_CHECKS: usize = 16;
 /// An unusable frame is filled from this many nearest lights of its slot.
 pub(super) const FILL_NEIGHBOURS: usize = 3;
+/// Largest marker blob accepted, as a multiple of the largest disc area
+/// the pose predicts (blur, the holder offset and the scale's error fit in
+/// it many times over).
+pub(super) const MARKER_AREA_MARGIN: f64 = 6.0;
+/// The bound never falls below this many pixels (tiny frames).
+pub(super) const MIN_MARKER_AREA_BOUND_PX: f64 = 64.0;
 
 /// One frame after the first pass: its registration record and the two
 /// homographies (markers, pose) it has.
@@ -108,8 +114,31 @@ impl Rectifier<'_> {
             .map(|p| camera.project([p[0], p[1], 0.0]))
             .collect();
         let radius = (0.03 * f64::from(entry.width.max(entry.height))).max(6.0);
-        let detections = rect::detect_markers(image, &predicted, radius, &Default::default())
-            .map_err(|e| e.to_string())?;
+        // Blobs are accepted up to a few times the largest disc the pose
+        // predicts, not the default's fixed 5000 px: the search window's
+        // margin grows with that bound, and on a small textured frame the
+        // fixed bound made each window most of the frame.
+        let r = self.layout.radius_m;
+        let predicted_area = self
+            .layout
+            .points
+            .iter()
+            .filter_map(|p| {
+                let c = camera.project([p[0], p[1], 0.0])?;
+                let a = camera.project([p[0] + r, p[1], 0.0])?;
+                let b = camera.project([p[0], p[1] + r, 0.0])?;
+                let (da, db) = ([a[0] - c[0], a[1] - c[1]], [b[0] - c[0], b[1] - c[1]]);
+                Some(std::f64::consts::PI * (da[0] * db[1] - da[1] * db[0]).abs())
+            })
+            .fold(0.0, f64::max);
+        let defaults = rect::DetectOptions::default();
+        let opts = rect::DetectOptions {
+            max_area_px: (MARKER_AREA_MARGIN * predicted_area)
+                .clamp(MIN_MARKER_AREA_BOUND_PX, defaults.max_area_px),
+            ..defaults
+        };
+        let detections =
+            rect::detect_markers(image, &predicted, radius, &opts).map_err(|e| e.to_string())?;
         rect::register(&self.layout, &detections, &Default::default()).map_err(|e| e.to_string())
     }
 
