@@ -259,12 +259,17 @@ impl Jobs {
         }
     }
 
+    /// Runs `f` on run `id`'s job under the lock.
+    fn with_job<T>(&self, id: &str, f: impl FnOnce(&mut ProcessJob) -> T) -> Option<T> {
+        lock(&self.jobs).get_mut(id).map(f)
+    }
+
     /// Changes run `id`'s job under the lock; returns the job after.
     fn update(&self, id: &str, f: impl FnOnce(&mut ProcessJob)) -> Option<ProcessJob> {
-        let mut jobs = lock(&self.jobs);
-        let job = jobs.get_mut(id)?;
-        f(job);
-        Some(job.clone())
+        self.with_job(id, |job| {
+            f(job);
+            job.clone()
+        })
     }
 }
 
@@ -429,19 +434,26 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
             let elapsed = started.elapsed().as_secs_f64();
             let eta =
                 (done > 0 && total >= done).then(|| elapsed / done as f64 * (total - done) as f64);
-            let job = d.processing.update(id, |j| {
+            let due = {
+                let mut last = lock(&last_event);
+                let due = done == total || last.elapsed() >= EVENT_INTERVAL;
+                if due {
+                    *last = Instant::now();
+                }
+                due
+            };
+            // Called per frame: the job is only copied into an event when
+            // one is due.
+            let event = d.processing.with_job(id, |j| {
                 let s = &mut j.steps[k];
                 s.done = done;
                 s.total = total;
                 s.elapsed_s = elapsed;
                 s.eta_s = eta;
+                due.then(|| j.event())
             });
-            let mut last = lock(&last_event);
-            if done == total || last.elapsed() >= EVENT_INTERVAL {
-                *last = Instant::now();
-                if let Some(job) = job {
-                    d.hub.publish(Some(id), "process", job.event());
-                }
+            if let Some(event) = event.flatten() {
+                d.hub.publish(Some(id), "process", event);
             }
         };
         let options = job.options.clone();
