@@ -12,7 +12,11 @@ use rigd::engine::{Outcome, PausePolicy};
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
 use rigd::plan::Order;
-use rigd::postprocess::pipeline::{check_frame_size, run_step, ProcessOptions, RunFacts, Step};
+use rigd::postprocess::pipeline::{
+    background_pool, check_frame_size, run_step, stream_rectify, ProcessOptions, RunFacts, Step,
+};
+use rigd::postprocess::rectify::StreamProgress;
+use rigd::postprocess::ProcessError;
 use rigd::rig::FaultRule;
 use rigd::schedule::timing::parse_exposure_s;
 use rigd_core::Clock;
@@ -63,11 +67,12 @@ pub struct RunArgs {
     /// optimised; laser plans keep theirs].
     #[arg(long, value_enum)]
     pub order: Option<Order>,
-    /// Process the run once its capture completes: steps rectify, btf,
-    /// fit, mdf, photometric-stereo (comma-separated), with the daemon's
-    /// defaults (`docs/api.md`, "Processing"); `auto` picks them from the
-    /// plan. Refused before the capture when the frames are too small for
-    /// the holder's markers.
+    /// Process the run: steps rectify, btf, fit, mdf, photometric-stereo
+    /// (comma-separated), with the daemon's defaults (`docs/api.md`,
+    /// "Processing"); `auto` picks them from the plan. Frames are
+    /// registered as they are journaled, on background threads at nice 10;
+    /// the rest runs once the capture completes. Refused before the
+    /// capture when the frames are too small for the holder's markers.
     #[arg(long, value_delimiter = ',')]
     pub process: Vec<String>,
     /// Resume the run in this directory (all other run options come from it).
@@ -214,10 +219,27 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
             }
         };
         let root = prepared.root.clone();
-        let code = drive(prepared, args.progress).await?;
-        match process {
-            Some(options) if code == ExitCode::SUCCESS => process_run(&root, &options),
-            _ => Ok(code),
+        let capturing = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let stream = process
+            .clone()
+            .map(|options| stream_during_capture(&root, options, capturing.clone()));
+        let code = drive(prepared, args.progress).await;
+        capturing.store(false, std::sync::atomic::Ordering::SeqCst);
+        if let Some(Some(thread)) = stream {
+            match thread.join() {
+                Ok(Ok(Some(p))) => eprintln!(
+                    "rectify: {} of {} journaled frames registered during the capture",
+                    p.done, p.journaled
+                ),
+                Ok(Ok(None)) => {}
+                // The `rectify` step registers whatever the stream did not.
+                Ok(Err(e)) => eprintln!("rectify during the capture stopped: {e}"),
+                Err(_) => eprintln!("rectify during the capture stopped (a panic)"),
+            }
+        }
+        match (process, code?) {
+            (Some(options), ExitCode::SUCCESS) => process_run(&root, &options),
+            (_, code) => Ok(code),
         }
     })
 }
@@ -242,6 +264,28 @@ fn processing_options(
         check_frame_size(size).map_err(|e| bad_input(format!("--process: {e}")))?;
     }
     Ok(options)
+}
+
+/// Registers the run's frames as they are journaled, on a background pool,
+/// until `capturing` turns false; None when the pool cannot be made (then
+/// the `rectify` step does it all after the capture).
+fn stream_during_capture(
+    root: &std::path::Path,
+    options: ProcessOptions,
+    capturing: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> Option<std::thread::JoinHandle<Result<Option<StreamProgress>, ProcessError>>> {
+    let root = root.to_path_buf();
+    let pool = match background_pool("rigd-stream") {
+        Ok(pool) => pool,
+        Err(e) => {
+            eprintln!("rectify during the capture: {e}; it runs after the capture");
+            return None;
+        }
+    };
+    std::thread::Builder::new()
+        .name("rigd-stream".into())
+        .spawn(move || stream_rectify(&root, &options, &pool, &capturing))
+        .ok()
 }
 
 /// Runs the steps of `--process` on the completed run at `root`.

@@ -361,6 +361,68 @@ impl ProcessOptions {
     }
 }
 
+/// Niceness of the processing threads (Linux: per thread), so a capture's
+/// device calls are scheduled before them.
+const NICENESS: i32 = 10;
+/// Frames a stream registers between two looks at the journal.
+pub const STREAM_BATCH: usize = 32;
+/// How long a stream that found nothing new waits before it looks again.
+pub const STREAM_POLL: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// Lowers the calling thread's priority to [`NICENESS`].
+pub fn lower_priority() {
+    // SAFETY: setpriority on the calling thread (who = 0); a failure only
+    // leaves the thread at normal priority.
+    #[cfg(target_os = "linux")]
+    unsafe {
+        libc::setpriority(libc::PRIO_PROCESS, 0, NICENESS);
+    }
+}
+
+/// A rayon pool of one thread per core, each at [`NICENESS`]: processing
+/// beside a capture takes the cores the capture leaves idle.
+pub fn background_pool(name: &'static str) -> Result<rayon::ThreadPool, String> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(move |i| format!("{name}-{i}"))
+        .start_handler(|_| lower_priority())
+        .build()
+        .map_err(|e| e.to_string())
+}
+
+/// Rectifies the frames of the run at `root` as they are journaled, on
+/// `pool`, until `capturing` turns false (`rigd run --process rectify,…`;
+/// the daemon interleaves the same batches with its job queue). Returns
+/// the last progress; the `rectify` step afterwards takes these frames
+/// from the store. Nothing to stream (no `rectify` step) returns at once.
+pub fn stream_rectify(
+    root: &Path,
+    opts: &ProcessOptions,
+    pool: &rayon::ThreadPool,
+    capturing: &std::sync::atomic::AtomicBool,
+) -> Result<Option<super::rectify::StreamProgress>, ProcessError> {
+    use std::sync::atomic::Ordering;
+    if !opts.steps.contains(&Step::Rectify) {
+        return Ok(None);
+    }
+    let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
+    let mut stream = super::rectify::RectifyStream::new(root, cfg)?;
+    let mut last = None;
+    while capturing.load(Ordering::SeqCst) {
+        let before = last.map_or(0, |l: super::rectify::StreamProgress| l.done);
+        let p = pool.install(|| stream.catch_up(STREAM_BATCH))?;
+        last = Some(p);
+        if p.done == before {
+            let idle = std::time::Instant::now();
+            while capturing.load(Ordering::SeqCst) && idle.elapsed() < STREAM_POLL {
+                std::thread::sleep(std::time::Duration::from_millis(50));
+            }
+        }
+    }
+    Ok(last)
+}
+
 /// Progress of a step: `(done, total)` in the step's own units (frames,
 /// view slots, sweeps, rows).
 pub type StepProgress<'a> = &'a (dyn Fn(usize, usize) + Sync);
@@ -395,7 +457,9 @@ pub fn run_step(
                 index.frames.len(),
                 index.size,
                 if resumed > 0 {
-                    format!("; {resumed} taken from the interrupted run")
+                    format!(
+                        "; {resumed} registered before, during the capture or an interrupted run"
+                    )
                 } else {
                     String::new()
                 }

@@ -35,10 +35,11 @@ use crate::postprocess::pipeline::{self, ProcessOptions, RunFacts, Step};
 pub const JOB_FILE: &str = "job.json";
 /// Least wall time between two progress events of a step.
 const EVENT_INTERVAL: Duration = Duration::from_millis(500);
-/// Niceness of the processing threads (Linux: per thread).
-const NICENESS: i32 = 10;
-/// How often an idle worker looks at the queue without being woken.
-const IDLE_RECHECK: Duration = Duration::from_secs(2);
+/// How often an idle worker looks at the queue without being woken, and
+/// at a capturing run's journal for frames to register.
+const IDLE_RECHECK: Duration = pipeline::STREAM_POLL;
+/// How long a stream that failed waits before it tries again.
+const STREAM_RETRY: Duration = Duration::from_secs(30);
 
 /// Where a job or one of its steps is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
@@ -97,6 +98,11 @@ pub struct ProcessJob {
     /// the capture to complete or be aborted.
     #[serde(default)]
     pub after_capture: bool,
+    /// Frames from the start of the capture whose registration (the
+    /// `rectify` step's first pass) was done while the capture ran; the
+    /// step takes them as they are.
+    #[serde(default)]
+    pub streamed: usize,
 }
 
 impl ProcessJob {
@@ -124,6 +130,7 @@ impl ProcessJob {
             updated_at: now,
             resumed: 0,
             after_capture: false,
+            streamed: 0,
         }
     }
 
@@ -155,6 +162,7 @@ impl ProcessJob {
             "steps_done": self.steps.iter().filter(|s| s.state == JobState::Done).count(),
             "steps_total": self.steps.len(),
             "error": self.error,
+            "streamed": self.streamed,
         })
     }
 }
@@ -235,22 +243,31 @@ impl Jobs {
         self.wake.notify_all();
     }
 
-    /// The oldest queued job whose run is `ready`; waits for one. A wake-up
-    /// lost between the check and the wait costs at most
+    /// The oldest queued job whose run is `ready`, else the oldest queued
+    /// job whose capture has frames to register (`streamable`); waits for
+    /// one. A wake-up lost between the check and the wait costs at most
     /// [`IDLE_RECHECK`].
-    fn next_queued(&self, ready: &dyn Fn(&ProcessJob) -> bool) -> Option<String> {
+    fn next_work(
+        &self,
+        ready: &dyn Fn(&ProcessJob) -> bool,
+        streamable: &dyn Fn(&ProcessJob) -> bool,
+    ) -> Option<Work> {
         let mut jobs = lock(&self.jobs);
         loop {
             if self.stop.load(Ordering::SeqCst) {
                 return None;
             }
-            let next = jobs
-                .values()
-                .filter(|j| j.state == JobState::Queued && ready(j))
-                .min_by(|a, b| a.created_at.cmp(&b.created_at).then(a.run.cmp(&b.run)))
-                .map(|j| j.run.clone());
-            if next.is_some() {
-                return next;
+            let oldest = |pick: &dyn Fn(&ProcessJob) -> bool| {
+                jobs.values()
+                    .filter(|j| j.state == JobState::Queued && pick(j))
+                    .min_by(|a, b| a.created_at.cmp(&b.created_at).then(a.run.cmp(&b.run)))
+                    .map(|j| j.run.clone())
+            };
+            if let Some(id) = oldest(ready) {
+                return Some(Work::Job(id));
+            }
+            if let Some(id) = oldest(streamable) {
+                return Some(Work::Stream(id));
             }
             jobs = match self.wake.wait_timeout(jobs, IDLE_RECHECK) {
                 Ok((g, _)) => g,
@@ -271,6 +288,14 @@ impl Jobs {
             job.clone()
         })
     }
+}
+
+/// What the worker does next.
+enum Work {
+    /// Run the job of this run.
+    Job(String),
+    /// Register the frames this capturing run journaled since the last look.
+    Stream(String),
 }
 
 /// Whether a submission made a new job or found one.
@@ -360,35 +385,105 @@ impl Daemon {
     }
 }
 
-/// Starts the worker thread that runs the queued jobs one at a time.
+/// Starts the worker thread that runs the queued jobs one at a time, and
+/// between them registers the frames of a capture whose job waits for it.
 pub fn start_worker(daemon: &Arc<Daemon>) -> Result<(), String> {
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .thread_name(|i| format!("rigd-process-{i}"))
-        .start_handler(|_| lower_priority())
-        .build()
-        .map_err(|e| e.to_string())?;
+    let pool = pipeline::background_pool("rigd-process")?;
     let d = daemon.clone();
     std::thread::Builder::new()
         .name("rigd-process".into())
         .spawn(move || {
-            lower_priority();
+            pipeline::lower_priority();
+            let mut streams = Streams::default();
             let ready = |job: &ProcessJob| d.ready_to_process(&job.run, job.after_capture);
-            while let Some(id) = d.processing.next_queued(&ready) {
-                run_job(&d, &pool, &id);
+            loop {
+                let streamable = |job: &ProcessJob| {
+                    job.after_capture
+                        && job
+                            .steps
+                            .iter()
+                            .any(|s| s.step == Step::Rectify && s.state != JobState::Done)
+                        && streams.due(&job.run)
+                        && d.capturing(&job.run)
+                };
+                match d.processing.next_work(&ready, &streamable) {
+                    Some(Work::Job(id)) => {
+                        streams.runs.remove(&id);
+                        run_job(&d, &pool, &id);
+                    }
+                    Some(Work::Stream(id)) => streams.advance(&d, &pool, &id),
+                    None => break,
+                }
             }
         })
         .map_err(|e| e.to_string())?;
     Ok(())
 }
 
-fn lower_priority() {
-    // SAFETY: setpriority on the calling thread (who = 0); a failure only
-    // leaves the thread at normal priority.
-    #[cfg(target_os = "linux")]
-    unsafe {
-        libc::setpriority(libc::PRIO_PROCESS, 0, NICENESS);
+/// The rectification streams of capturing runs whose job waits for them.
+#[derive(Default)]
+struct Streams {
+    runs: BTreeMap<String, crate::postprocess::rectify::RectifyStream>,
+    /// When a stream that found nothing new (or failed) looks again.
+    not_before: BTreeMap<String, Instant>,
+}
+
+impl Streams {
+    fn due(&self, id: &str) -> bool {
+        self.not_before.get(id).is_none_or(|t| Instant::now() >= *t)
+    }
+
+    /// Registers the next batch of run `id`'s journaled frames.
+    fn advance(&mut self, d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
+        let retry_later = |streams: &mut Streams, e: String| {
+            tracing::warn!(
+                "registering {id}'s frames during the capture: {e}; again in {STREAM_RETRY:?}"
+            );
+            streams
+                .not_before
+                .insert(id.to_string(), Instant::now() + STREAM_RETRY);
+        };
+        let (Some(root), Some(job)) = (d.run_root(id), d.processing.get(id)) else {
+            return;
+        };
+        if !self.runs.contains_key(id) {
+            let stream = job
+                .options
+                .rectify
+                .config()
+                .map_err(crate::postprocess::ProcessError::Invalid)
+                .and_then(|cfg| crate::postprocess::rectify::RectifyStream::new(&root, cfg));
+            match stream {
+                Ok(s) => {
+                    self.runs.insert(id.to_string(), s);
+                }
+                Err(e) => return retry_later(self, e.to_string()),
+            }
+        }
+        let Some(stream) = self.runs.get_mut(id) else {
+            return;
+        };
+        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            pool.install(|| stream.catch_up(pipeline::STREAM_BATCH))
+        }));
+        match result {
+            Ok(Ok(p)) => {
+                if p.done == job.streamed {
+                    self.not_before
+                        .insert(id.to_string(), Instant::now() + pipeline::STREAM_POLL);
+                } else {
+                    self.not_before.remove(id);
+                    if let Some(event) = d.processing.with_job(id, |j| {
+                        j.streamed = p.done;
+                        j.event()
+                    }) {
+                        d.hub.publish(Some(id), "process", event);
+                    }
+                }
+            }
+            Ok(Err(e)) => retry_later(self, e.to_string()),
+            Err(_) => retry_later(self, "internal error (a panic; see the log)".into()),
+        }
     }
 }
 

@@ -591,6 +591,11 @@ impl Daemon {
         }
     }
 
+    /// Whether run `id` is the active run (capturing, paused or preparing).
+    pub(crate) fn capturing(&self, id: &str) -> bool {
+        self.inner().runs.get(id).is_some_and(|v| v.active)
+    }
+
     /// Whether run `id`'s process job may run now: the run has ended, and
     /// a job queued with the run (`after_capture`) waits for its capture
     /// to complete or be aborted (a failed run may still be resumed).

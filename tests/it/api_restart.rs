@@ -297,12 +297,7 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
     let summary = v["processing"]["steps"][0]["summary"]
         .as_str()
         .unwrap_or("");
-    let taken: usize = summary
-        .split("; ")
-        .nth(1)
-        .and_then(|t| t.split(' ').next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or(0);
+    let taken = frames_registered_before(summary);
     assert!(
         taken >= 4,
         "frames taken from the interrupted run: {summary}"
@@ -313,13 +308,20 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
     );
     assert_eq!(v["processed"], "btf", "{v}");
 
+    assert_same_btf_as_cli(&run, &reference);
+}
+
+/// Processes the copy `reference` of a run from the command line in one go
+/// (`rectify --size 512 --final 64`, `btf --components 8`) and checks that
+/// the daemon's BTF of `run` is byte for byte the same.
+fn assert_same_btf_as_cli(run: &Path, reference: &Path) {
     for args in [
         vec!["process", "rectify", "--size", "512", "--final", "64"],
         vec!["process", "btf", "--components", "8"],
     ] {
         let o = common::rigd()
             .args(&args)
-            .arg(&reference)
+            .arg(reference)
             .output()
             .expect("rigd process");
         assert!(
@@ -341,4 +343,76 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
         }
         assert!(got[name] == *bytes, "processed/btf/{name} differs");
     }
+}
+
+/// The number at the start of the `rectify` summary's second clause: the
+/// frames taken from first passes done before the step ran.
+fn frames_registered_before(summary: &str) -> usize {
+    summary
+        .split("; ")
+        .nth(1)
+        .and_then(|t| t.split(' ').next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(0)
+}
+
+/// A run asked for with `process` registers its frames while it captures.
+/// Killed (-9) in the middle, restarted and resumed, it completes both the
+/// capture and the processing: the frames registered before the kill are
+/// not registered again, and the BTF is byte for byte the one the command
+/// line makes from the same frames in one go.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Slow enough (about 0.2 s per frame) that frames are registered
+    // while the capture runs, even on a loaded machine.
+    let mut d = spawn(dir.path(), 25.0);
+    let body = serde_json::json!({"sample": "corduroy", "plan": small_plan(8),
+        "frame_size": [320, 240], "operator": "tester",
+        "process": {"rectify": {"size": 512, "final": 64}, "btf": {"components": 8}}});
+    let (status, v) = d.post("/api/v1/runs", Some(body)).await;
+    assert_eq!(status, 201, "{v}");
+    let id = v["id"].as_str().expect("id").to_string();
+    let v = d
+        .wait_run(&id, |v| {
+            v["processing"]["streamed"].as_u64() >= Some(8) || v["active"] == false
+        })
+        .await;
+    assert_eq!(v["state"], "running", "killed while capturing: {v}");
+    assert_eq!(v["processing"]["state"], "queued", "{v}");
+    d.child.kill().expect("kill -9");
+    let _ = d.child.wait();
+    drop(d);
+    let run = dir.path().join("runs").join(&id);
+    let kept = std::fs::read_dir(run.join("processed/normtextures/first-pass"))
+        .expect("first passes kept during the capture")
+        .count();
+    assert!(kept >= 8, "{kept} first passes kept");
+
+    let d = spawn(dir.path(), 25.0);
+    let (status, v) = d.post(&format!("/api/v1/runs/{id}/resume"), None).await;
+    assert_eq!(status, 200, "{v}");
+    let v = d
+        .wait_run(&id, |v| {
+            matches!(v["processing"]["state"].as_str(), Some("done" | "failed"))
+        })
+        .await;
+    assert_eq!(v["state"], "completed", "{v}");
+    assert_eq!(v["processing"]["state"], "done", "{v}");
+    assert_complete_run(&run, IMAGES);
+    let summary = v["processing"]["steps"][0]["summary"]
+        .as_str()
+        .unwrap_or("");
+    let before = frames_registered_before(summary);
+    assert!(
+        before >= kept && before <= IMAGES,
+        "{kept} kept at the kill, {before} taken by the step: {summary}"
+    );
+    assert!(!run.join("processed/normtextures/first-pass").exists());
+
+    let reference = tempfile::tempdir().expect("tempdir");
+    let reference = reference.path().join(&id);
+    copy_tree(&run, &reference);
+    std::fs::remove_dir_all(reference.join("processed")).expect("a fresh copy");
+    assert_same_btf_as_cli(&run, &reference);
 }

@@ -361,7 +361,9 @@ fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
 mod resume;
 mod run;
 mod steps;
+mod stream;
 pub use run::rectify_run;
 pub use steps::{
     BLACK_FLOOR, BLACK_P99, BLACK_RATIO, MARKER_DOUBT_FACTOR, MARKER_DOUBT_PX, SATURATED_FRACTION,
 };
+pub use stream::{RectifyStream, StreamProgress};

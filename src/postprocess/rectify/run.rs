@@ -29,31 +29,9 @@ pub fn rectify_run(
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<NormtextureIndex, ProcessError> {
     use rayon::prelude::*;
-    use rigd_process::rectify::{self as rect, MarkerLayout};
-    if cfg.blend >= cfg.final_size {
-        return Err(ProcessError::Invalid(format!(
-            "edge blend of {} texels: must be narrower than the {}-texel texture",
-            cfg.blend, cfg.final_size
-        )));
-    }
-    if cfg.final_size == 0 || cfg.size == 0 || !(cfg.roi > 0.0 && cfg.roi <= 1.0) {
-        return Err(ProcessError::Invalid(format!(
-            "size {}, ROI {}, final size {}: expected positive sizes and 0 < ROI ≤ 1",
-            cfg.size, cfg.roi, cfg.final_size
-        )));
-    }
-    let (holder, sample_half) = holder_of(&run.meta)?;
-    let points: Vec<[f64; 2]> = holder
-        .markers()
-        .into_iter()
-        .filter(|m| m.kind == "point")
-        .map(|m| m.position)
-        .collect();
-    let layout = MarkerLayout {
-        points,
-        radius_m: holder.point_radius,
-        sample_half,
-    };
+    use rigd_process::rectify as rect;
+    check_config(cfg)?;
+    let (holder, layout) = holder_layout(&run.meta)?;
     let out_dir = crate::store::processed::normtextures_dir(&run.root);
     std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
         path: out_dir.clone(),
@@ -67,17 +45,7 @@ pub fn rectify_run(
         layout,
         out_dir: out_dir.clone(),
     };
-    let (mut lights, mut views) = (Vec::new(), Vec::new());
-    let slots: Vec<(usize, usize)> = run
-        .entries
-        .iter()
-        .map(|e| {
-            (
-                slot_of(&mut views, e.view.canonical()),
-                slot_of(&mut lights, e.light.canonical()),
-            )
-        })
-        .collect();
+    let (lights, views, slots) = assign_slots(&run.entries);
     let done = std::sync::atomic::AtomicUsize::new(0);
     let total = run.entries.len();
     let tick = || {
@@ -449,4 +417,66 @@ pub fn rectify_run(
         )));
     }
     Ok(index)
+}
+
+/// Checks the sizes of a rectification before any frame is read.
+pub(super) fn check_config(cfg: &RectifyConfig) -> Result<(), ProcessError> {
+    if cfg.blend >= cfg.final_size {
+        return Err(ProcessError::Invalid(format!(
+            "edge blend of {} texels: must be narrower than the {}-texel texture",
+            cfg.blend, cfg.final_size
+        )));
+    }
+    if cfg.final_size == 0 || cfg.size == 0 || !(cfg.roi > 0.0 && cfg.roi <= 1.0) {
+        return Err(ProcessError::Invalid(format!(
+            "size {}, ROI {}, final size {}: expected positive sizes and 0 < ROI ≤ 1",
+            cfg.size, cfg.roi, cfg.final_size
+        )));
+    }
+    Ok(())
+}
+
+/// The run's holder and the layout of its point markers around the sample.
+pub(super) fn holder_layout(
+    meta: &crate::store::RunMeta,
+) -> Result<
+    (
+        rigd_core::holder::Holder,
+        rigd_process::rectify::MarkerLayout,
+    ),
+    ProcessError,
+> {
+    let (holder, sample_half) = holder_of(meta)?;
+    let points: Vec<[f64; 2]> = holder
+        .markers()
+        .into_iter()
+        .filter(|m| m.kind == "point")
+        .map(|m| m.position)
+        .collect();
+    let layout = rigd_process::rectify::MarkerLayout {
+        points,
+        radius_m: holder.point_radius,
+        sample_half,
+    };
+    Ok((holder, layout))
+}
+
+/// The run's light and view directions in order of first appearance, and
+/// each entry's (view slot, light index). A frame's slot depends only on
+/// the frames before it, so the slots of a journal's prefix are those the
+/// whole run gives them: what lets [`super::RectifyStream`] work ahead.
+pub(super) fn assign_slots(
+    entries: &[crate::store::FrameEntry],
+) -> (Vec<Direction>, Vec<Direction>, Vec<(usize, usize)>) {
+    let (mut lights, mut views) = (Vec::new(), Vec::new());
+    let slots = entries
+        .iter()
+        .map(|e| {
+            (
+                slot_of(&mut views, e.view.canonical()),
+                slot_of(&mut lights, e.light.canonical()),
+            )
+        })
+        .collect();
+    (lights, views, slots)
 }

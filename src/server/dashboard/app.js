@@ -558,6 +558,7 @@ function processStatus(r) {
     steps_done: job.steps.filter((s) => s.state === "done").length,
     steps_total: job.steps.length,
     error: job.error,
+    streamed: job.streamed || 0,
   };
 }
 
@@ -569,6 +570,12 @@ function processCell(r) {
     bar.max = p.total || 1;
     bar.value = p.done || 0;
     let label = "queued";
+    if (p.state === "queued" && p.streamed > 0) {
+      // Frames registered while the capture runs.
+      bar.max = r.steps_total || 1;
+      bar.value = p.streamed;
+      label = `rectify during the capture ${p.streamed}/${r.steps_total}`;
+    }
     if (p.state === "running" && p.step) {
       label = `${p.step} ${p.done ?? 0}/${p.total ?? "?"}`;
       if (p.eta_s != null) label += `, ${fmtDuration(p.eta_s)} left`;

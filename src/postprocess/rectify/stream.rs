@@ -1,0 +1,122 @@
+//! Rectification while the capture runs: each frame's first pass (read,
+//! markers, texture) as soon as the frame is journaled, kept in the same
+//! store an interrupted `rectify` resumes from. The `rectify` step after
+//! the capture then takes those frames from the store and runs only the
+//! passes that need the whole run (black frames, the holder offset, the
+//! pose fallbacks, the fills), so in a healthy run it reads each frame once,
+//! during the capture.
+//!
+//! A frame's view slot and light index are its directions' order of first
+//! appearance over the frames before it (in image index order, which is
+//! the capture order), so only the journal's contiguous prefix is worked
+//! on: a frame whose predecessors are not all journaled yet waits. Were a
+//! frame's slot to change all the same (a frame that never comes), its
+//! kept result no longer matches its key and `rectify` registers it again.
+
+use std::path::{Path, PathBuf};
+
+use rigd_core::holder::Holder;
+use rigd_process::rectify::MarkerLayout;
+
+use super::resume::FirstPassStore;
+use super::run::{assign_slots, check_config, holder_layout};
+use super::steps::Rectifier;
+use super::RectifyConfig;
+use crate::postprocess::frames::RunFrames;
+use crate::postprocess::ProcessError;
+
+/// Where a [`RectifyStream`] stands after a call of
+/// [`RectifyStream::catch_up`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StreamProgress {
+    /// Frames of the run, from the journal's start, whose first pass is
+    /// kept.
+    pub done: usize,
+    /// Frames journaled so far.
+    pub journaled: usize,
+    /// Frames this call registered (not found in the store).
+    pub registered: usize,
+}
+
+/// The first passes of a capturing run, done a batch at a time.
+pub struct RectifyStream {
+    root: PathBuf,
+    cfg: RectifyConfig,
+    holder: Holder,
+    layout: MarkerLayout,
+    next: usize,
+}
+
+impl RectifyStream {
+    /// A stream over the run at `root`, registering with `cfg` (which must
+    /// be the settings the `rectify` step will use, or nothing is reused).
+    pub fn new(root: &Path, cfg: RectifyConfig) -> Result<RectifyStream, ProcessError> {
+        check_config(&cfg)?;
+        let meta = crate::store::read_meta(root)?;
+        let (holder, layout) = holder_layout(&meta)?;
+        Ok(RectifyStream {
+            root: root.to_path_buf(),
+            cfg,
+            holder,
+            layout,
+            next: 0,
+        })
+    }
+
+    /// Reads the journal and does the first pass of up to `max_frames`
+    /// frames of its contiguous prefix that no earlier call did, in
+    /// parallel on the current rayon pool. Frames the store already holds
+    /// (a stream cut by a restart) are taken from it.
+    pub fn catch_up(&mut self, max_frames: usize) -> Result<StreamProgress, ProcessError> {
+        use rayon::prelude::*;
+        let run = RunFrames::open(&self.root)?;
+        let prefix = run
+            .entries
+            .iter()
+            .enumerate()
+            .take_while(|(position, e)| e.index == *position)
+            .count();
+        let end = prefix.min(self.next.saturating_add(max_frames));
+        let mut progress = StreamProgress {
+            done: self.next.min(prefix),
+            journaled: run.entries.len(),
+            registered: 0,
+        };
+        if end <= self.next {
+            return Ok(progress);
+        }
+        let (_, _, slots) = assign_slots(&run.entries[..end]);
+        let out_dir = crate::store::processed::normtextures_dir(&self.root);
+        std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
+            path: out_dir.clone(),
+            message: e.to_string(),
+        })?;
+        let rectifier = Rectifier {
+            run: &run,
+            cfg: &self.cfg,
+            holder: self.holder.clone(),
+            layout: self.layout.clone(),
+            out_dir: out_dir.clone(),
+        };
+        let store = FirstPassStore::new(&out_dir, &self.cfg);
+        progress.registered = (self.next..end)
+            .into_par_iter()
+            .filter(|&position| {
+                let entry = &run.entries[position];
+                let (view_slot, light_index) = slots[position];
+                if store
+                    .load(entry, position, view_slot, light_index)
+                    .is_some()
+                {
+                    return false;
+                }
+                let f = rectifier.first_pass(position, view_slot, light_index);
+                store.keep(entry, view_slot, light_index, &f);
+                true
+            })
+            .count();
+        self.next = end;
+        progress.done = end;
+        Ok(progress)
+    }
+}
