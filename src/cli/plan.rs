@@ -29,7 +29,9 @@ pub enum PlanCmd {
         #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
         exposure: Option<f64>,
         /// Trigger order: optimised (the shortest physical time under the
-        /// motion model) or naive (the plan's nested loops).
+        /// motion model), slots (the shortest with each view's triggers
+        /// together, so view slots complete early) or naive (the plan's
+        /// nested loops).
         #[arg(long, value_enum, default_value_t = Order::Optimised)]
         order: Order,
     },
@@ -122,6 +124,13 @@ fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Ord
             report.bound,
             report.gap()
         ),
+    }
+    if let (None, Some(slots_s)) = (&report.kept, report.slots_s) {
+        println!(
+            "order slots (each view's triggers together, so each view slot completes early for processing during the capture): {} ({:+.1} % against optimised)",
+            hms(slots_s),
+            100.0 * (slots_s / report.optimised_s.max(1e-9) - 1.0)
+        );
     }
     println!(
         "plan {} on {}: {} images in {} triggers, {} infeasible (substituted), estimated physical capture time {}",

@@ -13,9 +13,9 @@ use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
 use rigd::plan::Order;
 use rigd::postprocess::pipeline::{
-    background_pool, check_frame_size, run_step, stream_rectify, ProcessOptions, RunFacts, Step,
+    background_pool, check_frame_size, run_step, stream_during_capture, CaptureProgress,
+    ProcessOptions, RunFacts, Step,
 };
-use rigd::postprocess::rectify::StreamProgress;
 use rigd::postprocess::ProcessError;
 use rigd::rig::FaultRule;
 use rigd::schedule::timing::parse_exposure_s;
@@ -63,8 +63,9 @@ pub struct RunArgs {
     #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
     pub exposure: Option<f64>,
     /// Trigger order: optimised (the shortest physical time under the
-    /// motion model) or naive (the plan's nested loops) [default:
-    /// optimised; laser plans keep theirs].
+    /// motion model), slots (the shortest with each view's triggers
+    /// together, so view slots complete early) or naive (the plan's nested
+    /// loops) [default: optimised; laser plans keep theirs].
     #[arg(long, value_enum)]
     pub order: Option<Order>,
     /// Process the run: steps rectify, btf, fit, mdf, photometric-stereo
@@ -207,12 +208,22 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     simulated,
                     order: args.order,
                 };
-                let solved = launch::solve_plan(&req.profile, &req.plan, req.order)?;
+                let mut solved = launch::solve_plan(&req.profile, &req.plan, req.order)?;
                 if !args.process.is_empty() {
                     let size = args
                         .frame_size
                         .or(simulated.then_some(req.profile.sim.frame_size));
-                    process = Some(processing_options(&args.process, &solved.1, size)?);
+                    let options = processing_options(&args.process, &solved.1, size)?;
+                    // Compressing view slots during the capture can favour
+                    // an order left to the default.
+                    if args.order.is_none() && options.steps.contains(&Step::Btf) {
+                        let (chosen, choice) = launch::prefer_slots(&req.profile, solved);
+                        solved = chosen;
+                        if let Some(choice) = choice {
+                            eprintln!("{choice}");
+                        }
+                    }
+                    process = Some(options);
                 }
                 launch::prepare_new_solved(req, solved, args.faults(), clock, PausePolicy::Return)
                     .await?
@@ -222,14 +233,14 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
         let capturing = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
         let stream = process
             .clone()
-            .map(|options| stream_during_capture(&root, options, capturing.clone()));
+            .map(|options| spawn_capture_stream(&root, options, capturing.clone()));
         let code = drive(prepared, args.progress).await;
         capturing.store(false, std::sync::atomic::Ordering::SeqCst);
         if let Some(Some(thread)) = stream {
             match thread.join() {
                 Ok(Ok(Some(p))) => eprintln!(
-                    "rectify: {} of {} journaled frames registered during the capture",
-                    p.done, p.journaled
+                    "during the capture: {} of {} frames registered, {} view slots compressed",
+                    p.frames.done, p.frames.journaled, p.slots_ahead
                 ),
                 Ok(Ok(None)) => {}
                 // The `rectify` step registers whatever the stream did not.
@@ -266,14 +277,14 @@ fn processing_options(
     Ok(options)
 }
 
-/// Registers the run's frames as they are journaled, on a background pool,
-/// until `capturing` turns false; None when the pool cannot be made (then
-/// the `rectify` step does it all after the capture).
-fn stream_during_capture(
+/// Processes the run during its capture ([`stream_during_capture`]) on a
+/// background pool until `capturing` turns false; None when the pool
+/// cannot be made (then the steps do it all after the capture).
+fn spawn_capture_stream(
     root: &std::path::Path,
     options: ProcessOptions,
     capturing: std::sync::Arc<std::sync::atomic::AtomicBool>,
-) -> Option<std::thread::JoinHandle<Result<Option<StreamProgress>, ProcessError>>> {
+) -> Option<std::thread::JoinHandle<Result<Option<CaptureProgress>, ProcessError>>> {
     let root = root.to_path_buf();
     let pool = match background_pool("rigd-stream") {
         Ok(pool) => pool,
@@ -284,7 +295,7 @@ fn stream_during_capture(
     };
     std::thread::Builder::new()
         .name("rigd-stream".into())
-        .spawn(move || stream_rectify(&root, &options, &pool, &capturing))
+        .spawn(move || stream_during_capture(&root, &options, &pool, &capturing))
         .ok()
 }
 

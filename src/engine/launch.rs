@@ -139,6 +139,73 @@ pub async fn prepare_new(
     create(req, solver, plan, schedule, faults, clock, policy).await
 }
 
+/// Most the `slots` order may add to the optimised order's physical time
+/// for a run processed during its capture to take it: each view slot's
+/// lights are then all in early, and the slot is compressed while the
+/// capture goes on.
+pub const SLOTS_PREFERRED_WITHIN: f64 = 0.02;
+
+/// The trigger order a run processed during its capture was given, and
+/// what each candidate would take.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct OrderChoice {
+    /// The order taken.
+    pub order: Order,
+    /// Estimated physical seconds in the optimised order.
+    pub optimised_s: f64,
+    /// Estimated physical seconds in the `slots` order.
+    pub slots_s: f64,
+}
+
+/// For a run that compresses view slots during its capture and left its
+/// order to the default (optimised): the `slots` order when it adds at
+/// most [`SLOTS_PREFERRED_WITHIN`] physical time, else the plan as solved.
+/// None when there was nothing to choose (another order asked for, a laser
+/// plan, a plan whose order is kept).
+pub fn prefer_slots(
+    profile: &Profile,
+    solved: (Solver, Plan, Schedule),
+) -> ((Solver, Plan, Schedule), Option<OrderChoice>) {
+    let (solver, plan, schedule) = solved;
+    if plan.order != Order::Optimised || plan.laser.is_some() {
+        return ((solver, plan, schedule), None);
+    }
+    let mut slots_plan = plan.clone();
+    slots_plan.order = Order::Slots;
+    let (slots_schedule, report) = schedule::build_with_report(profile, &solver, &slots_plan);
+    let Some(slots_s) = report.slots_s.filter(|_| report.kept.is_none()) else {
+        return ((solver, plan, schedule), None);
+    };
+    let mut choice = OrderChoice {
+        order: Order::Optimised,
+        optimised_s: report.optimised_s,
+        slots_s,
+    };
+    if slots_s <= report.optimised_s * (1.0 + SLOTS_PREFERRED_WITHIN) {
+        choice.order = Order::Slots;
+        ((solver, slots_plan, slots_schedule), Some(choice))
+    } else {
+        ((solver, plan, schedule), Some(choice))
+    }
+}
+
+impl std::fmt::Display for OrderChoice {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let extra = 100.0 * (self.slots_s / self.optimised_s.max(1e-9) - 1.0);
+        match self.order {
+            Order::Slots => write!(
+                f,
+                "trigger order `slots` (each view's triggers together, so view slots are compressed during the capture): {extra:+.1} % physical time against `optimised`"
+            ),
+            _ => write!(
+                f,
+                "trigger order `optimised`: `slots`, which completes view slots early, would take {extra:+.1} % physical time (more than {:.0} %)",
+                100.0 * SLOTS_PREFERRED_WITHIN
+            ),
+        }
+    }
+}
+
 /// Solves an already resolved plan (e.g. one given inline over the API).
 pub fn solve_given_plan(
     profile: &Profile,
@@ -360,5 +427,36 @@ fn assemble(
         t_offset_s,
         estimate_s,
         retake,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn choice(profile: &str, plan: &str) -> (Order, Option<OrderChoice>) {
+        let profile = Profile::load(profile).unwrap_or_else(|e| panic!("{e}"));
+        let solved = solve_plan(&profile, plan, None).unwrap_or_else(|e| panic!("{e}"));
+        let ((_, plan, schedule), choice) = prefer_slots(&profile, solved);
+        assert_eq!(schedule.images.len(), plan.pairs.len());
+        (plan.order, choice)
+    }
+
+    #[test]
+    fn a_run_processed_during_its_capture_takes_the_slots_order_only_when_it_costs_little() {
+        // The Bonn rig: +0.9 % physical time.
+        let (order, c) = choice("bonn-gonioreflectometer", "h1");
+        let c = c.expect("a choice");
+        assert_eq!((order, c.order), (Order::Slots, Order::Slots), "{c}");
+        assert!(c.slots_s <= (1.0 + SLOTS_PREFERRED_WITHIN) * c.optimised_s);
+        // The MSRA rig's grid: +3.7 %, so it stays optimised.
+        let (order, c) = choice("msra-btf-mdf", "grid12x8");
+        let c = c.expect("a choice");
+        assert_eq!(
+            (order, c.order),
+            (Order::Optimised, Order::Optimised),
+            "{c}"
+        );
+        assert!(c.slots_s > (1.0 + SLOTS_PREFERRED_WITHIN) * c.optimised_s);
     }
 }

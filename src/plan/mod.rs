@@ -140,6 +140,10 @@ pub enum Order {
     Naive,
     /// Minimal physical time under the motion model.
     Optimised,
+    /// Minimal physical time with the triggers of each view taken one after
+    /// another, so each view slot's lights are all in as early as they can
+    /// be (a run processed during its capture compresses a slot then).
+    Slots,
 }
 
 /// Loads a profile ([`Profile::load`]) and checks what only the plans can

@@ -28,6 +28,9 @@ pub struct BtfReport {
     pub compress_s: f64,
     /// Size of `processed/btf/` on disk, bytes.
     pub bytes: u64,
+    /// View slots taken as compressed during the capture
+    /// ([`compress_slot_ahead`]) rather than compressed now.
+    pub slots_ahead: usize,
 }
 
 /// The PCA of one view slot: its spectrum and error curve.
@@ -84,7 +87,12 @@ pub fn btf_run(
     let in_flight = (BTF_MEMORY_BUDGET_BYTES
         / slot_memory_bytes(shape.values(), index.lights.len(), components).max(1))
     .clamp(1, rayon::current_num_threads().max(1));
+    let ahead = std::sync::atomic::AtomicUsize::new(0);
     let compress = |slot: usize| -> Result<_, ProcessError> {
+        if let Some(pca) = take_slot_ahead(run, &index, slot, components) {
+            ahead.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            return Ok(pca);
+        }
         let images = (0..index.lights.len())
             .map(|l| index.load(run, slot, l).map(|img| img.data))
             .collect::<Result<Vec<_>, _>>()?;
@@ -151,12 +159,160 @@ pub fn btf_run(
         per_slot,
         compress_s,
         bytes,
+        slots_ahead: ahead.into_inner(),
     };
     let mut json =
         serde_json::to_vec_pretty(&report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     json.push(b'\n');
     crate::store::write_atomic(&dir.join("report.json"), &json)?;
+    remove_slots_ahead(run);
     Ok(report)
+}
+
+/// Where view slots compressed during the capture wait for `btf`.
+const AHEAD_DIR: &str = "btf-ahead";
+
+/// What a slot compressed ahead is kept with: the key it was made for and
+/// what its bytes need to be read back.
+#[derive(serde::Serialize, serde::Deserialize)]
+struct SlotAhead {
+    key: String,
+    shape: [usize; 3],
+    singular_values: Vec<f64>,
+}
+
+fn ahead_paths(run: &Path, slot: usize) -> (std::path::PathBuf, std::path::PathBuf) {
+    let dir = crate::store::processed::processed_dir(run).join(AHEAD_DIR);
+    (
+        dir.join(format!("slot_{slot:03}.json")),
+        dir.join(rigd_process::btf::slot_file_name(slot)),
+    )
+}
+
+/// What a slot's compression depends on: the rigd version, the components,
+/// the texture size and encoding, the lights, and per light its texture
+/// file's name, length and modification time. `rectify`'s later passes
+/// rewrite every texture they change, which gives it a new time; a
+/// texture they keep is the file the slot was compressed from.
+fn slot_key(
+    run: &Path,
+    index: &NormtextureIndex,
+    slot: usize,
+    components: usize,
+) -> Option<String> {
+    use std::fmt::Write;
+    let dir = crate::store::processed::normtextures_dir(run);
+    let mut key = format!(
+        "{} C{components} {}² {} L{}",
+        env!("CARGO_PKG_VERSION"),
+        index.size,
+        index.encoding,
+        index.lights.len()
+    );
+    for light in 0..index.lights.len() {
+        let file = index
+            .frames
+            .iter()
+            .find(|f| f.view_slot == slot && f.light_index == light)?
+            .file
+            .as_ref()?;
+        let meta = std::fs::metadata(dir.join(file)).ok()?;
+        let modified = meta
+            .modified()
+            .ok()?
+            .duration_since(std::time::UNIX_EPOCH)
+            .ok()?;
+        let _ = write!(key, " {file}:{}:{}", meta.len(), modified.as_nanos());
+    }
+    Some(key)
+}
+
+/// Compresses view slot `slot` of a run still capturing, from the textures
+/// `index` (the frames registered so far) lists for it, and keeps it in
+/// `processed/btf-ahead/` for `btf`, which takes it if none of its
+/// textures changed since ([`btf_run`]). Every light of the slot must
+/// have its texture.
+pub fn compress_slot_ahead(
+    run: &Path,
+    index: &NormtextureIndex,
+    slot: usize,
+    components: usize,
+) -> Result<(), ProcessError> {
+    use rigd_process::btf::{compress_slot, TextureShape};
+    let key = slot_key(run, index, slot, components).ok_or_else(|| {
+        ProcessError::Invalid(format!("view slot {slot}: a light has no texture yet"))
+    })?;
+    let shape = TextureShape::new(index.size, index.size, 1)
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let images = (0..index.lights.len())
+        .map(|l| index.load(run, slot, l).map(|img| img.data))
+        .collect::<Result<Vec<_>, _>>()?;
+    let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+    let pca = compress_slot(&refs, shape, components)
+        .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
+    let (meta_path, bin_path) = ahead_paths(run, slot);
+    if let Some(dir) = bin_path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
+            path: dir.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    }
+    crate::store::write_atomic(&bin_path, &pca.to_le_bytes())?;
+    let kept = SlotAhead {
+        key,
+        shape: [pca.values(), pca.lights(), pca.components()],
+        singular_values: pca.singular_values().to_vec(),
+    };
+    let json = serde_json::to_vec(&kept).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    // Written last: a slot without it is not taken.
+    crate::store::write_atomic(&meta_path, &json)?;
+    Ok(())
+}
+
+/// Whether slot `slot` was compressed ahead from the textures `index`
+/// lists for it now, with `components` (a stream cut by a restart).
+pub fn slot_ahead_is_current(
+    run: &Path,
+    index: &NormtextureIndex,
+    slot: usize,
+    components: usize,
+) -> bool {
+    let (meta_path, _) = ahead_paths(run, slot);
+    std::fs::read(meta_path)
+        .ok()
+        .and_then(|b| serde_json::from_slice::<SlotAhead>(&b).ok())
+        .is_some_and(|kept| Some(kept.key) == slot_key(run, index, slot, components))
+}
+
+/// The slot compressed ahead, if it was made from the textures `index`
+/// lists for it now, with `components`.
+fn take_slot_ahead(
+    run: &Path,
+    index: &NormtextureIndex,
+    slot: usize,
+    components: usize,
+) -> Option<rigd_process::btf::SlotPca> {
+    let (meta_path, bin_path) = ahead_paths(run, slot);
+    let kept: SlotAhead = serde_json::from_slice(&std::fs::read(meta_path).ok()?).ok()?;
+    let key = slot_key(run, index, slot, components);
+    if Some(&kept.key) != key.as_ref() {
+        tracing::debug!(
+            "view slot {slot} was compressed from other textures: {} then, {key:?} now",
+            kept.key
+        );
+        return None;
+    }
+    let bytes = std::fs::read(bin_path).ok()?;
+    rigd_process::btf::SlotPca::from_le_bytes(&bytes, kept.shape, kept.singular_values).ok()
+}
+
+fn remove_slots_ahead(run: &Path) {
+    let dir = crate::store::processed::processed_dir(run).join(AHEAD_DIR);
+    if let Err(e) = std::fs::remove_dir_all(&dir) {
+        if e.kind() != std::io::ErrorKind::NotFound {
+            tracing::warn!("{}: {e}", dir.display());
+        }
+    }
 }
 
 /// The error of a compressed BTF at one (light, view) against the scene's

@@ -391,29 +391,102 @@ pub fn background_pool(name: &'static str) -> Result<rayon::ThreadPool, String> 
         .map_err(|e| e.to_string())
 }
 
-/// Rectifies the frames of the run at `root` as they are journaled, on
-/// `pool`, until `capturing` turns false (`rigd run --process rectify,…`;
-/// the daemon interleaves the same batches with its job queue). Returns
-/// the last progress; the `rectify` step afterwards takes these frames
-/// from the store. Nothing to stream (no `rectify` step) returns at once.
-pub fn stream_rectify(
+/// Processing during a capture: the `rectify` step's first pass of each
+/// frame as it is journaled ([`super::rectify::RectifyStream`]) and, when
+/// the job has `btf`, each view slot's compression as soon as every light
+/// of the slot has its texture ([`super::btf::compress_slot_ahead`]). The
+/// steps after the capture take both as they are.
+pub struct CaptureStream {
+    root: std::path::PathBuf,
+    rectify: super::rectify::RectifyStream,
+    btf_components: Option<usize>,
+    ahead: std::collections::BTreeSet<usize>,
+}
+
+/// Where a [`CaptureStream`] stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CaptureProgress {
+    /// The frames' side.
+    pub frames: super::rectify::StreamProgress,
+    /// View slots compressed so far.
+    pub slots_ahead: usize,
+}
+
+impl CaptureStream {
+    /// The stream of `opts` over the run at `root`; None when it has no
+    /// `rectify` step.
+    pub fn new(root: &Path, opts: &ProcessOptions) -> Result<Option<CaptureStream>, ProcessError> {
+        if !opts.steps.contains(&Step::Rectify) {
+            return Ok(None);
+        }
+        let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
+        Ok(Some(CaptureStream {
+            root: root.to_path_buf(),
+            rectify: super::rectify::RectifyStream::new(root, cfg)?,
+            btf_components: opts
+                .steps
+                .contains(&Step::Btf)
+                .then_some(opts.btf.components),
+            ahead: Default::default(),
+        }))
+    }
+
+    /// Registers up to [`STREAM_BATCH`] newly journaled frames, then
+    /// compresses the view slots they completed, on the current rayon
+    /// pool.
+    pub fn advance(&mut self) -> Result<CaptureProgress, ProcessError> {
+        use rayon::prelude::*;
+        let frames = self.rectify.catch_up(STREAM_BATCH)?;
+        if let Some(components) = self.btf_components {
+            let ready: Vec<usize> = self
+                .rectify
+                .complete_slots()
+                .into_iter()
+                .filter(|s| !self.ahead.contains(s))
+                .collect();
+            if !ready.is_empty() {
+                let index = self.rectify.partial_index();
+                ready.par_iter().for_each(|&slot| {
+                    if super::btf::slot_ahead_is_current(&self.root, &index, slot, components) {
+                        return;
+                    }
+                    if let Err(e) =
+                        super::btf::compress_slot_ahead(&self.root, &index, slot, components)
+                    {
+                        // Not tried again: `btf` compresses it after the capture.
+                        tracing::warn!("compressing view slot {slot} during the capture: {e}");
+                    }
+                });
+                self.ahead.extend(ready);
+            }
+        }
+        Ok(CaptureProgress {
+            frames,
+            slots_ahead: self.ahead.len(),
+        })
+    }
+}
+
+/// Runs a [`CaptureStream`] for the run at `root` on `pool` until
+/// `capturing` turns false (`rigd run --process`; the daemon interleaves
+/// the same batches with its job queue). Returns the last progress; None
+/// when there is nothing to stream (no `rectify` step).
+pub fn stream_during_capture(
     root: &Path,
     opts: &ProcessOptions,
     pool: &rayon::ThreadPool,
     capturing: &std::sync::atomic::AtomicBool,
-) -> Result<Option<super::rectify::StreamProgress>, ProcessError> {
+) -> Result<Option<CaptureProgress>, ProcessError> {
     use std::sync::atomic::Ordering;
-    if !opts.steps.contains(&Step::Rectify) {
+    let Some(mut stream) = CaptureStream::new(root, opts)? else {
         return Ok(None);
-    }
-    let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
-    let mut stream = super::rectify::RectifyStream::new(root, cfg)?;
-    let mut last = None;
+    };
+    let mut last: Option<CaptureProgress> = None;
     while capturing.load(Ordering::SeqCst) {
-        let before = last.map_or(0, |l: super::rectify::StreamProgress| l.done);
-        let p = pool.install(|| stream.catch_up(STREAM_BATCH))?;
+        let before = last.map_or(0, |l| l.frames.done);
+        let p = pool.install(|| stream.advance())?;
         last = Some(p);
-        if p.done == before {
+        if p.frames.done == before {
             let idle = std::time::Instant::now();
             while capturing.load(Ordering::SeqCst) && idle.elapsed() < STREAM_POLL {
                 std::thread::sleep(std::time::Duration::from_millis(50));
@@ -468,11 +541,16 @@ pub fn run_step(
         Step::Btf => {
             let r = super::btf::btf_run(root, opts.btf.components, progress)?;
             Ok(format!(
-                "{} view slots × {} lights, C = {}: {:.1} MB",
+                "{} view slots × {} lights, C = {}: {:.1} MB{}",
                 r.slots,
                 r.lights,
                 r.components,
-                r.bytes as f64 / 1e6
+                r.bytes as f64 / 1e6,
+                if r.slots_ahead > 0 {
+                    format!("; {} slots compressed during the capture", r.slots_ahead)
+                } else {
+                    String::new()
+                }
             ))
         }
         Step::Fit => {

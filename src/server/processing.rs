@@ -103,6 +103,10 @@ pub struct ProcessJob {
     /// step takes them as they are.
     #[serde(default)]
     pub streamed: usize,
+    /// View slots compressed while the capture ran (the `btf` step's work
+    /// for each slot whose lights were all in); the step takes them.
+    #[serde(default)]
+    pub slots_ahead: usize,
 }
 
 impl ProcessJob {
@@ -131,6 +135,7 @@ impl ProcessJob {
             resumed: 0,
             after_capture: false,
             streamed: 0,
+            slots_ahead: 0,
         }
     }
 
@@ -163,6 +168,7 @@ impl ProcessJob {
             "steps_total": self.steps.len(),
             "error": self.error,
             "streamed": self.streamed,
+            "slots_ahead": self.slots_ahead,
         })
     }
 }
@@ -423,7 +429,7 @@ pub fn start_worker(daemon: &Arc<Daemon>) -> Result<(), String> {
 /// The rectification streams of capturing runs whose job waits for them.
 #[derive(Default)]
 struct Streams {
-    runs: BTreeMap<String, crate::postprocess::rectify::RectifyStream>,
+    runs: BTreeMap<String, pipeline::CaptureStream>,
     /// When a stream that found nothing new (or failed) looks again.
     not_before: BTreeMap<String, Instant>,
 }
@@ -447,16 +453,11 @@ impl Streams {
             return;
         };
         if !self.runs.contains_key(id) {
-            let stream = job
-                .options
-                .rectify
-                .config()
-                .map_err(crate::postprocess::ProcessError::Invalid)
-                .and_then(|cfg| crate::postprocess::rectify::RectifyStream::new(&root, cfg));
-            match stream {
-                Ok(s) => {
+            match pipeline::CaptureStream::new(&root, &job.options) {
+                Ok(Some(s)) => {
                     self.runs.insert(id.to_string(), s);
                 }
+                Ok(None) => return retry_later(self, "no rectify step".into()),
                 Err(e) => return retry_later(self, e.to_string()),
             }
         }
@@ -464,17 +465,18 @@ impl Streams {
             return;
         };
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pool.install(|| stream.catch_up(pipeline::STREAM_BATCH))
+            pool.install(|| stream.advance())
         }));
         match result {
             Ok(Ok(p)) => {
-                if p.done == job.streamed {
+                if p.frames.done == job.streamed {
                     self.not_before
                         .insert(id.to_string(), Instant::now() + pipeline::STREAM_POLL);
                 } else {
                     self.not_before.remove(id);
                     if let Some(event) = d.processing.with_job(id, |j| {
-                        j.streamed = p.done;
+                        j.streamed = p.frames.done;
+                        j.slots_ahead = p.slots_ahead;
                         j.event()
                     }) {
                         d.hub.publish(Some(id), "process", event);

@@ -370,6 +370,16 @@ impl Daemon {
     /// Starts a new run now; 409 if one is active.
     pub async fn start_run(self: &Arc<Self>, req: RunRequest) -> Result<RunView, SupervisorError> {
         let plan = self.validate(&req)?;
+        // Processing during the capture compresses view slots as they
+        // complete, which an order left to the default can favour.
+        let prefer_slots = req.order.is_none()
+            && match &req.process {
+                Some(o) => self
+                    .process_after_capture(&req, &plan, o.clone())?
+                    .steps
+                    .contains(&crate::postprocess::pipeline::Step::Btf),
+                None => false,
+            };
         let _gate = self.start_gate.lock().await;
         {
             let inner = self.inner();
@@ -408,7 +418,14 @@ impl Daemon {
         // firmware tasks are spawned onto this runtime from there.
         let rt = tokio::runtime::Handle::current();
         let prepared = tokio::task::spawn_blocking(move || {
-            let solved = launch::solve_given_plan(&profile, plan)?;
+            let mut solved = launch::solve_given_plan(&profile, plan)?;
+            if prefer_slots {
+                let (chosen, choice) = launch::prefer_slots(&profile, solved);
+                solved = chosen;
+                if let Some(choice) = choice {
+                    tracing::info!("{choice}");
+                }
+            }
             rt.block_on(launch::prepare_new_solved(
                 new,
                 solved,

@@ -1048,12 +1048,48 @@ impl BtfHeader {
                 bytes.len()
             )));
         }
+        SlotPca::from_le_bytes(
+            &bytes,
+            [values, lights, components],
+            entry.singular_values.clone(),
+        )
+        .map_err(bad)
+    }
+}
+
+impl SlotPca {
+    /// The slot as a slot file stores it: the mean, the eigen-textures and
+    /// the light weights, f32 little-endian.
+    pub fn to_le_bytes(&self) -> Vec<u8> {
+        [&self.mean, &self.eigen_textures, &self.weights]
+            .into_iter()
+            .flat_map(|part| part.iter().flat_map(|v| v.to_le_bytes()))
+            .collect()
+    }
+
+    /// A slot from [`SlotPca::to_le_bytes`]'s layout, for `[values, lights,
+    /// components]`, with its singular values; `Err` says what does not fit.
+    pub fn from_le_bytes(
+        bytes: &[u8],
+        [values, lights, components]: [usize; 3],
+        singular_values: Vec<f64>,
+    ) -> Result<SlotPca, String> {
+        let expected = values
+            .checked_mul(components + 1)
+            .and_then(|v| v.checked_add(lights.checked_mul(components)?))
+            .and_then(|v| v.checked_mul(4));
+        if expected != Some(bytes.len()) {
+            return Err(format!(
+                "{} bytes, expected 4 per f32 value ({values} per texture, {components} components, {lights} lights)",
+                bytes.len()
+            ));
+        }
         let floats: Vec<f32> = bytes
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
             .collect();
         if let Some(at) = floats.iter().position(|v| !v.is_finite()) {
-            return Err(bad(format!("value {at} is not finite")));
+            return Err(format!("value {at} is not finite"));
         }
         let (mean, rest) = floats.split_at(values);
         let (eigen_textures, weights) = rest.split_at(values * components);
@@ -1064,7 +1100,7 @@ impl BtfHeader {
             mean: mean.to_vec(),
             eigen_textures: eigen_textures.to_vec(),
             weights: weights.to_vec(),
-            singular_values: entry.singular_values.clone(),
+            singular_values,
         })
     }
 }

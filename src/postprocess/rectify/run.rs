@@ -312,12 +312,7 @@ pub fn rectify_run(
     let mut frames: Vec<FrameRegistration> = first.into_iter().map(|f| f.rec).collect();
     let index_so_far = NormtextureIndex {
         size: cfg.final_size,
-        encoding: match cfg.bits {
-            TextureBits::Float => "npy-f32",
-            TextureBits::Half => "npy-f16",
-            TextureBits::Top8 | TextureBits::Shift(_) => "png8",
-        }
-        .into(),
+        encoding: encoding_of(cfg.bits).into(),
         bit_depth,
         lights: lights.clone(),
         views: views.clone(),
@@ -479,4 +474,13 @@ pub(super) fn assign_slots(
         })
         .collect();
     (lights, views, slots)
+}
+
+/// The index's `encoding` of textures stored as `bits`.
+pub(super) fn encoding_of(bits: TextureBits) -> &'static str {
+    match bits {
+        TextureBits::Float => "npy-f32",
+        TextureBits::Half => "npy-f16",
+        TextureBits::Top8 | TextureBits::Shift(_) => "png8",
+    }
 }

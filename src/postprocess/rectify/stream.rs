@@ -19,11 +19,12 @@ use rigd_core::holder::Holder;
 use rigd_process::rectify::MarkerLayout;
 
 use super::resume::FirstPassStore;
-use super::run::{assign_slots, check_config, holder_layout};
+use super::run::{assign_slots, check_config, encoding_of, holder_layout};
 use super::steps::Rectifier;
-use super::RectifyConfig;
+use super::{slot_of, FrameRegistration, NormtextureIndex, RectifyConfig};
 use crate::postprocess::frames::RunFrames;
 use crate::postprocess::ProcessError;
+use rigd_core::geometry::Direction;
 
 /// Where a [`RectifyStream`] stands after a call of
 /// [`RectifyStream::catch_up`].
@@ -45,6 +46,15 @@ pub struct RectifyStream {
     holder: Holder,
     layout: MarkerLayout,
     next: usize,
+    /// Distinct light directions in the run's plan: a view slot is
+    /// complete when it has that many textures.
+    plan_lights: usize,
+    /// The first-pass records of the frames before `next`, and the
+    /// directions they were numbered against.
+    recs: Vec<FrameRegistration>,
+    lights: Vec<Direction>,
+    views: Vec<Direction>,
+    bit_depth: u8,
 }
 
 impl RectifyStream {
@@ -54,13 +64,54 @@ impl RectifyStream {
         check_config(&cfg)?;
         let meta = crate::store::read_meta(root)?;
         let (holder, layout) = holder_layout(&meta)?;
+        let mut plan_lights = Vec::new();
+        for pair in &meta.plan.pairs {
+            slot_of(&mut plan_lights, pair.light.canonical());
+        }
         Ok(RectifyStream {
             root: root.to_path_buf(),
             cfg,
             holder,
             layout,
             next: 0,
+            plan_lights: plan_lights.len(),
+            recs: Vec::new(),
+            lights: Vec::new(),
+            views: Vec::new(),
+            bit_depth: 8,
         })
+    }
+
+    /// The view slots whose every light of the plan has a texture so far.
+    /// The `rectify` step keeps these textures unless its later passes
+    /// find a reason not to (a black or doubted frame), so a slot's
+    /// compression can start now; `btf` checks that its inputs did not
+    /// change.
+    pub fn complete_slots(&self) -> Vec<usize> {
+        let mut textured = vec![std::collections::BTreeSet::new(); self.views.len()];
+        for r in self.recs.iter().filter(|r| r.file.is_some()) {
+            if let Some(set) = textured.get_mut(r.view_slot) {
+                set.insert(r.light_index);
+            }
+        }
+        (0..self.views.len())
+            .filter(|&s| self.plan_lights > 0 && textured[s].len() == self.plan_lights)
+            .collect()
+    }
+
+    /// The index of the frames registered so far, as `rectify` would write
+    /// it for them (without a summary): what `btf` reads a slot's textures
+    /// through.
+    pub fn partial_index(&self) -> NormtextureIndex {
+        NormtextureIndex {
+            size: self.cfg.final_size,
+            encoding: encoding_of(self.cfg.bits).into(),
+            bit_depth: self.bit_depth,
+            lights: self.lights.clone(),
+            views: self.views.clone(),
+            frames: self.recs.clone(),
+            summary: None,
+        }
     }
 
     /// Reads the journal and does the first pass of up to `max_frames`
@@ -85,7 +136,7 @@ impl RectifyStream {
         if end <= self.next {
             return Ok(progress);
         }
-        let (_, _, slots) = assign_slots(&run.entries[..end]);
+        let (lights, views, slots) = assign_slots(&run.entries[..end]);
         let out_dir = crate::store::processed::normtextures_dir(&self.root);
         std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
             path: out_dir.clone(),
@@ -99,22 +150,23 @@ impl RectifyStream {
             out_dir: out_dir.clone(),
         };
         let store = FirstPassStore::new(&out_dir, &self.cfg);
-        progress.registered = (self.next..end)
+        let done: Vec<(FrameRegistration, bool)> = (self.next..end)
             .into_par_iter()
-            .filter(|&position| {
+            .map(|position| {
                 let entry = &run.entries[position];
                 let (view_slot, light_index) = slots[position];
-                if store
-                    .load(entry, position, view_slot, light_index)
-                    .is_some()
-                {
-                    return false;
+                if let Some(kept) = store.load(entry, position, view_slot, light_index) {
+                    return (kept.rec, false);
                 }
                 let f = rectifier.first_pass(position, view_slot, light_index);
                 store.keep(entry, view_slot, light_index, &f);
-                true
+                (f.rec, true)
             })
-            .count();
+            .collect();
+        progress.registered = done.iter().filter(|d| d.1).count();
+        self.recs.extend(done.into_iter().map(|d| d.0));
+        (self.lights, self.views) = (lights, views);
+        self.bit_depth = run.entries.first().map_or(8, |e| e.bit_depth);
         self.next = end;
         progress.done = end;
         Ok(progress)

@@ -559,6 +559,7 @@ function processStatus(r) {
     steps_total: job.steps.length,
     error: job.error,
     streamed: job.streamed || 0,
+    slots_ahead: job.slots_ahead || 0,
   };
 }
 
@@ -575,6 +576,7 @@ function processCell(r) {
       bar.max = r.steps_total || 1;
       bar.value = p.streamed;
       label = `rectify during the capture ${p.streamed}/${r.steps_total}`;
+      if (p.slots_ahead > 0) label += `, ${p.slots_ahead} view slots compressed`;
     }
     if (p.state === "running" && p.step) {
       label = `${p.step} ${p.done ?? 0}/${p.total ?? "?"}`;
