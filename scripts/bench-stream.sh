@@ -10,14 +10,15 @@
 # about 15 minutes.
 # Usage: scripts/bench-stream.sh [WORKDIR]
 #   PLAN (h2), SIZE (1024,768), SPEED (55: simulated seconds per wall second),
-#   ORDER (optimised) override the run; PORT (7399) the daemon's port.
+#   ORDER (unset: the daemon's choice, `slots` when it costs at most 2 %)
+#   override the run; PORT (7399) the daemon's port.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 work="${1:-$(mktemp -d)}"
 plan="${PLAN:-h2}"
 size="${SIZE:-1024,768}"
 speed="${SPEED:-55}"
-order="${ORDER:-optimised}"
+order="${ORDER:-}"
 port="${PORT:-7399}"
 mkdir -p "$work"
 rm -rf "$work/data"
@@ -40,9 +41,11 @@ for _ in range(100):
     except OSError:
         time.sleep(0.1)
 token = open(f"{work}/data/token").read().strip()
-body = {"sample": "corduroy", "plan": plan, "order": order,
+body = {"sample": "corduroy", "plan": plan,
         "frame_size": [int(v) for v in size.split(",")],
         "process": {"steps": ["rectify", "btf"], "rectify": {"size": 1024, "final": 256}}}
+if order:
+    body["order"] = order
 req = urllib.request.Request(f"{base}/runs", json.dumps(body).encode(), method="POST",
                              headers={"Authorization": f"Bearer {token}",
                                       "Content-Type": "application/json"})
@@ -72,10 +75,13 @@ done = now
 steps = {s["step"]: s for s in p["steps"]}
 frames = v["steps_done"]
 capture_s = capture_end_journal - (first_frame or started)
-print(f"run {rid}: {frames} frames of {size.replace(',', 'x')}, order {order}; processing {p['state']}")
+meta = json.load(open(f"{root}/run.json"))
+print(f"run {rid}: {frames} frames of {size.replace(',', 'x')}, order {meta['plan']['order']}; "
+      f"processing {p['state']}; {v['physical_s'] / 3600:.1f} h physical")
 print(f"capture: {capture_s:.0f} s wall from the first frame, {frames / capture_s:.2f} frames/s; "
       f"registration during the capture at most {max_lag} frames behind the journal "
-      f"(sampled every 0.5 s); {p.get('streamed', 0)} registered before the capture ended")
+      f"(sampled every 0.5 s); {p.get('streamed', 0)} registered and "
+      f"{p.get('slots_ahead', 0)} view slots compressed before the capture ended")
 print(f"after the last frame: BTF done in {done - capture_end_journal:.1f} s wall "
       f"(rectify {steps['rectify']['elapsed_s']:.1f} s, btf {steps['btf']['elapsed_s']:.1f} s)")
 print(f"rectify: {steps['rectify']['summary']}")

@@ -14,6 +14,11 @@
 //! - Asking again for what is queued, running or done with the same
 //!   options returns that job and does no work twice; a failed job asked
 //!   again resumes from the step that failed.
+//! - A job asked for with its run (`process` in `POST /runs`) waits for the
+//!   capture, but between jobs the worker processes the capture as it goes
+//!   ([`pipeline::CaptureStream`]): each newly journaled frame's
+//!   registration, and each view slot's compression once its lights are
+//!   all in. The steps after the capture take both as they are.
 //! - Progress goes out as `process` events: the job's state, the step, done
 //!   and total in the step's units, and the step's ETA in seconds.
 
