@@ -330,8 +330,9 @@ pub fn apply(
     }
     .unwrap_or_else(|| (0..n).collect());
     let optimised_s = costs.tour_s(&tour);
+    let planned_s = costs.tour_s(&(0..n).collect::<Vec<_>>());
     // Never worse than the plan's own order.
-    let tour = if optimised_s <= costs.tour_s(&(0..n).collect::<Vec<_>>()) {
+    let tour = if optimised_s <= planned_s {
         tour
     } else {
         (0..n).collect()
@@ -341,13 +342,14 @@ pub fn apply(
     OrderReport {
         triggers: n,
         naive_s,
+        // Each as the engine would run it: never worse than the plan's order.
         optimised_s: if full_report {
-            free_s.unwrap_or(chosen_s)
+            free_s.map_or(chosen_s, |f| f.min(planned_s))
         } else {
             chosen_s
         },
         lower_bound_s,
-        slots_s,
+        slots_s: slots_s.map(|s| s.min(planned_s)),
         bound: bound.into(),
         kept: None,
     }
