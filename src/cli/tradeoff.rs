@@ -4,10 +4,11 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use rigd::model::profile::DEFAULT_PROFILE;
 
+use super::exit::bad_input;
 use super::progress::hms;
 
 #[derive(Args)]
@@ -33,10 +34,44 @@ pub struct TradeoffArgs {
     /// Frame size of the fidelity renders, WIDTHxHEIGHT.
     #[arg(long, default_value = "256x192", value_parser = rigd::model::text::parse_frame_size)]
     pub render_size: [u32; 2],
+    /// Answer with the most accurate measured plan whose physical capture
+    /// time fits this budget (3h, 90m, 2h30m): prints that plan and the
+    /// frontier instead of the table.
+    #[arg(long, conflicts_with = "target")]
+    pub budget: Option<String>,
+    /// Answer with the fastest measured plan whose held-out error is at
+    /// most this (15% or 0.15).
+    #[arg(long)]
+    pub target: Option<String>,
+    /// Answer --budget or --target from a report already written (its
+    /// tradeoff.json, or the folder holding it) instead of computing one.
+    #[arg(long)]
+    pub from: Option<PathBuf>,
 }
 
 /// Runs `rigd tradeoff`.
 pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
+    use rigd::tradeoff::choice::Goal;
+    let goal = match (&args.budget, &args.target) {
+        (Some(b), _) => Some(Goal::budget(b).map_err(bad_input)?),
+        (None, Some(t)) => Some(Goal::target(t).map_err(bad_input)?),
+        (None, None) => None,
+    };
+    if let Some(from) = &args.from {
+        let Some(goal) = goal else {
+            return Err(bad_input("--from answers --budget or --target: give one"));
+        };
+        let path = if from.is_dir() {
+            from.join("tradeoff.json")
+        } else {
+            from.clone()
+        };
+        let bytes =
+            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        let rows = rigd::tradeoff::read_rows(&bytes)
+            .map_err(|e| bad_input(format!("{}: {e}", path.display())))?;
+        return answer(&rows, goal);
+    }
     let profile = rigd::plan::load_profile(&args.profile)?;
     let cfg = rigd::tradeoff::TradeoffConfig {
         texture: args.texture,
@@ -51,6 +86,14 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
             started.elapsed().as_secs_f64()
         );
     })?;
+    if let Some(goal) = goal {
+        eprintln!("wrote {}/tradeoff.{{csv,json,svg}}", args.out.display());
+        println!(
+            "{} on {}, {}² textures, {} held-out pairs",
+            report.scene, report.profile, report.texture, report.held_out
+        );
+        return answer(&report.rows, goal);
+    }
     println!(
         "{} on {}, {}² textures, {} held-out pairs",
         report.scene, report.profile, report.texture, report.held_out
@@ -86,4 +129,31 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
     }
     println!("wrote {}/tradeoff.{{csv,json,svg}}", args.out.display());
     Ok(ExitCode::SUCCESS)
+}
+
+/// Prints the plan that answers `goal` among the report's plans, and the
+/// frontier it was chosen from.
+fn answer(rows: &[rigd::tradeoff::Row], goal: rigd::tradeoff::choice::Goal) -> Result<ExitCode> {
+    use rigd::tradeoff::choice::{choose, ChoiceError};
+    match choose(&rigd::tradeoff::plan_points(rows), goal) {
+        Ok(c) => {
+            println!("{}", c.answer);
+            println!("frontier (no measured plan is both faster and more accurate):");
+            for p in &c.frontier {
+                println!(
+                    "  {}{}\t{}\t{:.2} %",
+                    p.setting,
+                    if *p == c.plan { " (chosen)" } else { "" },
+                    hms(p.physical_s),
+                    100.0 * p.error
+                );
+            }
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(e @ ChoiceError::NoPlans) => Err(bad_input(e.to_string())),
+        Err(e @ ChoiceError::NoneFits(_)) => {
+            println!("{e}");
+            Ok(ExitCode::from(1))
+        }
+    }
 }

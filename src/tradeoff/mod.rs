@@ -32,7 +32,7 @@ use rayon::prelude::*;
 use rigd_process::btf::{compress_slot, BtfStore, BtfWriter, SlotPca, TextureShape};
 use rigd_process::directions::{Direction as PDir, DirectionTable};
 use rigd_sim::scene::{Effect, EffectSwitches, Scene, Shot};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use crate::kinematics::Solver;
 use crate::model::profile::Profile;
@@ -67,8 +67,10 @@ impl Default for TradeoffConfig {
     }
 }
 
+pub mod choice;
+
 /// One row of the table.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Row {
     /// The family the row belongs to: `plans`, `pca`, `fidelity`, `laser`
     /// or `photometric stereo`.
@@ -496,7 +498,7 @@ fn camera_chain(
     let _ = std::fs::remove_dir_all(&dir);
     Ok(Row {
         family: "plans".into(),
-        setting: format!("h2, {rings} rings, camera chain"),
+        setting: format!("h2, {rings} rings{CAMERA_CHAIN_SUFFIX}"),
         images: Some(images),
         physical_s: Some(physical),
         bytes: None,
@@ -918,6 +920,38 @@ pub fn svg(report: &Report) -> String {
     }
     s.push_str("</svg>\n");
     s
+}
+
+/// Ends the setting of the `plans` row measured through the camera chain.
+const CAMERA_CHAIN_SUFFIX: &str = ", camera chain";
+
+/// The measured rows of the `plans` family, for [`choice::choose`]. The
+/// camera-chain row is left out: it is a check of its plan's
+/// texture-space row, the same plan measured another way, not a plan of
+/// its own.
+pub fn plan_points(rows: &[Row]) -> Vec<choice::PlanPoint> {
+    rows.iter()
+        .filter(|r| r.family == "plans" && !r.setting.ends_with(CAMERA_CHAIN_SUFFIX))
+        .filter_map(|r| {
+            Some(choice::PlanPoint {
+                setting: r.setting.clone(),
+                images: r.images,
+                physical_s: r.physical_s?,
+                error: r.error?,
+            })
+        })
+        .collect()
+}
+
+/// The rows of a written report (`tradeoff.json`).
+pub fn read_rows(json: &[u8]) -> Result<Vec<Row>, String> {
+    #[derive(Deserialize)]
+    struct Rows {
+        rows: Vec<Row>,
+    }
+    serde_json::from_slice::<Rows>(json)
+        .map(|r| r.rows)
+        .map_err(|e| format!("not a trade-off report: {e}"))
 }
 
 #[cfg(test)]

@@ -860,6 +860,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/btf/data",
         "/api/v1/runs/{id}/btf/mesh/{kind}",
         "/api/v1/tradeoff",
+        "/api/v1/tradeoff/choice",
         "/api/v1/tradeoff/plot.svg",
     ]
     .into_iter()
@@ -964,7 +965,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 37, "operations checked");
+    assert_eq!(checked, 38, "operations checked");
     s.shutdown().await;
 }
 
@@ -1235,5 +1236,40 @@ async fn the_daemon_computes_and_serves_the_tradeoff_report() {
     let svg = String::from_utf8(svg).expect("utf-8 svg");
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
     assert!(dir.path().join("tradeoff").join("tradeoff.csv").is_file());
+    // A budget and a target answered from it.
+    let (status, c) = s.get("/api/v1/tradeoff/choice?budget=3h").await;
+    assert_eq!(status, 200, "{c}");
+    assert!(
+        c["plan"]["physical_s"].as_f64() <= Some(3.0 * 3600.0),
+        "{c}"
+    );
+    assert!(
+        c["frontier"]
+            .as_array()
+            .is_some_and(|f| f.contains(&c["plan"])),
+        "{c}"
+    );
+    assert!(
+        c["answer"]
+            .as_str()
+            .is_some_and(|a| a.starts_with("within 3 h: ")),
+        "{c}"
+    );
+    let (status, c) = s.get("/api/v1/tradeoff/choice?target=100%25").await;
+    assert_eq!(status, 200, "{c}");
+    assert!(c["plan"]["error"].as_f64() <= Some(1.0), "{c}");
+    for (query, why) in [
+        ("", "budget"),
+        ("?budget=3h&target=15%25", "budget"),
+        ("?budget=soon", "soon"),
+        ("?budget=1s", "no measured plan fits"),
+    ] {
+        let (status, v) = s.get(&format!("/api/v1/tradeoff/choice{query}")).await;
+        assert_eq!(status, 422, "{query}: {v}");
+        assert!(
+            v["detail"].as_str().is_some_and(|d| d.contains(why)),
+            "{query}: {v}"
+        );
+    }
     s.shutdown().await;
 }

@@ -95,4 +95,74 @@ fn the_tradeoff_table_is_written_and_ordered() {
         "{twelve} vs {three}"
     );
     assert!(twelve["physical_s"].as_f64() > three["physical_s"].as_f64());
+
+    // `--budget` and `--target`, answered from the report just written.
+    let plans: Vec<(String, f64, f64)> = rows
+        .iter()
+        .filter(|r| {
+            r["family"] == "plans" && !r["setting"].as_str().unwrap().ends_with("camera chain")
+        })
+        .map(|r| {
+            (
+                r["setting"].as_str().unwrap().to_string(),
+                r["physical_s"].as_f64().unwrap(),
+                r["error"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    let ask = |args: &[&str]| {
+        let out = Command::new(env!("CARGO_BIN_EXE_rigd"))
+            .arg("tradeoff")
+            .args(args)
+            .arg("--from")
+            .arg(dir.path())
+            .output()
+            .unwrap();
+        (
+            out.status.code(),
+            String::from_utf8_lossy(&out.stdout).to_string(),
+        )
+    };
+    let chosen = |stdout: &str| {
+        let line = stdout
+            .lines()
+            .find(|l| l.ends_with(" (chosen)") || l.contains(" (chosen)\t"))
+            .unwrap_or_else(|| panic!("no chosen plan in {stdout}"));
+        let name = line.trim().split(" (chosen)").next().unwrap().to_string();
+        plans
+            .iter()
+            .find(|p| p.0 == name)
+            .unwrap_or_else(|| panic!("{name} is not a plan row"))
+            .clone()
+    };
+    let (code, stdout) = ask(&["--budget", "3h"]);
+    assert_eq!(code, Some(0), "{stdout}");
+    assert!(stdout.starts_with("within 3 h: "), "{stdout}");
+    let (_, time, error) = chosen(&stdout);
+    assert!(time <= 3.0 * 3600.0, "{stdout}");
+    for p in plans.iter().filter(|p| p.1 <= 3.0 * 3600.0) {
+        assert!(
+            p.2 >= error,
+            "{} beats the choice within 3 h: {stdout}",
+            p.0
+        );
+    }
+    // A target some plans reach: the median plan's error.
+    let mut errors: Vec<f64> = plans.iter().map(|p| p.2).collect();
+    errors.sort_by(f64::total_cmp);
+    let target = errors[errors.len() / 2];
+    let (code, stdout) = ask(&["--target", &format!("{target}")]);
+    assert_eq!(code, Some(0), "{stdout}");
+    let (_, time, error) = chosen(&stdout);
+    assert!(error <= target, "{stdout}");
+    for p in plans.iter().filter(|p| p.2 <= target) {
+        assert!(p.1 >= time, "{} is faster at {target}: {stdout}", p.0);
+    }
+    let (code, stdout) = ask(&["--budget", "1m"]);
+    assert_eq!(code, Some(1), "{stdout}");
+    assert!(
+        stdout.contains("no measured plan fits in 1 min"),
+        "{stdout}"
+    );
+    assert_eq!(ask(&["--budget", "soon"]).0, Some(2));
 }

@@ -79,9 +79,17 @@ pub struct ApiDoc;
         sim::sim_scenes,
         tradeoff::get_report,
         tradeoff::get_plot,
+        tradeoff::get_choice,
         tradeoff::start
     ),
-    components(schemas(sim::SceneView, tradeoff::TradeoffRequest, tradeoff::TradeoffStarted))
+    components(schemas(
+        sim::SceneView,
+        tradeoff::TradeoffRequest,
+        tradeoff::TradeoffStarted,
+        crate::tradeoff::choice::PlanChoice,
+        crate::tradeoff::choice::PlanPoint,
+        crate::tradeoff::choice::Goal
+    ))
 )]
 pub struct SimApiDoc;
 

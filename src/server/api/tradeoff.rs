@@ -101,6 +101,45 @@ pub async fn get_plot(State(d): State<AppState>) -> Result<Response, ApiError> {
         .into_response())
 }
 
+/// `?budget=3h` or `?target=15%` on the choice.
+#[derive(Debug, Default, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct ChoiceQuery {
+    /// The most accurate measured plan whose physical capture time fits
+    /// this budget (`3h`, `90m`, `2h30m`, or seconds).
+    pub budget: Option<String>,
+    /// The fastest measured plan whose held-out error is at most this
+    /// (`15%` or `0.15`).
+    pub target: Option<String>,
+}
+
+/// The plan that answers a time budget or an error target, from the
+/// latest report's `plans` rows, with the Pareto frontier it lies on (as
+/// `rigd tradeoff --budget` / `--target` print it).
+#[utoipa::path(get, path = "/api/v1/tradeoff/choice", tag = "rig", params(ChoiceQuery),
+    responses((status = 200, description = "The plan chosen and the frontier", body = crate::tradeoff::choice::PlanChoice),
+              (status = 400, description = "A malformed query", body = ErrorBody),
+              (status = 404, description = "No report yet", body = ErrorBody),
+              (status = 422, description = "Neither or both of budget and target, a value that does not parse, or no measured plan that fits (named with the nearest)", body = ErrorBody)))]
+pub async fn get_choice(
+    State(d): State<AppState>,
+    query: Result<axum::extract::Query<ChoiceQuery>, axum::extract::rejection::QueryRejection>,
+) -> Result<Json<crate::tradeoff::choice::PlanChoice>, ApiError> {
+    use crate::tradeoff::choice::{choose, Goal};
+    let axum::extract::Query(q) = query.map_err(|r| ApiError::bad_request(r.body_text()))?;
+    let goal = match (&q.budget, &q.target) {
+        (Some(b), None) => Goal::budget(b),
+        (None, Some(t)) => Goal::target(t),
+        _ => Err("give one of `budget` (e.g. 3h) or `target` (e.g. 15%)".to_string()),
+    }
+    .map_err(ApiError::invalid)?;
+    let bytes = read_report_file(&d, "tradeoff.json").await?;
+    let rows = crate::tradeoff::read_rows(&bytes).map_err(ApiError::internal)?;
+    choose(&crate::tradeoff::plan_points(&rows), goal)
+        .map(Json)
+        .map_err(|e| ApiError::invalid(e.to_string()))
+}
+
 /// Computes the report for the daemon's rig in the background; `tradeoff`
 /// events report progress and the end. Refused while a run is active or
 /// another computation runs.
