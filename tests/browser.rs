@@ -1382,6 +1382,13 @@ async fn view_and_compare(
         shown.as_str().is_some_and(|t| t.contains("2 rows")),
         "{shown}"
     );
+    // The knee sentence the report computed, under the plot.
+    assert!(
+        shown
+            .as_str()
+            .is_some_and(|t| t.contains("How many directions? h2, 3 rings reaches 68.0 %")),
+        "{shown}"
+    );
     // The scenes a report can be computed for, corduroy chosen.
     wait_js(
         c,
@@ -1409,6 +1416,7 @@ fn write_tradeoff_report(data: &Path) {
         unit: "relative".into(),
         detail: None,
     };
+    let rows = vec![row("h2, 3 rings", 2079.0, 0.68), row("h2", 34627.0, 0.14)];
     let report = Report {
         profile: "bonn-gonioreflectometer".into(),
         scene: "corduroy".into(),
@@ -1416,7 +1424,8 @@ fn write_tradeoff_report(data: &Path) {
         held_out: 6,
         components: 16,
         method: vec![],
-        rows: vec![row("h2, 3 rings", 2079.0, 0.68), row("h2", 34627.0, 0.14)],
+        summary: rigd::tradeoff::summary(&rows),
+        rows,
     };
     let dir = data.join("tradeoff");
     std::fs::create_dir_all(&dir).expect("tradeoff dir");

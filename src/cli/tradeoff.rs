@@ -127,6 +127,9 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
     for m in &report.method {
         println!("note: {m}");
     }
+    for line in &report.summary {
+        println!("summary: {line}");
+    }
     println!("wrote {}/tradeoff.{{csv,json,svg}}", args.out.display());
     Ok(ExitCode::SUCCESS)
 }

@@ -104,21 +104,103 @@ fn percent(error: f64) -> String {
 /// The plans no other beats in both time and error (a tie in one and a
 /// win in the other beats), fastest first.
 pub fn frontier(points: &[PlanPoint]) -> Vec<PlanPoint> {
-    let mut sorted: Vec<&PlanPoint> = points.iter().collect();
+    frontier_by(points, |p| (p.physical_s, p.error))
+}
+
+/// The items no other beats in both `(cost, error)`, cheapest first.
+fn frontier_by<T: Clone>(items: &[T], key: impl Fn(&T) -> (f64, f64)) -> Vec<T> {
+    let mut sorted: Vec<&T> = items.iter().collect();
     sorted.sort_by(|a, b| {
-        a.physical_s
-            .total_cmp(&b.physical_s)
-            .then(a.error.total_cmp(&b.error))
+        let (ka, kb) = (key(a), key(b));
+        ka.0.total_cmp(&kb.0).then(ka.1.total_cmp(&kb.1))
     });
     let mut best = f64::INFINITY;
     let mut out = Vec::new();
-    for p in sorted {
-        if p.error < best {
-            best = p.error;
-            out.push(p.clone());
+    for item in sorted {
+        let (_, error) = key(item);
+        if error < best {
+            best = error;
+            out.push(item.clone());
         }
     }
     out
+}
+
+/// One setting of a family for [`knee`]: its name, what it costs (time,
+/// bytes) and its error.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CurvePoint {
+    /// The setting (`h2, 5 rings`, `C = 8`).
+    pub label: String,
+    /// What it costs, in the family's unit.
+    pub cost: f64,
+    /// Its error, in the family's unit.
+    pub error: f64,
+}
+
+/// The knee of a family's curve, in one sentence: on the frontier
+/// (cheapest first), the point farthest below the chord from the cheapest
+/// to the most accurate, with costs and errors scaled to that span; then
+/// what the most accurate point adds beyond it. `cost_text` and
+/// `error_text` format a cost and an error, `points` a difference of
+/// errors. A frontier of one point (the cheapest setting is also the most
+/// accurate) says so; None with fewer than two settings.
+pub fn knee(
+    points: &[CurvePoint],
+    cost_text: &dyn Fn(f64) -> String,
+    error_text: &dyn Fn(f64) -> String,
+    points_text: &dyn Fn(f64) -> String,
+) -> Option<String> {
+    let finite: Vec<CurvePoint> = points
+        .iter()
+        .filter(|p| p.cost.is_finite() && p.error.is_finite())
+        .cloned()
+        .collect();
+    if finite.len() < 2 {
+        return None;
+    }
+    let f = frontier_by(&finite, |p| (p.cost, p.error));
+    let (first, last) = (f.first()?, f.last()?);
+    if f.len() < 2 {
+        return Some(format!(
+            "{} is both the cheapest and the most accurate, {} for {}",
+            first.label,
+            error_text(first.error),
+            cost_text(first.cost)
+        ));
+    }
+    let (span_cost, span_error) = (last.cost - first.cost, first.error - last.error);
+    let below = |p: &CurvePoint| {
+        let x = if span_cost > 0.0 {
+            (p.cost - first.cost) / span_cost
+        } else {
+            0.0
+        };
+        let y = if span_error > 0.0 {
+            (p.error - last.error) / span_error
+        } else {
+            0.0
+        };
+        1.0 - x - y
+    };
+    // The first of equals: the cheaper point.
+    let knee = f.iter().fold(first, |best, p| {
+        if below(p) > below(best) + 1e-12 {
+            p
+        } else {
+            best
+        }
+    });
+    // The chord's ends are on it (0): the knee is never the last point.
+    Some(format!(
+        "{} reaches {} for {}; {} adds {} for {}",
+        knee.label,
+        error_text(knee.error),
+        cost_text(knee.cost),
+        last.label,
+        cost_text(last.cost - knee.cost),
+        points_text(knee.error - last.error)
+    ))
 }
 
 /// The plan that answers `goal` among `points`.
@@ -266,6 +348,54 @@ mod tests {
         assert_eq!(
             choose(&points, Goal::target("0.13").expect("0.13")).map(|c| c.plan.setting),
             Ok("grid 12x5".to_string())
+        );
+    }
+
+    #[test]
+    fn the_knee_is_the_frontier_point_farthest_below_the_chord() {
+        let curve: Vec<CurvePoint> = bonn()
+            .into_iter()
+            .map(|p| CurvePoint {
+                label: p.setting,
+                cost: p.physical_s,
+                error: p.error,
+            })
+            .collect();
+        let hours = |s: f64| format!("{:.1} h", s / 3600.0);
+        let pct = |e: f64| format!("{:.1} %", 100.0 * e);
+        let pts = |e: f64| format!("{:.1} points", 100.0 * e);
+        assert_eq!(
+            knee(&curve, &hours, &pct, &pts).as_deref(),
+            Some("grid 12x5 reaches 12.9 % for 5.3 h; dense, 15° rings adds 16.1 h for 3.7 points")
+        );
+        // One point, or none: no curve.
+        assert_eq!(knee(&curve[..1], &hours, &pct, &pts), None);
+        assert_eq!(knee(&[], &hours, &pct, &pts), None);
+        // A straight line: the cheapest end is the knee.
+        let line: Vec<CurvePoint> = (0..4)
+            .map(|i| CurvePoint {
+                label: format!("p{i}"),
+                cost: f64::from(i),
+                error: 3.0 - f64::from(i),
+            })
+            .collect();
+        assert!(knee(&line, &hours, &pct, &pts).is_some_and(|s| s.starts_with("p0 reaches")));
+        // The most accurate point is also the cheapest: said so.
+        let best = vec![
+            CurvePoint {
+                label: "a".into(),
+                cost: 1.0,
+                error: 0.1,
+            },
+            CurvePoint {
+                label: "b".into(),
+                cost: 2.0,
+                error: 0.2,
+            },
+        ];
+        assert_eq!(
+            knee(&best, &hours, &pct, &pts).as_deref(),
+            Some("a is both the cheapest and the most accurate, 10.0 % for 0.0 h")
         );
     }
 

@@ -112,6 +112,9 @@ pub struct Report {
     pub components: usize,
     /// How each figure was measured, one sentence per family or column.
     pub method: Vec<String>,
+    /// The knee of each family's curve, one computed sentence each
+    /// ([`summary`]).
+    pub summary: Vec<String>,
     /// Every row of the table, family by family.
     pub rows: Vec<Row>,
 }
@@ -439,7 +442,9 @@ pub fn run(
             "fidelity: error is the frame's RMS change with the effect off, relative to the frame's RMS".into(),
             "laser: one 26-source scan on the MSRA rig (cam3 at 40°, 160×120 frames, 1.5 mm steps) processed with subsets of its sources; time: motion-model estimate of a plan with that many sources; error: mean depth error in mm".into(),
             "photometric stereo: simulated VirTex captures (128×96 frames); time: the simulated run's physical duration; error: mean normal error in degrees".into(),
+            "summary: per family, the knee of its frontier (the point farthest below the chord from the cheapest to the most accurate setting, both scaled to that span), and what the most accurate setting adds".into(),
         ],
+        summary: summary(&rows),
         rows,
     };
     write_outputs(out, &report)?;
@@ -920,6 +925,71 @@ pub fn svg(report: &Report) -> String {
     }
     s.push_str("</svg>\n");
     s
+}
+
+/// The knee of each family's curve, in a sentence ([`choice::knee`]):
+/// plans against physical time, PCA components against bytes,
+/// photometric stereo against physical time. The laser family is not
+/// summarised: each subset's error is over the pixels it covers, so its
+/// errors are not comparable.
+pub fn summary(rows: &[Row]) -> Vec<String> {
+    let curve = |family: &str, cost: &dyn Fn(&Row) -> Option<f64>| -> Vec<choice::CurvePoint> {
+        rows.iter()
+            .filter(|r| r.family == family && !r.setting.ends_with(CAMERA_CHAIN_SUFFIX))
+            .filter_map(|r| {
+                Some(choice::CurvePoint {
+                    label: r.setting.clone(),
+                    cost: cost(r)?,
+                    error: r.error?,
+                })
+            })
+            .collect()
+    };
+    let hours = |s: f64| {
+        if s >= 3600.0 {
+            format!("{:.1} h", s / 3600.0)
+        } else if s >= 60.0 {
+            format!("{:.0} min", s / 60.0)
+        } else {
+            format!("{s:.0} s")
+        }
+    };
+    let percent = |e: f64| format!("{:.1} %", 100.0 * e);
+    let points = |e: f64| format!("{:.1} points", 100.0 * e);
+    let megabytes = |b: f64| format!("{:.1} MB", b / 1e6);
+    let degrees = |e: f64| format!("{e:.1}°");
+    let physical = |r: &Row| r.physical_s;
+    let bytes = |r: &Row| r.bytes.map(|b| b as f64);
+    let knees = [
+        (
+            "How many directions?",
+            choice::knee(&curve("plans", &physical), &hours, &percent, &points),
+        ),
+        (
+            "How many components?",
+            choice::knee(&curve("pca", &bytes), &megabytes, &percent, &points),
+        ),
+        (
+            "How many lights?",
+            choice::knee(
+                &curve("photometric stereo", &physical),
+                &hours,
+                &degrees,
+                &degrees,
+            ),
+        ),
+    ];
+    let mut out: Vec<String> = knees
+        .into_iter()
+        .filter_map(|(question, sentence)| Some(format!("{question} {}.", sentence?)))
+        .collect();
+    if rows.iter().any(|r| r.family == "laser") {
+        out.push(
+            "How many laser sources? Not summarised: each subset's error is over the pixels it covers, so its errors are not comparable."
+                .into(),
+        );
+    }
+    out
 }
 
 /// Ends the setting of the `plans` row measured through the camera chain.

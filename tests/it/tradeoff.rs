@@ -96,6 +96,33 @@ fn the_tradeoff_table_is_written_and_ordered() {
     );
     assert!(twelve["physical_s"].as_f64() > three["physical_s"].as_f64());
 
+    // The knee of each family, a computed sentence each.
+    let summary: Vec<&str> = report["summary"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l.as_str().unwrap())
+        .collect();
+    for question in [
+        "How many directions? ",
+        "How many components? ",
+        "How many lights? ",
+    ] {
+        let line = summary
+            .iter()
+            .find(|l| l.starts_with(question))
+            .unwrap_or_else(|| panic!("no {question} in {summary:?}"));
+        assert!(
+            (line.contains(" reaches ") && line.contains(" adds "))
+                || line.contains(" is both the cheapest and the most accurate, "),
+            "{line}"
+        );
+    }
+    assert!(
+        stdout.contains("summary: How many directions? "),
+        "{stdout}"
+    );
+
     // `--budget` and `--target`, answered from the report just written.
     let plans: Vec<(String, f64, f64)> = rows
         .iter()

@@ -262,8 +262,11 @@ async function loadTradeoff() {
     const r = await api("GET", "/tradeoff");
     img.src = `${API}/tradeoff/plot.svg?rows=${r.rows.length}&t=${Date.now()}`;
     img.hidden = false;
-    $("tradeoff-caption").textContent =
+    const caption = $("tradeoff-caption");
+    caption.textContent =
       `${r.profile}, scene ${r.scene}: ${r.rows.length} rows, ${r.texture}² textures, ${r.held_out} held-out pairs`;
+    // The knee of each family's curve, computed by the report.
+    for (const line of r.summary || []) caption.append(text("div", line, { class: "tradeoff-summary" }));
   } catch (e) {
     img.hidden = true;
     $("tradeoff-caption").textContent = e.status === 404 ? e.detail : `trade-off: ${errText(e)}`;
