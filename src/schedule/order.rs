@@ -290,7 +290,6 @@ pub fn apply(
     bound: bool,
 ) -> OrderReport {
     let n = schedule.triggers.len();
-    let full_report = bound;
     let naive_s = timing.estimate_s(schedule, |_| false);
     let keep = |why: String| OrderReport {
         triggers: n,
@@ -313,14 +312,14 @@ pub fn apply(
         Ok(c) => c,
         Err(why) => return keep(format!("kept as planned: {why}")),
     };
-    let (lower_bound_s, bound) = if bound {
+    let (lower_bound_s, bound_kind) = if bound {
         lower_bound(&costs)
     } else {
         (0.0, "not computed")
     };
     // The report compares both searches whatever the run uses.
-    let free = (full_report || order == Order::Optimised).then(|| optimise(&costs, false));
-    let slots = (full_report || order == Order::Slots).then(|| optimise(&costs, true));
+    let free = (bound || order == Order::Optimised).then(|| optimise(&costs, false));
+    let slots = (bound || order == Order::Slots).then(|| optimise(&costs, true));
     let free_s = free.as_ref().map(|t| costs.tour_s(t));
     let slots_s = slots.as_ref().map(|t| costs.tour_s(t));
     let tour = match order {
@@ -343,14 +342,14 @@ pub fn apply(
         triggers: n,
         naive_s,
         // Each as the engine would run it: never worse than the plan's order.
-        optimised_s: if full_report {
+        optimised_s: if bound {
             free_s.map_or(chosen_s, |f| f.min(planned_s))
         } else {
             chosen_s
         },
         lower_bound_s,
         slots_s: slots_s.map(|s| s.min(planned_s)),
-        bound: bound.into(),
+        bound: bound_kind.into(),
         kept: None,
     }
 }

@@ -297,7 +297,7 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
     let summary = v["processing"]["steps"][0]["summary"]
         .as_str()
         .unwrap_or("");
-    let taken = frames_registered_before(summary);
+    let taken = done_before(summary);
     assert!(
         taken >= 4,
         "frames taken from the interrupted run: {summary}"
@@ -345,9 +345,10 @@ fn assert_same_btf_as_cli(run: &Path, reference: &Path) {
     }
 }
 
-/// The number at the start of the `rectify` summary's second clause: the
-/// frames taken from first passes done before the step ran.
-fn frames_registered_before(summary: &str) -> usize {
+/// The number at the start of a step summary's second clause: the frames
+/// `rectify` took from first passes done before it ran, or the view slots
+/// `btf` took as compressed during the capture.
+fn done_before(summary: &str) -> usize {
     summary
         .split("; ")
         .nth(1)
@@ -406,7 +407,7 @@ async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
     let summary = v["processing"]["steps"][0]["summary"]
         .as_str()
         .unwrap_or("");
-    let before = frames_registered_before(summary);
+    let before = done_before(summary);
     assert!(
         before >= kept && before <= IMAGES,
         "{kept} kept at the kill, {before} taken by the step: {summary}"
@@ -421,12 +422,7 @@ async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
     let btf = v["processing"]["steps"][1]["summary"]
         .as_str()
         .unwrap_or("");
-    let ahead: usize = btf
-        .split("; ")
-        .nth(1)
-        .and_then(|t| t.split(' ').next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or(0);
+    let ahead = done_before(btf);
     assert!(ahead >= 1, "{btf}; the job: {}", v["processing"]);
     assert!(!run.join("processed/btf-ahead").exists());
 
