@@ -1366,29 +1366,179 @@ async fn view_and_compare(
         |v| v.as_str().is_some_and(|t| t.contains("rigd tradeoff")),
     )
     .await;
-    write_tradeoff_report(data);
+    let report = write_tradeoff_report(data);
     c.refresh().await.expect("reload the dashboard");
     let shown = wait_js(
         c,
-        "the trade-off plot",
+        "the trade-off figure",
         20,
-        "const i = document.getElementById('tradeoff-plot'); \
-         return !i.hidden && i.complete && i.naturalWidth > 0 ? \
+        "const p = document.getElementById('tradeoff-plot'); \
+         return !p.hidden && p.querySelectorAll('.tradeoff-hit').length > 0 ? \
            document.getElementById('tradeoff-caption').textContent : null",
         |v| v.is_string(),
     )
     .await;
-    assert!(
-        shown.as_str().is_some_and(|t| t.contains("2 rows")),
-        "{shown}"
-    );
-    // The knee sentence the report computed, under the plot.
+    let rows = report["rows"].as_array().expect("rows").len();
     assert!(
         shown
             .as_str()
-            .is_some_and(|t| t.contains("How many directions? h2, 3 rings reaches 68.0 %")),
+            .is_some_and(|t| t.contains(&format!("{rows} rows"))),
         "{shown}"
     );
+    // The knee sentences the report computed, under the plot.
+    let knee = report["summary"][0].as_str().expect("a summary line");
+    assert!(knee.starts_with("How many directions?"), "{knee}");
+    assert!(shown.as_str().is_some_and(|t| t.contains(knee)), "{shown}");
+    // One panel per family, each with its own question and its own unit.
+    let texts = js(
+        c,
+        "return [...document.querySelectorAll('#tradeoff-plot svg text')].map(t => t.textContent.trim())",
+    )
+    .await;
+    let texts: Vec<&str> = texts
+        .as_array()
+        .expect("texts")
+        .iter()
+        .filter_map(Value::as_str)
+        .collect();
+    for (family, title, unit) in [
+        ("plans", "How many directions?", "held-out error, %"),
+        ("pca", "How many PCA components?", "held-out error, %"),
+        (
+            "laser",
+            "How many laser sources?",
+            "depth error on common pixels, mm",
+        ),
+        (
+            "photometric stereo",
+            "How many lights?",
+            "mean normal error, °",
+        ),
+        (
+            "fidelity",
+            "Which effects matter?",
+            "frame change without it, %",
+        ),
+    ] {
+        assert_eq!(
+            texts.iter().filter(|t| t.starts_with(title)).count(),
+            1,
+            "{family}: one panel titled {title:?} in {texts:?}"
+        );
+        assert!(
+            texts.contains(&unit),
+            "{family}: axis {unit:?} in {texts:?}"
+        );
+    }
+    // No two texts of the figure overlap on screen: point labels, ticks,
+    // titles, axis names and legend alike, by the browser's own boxes.
+    let overlaps = js(
+        c,
+        "const b = [...document.querySelectorAll('#tradeoff-plot svg text')] \
+           .filter(t => t.textContent.trim()) \
+           .map(t => [t.textContent.trim(), t.getBoundingClientRect()]); \
+         const out = []; \
+         for (let i = 0; i < b.length; i++) for (let j = i + 1; j < b.length; j++) { \
+           const [p, r] = b[i], [q, s] = b[j]; \
+           const w = Math.min(r.right, s.right) - Math.max(r.left, s.left); \
+           const h = Math.min(r.bottom, s.bottom) - Math.max(r.top, s.top); \
+           if (w > 0.5 && h > 0.5) out.push(`${p} / ${q}`); } \
+         return [b.length, out];",
+    )
+    .await;
+    eprintln!(
+        "trade-off figure: {} texts, overlapping: {}",
+        overlaps[0], overlaps[1]
+    );
+    assert!(overlaps[0].as_u64().unwrap_or(0) > 40, "{overlaps}");
+    assert_eq!(overlaps[1], json!([]), "texts overlap: {overlaps}");
+    // Hovering a point shows its values.
+    js(
+        c,
+        "document.getElementById('tradeoff-plot').scrollIntoView(); return 0",
+    )
+    .await;
+    let point = |setting: &str| {
+        format!("#tradeoff-plot .tradeoff-hit.point[data-family='plans'][data-setting='{setting}']")
+    };
+    let hit = c
+        .find(Locator::Css(&point("h2, 4 rings")))
+        .await
+        .expect("the 4-ring point's hit target");
+    let moved = MouseActions::new("mouse".into()).then(PointerAction::MoveToElement {
+        element: hit,
+        duration: None,
+        x: 0,
+        y: 0,
+    });
+    c.perform_actions(moved)
+        .await
+        .expect("hover the 4-ring point");
+    let tip = wait_js(
+        c,
+        "the point's tooltip",
+        10,
+        "const t = document.getElementById('tradeoff-tip'); return t.hidden ? null : t.textContent",
+        |v| v.is_string(),
+    )
+    .await;
+    let four = report["rows"]
+        .as_array()
+        .and_then(|r| r.iter().find(|r| r["setting"] == "h2, 4 rings"))
+        .expect("the 4-ring row");
+    let error = format!("{:.1}", 100.0 * four["error"].as_f64().expect("its error"));
+    let tip = tip.as_str().unwrap_or_default();
+    assert!(tip.contains("plans: h2, 4 rings"), "{tip}");
+    assert!(tip.contains(&format!("error {error} ±")), "{tip} / {error}");
+    assert!(tip.contains("images"), "{tip}");
+    let png = c.screenshot().await.expect("screenshot");
+    std::fs::write(out.join("dashboard-tradeoff.png"), png).expect("write the screenshot");
+    // Clicking a plan puts it into the start form with its time and volume.
+    let hit = c
+        .find(Locator::Css(&point("h2, 4 rings")))
+        .await
+        .expect("the 4-ring point");
+    hit.click().await.expect("click the 4-ring point");
+    let form = js(
+        c,
+        "return [document.getElementById('plan').value, \
+                 document.getElementById('custom-dirs').value.trim().split('\\n').length, \
+                 document.getElementById('plan-info').textContent]",
+    )
+    .await;
+    assert_eq!(form[0], json!("__custom"), "{form}");
+    assert_eq!(form[1], json!(37), "the 4 rings' 37 directions: {form}");
+    let info = form[2].as_str().unwrap_or_default();
+    assert!(
+        info.starts_with("From the trade-off: h2, 4 rings, 1369 images")
+            && info.contains("physical")
+            && info.contains("raw")
+            && info.contains(&error),
+        "{info}"
+    );
+    // A named plan is chosen by its name.
+    if js(
+        c,
+        "const o = [...document.getElementById('plan').options].find(o => o.value === 'h2'); \
+         return !!o && !o.disabled",
+    )
+    .await
+        == json!(true)
+    {
+        // H1 and H2 coincide on this rig: the label takes the click.
+        c.find(Locator::Css(
+            "#tradeoff-plot .tradeoff-hit.label[data-family='plans'][data-setting='h2']",
+        ))
+        .await
+        .expect("the h2 label")
+        .click()
+        .await
+        .expect("click h2");
+        assert_eq!(
+            js(c, "return document.getElementById('plan').value").await,
+            json!("h2")
+        );
+    }
     // The scenes a report can be computed for, corduroy chosen.
     wait_js(
         c,
@@ -1401,40 +1551,17 @@ async fn view_and_compare(
     .await;
 }
 
-/// A two-row trade-off report where `rigd tradeoff --out DATA/tradeoff`
-/// puts it.
-fn write_tradeoff_report(data: &Path) {
-    use rigd::tradeoff::{svg, Report, Row};
-    let row = |setting: &str, t: f64, e: f64| Row {
-        family: "plans".into(),
-        setting: setting.into(),
-        images: Some(361),
-        physical_s: Some(t),
-        bytes: None,
-        error: Some(e),
-        compute_s: Some(0.1),
-        unit: "relative".into(),
-        detail: None,
-    };
-    let rows = vec![row("h2, 3 rings", 2079.0, 0.68), row("h2", 34627.0, 0.14)];
-    let report = Report {
-        profile: "bonn-gonioreflectometer".into(),
-        scene: "corduroy".into(),
-        texture: 4,
-        held_out: 6,
-        components: 16,
-        method: vec![],
-        summary: rigd::tradeoff::summary(&rows),
-        rows,
-    };
+/// The Bonn corduroy report kept in `docs/tradeoff/` (every family, as
+/// `rigd tradeoff` measured it), where `rigd tradeoff --out DATA/tradeoff`
+/// puts it; its JSON.
+fn write_tradeoff_report(data: &Path) -> Value {
+    let kept = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("docs/tradeoff/bonn-gonioreflectometer-corduroy/tradeoff.json");
+    let bytes = std::fs::read(&kept).expect("the kept Bonn corduroy report");
     let dir = data.join("tradeoff");
     std::fs::create_dir_all(&dir).expect("tradeoff dir");
-    std::fs::write(
-        dir.join("tradeoff.json"),
-        serde_json::to_vec(&report).expect("json"),
-    )
-    .expect("json");
-    std::fs::write(dir.join("tradeoff.svg"), svg(&report)).expect("svg");
+    std::fs::write(dir.join("tradeoff.json"), &bytes).expect("json");
+    serde_json::from_slice(&bytes).expect("a report")
 }
 
 /// Albedo and normals of a field of bumps (32² texels), as

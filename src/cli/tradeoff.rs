@@ -43,8 +43,10 @@ pub struct TradeoffArgs {
     /// most this (15% or 0.15).
     #[arg(long)]
     pub target: Option<String>,
-    /// Answer --budget or --target from a report already written (its
-    /// tradeoff.json, or the folder holding it) instead of computing one.
+    /// Use a report already written (its tradeoff.json, or the folder
+    /// holding it) instead of computing one: answer --budget or --target
+    /// from it, or, with neither, draw its tradeoff.svg again (with the
+    /// default plan of the report's profile ringed).
     #[arg(long)]
     pub from: Option<PathBuf>,
 }
@@ -58,9 +60,6 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
         (None, None) => None,
     };
     if let Some(from) = &args.from {
-        let Some(goal) = goal else {
-            return Err(bad_input("--from answers --budget or --target: give one"));
-        };
         let path = if from.is_dir() {
             from.join("tradeoff.json")
         } else {
@@ -68,9 +67,18 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
         };
         let bytes =
             std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
-        let rows = rigd::tradeoff::read_rows(&bytes)
+        let report = rigd::tradeoff::read_report(&bytes)
             .map_err(|e| bad_input(format!("{}: {e}", path.display())))?;
-        return answer(&rows, goal);
+        let Some(goal) = goal else {
+            let folder = path.parent().unwrap_or(std::path::Path::new("."));
+            let marked = rigd::plan::load_profile(&report.profile)
+                .ok()
+                .map(|p| p.default_plan);
+            rigd::tradeoff::redraw(folder, &report, marked.as_deref())?;
+            println!("wrote {}", folder.join("tradeoff.svg").display());
+            return Ok(ExitCode::SUCCESS);
+        };
+        return answer(&report.rows, goal);
     }
     let profile = rigd::plan::load_profile(&args.profile)?;
     let cfg = rigd::tradeoff::TradeoffConfig {
@@ -111,13 +119,7 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
             r.bytes
                 .map(|b| format!("{:.1} MB", b as f64 / 1e6))
                 .unwrap_or_else(|| "-".into()),
-            r.error
-                .map(|e| match r.unit.as_str() {
-                    "relative" => format!("{:.2} %", 100.0 * e),
-                    "degrees" => format!("{e:.2}°"),
-                    unit => format!("{e:.3} {unit}"),
-                })
-                .unwrap_or_else(|| "-".into()),
+            error_text(r),
             r.compute_s
                 .map(|t| format!("{t:.2} s"))
                 .unwrap_or_else(|| "-".into()),
@@ -132,6 +134,22 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
     }
     println!("wrote {}/tradeoff.{{csv,json,svg}}", args.out.display());
     Ok(ExitCode::SUCCESS)
+}
+
+/// A row's error with its standard error, in the row's unit.
+fn error_text(r: &rigd::tradeoff::Row) -> String {
+    let Some(e) = r.error else {
+        return "-".into();
+    };
+    let (scale, digits, unit) = match r.unit.as_str() {
+        "relative" => (100.0, 2, " %".to_string()),
+        "degrees" => (1.0, 2, "°".to_string()),
+        other => (1.0, 3, format!(" {other}")),
+    };
+    match r.spread {
+        Some(s) => format!("{:.digits$} ± {:.digits$}{unit}", e * scale, s * scale),
+        None => format!("{:.digits$}{unit}", e * scale),
+    }
 }
 
 /// Prints the plan that answers `goal` among the report's plans, and the

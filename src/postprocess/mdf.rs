@@ -105,6 +105,12 @@ pub struct ViewSummary {
     /// Against the simulated scene: over the sample's measured pixels.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub truth: Option<DepthError>,
+    /// The error pixel by pixel, behind `truth` (not written to the
+    /// report): `rigd tradeoff` compares source subsets on the pixels
+    /// they all measure.
+    #[cfg(feature = "sim")]
+    #[serde(skip)]
+    pub truth_pixels: Option<super::truth::PixelErrors>,
 }
 
 /// Depth error against the scene's true MDF, millimetres.
@@ -120,6 +126,9 @@ pub struct DepthError {
     pub median_mm: f64,
     /// 95th percentile of the absolute error, mm.
     pub p95_mm: f64,
+    /// Standard error of `mean_mm` over 16 × 16-pixel tiles
+    /// (`truth::tile_spread`); NaN with fewer than two tiles.
+    pub spread_mm: f64,
 }
 
 /// `processed/mdf/report.json`.
@@ -402,9 +411,11 @@ pub fn mdf_run(
             max_depth_m(plan.reference_mm * 1e-3, view),
         )?;
         #[cfg(feature = "sim")]
-        let truth = scene.as_ref().map(|s| {
-            super::truth::depth_error(s, &cam, &merged, plan.reference_mm * 1e-3, box_half)
+        let truth_pixels = scene.as_ref().map(|s| {
+            super::truth::depth_errors(s, &cam, &merged, plan.reference_mm * 1e-3, box_half)
         });
+        #[cfg(feature = "sim")]
+        let truth = truth_pixels.as_ref().map(|p| p.summary());
         // Ground truth needs the simulator's scene.
         #[cfg(not(feature = "sim"))]
         let truth = None;
@@ -417,6 +428,8 @@ pub fn mdf_run(
             frames_without_strip: members.iter().map(|&i| results[i].1).sum(),
             valid_fraction: merged.valid_fraction(),
             truth,
+            #[cfg(feature = "sim")]
+            truth_pixels,
         });
     }
     let errors: Vec<f64> = views

@@ -32,6 +32,9 @@ pub struct NormalError {
     pub median_deg: f64,
     /// 95th percentile of that angle, degrees.
     pub p95_deg: f64,
+    /// Standard error of `mean_deg` over 16 × 16-pixel tiles
+    /// ([`tile_spread`]); NaN with fewer than two tiles.
+    pub spread_deg: f64,
 }
 
 /// Compares photometric-stereo normals of a simulated run with the true
@@ -40,6 +43,16 @@ pub fn ps_error_against_truth(
     run: &RunFrames,
     result: &PsResult,
 ) -> Result<Option<NormalError>, ProcessError> {
+    Ok(ps_pixel_errors_against_truth(run, result)?
+        .and_then(|(scene, pixels)| NormalError::of(scene, &pixels.stats(|_| true))))
+}
+
+/// [`ps_error_against_truth`] pixel by pixel: the scene's name, and the
+/// angle at every sample pixel photometric stereo solved.
+pub fn ps_pixel_errors_against_truth(
+    run: &RunFrames,
+    result: &PsResult,
+) -> Result<Option<(String, PixelErrors)>, ProcessError> {
     if !run.meta.simulated {
         return Ok(None);
     }
@@ -62,43 +75,90 @@ pub fn ps_error_against_truth(
         camera_distance_m: geometry.distance_m,
         ..Shot::default()
     };
-    Ok(normal_error(&scene, &shot, result))
+    Ok(Some((
+        scene.name.clone(),
+        normal_errors(&scene, &shot, result),
+    )))
+}
+
+impl NormalError {
+    /// The summary of a scene's normal errors; None without a pixel.
+    pub fn of(scene: String, stats: &ErrorStats) -> Option<NormalError> {
+        (stats.pixels > 0).then_some(NormalError {
+            scene,
+            pixels: stats.pixels,
+            mean_deg: stats.mean,
+            median_deg: stats.median,
+            p95_deg: stats.p95,
+            spread_deg: stats.spread,
+        })
+    }
 }
 
 /// Mean, median and 95th percentile angle between `result`'s valid normals
 /// and the true normals, over pixels that see the sample.
 pub fn normal_error(scene: &Scene, shot: &Shot, result: &PsResult) -> Option<NormalError> {
-    let mut angles = Vec::new();
+    NormalError::of(
+        scene.name.clone(),
+        &normal_errors(scene, shot, result).stats(|_| true),
+    )
+}
+
+/// The angle between `result`'s normal and the true one at every pixel
+/// that sees the sample, in degrees; sample pixels photometric stereo did
+/// not solve are unmeasured.
+pub fn normal_errors(scene: &Scene, shot: &Shot, result: &PsResult) -> PixelErrors {
+    let mut pixels = vec![PixelError::OffSample; result.width * result.height];
     for j in 0..result.height {
         for i in 0..result.width {
             let k = j * result.width + i;
-            if !result.valid[k] {
-                continue;
-            }
             let Some(p) = scene.true_surface_point(shot, i, j) else {
                 continue;
             };
             if !scene.on_sample(p[0], p[1]) {
                 continue;
             }
+            if !result.valid.get(k).copied().unwrap_or(false) {
+                pixels[k] = PixelError::Unmeasured;
+                continue;
+            }
             let t = scene.true_normal(p[0], p[1]);
             let n = result.normals[k];
             let c = (t[0] * n[0] as f64 + t[1] * n[1] as f64 + t[2] * n[2] as f64).clamp(-1.0, 1.0);
-            angles.push(c.acos().to_degrees());
+            pixels[k] = PixelError::Measured(c.acos().to_degrees());
         }
     }
-    if angles.is_empty() {
-        return None;
+    PixelErrors {
+        width: result.width,
+        pixels,
     }
-    angles.sort_by(f64::total_cmp);
-    let n = angles.len();
-    Some(NormalError {
-        scene: scene.name.clone(),
-        pixels: n,
-        mean_deg: angles.iter().sum::<f64>() / n as f64,
-        median_deg: angles[n / 2],
-        p95_deg: angles[(n * 95 / 100).min(n - 1)],
-    })
+}
+
+/// Side of the tiles [`tile_spread`] groups pixels by.
+pub const SPREAD_TILE: usize = 16;
+
+/// The standard error of a per-pixel mean, with neighbouring pixels not
+/// taken as independent: the pixels (index in an image `width` wide,
+/// value) are grouped into [`SPREAD_TILE`]² tiles, and the error is the
+/// standard deviation of the tile means over the square root of their
+/// count. Pixel-level standard errors would be far too small: a
+/// relief's errors come in patches. NaN with fewer than two tiles.
+pub fn tile_spread(width: usize, pixels: impl Iterator<Item = (usize, f64)>) -> f64 {
+    let mut tiles: std::collections::BTreeMap<(usize, usize), (f64, usize)> = Default::default();
+    for (k, v) in pixels {
+        let (i, j) = (k % width.max(1), k / width.max(1));
+        let t = tiles.entry((i / SPREAD_TILE, j / SPREAD_TILE)).or_default();
+        t.0 += v;
+        t.1 += 1;
+    }
+    let means: Vec<f64> = tiles.values().map(|(s, n)| s / *n as f64).collect();
+    let n = means.len();
+    if n < 2 {
+        return f64::NAN;
+    }
+    let mean = means.iter().sum::<f64>() / n as f64;
+    let var = means.iter().map(|m| (m - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    (var / n as f64).sqrt()
 }
 
 /// What a perfect rig's normtexture of `scene` at (light, view) holds:
@@ -174,16 +234,127 @@ pub fn mdf_truth_scene(
     Ok(Some(rigd_sim::scene::Scene::load(&name)?))
 }
 
-/// The measured displacement against the true one, over pixels whose true
-/// surface point lies in the sample's bounding box: the distance along the
-/// pixel's ray from the reference plane to the first surface hit.
-pub fn depth_error(
+/// One pixel of a result image (a displacement, a normal) against the
+/// truth.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum PixelError {
+    /// The pixel's true surface point is not on the sample.
+    OffSample,
+    /// On the sample, with no measurement.
+    Unmeasured,
+    /// On the sample: the error (mm of displacement, degrees of normal).
+    Measured(f64),
+}
+
+/// A result image's error, pixel by pixel, row-major.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PixelErrors {
+    /// Image width, pixels.
+    pub width: usize,
+    /// One entry per pixel.
+    pub pixels: Vec<PixelError>,
+}
+
+/// Statistics of per-pixel errors, in their unit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ErrorStats {
+    /// Measured pixels the statistics are over.
+    pub pixels: usize,
+    /// Their share of the sample pixels considered.
+    pub coverage: f64,
+    /// Mean error; NaN without a pixel.
+    pub mean: f64,
+    /// Median error; NaN without a pixel.
+    pub median: f64,
+    /// 95th percentile; NaN without a pixel.
+    pub p95: f64,
+    /// Standard error of `mean` over tiles ([`tile_spread`]).
+    pub spread: f64,
+}
+
+impl From<ErrorStats> for DepthError {
+    fn from(s: ErrorStats) -> DepthError {
+        DepthError {
+            pixels: s.pixels,
+            coverage: s.coverage,
+            mean_mm: s.mean,
+            median_mm: s.median,
+            p95_mm: s.p95,
+            spread_mm: s.spread,
+        }
+    }
+}
+
+impl PixelErrors {
+    /// The depth summary over all sample pixels ([`PixelErrors::stats`]).
+    pub fn summary(&self) -> DepthError {
+        self.stats(|_| true).into()
+    }
+
+    /// The statistics over the sample's pixels that `keep` (by pixel
+    /// index) admits: coverage is the measured share of the kept sample
+    /// pixels.
+    pub fn stats(&self, keep: impl Fn(usize) -> bool) -> ErrorStats {
+        let mut errors = Vec::new();
+        let mut at = Vec::new();
+        let mut sample_pixels = 0usize;
+        for (k, p) in self.pixels.iter().enumerate() {
+            if *p == PixelError::OffSample || !keep(k) {
+                continue;
+            }
+            sample_pixels += 1;
+            if let PixelError::Measured(e) = *p {
+                errors.push(e);
+                at.push(k);
+            }
+        }
+        let spread = tile_spread(self.width, at.into_iter().zip(errors.iter().copied()));
+        errors.sort_by(f64::total_cmp);
+        let pick = |q: f64| {
+            errors
+                .get(((errors.len() as f64 - 1.0) * q).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        ErrorStats {
+            pixels: errors.len(),
+            coverage: errors.len() as f64 / sample_pixels.max(1) as f64,
+            mean: if errors.is_empty() {
+                f64::NAN
+            } else {
+                errors.iter().sum::<f64>() / errors.len() as f64
+            },
+            median: pick(0.5),
+            p95: pick(0.95),
+            spread,
+        }
+    }
+
+    /// The sample's pixels (measured or not).
+    pub fn sample_pixels(&self) -> usize {
+        self.pixels
+            .iter()
+            .filter(|p| **p != PixelError::OffSample)
+            .count()
+    }
+
+    /// Whether pixel `k` is on the sample and measured.
+    pub fn measured(&self, k: usize) -> bool {
+        matches!(self.pixels.get(k), Some(PixelError::Measured(_)))
+    }
+}
+
+/// The measured displacement against the true one, pixel by pixel, over
+/// pixels whose true surface point lies in the sample's bounding box: the
+/// distance along the pixel's ray from the reference plane to the first
+/// surface hit.
+pub fn depth_errors(
     scene: &rigd_sim::scene::Scene,
     cam: &PinholeCamera,
     d: &DisplacementImage,
     reference_m: f64,
     box_half: f64,
-) -> DepthError {
+) -> PixelErrors {
     let shot = rigd_sim::scene::Shot {
         view: cam.centre,
         width: cam.width as u32,
@@ -194,8 +365,7 @@ pub fn depth_error(
         ),
         ..rigd_sim::scene::Shot::default()
     };
-    let mut errors = Vec::new();
-    let mut sample_pixels = 0usize;
+    let mut pixels = vec![PixelError::OffSample; d.width * d.height];
     for j in 0..d.height {
         for i in 0..d.width {
             let Some(p) = scene.true_surface_point(&shot, i, j) else {
@@ -204,8 +374,9 @@ pub fn depth_error(
             if p[0].abs() > box_half || p[1].abs() > box_half {
                 continue;
             }
-            sample_pixels += 1;
-            let measured = d.depth[j * d.width + i];
+            let k = j * d.width + i;
+            pixels[k] = PixelError::Unmeasured;
+            let measured = d.depth[k];
             if measured < 0.0 {
                 continue;
             }
@@ -216,25 +387,11 @@ pub fn depth_error(
             let t_ref = (o[2] - reference_m) / -dir[2];
             let t_hit = (0..3).map(|k| (p[k] - o[k]) * dir[k]).sum::<f64>();
             let truth = t_hit - t_ref;
-            errors.push((f64::from(measured) - truth).abs() * 1e3);
+            pixels[k] = PixelError::Measured((f64::from(measured) - truth).abs() * 1e3);
         }
     }
-    errors.sort_by(f64::total_cmp);
-    let pick = |q: f64| {
-        errors
-            .get(((errors.len() as f64 - 1.0) * q).round() as usize)
-            .copied()
-            .unwrap_or(f64::NAN)
-    };
-    DepthError {
-        pixels: errors.len(),
-        coverage: errors.len() as f64 / sample_pixels.max(1) as f64,
-        mean_mm: if errors.is_empty() {
-            f64::NAN
-        } else {
-            errors.iter().sum::<f64>() / errors.len() as f64
-        },
-        median_mm: pick(0.5),
-        p95_mm: pick(0.95),
+    PixelErrors {
+        width: d.width,
+        pixels,
     }
 }

@@ -198,6 +198,7 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
     let v1 = v1
         .route("/tradeoff", get(tradeoff::get_report).post(tradeoff::start))
         .route("/tradeoff/plot.svg", get(tradeoff::get_plot))
+        .route("/tradeoff/figure", get(tradeoff::get_figure))
         .route("/tradeoff/choice", get(tradeoff::get_choice))
         .route("/sim/render", get(sim::sim_render))
         .route("/sim/scenes", get(sim::sim_scenes));

@@ -108,7 +108,7 @@ pub fn frontier(points: &[PlanPoint]) -> Vec<PlanPoint> {
 }
 
 /// The items no other beats in both `(cost, error)`, cheapest first.
-fn frontier_by<T: Clone>(items: &[T], key: impl Fn(&T) -> (f64, f64)) -> Vec<T> {
+pub(crate) fn frontier_by<T: Clone>(items: &[T], key: impl Fn(&T) -> (f64, f64)) -> Vec<T> {
     let mut sorted: Vec<&T> = items.iter().collect();
     sorted.sort_by(|a, b| {
         let (ka, kb) = (key(a), key(b));

@@ -68,9 +68,10 @@ impl Default for TradeoffConfig {
 }
 
 pub mod choice;
+pub mod figure;
 
 /// One row of the table.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Row {
     /// The family the row belongs to: `plans`, `pca`, `fidelity`, `laser`
     /// or `photometric stereo`.
@@ -92,13 +93,31 @@ pub struct Row {
     /// What `error` is: `relative` (plans, pca, fidelity), `mm` (laser:
     /// mean depth error), `degrees` (photometric stereo: mean normal error).
     pub unit: String,
+    /// One standard error of `error`, in its unit: the jackknife over the
+    /// held-out pairs (plans, pca), or over 16 × 16-pixel tiles (laser,
+    /// photometric stereo). None where there is nothing to resample
+    /// (fidelity: one frame).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spread: Option<f64>,
+    /// The share of the sample the setting itself measures, 0 … 1, where
+    /// it varies within the family (laser). `error` may be over a smaller
+    /// common set; `detail` says.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub coverage: Option<f64>,
+    /// The plan's directions, each paired with each (plans family): what
+    /// the dashboard puts into the start form when the point is clicked.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub directions: Option<Vec<Direction>>,
+    /// The plan's name where the daemon knows it by name (`h1`, `h2`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plan: Option<String>,
     /// More about the row (coverage, what was measured).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub detail: Option<String>,
 }
 
 /// The whole report.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct Report {
     /// The profile's name (the rig of the plans and pca families).
     pub profile: String,
@@ -111,9 +130,11 @@ pub struct Report {
     /// PCA components of the plans family.
     pub components: usize,
     /// How each figure was measured, one sentence per family or column.
+    #[serde(default)]
     pub method: Vec<String>,
     /// The knee of each family's curve, one computed sentence each
     /// ([`summary`]).
+    #[serde(default)]
     pub summary: Vec<String>,
     /// Every row of the table, family by family.
     pub rows: Vec<Row>,
@@ -123,6 +144,10 @@ pub struct Report {
 struct PlanCase {
     name: String,
     plan: Plan,
+    /// The spec `plan::resolve` knows it by, for the named plans.
+    spec: Option<&'static str>,
+    /// Its directions, each paired with each.
+    directions: Vec<Direction>,
 }
 
 fn pairs_plan(name: &str, dirs: &[Direction]) -> Plan {
@@ -142,10 +167,14 @@ fn plan_cases(profile: &Profile, solver: &Solver) -> Result<Vec<PlanCase>, Proce
         PlanCase {
             name: "h2".into(),
             plan: resolve("h2")?,
+            spec: Some("h2"),
+            directions: plan::h2(),
         },
         PlanCase {
             name: "h1".into(),
             plan: resolve("h1")?,
+            spec: Some("h1"),
+            directions: plan::h1(),
         },
     ];
     for k in [3, 4, 5] {
@@ -153,6 +182,8 @@ fn plan_cases(profile: &Profile, solver: &Solver) -> Result<Vec<PlanCase>, Proce
         cases.push(PlanCase {
             name: format!("h2, {k} rings"),
             plan: pairs_plan(&format!("h2-{k}rings"), &dirs),
+            spec: None,
+            directions: dirs,
         });
     }
     // The grids: the rig's own arcs where it has them, else evenly spaced
@@ -170,6 +201,8 @@ fn plan_cases(profile: &Profile, solver: &Solver) -> Result<Vec<PlanCase>, Proce
         cases.push(PlanCase {
             name: format!("grid 12x{rows}"),
             plan: pairs_plan(&format!("grid12x{rows}"), &dirs),
+            spec: None,
+            directions: dirs,
         });
     }
     let dense_thetas = [0.0, 15.0, 30.0, 45.0, 60.0, 75.0];
@@ -177,6 +210,8 @@ fn plan_cases(profile: &Profile, solver: &Solver) -> Result<Vec<PlanCase>, Proce
     cases.push(PlanCase {
         name: "dense, 15° rings".into(),
         plan: pairs_plan("dense15", &dense),
+        spec: None,
+        directions: dense,
     });
     Ok(cases)
 }
@@ -291,22 +326,65 @@ fn compress(
     Ok((store, slots, compress_s))
 }
 
-/// RMS error of the store at the held-out pairs, relative to the truth's RMS.
+/// An error and its standard error.
+#[derive(Debug, Clone, Copy)]
+struct Measured {
+    error: f64,
+    spread: Option<f64>,
+}
+
+/// RMS error of the store at the held-out pairs, relative to the truth's
+/// RMS, with its jackknife standard error over the pairs.
 fn held_out_error(
     store: &BtfStore,
     truths: &[(Direction, Direction, Vec<f32>)],
-) -> Result<f64, ProcessError> {
-    let (mut err, mut norm) = (0.0, 0.0);
+) -> Result<Measured, ProcessError> {
+    let mut per_pair = Vec::with_capacity(truths.len());
     for (l, v, truth) in truths {
         let tex = store
             .reconstruct(pdir(*l), pdir(*v))
             .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+        let (mut err, mut norm) = (0.0, 0.0);
         for (a, b) in tex.iter().zip(truth) {
             err += f64::from(a - b).powi(2);
             norm += f64::from(*b).powi(2);
         }
+        per_pair.push((err, norm));
     }
-    Ok((err / norm.max(1e-30)).sqrt())
+    Ok(relative_rms_with_spread(&per_pair))
+}
+
+/// `sqrt(Σ err / Σ norm)` over the pairs, and its jackknife standard
+/// error: leave each pair out in turn, `sqrt((n − 1)/n · Σ (θ₋ᵢ − θ̄)²)`.
+/// No spread with fewer than two pairs.
+fn relative_rms_with_spread(per_pair: &[(f64, f64)]) -> Measured {
+    let (err, norm) = per_pair
+        .iter()
+        .fold((0.0, 0.0), |(e, n), (a, b)| (e + a, n + b));
+    let ratio = |e: f64, n: f64| (e.max(0.0) / n.max(1e-30)).sqrt();
+    let error = ratio(err, norm);
+    let n = per_pair.len();
+    if n < 2 {
+        return Measured {
+            error,
+            spread: None,
+        };
+    }
+    let leave_out: Vec<f64> = per_pair
+        .iter()
+        .map(|(a, b)| ratio(err - a, norm - b))
+        .collect();
+    let mean = leave_out.iter().sum::<f64>() / n as f64;
+    let var = leave_out.iter().map(|t| (t - mean).powi(2)).sum::<f64>();
+    Measured {
+        error,
+        spread: Some(((n - 1) as f64 / n as f64 * var).sqrt()),
+    }
+}
+
+/// A spread that is a number, else none.
+fn finite(x: f64) -> Option<f64> {
+    x.is_finite().then_some(x)
 }
 
 /// Raw bytes of a capture: every image at the camera's resolution, two
@@ -368,16 +446,20 @@ pub fn run(
         let g = grid(&s)?;
         let textures = true_textures(&scene, &g, cfg.texture);
         let (store, _, compress_s) = compress(&textures, &g, cfg.texture, cfg.components)?;
+        let measured = held_out_error(&store, &truths)?;
         rows.push(Row {
             family: "plans".into(),
             setting: case.name.clone(),
             images: Some(s.images.len()),
             physical_s: Some(physical_s),
             bytes: Some(raw_bytes(profile, &s)),
-            error: Some(held_out_error(&store, &truths)?),
+            error: Some(measured.error),
+            spread: measured.spread,
             compute_s: Some(compress_s),
             unit: "relative".into(),
-            detail: None,
+            directions: Some(case.directions.clone()),
+            plan: case.spec.map(str::to_string),
+            ..Row::default()
         });
         if case.name == "h2" {
             // The PCA family reuses H2's textures.
@@ -405,16 +487,18 @@ pub fn run(
             // Only the size was wanted: the files go either way.
             let _ = std::fs::remove_dir_all(&dir);
             let bytes = bytes?;
+            let measured = held_out_error(&store, &truths)?;
             rows.push(Row {
                 family: "pca".into(),
                 setting: format!("C = {c}"),
                 images: Some(*images),
                 physical_s: Some(*physical),
                 bytes: Some(bytes),
-                error: Some(held_out_error(&store, &truths)?),
+                error: Some(measured.error),
+                spread: measured.spread,
                 compute_s: Some(compress_s),
                 unit: "relative".into(),
-                detail: None,
+                ..Row::default()
             });
         }
     }
@@ -439,15 +523,16 @@ pub fn run(
             "plans: texture-space capture (the scene's true BTF at the achieved directions); camera and registration left out".into(),
             format!("plans, camera chain: the 3-ring plan captured by the simulated camera ({}×{} frames, every effect of the scene), registered by its markers (rectify to {}² float textures) and compressed; the gap to the texture-space row of the same plan is what that shortcut changes; time: the simulated run's physical duration", CHAIN_FRAME[0], CHAIN_FRAME[1], cfg.texture),
             "error: RMS over held-out (light, view) pairs relative to the truth's RMS".into(),
+            "spread: one standard error of `error`: the jackknife over the held-out pairs (plans, pca), the standard error over 16 × 16-pixel tiles (laser, photometric stereo); fidelity has one frame and no spread".into(),
             "fidelity: error is the frame's RMS change with the effect off, relative to the frame's RMS".into(),
-            "laser: one 26-source scan on the MSRA rig (cam3 at 40°, 160×120 frames, 1.5 mm steps) processed with subsets of its sources; time: motion-model estimate of a plan with that many sources; error: mean depth error in mm".into(),
-            "photometric stereo: simulated VirTex captures (128×96 frames); time: the simulated run's physical duration; error: mean normal error in degrees".into(),
+            "laser: one 26-source scan on the MSRA rig (cam3 at 40°, 160×120 frames, 1.5 mm steps) processed with subsets of its sources; time: motion-model estimate of a plan with that many sources; error: mean depth error in mm over the sample pixels every subset measures, so the subsets are compared on the same pixels (none when they share fewer than 50 pixels or 1 % of the sample); coverage: the share of the sample's pixels the subset itself measures, with its error over them in detail".into(),
+            "photometric stereo: simulated VirTex captures (128×96 frames); time: the simulated run's physical duration; error: mean normal error in degrees over the sample pixels every layout solves; coverage: the share the layout itself solves".into(),
             "summary: per family, the knee of its frontier (the point farthest below the chord from the cheapest to the most accurate setting, both scaled to that span), and what the most accurate setting adds".into(),
         ],
         summary: summary(&rows),
         rows,
     };
-    write_outputs(out, &report)?;
+    write_outputs(out, &report, Some(&profile.default_plan))?;
     Ok(report)
 }
 
@@ -499,7 +584,7 @@ fn camera_chain(
     let compute_s = started.elapsed().as_secs_f64();
     let store = BtfStore::read(&crate::store::processed::btf_dir(&dir))
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-    let error = held_out_error(&store, truths)?;
+    let measured = held_out_error(&store, truths)?;
     let _ = std::fs::remove_dir_all(&dir);
     Ok(Row {
         family: "plans".into(),
@@ -507,13 +592,15 @@ fn camera_chain(
         images: Some(images),
         physical_s: Some(physical),
         bytes: None,
-        error: Some(error),
+        error: Some(measured.error),
+        spread: measured.spread,
         compute_s: Some(compute_s),
         unit: "relative".into(),
         detail: Some(format!(
             "{}×{} simulated frames, registered and compressed",
             CHAIN_FRAME[0], CHAIN_FRAME[1]
         )),
+        ..Row::default()
     })
 }
 
@@ -578,8 +665,9 @@ fn laser_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> 
     let run = crate::postprocess::frames::RunFrames::open(&dir)?;
     let solver = Solver::new(&profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let offer = schedule::rig_offer(&profile, &solver);
-    let mut rows = Vec::new();
-    for n in [1usize, 5, 13, 26] {
+    // Each subset: its row without the error, and its error pixel by pixel.
+    let mut subsets = Vec::new();
+    for n in LASER_SOURCES {
         let cfg = crate::postprocess::mdf::MdfConfig {
             sources: Some(n),
             ..Default::default()
@@ -587,30 +675,91 @@ fn laser_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> 
         let started = Instant::now();
         let report = crate::postprocess::mdf::mdf_run(&run, &cfg, &|_, _| {})?;
         let compute_s = started.elapsed().as_secs_f64();
-        let truth = report.views.first().and_then(|v| v.truth);
+        let pixels = report
+            .views
+            .first()
+            .and_then(|v| v.truth_pixels.clone())
+            .ok_or_else(|| {
+                ProcessError::Invalid("the laser scan's view has no ground truth".into())
+            })?;
         let plan_n =
             plan::resolve(&plan(n), &offer).map_err(|e| ProcessError::Invalid(e.to_string()))?;
         let s = schedule::build(&profile, &solver, &plan_n);
         let physical = schedule::timing::Timing::new(&profile, None).estimate_s(&s, |_| false);
-        rows.push(Row {
+        let row = Row {
             family: "laser".into(),
             setting: format!("{n} source{}", if n == 1 { "" } else { "s" }),
             images: Some(s.images.len()),
             physical_s: Some(physical),
-            bytes: None,
-            error: truth.map(|t| t.mean_mm),
             compute_s: Some(compute_s),
             unit: "mm".into(),
-            detail: truth.map(|t| {
-                format!(
-                    "coverage {:.1} % of the sample's pixels",
-                    100.0 * t.coverage
-                )
-            }),
-        });
+            ..Row::default()
+        };
+        subsets.push((row, pixels));
     }
     let _ = std::fs::remove_dir_all(&dir);
-    Ok(rows)
+    Ok(rows_on_common_pixels(subsets, &|e| format!("{e:.3} mm")))
+}
+
+/// Source counts of the laser family's subsets.
+const LASER_SOURCES: [usize; 4] = [1, 5, 13, 26];
+
+/// The fewest pixels, and the smallest share of the sample's, that every
+/// setting of a family must measure for their errors to be compared.
+const COMMON_MIN: (usize, f64) = (50, 0.01);
+
+/// A family's rows (laser subsets, photometric-stereo layouts) compared on
+/// the same pixels: each setting's error is over the sample pixels that
+/// every setting measures, so a setting that reaches more pixels is not
+/// charged for the harder ones the others never saw (and one that reaches
+/// fewer is not flattered by the easy ones). Its own coverage, and its
+/// error over its own pixels, stay in `coverage` and `detail`. When the
+/// settings share too few pixels ([`COMMON_MIN`]: they hardly see the
+/// sample) the rows have no error, and `detail` says so. `text` writes an
+/// error in the family's unit.
+fn rows_on_common_pixels(
+    subsets: Vec<(Row, crate::postprocess::truth::PixelErrors)>,
+    text: &dyn Fn(f64) -> String,
+) -> Vec<Row> {
+    let len = subsets
+        .iter()
+        .map(|(_, p)| p.pixels.len())
+        .min()
+        .unwrap_or(0);
+    let common: Vec<bool> = (0..len)
+        .map(|k| subsets.iter().all(|(_, p)| p.measured(k)))
+        .collect();
+    let common_count = common.iter().filter(|c| **c).count();
+    let sample = subsets.first().map_or(0, |(_, p)| p.sample_pixels());
+    let comparable =
+        common_count >= COMMON_MIN.0 && common_count as f64 >= COMMON_MIN.1 * sample as f64;
+    subsets
+        .into_iter()
+        .map(|(mut row, pixels)| {
+            let own = pixels.stats(|_| true);
+            let shared = pixels.stats(|k| common.get(k).copied().unwrap_or(false));
+            row.coverage = Some(own.coverage);
+            let own_text = format!(
+                "over its own {:.1} % of the sample: {}",
+                100.0 * own.coverage,
+                text(own.mean)
+            );
+            if comparable {
+                row.error = finite(shared.mean);
+                row.spread = finite(shared.spread);
+                row.detail = Some(format!(
+                    "error over the {common_count} sample pixels every setting measures (median {}, 95th percentile {}); {own_text}",
+                    text(shared.median),
+                    text(shared.p95)
+                ));
+            } else {
+                row.detail = Some(format!(
+                    "no error: the settings share only {common_count} measured pixels of the sample's {sample}, too few to compare (they hardly see this sample); {own_text}"
+                ));
+            }
+            row
+        })
+        .collect()
 }
 
 /// Photometric-stereo normal error against the number of lamps.
@@ -618,7 +767,7 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
     use rigd_process::photometric_stereo as ps;
     let base = Profile::load("virtex-photometric-stereo")
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-    let mut rows = Vec::new();
+    let mut settings = Vec::new();
     let layouts: [(&str, Vec<Direction>); 3] = [
         ("3 lights", vec![]),
         (
@@ -665,8 +814,12 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
             )
             .map_err(|e| ProcessError::Invalid(format!("{name}: {e}")))?;
             let compute_s = started.elapsed().as_secs_f64();
-            let err = crate::postprocess::truth::ps_error_against_truth(&run, &result)?;
-            rows.push(Row {
+            let (_, pixels) =
+                crate::postprocess::truth::ps_pixel_errors_against_truth(&run, &result)?
+                    .ok_or_else(|| {
+                        ProcessError::Invalid(format!("{name}: the capture has no ground truth"))
+                    })?;
+            let row = Row {
                 family: "photometric stereo".into(),
                 setting: if robust {
                     format!("{name}, robust")
@@ -675,21 +828,15 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
                 },
                 images: Some(run.entries.len()),
                 physical_s: Some(physical),
-                bytes: None,
-                error: err.as_ref().map(|e| e.mean_deg),
                 compute_s: Some(compute_s),
                 unit: "degrees".into(),
-                detail: err.map(|e| {
-                    format!(
-                        "median {:.2}°, 95th percentile {:.2}°",
-                        e.median_deg, e.p95_deg
-                    )
-                }),
-            });
+                ..Row::default()
+            };
+            settings.push((row, pixels));
         }
         let _ = std::fs::remove_dir_all(&dir);
     }
-    Ok(rows)
+    Ok(rows_on_common_pixels(settings, &|e| format!("{e:.2}°")))
 }
 
 /// Replaces a fixed-lamp rig's lamps with ones in `directions`, each a copy
@@ -766,13 +913,10 @@ fn fidelity(scene: &Scene, size: [u32; 2]) -> Vec<Row> {
     let mut rows = vec![Row {
         family: "fidelity".into(),
         setting: format!("all effects ({})", plan.live),
-        images: None,
-        physical_s: None,
-        bytes: None,
         error: Some(0.0),
         compute_s: Some(t_all),
         unit: "relative".into(),
-        detail: None,
+        ..Row::default()
     }];
     for effect in plan.live.iter().collect::<Vec<Effect>>() {
         let switches: EffectSwitches = format!("all,-{}", effect.name())
@@ -783,19 +927,16 @@ fn fidelity(scene: &Scene, size: [u32; 2]) -> Vec<Row> {
         rows.push(Row {
             family: "fidelity".into(),
             setting: format!("without {}", effect.name()),
-            images: None,
-            physical_s: None,
-            bytes: None,
             error: Some(rms(&diff) / ref_rms),
             compute_s: Some(t),
             unit: "relative".into(),
-            detail: None,
+            ..Row::default()
         });
     }
     rows
 }
 
-fn write_outputs(out: &Path, report: &Report) -> Result<(), ProcessError> {
+fn write_outputs(out: &Path, report: &Report, marked: Option<&str>) -> Result<(), ProcessError> {
     std::fs::create_dir_all(out).map_err(|error| StoreError::Io {
         path: out.to_path_buf(),
         op: "create directory",
@@ -805,133 +946,42 @@ fn write_outputs(out: &Path, report: &Report) -> Result<(), ProcessError> {
         serde_json::to_vec_pretty(report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     rigd_core::atomic::write(&out.join("tradeoff.json"), &json).map_err(StoreError::from)?;
     let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
-    let mut csv =
-        String::from("family,setting,images,physical_s,bytes,error,unit,compute_s,detail\n");
+    let mut csv = String::from(
+        "family,setting,images,physical_s,bytes,error,spread,unit,coverage,compute_s,detail\n",
+    );
     for r in &report.rows {
         csv.push_str(&format!(
-            "{},\"{}\",{},{},{},{},{},{},\"{}\"\n",
+            "{},\"{}\",{},{},{},{},{},{},{},{},\"{}\"\n",
             r.family,
             r.setting.replace('"', "'"),
             r.images.map(|x| x.to_string()).unwrap_or_default(),
             opt(r.physical_s),
             r.bytes.map(|x| x.to_string()).unwrap_or_default(),
             opt(r.error),
+            opt(r.spread),
             r.unit,
+            opt(r.coverage),
             opt(r.compute_s),
             r.detail.clone().unwrap_or_default().replace('"', "'")
         ));
     }
     rigd_core::atomic::write(&out.join("tradeoff.csv"), csv.as_bytes())
         .map_err(StoreError::from)?;
-    rigd_core::atomic::write(&out.join("tradeoff.svg"), svg(report).as_bytes())
+    rigd_core::atomic::write(&out.join("tradeoff.svg"), svg(report, marked).as_bytes())
         .map_err(StoreError::from)?;
     Ok(())
 }
 
-/// A plotted point: family, setting, physical time, error.
-type Point<'a> = (&'a str, &'a str, f64, f64);
-
-/// Error against physical time, log–log, a polyline per family that has both.
-pub fn svg(report: &Report) -> String {
-    let (w, h, m) = (640.0, 420.0, 60.0);
-    let points: Vec<Point> = report
-        .rows
-        .iter()
-        .filter_map(|r| match (r.physical_s, r.error) {
-            (Some(t), Some(e)) if t > 0.0 && e > 0.0 => {
-                Some((r.family.as_str(), r.setting.as_str(), t, e))
-            }
-            _ => None,
-        })
-        .collect();
-    let range = |f: &dyn Fn(&Point) -> f64| {
-        let lo = points
-            .iter()
-            .map(f)
-            .fold(f64::INFINITY, f64::min)
-            .log10()
-            .floor();
-        let hi = points
-            .iter()
-            .map(f)
-            .fold(f64::NEG_INFINITY, f64::max)
-            .log10()
-            .ceil();
-        if lo.is_finite() && hi.is_finite() {
-            (lo, hi.max(lo + 1.0))
-        } else {
-            (0.0, 1.0)
-        }
-    };
-    let (x0, x1) = range(&|p| p.2);
-    let (y0, y1) = range(&|p| p.3);
-    let px = |t: f64| m + (t.log10() - x0) / (x1 - x0) * (w - 2.0 * m);
-    let py = |e: f64| h - m - (e.log10() - y0) / (y1 - y0) * (h - 2.0 * m);
-    let mut s = format!(
-        "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{w}\" height=\"{h}\" font-family=\"sans-serif\" font-size=\"11\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n<text x=\"{}\" y=\"20\" text-anchor=\"middle\" font-size=\"13\">{} on {}: error vs physical capture time (units per family)</text>\n",
-        w / 2.0,
-        report.scene,
-        report.profile
-    );
-    s.push_str(&format!(
-        "<line x1=\"{m}\" y1=\"{}\" x2=\"{}\" y2=\"{}\" stroke=\"black\"/><line x1=\"{m}\" y1=\"{m}\" x2=\"{m}\" y2=\"{}\" stroke=\"black\"/>\n",
-        h - m, w - m, h - m, h - m
-    ));
-    for k in (x0 as i32)..=(x1 as i32) {
-        let x = px(10f64.powi(k));
-        s.push_str(&format!(
-            "<text x=\"{x}\" y=\"{}\" text-anchor=\"middle\">1e{k} s</text>\n",
-            h - m + 16.0
-        ));
-    }
-    for k in (y0 as i32)..=(y1 as i32) {
-        let y = py(10f64.powi(k));
-        s.push_str(&format!(
-            "<text x=\"{}\" y=\"{y}\" text-anchor=\"end\">1e{k}</text>\n",
-            m - 4.0
-        ));
-    }
-    let colours = ["#1f77b4", "#d62728", "#2ca02c", "#9467bd"];
-    let mut families: Vec<&str> = points.iter().map(|p| p.0).collect();
-    families.dedup();
-    for (i, fam) in families.iter().enumerate() {
-        let colour = colours[i % colours.len()];
-        let mut pts: Vec<&Point> = points.iter().filter(|p| p.0 == *fam).collect();
-        pts.sort_by(|a, b| a.2.total_cmp(&b.2));
-        let line: Vec<String> = pts
-            .iter()
-            .map(|p| format!("{:.1},{:.1}", px(p.2), py(p.3)))
-            .collect();
-        s.push_str(&format!(
-            "<polyline fill=\"none\" stroke=\"{colour}\" points=\"{}\"/>\n",
-            line.join(" ")
-        ));
-        for p in &pts {
-            s.push_str(&format!(
-                "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"3\" fill=\"{colour}\"><title>{}: {} ({:.0} s, {:.4})</title></circle>\n<text x=\"{:.1}\" y=\"{:.1}\" fill=\"{colour}\">{}</text>\n",
-                px(p.2), py(p.3), p.0, p.1, p.2, p.3, px(p.2) + 5.0, py(p.3) - 5.0, p.1
-            ));
-        }
-        let unit = report
-            .rows
-            .iter()
-            .find(|r| r.family == *fam)
-            .map_or("", |r| r.unit.as_str());
-        s.push_str(&format!(
-            "<text x=\"{}\" y=\"{}\" fill=\"{colour}\">{fam} ({unit})</text>\n",
-            w - m - 160.0,
-            m + 14.0 * i as f64
-        ));
-    }
-    s.push_str("</svg>\n");
-    s
+/// The report's figure (see [`figure`]), with `marked` (a plan name,
+/// the profile's default) ringed.
+pub fn svg(report: &Report, marked: Option<&str>) -> String {
+    figure::figure(report, marked).svg
 }
 
 /// The knee of each family's curve, in a sentence ([`choice::knee`]):
 /// plans against physical time, PCA components against bytes,
-/// photometric stereo against physical time. The laser family is not
-/// summarised: each subset's error is over the pixels it covers, so its
-/// errors are not comparable.
+/// photometric stereo and the laser scan against physical time (the laser
+/// errors are over the pixels every subset measures, so they compare).
 pub fn summary(rows: &[Row]) -> Vec<String> {
     let curve = |family: &str, cost: &dyn Fn(&Row) -> Option<f64>| -> Vec<choice::CurvePoint> {
         rows.iter()
@@ -958,6 +1008,7 @@ pub fn summary(rows: &[Row]) -> Vec<String> {
     let points = |e: f64| format!("{:.1} points", 100.0 * e);
     let megabytes = |b: f64| format!("{:.1} MB", b / 1e6);
     let degrees = |e: f64| format!("{e:.1}°");
+    let millimetres = |e: f64| format!("{e:.3} mm");
     let physical = |r: &Row| r.physical_s;
     let bytes = |r: &Row| r.bytes.map(|b| b as f64);
     let knees = [
@@ -978,22 +1029,24 @@ pub fn summary(rows: &[Row]) -> Vec<String> {
                 &degrees,
             ),
         ),
+        (
+            "How many laser sources?",
+            choice::knee(
+                &curve("laser", &physical),
+                &hours,
+                &millimetres,
+                &millimetres,
+            ),
+        ),
     ];
-    let mut out: Vec<String> = knees
+    knees
         .into_iter()
         .filter_map(|(question, sentence)| Some(format!("{question} {}.", sentence?)))
-        .collect();
-    if rows.iter().any(|r| r.family == "laser") {
-        out.push(
-            "How many laser sources? Not summarised: each subset's error is over the pixels it covers, so its errors are not comparable."
-                .into(),
-        );
-    }
-    out
+        .collect()
 }
 
 /// Ends the setting of the `plans` row measured through the camera chain.
-const CAMERA_CHAIN_SUFFIX: &str = ", camera chain";
+pub(crate) const CAMERA_CHAIN_SUFFIX: &str = ", camera chain";
 
 /// The measured rows of the `plans` family, for [`choice::choose`]. The
 /// camera-chain row is left out: it is a check of its plan's
@@ -1015,13 +1068,20 @@ pub fn plan_points(rows: &[Row]) -> Vec<choice::PlanPoint> {
 
 /// The rows of a written report (`tradeoff.json`).
 pub fn read_rows(json: &[u8]) -> Result<Vec<Row>, String> {
-    #[derive(Deserialize)]
-    struct Rows {
-        rows: Vec<Row>,
-    }
-    serde_json::from_slice::<Rows>(json)
-        .map(|r| r.rows)
-        .map_err(|e| format!("not a trade-off report: {e}"))
+    read_report(json).map(|r| r.rows)
+}
+
+/// A written report (`tradeoff.json`).
+pub fn read_report(json: &[u8]) -> Result<Report, String> {
+    serde_json::from_slice::<Report>(json).map_err(|e| format!("not a trade-off report: {e}"))
+}
+
+/// Writes `tradeoff.svg` into `out` again from the report, with the
+/// current figure and `marked` ringed.
+pub fn redraw(out: &Path, report: &Report, marked: Option<&str>) -> Result<(), ProcessError> {
+    rigd_core::atomic::write(&out.join("tradeoff.svg"), svg(report, marked).as_bytes())
+        .map_err(StoreError::from)?;
+    Ok(())
 }
 
 #[cfg(test)]
@@ -1039,5 +1099,90 @@ mod tests {
             }
         }
         assert_ne!(p[0], p[1]);
+    }
+
+    #[test]
+    fn the_jackknife_spread_is_zero_for_equal_pairs_and_grows_with_an_outlier() {
+        let equal = relative_rms_with_spread(&[(1.0, 100.0); 6]);
+        assert!((equal.error - 0.1).abs() < 1e-12);
+        assert!(equal.spread.unwrap() < 1e-12);
+        let mut pairs = vec![(1.0, 100.0); 6];
+        pairs[0] = (16.0, 100.0);
+        let outlier = relative_rms_with_spread(&pairs);
+        assert!(outlier.error > 0.1 && outlier.spread.unwrap() > 0.01);
+        // One pair: nothing to leave out.
+        assert!(relative_rms_with_spread(&[(1.0, 4.0)]).spread.is_none());
+        // No truth at all: no NaN.
+        assert!(relative_rms_with_spread(&[(0.0, 0.0), (0.0, 0.0)]).error == 0.0);
+    }
+
+    #[test]
+    fn settings_are_compared_on_the_pixels_all_of_them_measure() {
+        use crate::postprocess::truth::{PixelError, PixelErrors};
+        // 200 sample pixels in four blocks of 50, and an off-sample one.
+        let img = |blocks: [Option<f64>; 4]| PixelErrors {
+            width: 20,
+            pixels: blocks
+                .iter()
+                .flat_map(|e| {
+                    std::iter::repeat_n(e.map_or(PixelError::Unmeasured, PixelError::Measured), 50)
+                })
+                .chain([PixelError::OffSample])
+                .collect(),
+        };
+        let row = |n: usize| Row {
+            family: "laser".into(),
+            setting: format!("{n} sources"),
+            ..Row::default()
+        };
+        // The small subset measures the two easy blocks; the large one
+        // also the two hard ones, and does better on the easy ones.
+        let rows = rows_on_common_pixels(
+            vec![
+                (row(1), img([Some(0.2), Some(0.2), None, None])),
+                (row(26), img([Some(0.1), Some(0.1), Some(0.9), Some(0.9)])),
+            ],
+            &|e| format!("{e:.3} mm"),
+        );
+        assert!((rows[0].error.unwrap() - 0.2).abs() < 1e-12);
+        assert!((rows[1].error.unwrap() - 0.1).abs() < 1e-12);
+        assert!((rows[0].coverage.unwrap() - 0.5).abs() < 1e-12);
+        assert!((rows[1].coverage.unwrap() - 1.0).abs() < 1e-12);
+        // Its own pixels' error (0.5 mm) stays in the detail.
+        assert!(
+            rows[1].detail.as_deref().unwrap().contains("0.500 mm"),
+            "{:?}",
+            rows[1].detail
+        );
+    }
+
+    #[test]
+    fn settings_that_share_too_few_pixels_have_no_error_and_say_why() {
+        use crate::postprocess::truth::{PixelError, PixelErrors};
+        // 400 sample pixels; the subsets share 3 of them.
+        let img = |measured: usize| PixelErrors {
+            width: 20,
+            pixels: (0..400)
+                .map(|k| {
+                    if k < measured {
+                        PixelError::Measured(0.1)
+                    } else {
+                        PixelError::Unmeasured
+                    }
+                })
+                .collect(),
+        };
+        let row = || Row {
+            family: "laser".into(),
+            ..Row::default()
+        };
+        let rows = rows_on_common_pixels(vec![(row(), img(3)), (row(), img(300))], &|e| {
+            format!("{e:.3} mm")
+        });
+        for r in &rows {
+            assert!(r.error.is_none() && r.spread.is_none(), "{r:?}");
+            assert!(r.detail.as_deref().unwrap().contains("too few to compare"));
+        }
+        assert!((rows[1].coverage.unwrap() - 0.75).abs() < 1e-12);
     }
 }

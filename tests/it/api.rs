@@ -861,6 +861,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/btf/mesh/{kind}",
         "/api/v1/tradeoff",
         "/api/v1/tradeoff/choice",
+        "/api/v1/tradeoff/figure",
         "/api/v1/tradeoff/plot.svg",
     ]
     .into_iter()
@@ -965,7 +966,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 38, "operations checked");
+    assert_eq!(checked, 39, "operations checked");
     s.shutdown().await;
 }
 
@@ -1236,6 +1237,38 @@ async fn the_daemon_computes_and_serves_the_tradeoff_report() {
     let svg = String::from_utf8(svg).expect("utf-8 svg");
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
     assert!(dir.path().join("tradeoff").join("tradeoff.csv").is_file());
+    // The same figure with its layout: a panel per family, every point
+    // inside its panel, at most the profile's default plan marked.
+    let (status, f) = s.get("/api/v1/tradeoff/figure").await;
+    assert_eq!(status, 200, "{f}");
+    assert_eq!(f["svg"].as_str(), Some(svg.as_str()));
+    let families: BTreeSet<&str> = f["panels"]
+        .as_array()
+        .expect("panels")
+        .iter()
+        .filter_map(|p| p["family"].as_str())
+        .collect();
+    assert_eq!(
+        families,
+        ["fidelity", "laser", "pca", "photometric stereo", "plans"]
+            .into_iter()
+            .collect()
+    );
+    let points = f["points"].as_array().expect("points");
+    assert!(points.len() > 20, "{}", points.len());
+    for p in points {
+        let area = &f["panels"][p["panel"].as_u64().expect("panel") as usize]["area"];
+        let (x, y) = (p["x"].as_f64().expect("x"), p["y"].as_f64().expect("y"));
+        assert!(
+            x >= area[0].as_f64().expect("x0") - 1.0
+                && x <= area[2].as_f64().expect("x1") + 1.0
+                && y >= area[1].as_f64().expect("y0") - 1.0
+                && y <= area[3].as_f64().expect("y1") + 1.0,
+            "{p} outside {area}"
+        );
+    }
+    assert!(points.iter().filter(|p| p["marked"] == true).count() <= 1);
+    assert!(points.iter().any(|p| p["frontier"] == true));
     // A budget and a target answered from it.
     let (status, c) = s.get("/api/v1/tradeoff/choice?budget=3h").await;
     assert_eq!(status, 200, "{c}");

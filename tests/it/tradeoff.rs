@@ -40,6 +40,29 @@ fn the_tradeoff_table_is_written_and_ordered() {
     }
     let svg = std::fs::read_to_string(dir.path().join("tradeoff.svg")).unwrap();
     assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+    // A panel per family, the profile's default plan (h1) ringed.
+    for title in [
+        "How many directions?",
+        "How many PCA components?",
+        "How many laser sources?",
+        "How many lights?",
+        "Which effects matter?",
+    ] {
+        assert!(svg.contains(title), "{title}");
+    }
+    assert!(svg.contains("h1 (default)"));
+    // `--from` without a question draws the figure again from the JSON.
+    std::fs::remove_file(dir.path().join("tradeoff.svg")).unwrap();
+    let redraw = Command::new(env!("CARGO_BIN_EXE_rigd"))
+        .args(["tradeoff", "--from"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(redraw.status.success(), "{redraw:?}");
+    assert_eq!(
+        std::fs::read_to_string(dir.path().join("tradeoff.svg")).unwrap(),
+        svg
+    );
     let report: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.path().join("tradeoff.json")).unwrap()).unwrap();
     let rows = report["rows"].as_array().unwrap();
@@ -85,7 +108,47 @@ fn the_tradeoff_table_is_written_and_ordered() {
         assert_eq!(r["unit"], "mm");
         let e = r["error"].as_f64().unwrap();
         assert!(e > 0.0 && e < 5.0, "{r}");
+        assert!(
+            r["detail"]
+                .as_str()
+                .unwrap()
+                .contains("sample pixels every setting measures"),
+            "{r}"
+        );
     }
+    // On the same pixels, more sources never measure worse (beyond the
+    // error bars), and each reaches at least as much of the sample.
+    for pair in laser.windows(2) {
+        let (a, b) = (&pair[0], &pair[1]);
+        let bound = a["error"].as_f64().unwrap()
+            + 2.0 * (a["spread"].as_f64().unwrap() + b["spread"].as_f64().unwrap());
+        assert!(b["error"].as_f64().unwrap() <= bound, "{a} then {b}");
+        assert!(
+            b["coverage"].as_f64() >= a["coverage"].as_f64(),
+            "{a} then {b}"
+        );
+    }
+    // Every measured row carries its standard error; fidelity (one frame)
+    // has none.
+    for r in rows {
+        let spread = r["spread"].as_f64();
+        if r["family"] == "fidelity" {
+            assert!(spread.is_none(), "{r}");
+        } else {
+            assert!(spread.is_some_and(|s| s.is_finite() && s >= 0.0), "{r}");
+        }
+    }
+    // A plan row carries its directions (all paired with all), for the
+    // dashboard's start form.
+    assert_eq!(h2["plan"], "h2");
+    assert_eq!(h2["directions"].as_array().unwrap().len(), 81);
+    assert_eq!(
+        find("plans", "h2, 3 rings")["directions"]
+            .as_array()
+            .unwrap()
+            .len(),
+        19
+    );
     // Photometric stereo: twelve lights, robust, beat three.
     let three = find("photometric stereo", "3 lights");
     let twelve = find("photometric stereo", "12 lights, robust");
@@ -107,6 +170,7 @@ fn the_tradeoff_table_is_written_and_ordered() {
         "How many directions? ",
         "How many components? ",
         "How many lights? ",
+        "How many laser sources? ",
     ] {
         let line = summary
             .iter()

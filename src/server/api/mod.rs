@@ -79,6 +79,7 @@ pub struct ApiDoc;
         sim::sim_scenes,
         tradeoff::get_report,
         tradeoff::get_plot,
+        tradeoff::get_figure,
         tradeoff::get_choice,
         tradeoff::start
     ),
@@ -87,6 +88,9 @@ pub struct ApiDoc;
         tradeoff::TradeoffRequest,
         tradeoff::TradeoffStarted,
         crate::tradeoff::choice::PlanChoice,
+        crate::tradeoff::figure::Figure,
+        crate::tradeoff::figure::Panel,
+        crate::tradeoff::figure::FigurePoint,
         crate::tradeoff::choice::PlanPoint,
         crate::tradeoff::choice::Goal
     ))

@@ -84,21 +84,45 @@ pub async fn get_report(State(d): State<AppState>) -> Result<Response, ApiError>
     Ok(([(header::CONTENT_TYPE, "application/json")], bytes).into_response())
 }
 
-/// The report's plot: error against physical capture time, a curve per
-/// family (SVG).
+/// The latest report's figure, drawn now (so a report written by an older
+/// rigd gets the current figure), with the daemon profile's default plan
+/// ringed when the report is of this rig.
+async fn latest_figure(d: &AppState) -> Result<crate::tradeoff::figure::Figure, ApiError> {
+    let bytes = read_report_file(d, "tradeoff.json").await?;
+    let report = crate::tradeoff::read_report(&bytes).map_err(ApiError::internal)?;
+    let marked = (report.profile == d.profile.name).then(|| d.profile.default_plan.clone());
+    tokio::task::spawn_blocking(move || crate::tradeoff::figure::figure(&report, marked.as_deref()))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))
+}
+
+/// The report's figure (SVG): a panel per family with its own axes, the
+/// Pareto frontier, error bars and the profile's default plan ringed.
 #[utoipa::path(get, path = "/api/v1/tradeoff/plot.svg", tag = "rig",
-    responses((status = 200, description = "The plot", content_type = "image/svg+xml", body = String),
+    responses((status = 200, description = "The figure", content_type = "image/svg+xml", body = String),
               (status = 404, description = "No report yet", body = ErrorBody)))]
 pub async fn get_plot(State(d): State<AppState>) -> Result<Response, ApiError> {
-    let bytes = read_report_file(&d, "tradeoff.svg").await?;
+    let figure = latest_figure(&d).await?;
     Ok((
         [
             (header::CONTENT_TYPE, "image/svg+xml"),
             (header::CACHE_CONTROL, "no-cache"),
         ],
-        bytes,
+        figure.svg,
     )
         .into_response())
+}
+
+/// The report's figure with its layout: the SVG, each panel's plotting
+/// area and every point's position (SVG pixels), row, values and whether
+/// it is on the frontier, for an interactive view.
+#[utoipa::path(get, path = "/api/v1/tradeoff/figure", tag = "rig",
+    responses((status = 200, description = "The figure and its layout", body = crate::tradeoff::figure::Figure),
+              (status = 404, description = "No report yet", body = ErrorBody)))]
+pub async fn get_figure(
+    State(d): State<AppState>,
+) -> Result<Json<crate::tradeoff::figure::Figure>, ApiError> {
+    latest_figure(&d).await.map(Json)
 }
 
 /// `?budget=3h` or `?target=15%` on the choice.

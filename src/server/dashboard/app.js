@@ -257,18 +257,18 @@ async function loadAll() {
 // ------------------------------------------------------ trade-off plot
 
 async function loadTradeoff() {
-  const img = $("tradeoff-plot");
+  const plot = $("tradeoff-plot");
   try {
-    const r = await api("GET", "/tradeoff");
-    img.src = `${API}/tradeoff/plot.svg?rows=${r.rows.length}&t=${Date.now()}`;
-    img.hidden = false;
+    const [r, fig] = await Promise.all([api("GET", "/tradeoff"), api("GET", "/tradeoff/figure")]);
+    showTradeoffFigure(plot, r, fig);
+    plot.hidden = false;
     const caption = $("tradeoff-caption");
     caption.textContent =
       `${r.profile}, scene ${r.scene}: ${r.rows.length} rows, ${r.texture}² textures, ${r.held_out} held-out pairs`;
     // The knee of each family's curve, computed by the report.
     for (const line of r.summary || []) caption.append(text("div", line, { class: "tradeoff-summary" }));
   } catch (e) {
-    img.hidden = true;
+    plot.hidden = true;
     $("tradeoff-caption").textContent = e.status === 404 ? e.detail : `trade-off: ${errText(e)}`;
   }
   const sel = $("tradeoff-scene");
@@ -282,6 +282,113 @@ async function loadTradeoff() {
       $("tradeoff-status").textContent = `scenes: ${errText(e)}`;
     }
   }
+}
+
+const SVG_NS = "http://www.w3.org/2000/svg";
+
+// The figure inline, with a hit target over every point: hover shows the
+// row's values, a click on a plan puts that plan into the start form.
+function showTradeoffFigure(plot, report, fig) {
+  const doc = new DOMParser().parseFromString(fig.svg, "image/svg+xml");
+  const svg = document.importNode(doc.documentElement, true);
+  svg.removeAttribute("width");
+  svg.removeAttribute("height");
+  svg.setAttribute("role", "img");
+  svg.setAttribute("aria-label", `Trade-off figure: ${fig.panels.map((p) => p.title).join("; ")}`);
+  for (const [i, pt] of fig.points.entries()) {
+    const row = report.rows[pt.row];
+    const panel = fig.panels[pt.panel];
+    // The point and its label both answer: points can coincide (H1 and
+    // H2 on a rig that reaches every direction), their labels cannot.
+    const point = document.createElementNS(SVG_NS, "circle");
+    point.setAttribute("cx", pt.x);
+    point.setAttribute("cy", pt.y);
+    point.setAttribute("r", 9);
+    const targets = [point];
+    if (pt.label) {
+      const [x0, y0, x1, y1] = pt.label;
+      const label = document.createElementNS(SVG_NS, "rect");
+      for (const [k, v] of Object.entries({ x: x0, y: y0, width: x1 - x0, height: y1 - y0 })) label.setAttribute(k, v);
+      targets.push(label);
+    }
+    for (const hit of targets) {
+      hit.setAttribute("class", `tradeoff-hit ${hit === point ? "point" : "label"}${isPlanPoint(panel, row) ? " plan" : ""}`);
+      hit.dataset.point = String(i);
+      hit.dataset.family = panel.family;
+      hit.dataset.setting = row.setting;
+      hit.addEventListener("mouseenter", () => showTradeoffTip(plot, svg, pt, row, panel));
+      hit.addEventListener("mouseleave", () => ($("tradeoff-tip").hidden = true));
+      if (isPlanPoint(panel, row)) hit.addEventListener("click", () => useTradeoffPlan(svg, point, row));
+      svg.append(hit);
+    }
+  }
+  plot.replaceChildren(svg);
+}
+
+function isPlanPoint(panel, row) {
+  return panel.family === "plans" && Array.isArray(row.directions);
+}
+
+function fmtBytes(b) {
+  if (b == null) return "—";
+  if (b >= 1e9) return `${(b / 1e9).toFixed(1)} GB`;
+  if (b >= 1e6) return `${(b / 1e6).toFixed(1)} MB`;
+  return `${(b / 1e3).toFixed(0)} kB`;
+}
+
+// A row's error with its standard error, in the row's unit.
+function fmtRowError(row) {
+  if (row.error == null) return "—";
+  const [scale, digits, unit] =
+    row.unit === "relative" ? [100, 1, " %"] : row.unit === "degrees" ? [1, 2, "°"] : [1, 3, ` ${row.unit}`];
+  const e = (row.error * scale).toFixed(digits);
+  return row.spread == null ? `${e}${unit}` : `${e} ± ${(row.spread * scale).toFixed(digits)}${unit}`;
+}
+
+function showTradeoffTip(plot, svg, pt, row, panel) {
+  const tip = $("tradeoff-tip");
+  const lines = [
+    `${panel.family}: ${row.setting}`,
+    `error ${fmtRowError(row)}`,
+    row.physical_s != null ? `physical time ${fmtDuration(row.physical_s)}` : null,
+    row.images != null ? `${row.images} images` : null,
+    row.bytes != null ? `${fmtBytes(row.bytes)}${panel.family === "pca" ? " compressed" : " raw"}` : null,
+    row.coverage != null ? `covers ${(100 * row.coverage).toFixed(1)} % of the sample` : null,
+    row.compute_s != null && row.physical_s == null ? `render ${row.compute_s.toFixed(3)} s` : null,
+    pt.frontier ? "on the frontier" : "dominated: another setting is both cheaper and better",
+    isPlanPoint(panel, row) ? "click: use this plan in the start form" : null,
+  ].filter(Boolean);
+  tip.replaceChildren(...lines.map((l) => text("div", l)));
+  // The point's place on screen, from the SVG's own coordinates.
+  const box = svg.getBoundingClientRect();
+  const host = plot.parentElement.getBoundingClientRect();
+  const scale = box.width / Number(svg.viewBox.baseVal.width || box.width);
+  tip.style.left = `${box.left - host.left + pt.x * scale + 12}px`;
+  tip.style.top = `${box.top - host.top + pt.y * scale + 12}px`;
+  tip.hidden = false;
+}
+
+// Puts a measured plan into the start form: the named plan where the
+// daemon has it, else its directions as custom directions.
+function useTradeoffPlan(svg, hit, row) {
+  for (const h of svg.querySelectorAll(".tradeoff-hit.chosen")) h.classList.remove("chosen");
+  hit.classList.add("chosen");
+  const sel = $("plan");
+  const named = row.plan && state.plans.find((p) => p.name === row.plan && p.ready && p.fits);
+  if (named) {
+    sel.value = row.plan;
+  } else {
+    sel.value = "__custom";
+    $("custom-dirs").value = row.directions.map((d) => `${d.theta_deg} ${d.phi_deg}`).join("\n");
+  }
+  state.planChosen = true;
+  planChanged();
+  const info = $("plan-info");
+  info.textContent =
+    `From the trade-off: ${row.setting}, ${row.images} images, about ${fmtDuration(row.physical_s)} physical, ` +
+    `${fmtBytes(row.bytes)} raw, held-out error ${fmtRowError(row)}` +
+    (named ? `. ${info.textContent}` : "");
+  $("run-form").scrollIntoView({ block: "nearest" });
 }
 
 async function startTradeoff() {
