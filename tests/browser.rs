@@ -1430,6 +1430,12 @@ async fn view_and_compare(
             "{family}: axis {unit:?} in {texts:?}"
         );
     }
+    // The laser subsets reach different shares of the sample: coverage has
+    // its own axis.
+    assert!(
+        texts.contains(&"coverage of the sample, % (×)"),
+        "{texts:?}"
+    );
     // No two texts of the figure overlap on screen: point labels, ticks,
     // titles, axis names and legend alike, by the browser's own boxes.
     let overlaps = js(
@@ -1539,6 +1545,24 @@ async fn view_and_compare(
             json!("h2")
         );
     }
+    // A built-in plan's note in the start form states its raw data volume.
+    let info = wait_js(
+        c,
+        "h1's note in the start form",
+        20,
+        "const s = document.getElementById('plan'); \
+         const o = [...s.options].find(o => o.value === 'h1' && !o.disabled); \
+         if (!o) return null; \
+         s.value = 'h1'; s.dispatchEvent(new Event('change')); \
+         return document.getElementById('plan-info').textContent",
+        |v| v.is_string(),
+    )
+    .await;
+    let info = info.as_str().unwrap_or_default();
+    assert!(
+        info.contains("6561 images") && info.contains("GB raw") && info.contains("MB an image"),
+        "{info}"
+    );
     // The scenes a report can be computed for, corduroy chosen.
     wait_js(
         c,

@@ -1,5 +1,6 @@
 //! `rigd plan show`: every image of a plan with its directions,
-//! feasibility and set-points, and the estimated physical capture time.
+//! feasibility and set-points, the estimated physical capture time and
+//! the raw data volume.
 
 use std::process::ExitCode;
 
@@ -8,13 +9,15 @@ use clap::Subcommand;
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::plan::Order;
 use rigd::schedule::timing::{parse_exposure_s, Timing};
+use rigd::schedule::volume::human_bytes;
 
 use super::progress::hms;
 
 #[derive(Subcommand)]
 pub enum PlanCmd {
     /// List every image of a plan with its directions, feasibility and set-points,
-    /// and the totals: image count and estimated physical capture time.
+    /// and the totals: image count, estimated physical capture time and raw
+    /// data volume.
     Show {
         /// h1, h2, grid12x8, lamps, or a plan file (.json/.toml)
         plan: String,
@@ -62,6 +65,7 @@ fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Ord
     let (schedule, report) = rigd::schedule::build_with_report(&profile, &solver, &resolved);
     let estimate = Timing::new(&profile, exposure).estimate_s(&schedule, |_| false);
     let infeasible = schedule.infeasible().count();
+    let volume = rigd::schedule::volume::data_volume(&profile, &schedule);
     if json {
         let steps: Vec<_> = schedule.steps().collect();
         let out = serde_json::json!({
@@ -71,6 +75,8 @@ fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Ord
             "triggers_total": schedule.triggers.len(),
             "infeasible_total": infeasible,
             "estimated_physical_s": estimate,
+            "raw_bytes": volume.raw_bytes,
+            "image_bytes": volume.largest_image_bytes,
             "order": resolved.order,
             "order_report": report,
             "steps": steps,
@@ -140,6 +146,11 @@ fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Ord
         schedule.triggers.len(),
         infeasible,
         hms(estimate)
+    );
+    println!(
+        "raw data: {} ({} an image at the cameras' resolution and bit depth, before the store's compression)",
+        human_bytes(volume.raw_bytes),
+        human_bytes(volume.largest_image_bytes)
     );
     Ok(())
 }

@@ -6,6 +6,7 @@
 pub mod laser;
 pub mod order;
 pub mod timing;
+pub mod volume;
 
 use std::collections::HashMap;
 

@@ -323,6 +323,11 @@ pub struct PlanSummary {
     pub estimated_physical_s: f64,
     /// The same in wall seconds at the daemon's simulation speed.
     pub estimated_wall_s: f64,
+    /// Raw sensor data of the whole plan, bytes (every image at its
+    /// camera's resolution, two bytes a pixel above 8 bits).
+    pub raw_bytes: u64,
+    /// The largest single image, bytes.
+    pub image_bytes: u64,
 }
 
 /// `GET /api/v1/plans`.

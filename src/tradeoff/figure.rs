@@ -38,6 +38,9 @@ const LABEL_PX: f64 = 11.0;
 const PLOTTERS_FONT: f64 = 1.24;
 /// Radius of a point's marker.
 const MARKER_R: i32 = 4;
+/// A family's coverage "varies", and gets its own axis, when two settings
+/// differ by more than this many percentage points.
+const COVERAGE_VARIES_PCT: f64 = 0.5;
 
 /// One family's panel: which rows, and how they are drawn.
 struct PanelSpec {
@@ -333,6 +336,9 @@ struct Plotted {
     /// A check of another row, not a setting of its own: drawn hollow,
     /// never on the frontier.
     check: bool,
+    /// The share of the sample the setting measures, percent, where the
+    /// family records it (laser, photometric stereo).
+    coverage: Option<f64>,
 }
 
 /// The rows of `spec`'s family that can be drawn.
@@ -353,6 +359,7 @@ fn plotted(report: &Report, spec: &PanelSpec, marked: Option<&str>) -> Vec<Plott
                 frontier: false,
                 marked: is_marked(r, marked),
                 check: r.setting.ends_with(CAMERA_CHAIN_SUFFIX),
+                coverage: r.coverage.map(|c| 100.0 * c).filter(|c| c.is_finite()),
             })
         })
         .collect();
@@ -495,7 +502,12 @@ fn draw(
                 colour,
             )?
         };
-        let (bounds, centres, error_bars) = drawn;
+        let PanelDrawn {
+            area: bounds,
+            centres,
+            error_bars,
+            coverage,
+        } = drawn;
         figure.panels.push(Panel {
             family: spec.family.to_string(),
             title: spec.title.to_string(),
@@ -530,11 +542,13 @@ fn draw(
                     };
                     (c, f64::from(r))
                 })
+                .chain(coverage.iter().map(|&c| (c, f64::from(MARKER_R) + 1.0)))
                 .collect(),
             segments: front
                 .windows(2)
                 .map(|w| (centres[w[0]], centres[w[1]]))
                 .chain(error_bars.iter().flatten().copied())
+                .chain(coverage.windows(2).map(|w| (w[0], w[1])))
                 .collect(),
         };
         let placed = place_labels(&at, &sizes, bounds, &obstacles);
@@ -631,12 +645,19 @@ fn legend(header: &DrawingArea<SVGBackend, Shift>) -> DrawResult {
 /// A segment between two points, SVG pixels.
 type Segment = ((f64, f64), (f64, f64));
 
-/// A drawn panel: its plotting area, each point's centre and its error
-/// bar.
-type PanelDrawn = (Rect, Vec<(f64, f64)>, Vec<Option<Segment>>);
+/// A drawn panel: its plotting area, each point's centre and error bar,
+/// and the coverage markers.
+struct PanelDrawn {
+    area: Rect,
+    centres: Vec<(f64, f64)>,
+    error_bars: Vec<Option<Segment>>,
+    /// The coverage markers on the right-hand axis, cheapest first.
+    coverage: Vec<(f64, f64)>,
+}
 
-/// Draws one panel and returns its plotting area and each point's centre,
-/// SVG pixels.
+/// Draws one panel and returns where its points went, SVG pixels. Where
+/// the family's coverage varies (a setting that measures less of the
+/// sample), it gets its own axis on the right, 0–100 %.
 fn panel<X>(
     area: &DrawingArea<SVGBackend, Shift>,
     spec: &PanelSpec,
@@ -646,15 +667,29 @@ fn panel<X>(
     colour: RGBColor,
 ) -> Result<PanelDrawn, Box<dyn std::error::Error>>
 where
-    X: AsRangedCoord<Value = f64>,
+    X: AsRangedCoord<Value = f64> + Clone,
     X::CoordDescType: ValueFormatter<f64>,
 {
+    let coverage: Vec<(f64, f64)> = {
+        let mut c: Vec<(f64, f64)> = items
+            .iter()
+            .filter_map(|i| Some((i.cost, i.coverage?)))
+            .collect();
+        c.sort_by(|a, b| a.0.total_cmp(&b.0));
+        c
+    };
+    let varies = coverage.len() > 1
+        && coverage
+            .iter()
+            .any(|c| (c.1 - coverage[0].1).abs() > COVERAGE_VARIES_PCT);
     let mut chart = ChartBuilder::on(area)
         .caption(spec.title, ("sans-serif", 13.0 * PLOTTERS_FONT).into_font())
         .margin(10)
         .x_label_area_size(38)
         .y_label_area_size(52)
-        .build_cartesian_2d(x_range, y_range)?;
+        .right_y_label_area_size(if varies { 46 } else { 0 })
+        .build_cartesian_2d(x_range.clone(), y_range)?
+        .set_secondary_coord(x_range, 0.0..105.0);
     chart
         .configure_mesh()
         .x_desc(spec.x_desc)
@@ -668,6 +703,31 @@ where
         .light_line_style(RGBColor(240, 240, 240))
         .bold_line_style(RGBColor(225, 225, 225))
         .draw()?;
+    let mut coverage_px = Vec::new();
+    if varies {
+        chart
+            .configure_secondary_axes()
+            .y_desc("coverage of the sample, % (×)")
+            .y_labels(6)
+            .y_label_formatter(&|v| tick(*v))
+            .label_style(("sans-serif", 10.0 * PLOTTERS_FONT).into_font())
+            .axis_desc_style(("sans-serif", 11.0 * PLOTTERS_FONT).into_font())
+            .draw()?;
+        let faint = colour.mix(0.45);
+        chart.draw_secondary_series(LineSeries::new(
+            coverage.iter().copied(),
+            faint.stroke_width(1),
+        ))?;
+        chart.draw_secondary_series(
+            coverage
+                .iter()
+                .map(|&c| Cross::new(c, MARKER_R, faint.stroke_width(2))),
+        )?;
+        for c in &coverage {
+            let (x, y) = chart.borrow_secondary().backend_coord(c);
+            coverage_px.push((f64::from(x), f64::from(y)));
+        }
+    }
     let (xs, ys) = chart.plotting_area().get_pixel_range();
     let bounds = [
         f64::from(xs.start),
@@ -724,7 +784,12 @@ where
         let (x, y) = chart.backend_coord(&(item.cost, item.error));
         centres.push((f64::from(x), f64::from(y)));
     }
-    Ok((bounds, centres, bars))
+    Ok(PanelDrawn {
+        area: bounds,
+        centres,
+        error_bars: bars,
+        coverage: coverage_px,
+    })
 }
 
 #[cfg(test)]
@@ -796,6 +861,25 @@ mod tests {
         // Vertical and horizontal segments beside it.
         assert!(!segment_hits((25.0, 0.0), (25.0, 30.0), &r));
         assert!(segment_hits((15.0, 0.0), (15.0, 30.0), &r));
+    }
+
+    #[test]
+    fn coverage_gets_its_own_axis_only_where_it_varies() {
+        let laser = |n: usize, e: f64, cov: f64| Row {
+            coverage: Some(cov),
+            unit: "mm".into(),
+            ..row("laser", &format!("{n} sources"), 60.0 * n as f64, e)
+        };
+        let varies = figure(
+            &report(vec![laser(1, 0.13, 0.22), laser(26, 0.07, 0.98)]),
+            None,
+        );
+        assert!(varies.svg.contains("coverage of the sample"));
+        let same = figure(
+            &report(vec![laser(1, 0.13, 1.0), laser(26, 0.07, 1.0)]),
+            None,
+        );
+        assert!(!same.svg.contains("coverage of the sample"));
     }
 
     #[test]

@@ -387,29 +387,6 @@ fn finite(x: f64) -> Option<f64> {
     x.is_finite().then_some(x)
 }
 
-/// Raw bytes of a capture: every image at the camera's resolution, two
-/// bytes a pixel above 8 bits.
-fn raw_bytes(profile: &Profile, schedule: &Schedule) -> u64 {
-    schedule
-        .images
-        .iter()
-        .map(|img| {
-            profile
-                .devices
-                .get(&img.camera)
-                .and_then(|d| d.intrinsics)
-                .map_or(0, |i| {
-                    let px = u64::from(i.resolution[0]) * u64::from(i.resolution[1]);
-                    if i.bit_depth > 8 {
-                        2 * px
-                    } else {
-                        px
-                    }
-                })
-        })
-        .sum()
-}
-
 /// Runs every family and writes `tradeoff.csv`, `tradeoff.json` and
 /// `tradeoff.svg` into `out`.
 pub fn run(
@@ -452,7 +429,7 @@ pub fn run(
             setting: case.name.clone(),
             images: Some(s.images.len()),
             physical_s: Some(physical_s),
-            bytes: Some(raw_bytes(profile, &s)),
+            bytes: Some(crate::schedule::volume::data_volume(profile, &s).raw_bytes),
             error: Some(measured.error),
             spread: measured.spread,
             compute_s: Some(compress_s),

@@ -129,6 +129,10 @@ async fn rig_and_plans() {
     assert_eq!(h1["infeasible_total"], 81);
     let est = h1["estimated_physical_s"].as_f64().expect("estimate");
     assert!((30_000.0..40_000.0).contains(&est), "{est}");
+    // Its raw data: 6561 images of one camera.
+    let image = h1["image_bytes"].as_u64().expect("image bytes");
+    assert!(image > 1_000_000, "{h1}");
+    assert_eq!(h1["raw_bytes"].as_u64(), Some(6561 * image));
     let grid = plans
         .iter()
         .find(|p| p["name"] == "grid12x8")

@@ -47,6 +47,10 @@ fn h1_and_h2_have_6561_steps_and_81_lights_in_table_1_rings() {
             thetas.iter().copied().zip([1, 6, 12, 18, 20, 24]).collect();
         assert_eq!(rings, expected, "{plan}");
         assert!(v["estimated_physical_s"].as_f64().expect("estimate") > 3600.0);
+        // The Bonn rig's 16-bit camera at its full resolution, 6561 times.
+        let image = v["image_bytes"].as_u64().expect("image bytes");
+        assert!(image > 10_000_000, "{}", v["image_bytes"]);
+        assert_eq!(v["raw_bytes"].as_u64(), Some(6561 * image));
         let first = &v["steps"][0];
         for key in [
             "light",
@@ -95,9 +99,18 @@ fn plan_show_table_ends_with_totals() {
         "virtex-photometric-stereo",
     ]);
     let text = String::from_utf8_lossy(&out.stdout);
+    let totals = text
+        .lines()
+        .find(|l| l.starts_with("plan lamps on "))
+        .unwrap_or_default();
+    assert!(
+        totals.contains("3 images") && totals.contains("estimated physical capture time"),
+        "{text}"
+    );
+    // The raw data volume closes the listing.
     let last = text.lines().last().unwrap_or_default();
     assert!(
-        last.contains("3 images") && last.contains("estimated physical capture time"),
+        last.starts_with("raw data: ") && last.contains(" an image at the cameras' resolution"),
         "{last}"
     );
 }

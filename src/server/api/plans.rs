@@ -16,6 +16,7 @@ use crate::server::supervisor::Daemon;
 
 fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
     let est = Timing::new(&d.profile, None).estimate_s(schedule, |_| false);
+    let volume = crate::schedule::volume::data_volume(&d.profile, schedule);
     PlanSummary {
         name: name.into(),
         ready: true,
@@ -26,6 +27,8 @@ fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
         infeasible_total: schedule.infeasible().count(),
         estimated_physical_s: est,
         estimated_wall_s: est / d.speed(),
+        raw_bytes: volume.raw_bytes,
+        image_bytes: volume.largest_image_bytes,
     }
 }
 
@@ -40,6 +43,8 @@ fn unsized_summary(name: &str, ready: bool, error: Option<String>) -> PlanSummar
         infeasible_total: 0,
         estimated_physical_s: 0.0,
         estimated_wall_s: 0.0,
+        raw_bytes: 0,
+        image_bytes: 0,
     }
 }
 

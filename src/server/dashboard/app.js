@@ -522,7 +522,7 @@ function planChanged() {
   $("custom-field").hidden = v !== "__custom";
   const p = state.plans.find((x) => x.name === v);
   $("plan-info").textContent = p
-    ? `${p.steps_total} images, ${p.infeasible_total} infeasible; about ${fmtDuration(p.estimated_physical_s)} physical (${fmtDuration(p.estimated_wall_s)} at this simulation speed)`
+    ? `${p.steps_total} images, ${p.infeasible_total} infeasible; about ${fmtDuration(p.estimated_physical_s)} physical (${fmtDuration(p.estimated_wall_s)} at this simulation speed); ${fmtBytes(p.raw_bytes)} raw, ${fmtBytes(p.image_bytes)} an image`
     : v === "__custom"
       ? "Every direction is used as light and as view."
       : "";

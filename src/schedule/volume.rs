@@ -1,0 +1,96 @@
+//! How much raw sensor data a schedule produces: every image at its
+//! camera's resolution and bit depth, before the store's compression.
+//! Labs size disks and transfers by it (one Bonn H2 is 6561 frames of a
+//! 3032 × 2008 sensor), and `plan show`, `/plans` and the trade-off report
+//! all quote it.
+
+use serde::Serialize;
+
+use super::Schedule;
+use crate::model::profile::Profile;
+
+/// The raw data of a schedule.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct DataVolume {
+    /// Raw sensor bytes of all images: one byte a pixel at 8 bits, two
+    /// above.
+    pub raw_bytes: u64,
+    /// The largest single image, bytes.
+    pub largest_image_bytes: u64,
+}
+
+/// Bytes of one image from `camera`: its resolution at one byte a pixel up
+/// to 8 bits, two above; 0 for a camera without intrinsics.
+pub fn image_bytes(profile: &Profile, camera: &str) -> u64 {
+    profile
+        .devices
+        .get(camera)
+        .and_then(|d| d.intrinsics)
+        .map_or(0, |i| {
+            let pixels = u64::from(i.resolution[0]) * u64::from(i.resolution[1]);
+            if i.bit_depth > 8 {
+                2 * pixels
+            } else {
+                pixels
+            }
+        })
+}
+
+/// The raw data `schedule` produces on `profile`'s cameras.
+pub fn data_volume(profile: &Profile, schedule: &Schedule) -> DataVolume {
+    let mut volume = DataVolume {
+        raw_bytes: 0,
+        largest_image_bytes: 0,
+    };
+    for img in &schedule.images {
+        let bytes = image_bytes(profile, &img.camera);
+        volume.raw_bytes += bytes;
+        volume.largest_image_bytes = volume.largest_image_bytes.max(bytes);
+    }
+    volume
+}
+
+/// A byte count for people: `12.0 MB`, `78.7 GB`.
+pub fn human_bytes(bytes: u64) -> String {
+    let b = bytes as f64;
+    if b >= 1e12 {
+        format!("{:.2} TB", b / 1e12)
+    } else if b >= 1e9 {
+        format!("{:.1} GB", b / 1e9)
+    } else if b >= 1e6 {
+        format!("{:.1} MB", b / 1e6)
+    } else if b >= 1e3 {
+        format!("{:.1} kB", b / 1e3)
+    } else {
+        format!("{bytes} B")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_h2_on_the_bonn_rig_is_6561_sixteen_bit_frames() {
+        let profile = Profile::load("bonn-gonioreflectometer").expect("embedded profile");
+        let solver = crate::kinematics::Solver::new(&profile).expect("solver");
+        let offer = super::super::rig_offer(&profile, &solver);
+        let plan = crate::plan::resolve("h2", &offer).expect("h2");
+        let schedule = super::super::build(&profile, &solver, &plan);
+        let v = data_volume(&profile, &schedule);
+        let camera = &schedule.images[0].camera;
+        let intr = profile.devices[camera].intrinsics.expect("intrinsics");
+        let frame = u64::from(intr.resolution[0]) * u64::from(intr.resolution[1]) * 2;
+        assert!(intr.bit_depth > 8);
+        assert_eq!(v.largest_image_bytes, frame);
+        assert_eq!(v.raw_bytes, 6561 * frame);
+    }
+
+    #[test]
+    fn byte_counts_read_as_people_write_them() {
+        assert_eq!(human_bytes(512), "512 B");
+        assert_eq!(human_bytes(12_176_512), "12.2 MB");
+        assert_eq!(human_bytes(79_890_100_000), "79.9 GB");
+        assert_eq!(human_bytes(2_000_000_000_000), "2.00 TB");
+    }
+}
