@@ -9,7 +9,7 @@ use clap::Subcommand;
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::plan::Order;
 use rigd::schedule::timing::{parse_exposure_s, Timing};
-use rigd::schedule::volume::human_bytes;
+use rigd::store::human_bytes;
 
 use super::progress::hms;
 

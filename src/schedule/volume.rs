@@ -50,22 +50,6 @@ pub fn data_volume(profile: &Profile, schedule: &Schedule) -> DataVolume {
     volume
 }
 
-/// A byte count for people: `12.0 MB`, `78.7 GB`.
-pub fn human_bytes(bytes: u64) -> String {
-    let b = bytes as f64;
-    if b >= 1e12 {
-        format!("{:.2} TB", b / 1e12)
-    } else if b >= 1e9 {
-        format!("{:.1} GB", b / 1e9)
-    } else if b >= 1e6 {
-        format!("{:.1} MB", b / 1e6)
-    } else if b >= 1e3 {
-        format!("{:.1} kB", b / 1e3)
-    } else {
-        format!("{bytes} B")
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -84,13 +68,5 @@ mod tests {
         assert!(intr.bit_depth > 8);
         assert_eq!(v.largest_image_bytes, frame);
         assert_eq!(v.raw_bytes, 6561 * frame);
-    }
-
-    #[test]
-    fn byte_counts_read_as_people_write_them() {
-        assert_eq!(human_bytes(512), "512 B");
-        assert_eq!(human_bytes(12_176_512), "12.2 MB");
-        assert_eq!(human_bytes(79_890_100_000), "79.9 GB");
-        assert_eq!(human_bytes(2_000_000_000_000), "2.00 TB");
     }
 }
