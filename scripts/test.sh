@@ -26,6 +26,15 @@ if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; the
     apt_install chromium chromium-driver
 fi
 
+# Processing on Slurm (tests/it/slurm.rs) starts a one-node cluster of
+# Debian's slurm-wlm (slurmctld, slurmd, sbatch, squeue, sacct, scancel) and
+# munge, all on 127.0.0.1 in a temporary folder, and stops it afterwards.
+if ! command -v slurmctld >/dev/null || ! command -v slurmd >/dev/null \
+    || ! command -v sbatch >/dev/null || ! command -v munged >/dev/null; then
+    echo "== installing slurm-wlm and munge (for tests/it/slurm.rs)"
+    apt_install slurm-wlm munge
+fi
+
 # The Modbus tests run tests/support/relay_module.py, a relay module served by
 # pymodbus, from a venv of their own (target/ is not committed). It is made
 # again only when missing, broken, or at another pymodbus version.

@@ -3,7 +3,9 @@
 //! WebDriver (fantoccini), and the test works the dashboard like an operator:
 //! token dialog, start a small run, watch progress and the hemisphere plot
 //! fill, pause, resume, and see the run completed in the history. It saves a
-//! screenshot to `target/browser-test/dashboard.png`.
+//! screenshot to `target/browser-test/dashboard.png`. The peers test runs
+//! two daemons, one listing the other (`--peers`), and works both rigs from
+//! one dashboard (`target/browser-test/peers.png`).
 //!
 //! Needs `/usr/bin/chromium` and `/usr/bin/chromedriver`; `scripts/test.sh`
 //! installs them (Debian packages `chromium` and `chromium-driver`). Without
@@ -61,14 +63,19 @@ impl Procs {
 }
 
 impl Procs {
-    /// SIGTERM (graceful shutdown), then SIGKILL after 15 s.
-    fn stop(&mut self, name: &str) {
+    /// The child known as `name`, no longer killed at the end.
+    fn take(&mut self, name: &str) -> Child {
         let i = self
             .children
             .iter()
             .position(|(n, _)| *n == name)
             .unwrap_or_else(|| panic!("{name} is not running"));
-        let (_, mut child) = self.children.remove(i);
+        self.children.remove(i).1
+    }
+
+    /// SIGTERM (graceful shutdown), then SIGKILL after 15 s.
+    fn stop(&mut self, name: &str) {
+        let mut child = self.take(name);
         // SAFETY: signals a child this test started.
         unsafe {
             libc::kill(child.id() as libc::pid_t, libc::SIGTERM);
@@ -82,6 +89,18 @@ impl Procs {
             }
             std::thread::sleep(Duration::from_millis(50));
         }
+    }
+
+    /// SIGKILL to the child's process group, as a crash or a pulled plug;
+    /// returns when it is gone.
+    fn kill(&mut self, name: &str) {
+        let mut child = self.take(name);
+        // SAFETY: signals the process group this test created.
+        unsafe {
+            libc::kill(-(child.id() as libc::pid_t), libc::SIGKILL);
+        }
+        let _ = child.kill();
+        let _ = child.wait();
     }
 }
 
@@ -298,6 +317,29 @@ fn spawn_daemon(
         cmd.args(["--sim", "--profile", profile.to_str().expect("utf-8 path")]);
     }
     procs.spawn("rigd", &mut cmd, log);
+}
+
+/// `rigd serve` of the embedded simulated Bonn rig on `data` at `speed`,
+/// known to `procs` as `name`, with `extra` arguments.
+fn spawn_rig(
+    procs: &mut Procs,
+    name: &'static str,
+    (data, port, speed): (&Path, u16, &str),
+    extra: &[&str],
+    log: &Path,
+) {
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rigd"));
+    cmd.args([
+        "serve",
+        "--data",
+        data.to_str().expect("utf-8 path"),
+        "--listen",
+        &format!("127.0.0.1:{port}"),
+        "--sim-speed",
+        speed,
+    ]);
+    cmd.args(extra);
+    procs.spawn(name, &mut cmd, log);
 }
 
 struct Ctx<'a> {
@@ -1619,4 +1661,297 @@ fn write_rgb(path: &Path, size: usize, rgb: &[u8]) {
     enc.set_depth(png::BitDepth::Eight);
     let mut w = enc.write_header().expect("png header");
     w.write_image_data(rgb).expect("png data");
+}
+
+// ------------------------------------------------------- several rigs
+
+/// Slow enough that both runs are still capturing when B is paused and
+/// killed: 64 images take about half a minute.
+const PEERS_SPEED: &str = "30";
+
+/// The 64-image run of [`DIRECTIONS`], as an API body.
+fn directions_run(sample: &str) -> Value {
+    let dirs: Vec<Value> = DIRECTIONS
+        .lines()
+        .map(|l| {
+            let mut it = l
+                .split_whitespace()
+                .map(|x| x.parse::<f64>().expect("degrees"));
+            json!({"theta_deg": it.next(), "phi_deg": it.next()})
+        })
+        .collect();
+    json!({"sample": sample, "plan": {"name": "dirs", "directions": dirs},
+           "frame_size": [32, 24], "operator": "peers-test"})
+}
+
+async fn start_run_on(http: &reqwest::Client, base: &str, token: &str, sample: &str) -> String {
+    let r = http
+        .post(format!("{base}/api/v1/runs"))
+        .bearer_auth(token)
+        .json(&directions_run(sample))
+        .send()
+        .await
+        .expect("POST /runs");
+    let status = r.status().as_u16();
+    let v: Value = r.json().await.unwrap_or(Value::Null);
+    assert_eq!(status, 201, "start a run on {base}: {v}");
+    v["id"].as_str().expect("run id").to_string()
+}
+
+/// Frames done of a run, by its daemon's API.
+async fn frames_done(http: &reqwest::Client, base: &str, id: &str) -> (u64, Value) {
+    let (status, v) = get_json(http, &format!("{base}/api/v1/runs/{id}")).await;
+    assert_eq!(status, 200, "{v}");
+    (v["steps_done"].as_u64().expect("steps_done"), v)
+}
+
+/// A's row script: `[reachable, state, frames done, error]` of a rig's row
+/// in the "Rigs" card, or null while it has none.
+fn rig_row(name: &str) -> String {
+    format!(
+        "const r = document.querySelector(\"#rigs tr[data-peer='{name}']\"); \
+         if (!r || document.getElementById('rigs-card').hidden) return null; \
+         const q = (t) => r.querySelector(`[data-testid=${{t}}]`); \
+         return [r.dataset.reachable, q('peer-state') ? q('peer-state').textContent : null, \
+                 Number(q('peer-run').dataset.done || -1), q('peer-error') ? q('peer-error').textContent : null]"
+    )
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn one_dashboard_shows_every_rig_and_a_dead_one_blocks_nothing() {
+    let _one_browser = ONE_BROWSER.lock().await;
+    let started = Instant::now();
+    let out = out_dir();
+    let data_a = tempfile::tempdir().expect("tempdir");
+    let data_b = tempfile::tempdir().expect("tempdir");
+    let conf = tempfile::tempdir().expect("tempdir");
+    let profile_dir = tempfile::tempdir().expect("tempdir");
+    let mut procs = Procs { children: vec![] };
+    let http = reqwest::Client::new();
+
+    // B: a rig of its own; A lists B in its peers file, with B's token.
+    let (port_a, port_b) = (free_port(), free_port());
+    let (base_a, base_b) = (
+        format!("http://127.0.0.1:{port_a}"),
+        format!("http://127.0.0.1:{port_b}"),
+    );
+    spawn_rig(
+        &mut procs,
+        "rigd-b",
+        (data_b.path(), port_b, PEERS_SPEED),
+        &[],
+        &out.join("rigd-peer-b.log"),
+    );
+    wait_http(&http, &format!("{base_b}/api/v1/health"), "daemon B", 30).await;
+    let token_b = std::fs::read_to_string(data_b.path().join("token")).expect("B's token");
+    std::fs::copy(data_b.path().join("token"), conf.path().join("b.token")).expect("copy");
+    let peers = conf.path().join("peers.toml");
+    std::fs::write(
+        &peers,
+        format!("[[peer]]\nname = \"rig-b\"\nurl = \"{base_b}\"\ntoken_file = \"b.token\"\n"),
+    )
+    .expect("peers file");
+    spawn_rig(
+        &mut procs,
+        "rigd-a",
+        (data_a.path(), port_a, PEERS_SPEED),
+        &["--peers", peers.to_str().expect("utf-8 path")],
+        &out.join("rigd-peer-a.log"),
+    );
+    wait_http(&http, &format!("{base_a}/api/v1/health"), "daemon A", 30).await;
+    let token_a = std::fs::read_to_string(data_a.path().join("token")).expect("A's token");
+
+    let client = chromium(&mut procs, &out, profile_dir.path(), "1400,1000").await;
+    let ctx = PeersCtx {
+        base_a: &base_a,
+        base_b: &base_b,
+        token_a: token_a.trim(),
+        token_b: token_b.trim(),
+        http: &http,
+        out: &out,
+    };
+    let result = AssertUnwindSafe(operate_rigs(&client, &ctx, &mut procs))
+        .catch_unwind()
+        .await;
+    end_session(client, procs, result, &out.join("peers-failure.png")).await;
+    eprintln!("peers test: {:.1} s", started.elapsed().as_secs_f64());
+}
+
+struct PeersCtx<'a> {
+    base_a: &'a str,
+    base_b: &'a str,
+    token_a: &'a str,
+    token_b: &'a str,
+    http: &'a reqwest::Client,
+    out: &'a Path,
+}
+
+async fn operate_rigs(c: &Client, ctx: &PeersCtx<'_>, procs: &mut Procs) {
+    let (base_a, base_b, http) = (ctx.base_a, ctx.base_b, ctx.http);
+    c.goto(&format!("{base_a}/"))
+        .await
+        .expect("open A's dashboard");
+    enter_token(c, ctx.token_a).await;
+    // Both rigs in the "Rigs" card, B reachable and idle.
+    let names = wait_js(
+        c,
+        "both rigs listed, B reachable",
+        10,
+        "const card = document.getElementById('rigs-card'); \
+         const rows = [...document.querySelectorAll('#rigs tbody tr')]; \
+         return card.hidden ? null : rows.map(r => [r.dataset.peer, r.dataset.reachable])",
+        |v| v == &json!([["this rig", "true"], ["rig-b", "true"]]),
+    )
+    .await;
+    eprintln!("rigs listed: {names}");
+    let open = js(
+        c,
+        "return document.querySelector(\"#rigs tr[data-peer='rig-b'] [data-testid=peer-open]\").getAttribute('href')",
+    )
+    .await;
+    assert_eq!(open, json!(format!("{base_b}/")), "B's own dashboard");
+    assert_eq!(
+        js(
+            c,
+            "return document.querySelectorAll(\"#rigs tr[data-peer='this rig'] button\").length"
+        )
+        .await,
+        json!(0),
+        "this rig's own run is driven from its own card"
+    );
+
+    // A run on each rig; A's dashboard shows both progressing.
+    let id_b = start_run_on(http, base_b, ctx.token_b, "felt-on-b").await;
+    let id_a = start_run_on(http, base_a, ctx.token_a, "felt-on-a").await;
+    let row_b = wait_js(
+        c,
+        "B's run progressing in A's dashboard",
+        30,
+        &rig_row("rig-b"),
+        |v| v[0] == "true" && v[1] == "running" && v[2].as_i64().is_some_and(|n| n >= 1),
+    )
+    .await;
+    let row_a = wait_js(
+        c,
+        "A's own run in the Rigs card",
+        30,
+        &rig_row("this rig"),
+        |v| v[1] == "running" && v[2].as_i64().is_some_and(|n| n >= 1),
+    )
+    .await;
+    eprintln!("rows: A {row_a}, B {row_b}");
+    let shown = js(
+        c,
+        "return document.querySelector(\"#rigs tr[data-peer='rig-b'] [data-testid=peer-run]\").textContent",
+    )
+    .await;
+    assert!(
+        shown
+            .as_str()
+            .is_some_and(|t| t.contains(&id_b) && t.contains("/ 64 frames")),
+        "B's run in A's dashboard: {shown}"
+    );
+
+    // Pause B's run from A's dashboard: B's own API says paused.
+    let pause = "#rigs tr[data-peer='rig-b'] [data-testid=peer-pause]";
+    wait_js(
+        c,
+        "B's Pause button enabled",
+        10,
+        &format!("const b = document.querySelector(\"{pause}\"); return !!b && !b.disabled"),
+        |v| v == &json!(true),
+    )
+    .await;
+    c.find(Locator::Css(pause))
+        .await
+        .expect("B's Pause button")
+        .click()
+        .await
+        .expect("click Pause on B's row");
+    let deadline = Instant::now() + Duration::from_secs(15);
+    loop {
+        let (_, v) = frames_done(http, base_b, &id_b).await;
+        if v["state"] == "paused" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "B's run never paused: {v}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    wait_js(c, "B paused in A's dashboard", 10, &rig_row("rig-b"), |v| {
+        v[1] == "paused"
+    })
+    .await;
+    let (_, a_run) = frames_done(http, base_a, &id_a).await;
+    assert_eq!(a_run["state"], "running", "A's run is A's own: {a_run}");
+    let png = c.screenshot().await.expect("screenshot");
+    std::fs::write(ctx.out.join("peers-paused.png"), png).expect("write the screenshot");
+
+    // B dies. A shows it unreachable within 5 s of the kill, and its own
+    // run keeps capturing.
+    let (before, _) = frames_done(http, base_a, &id_a).await;
+    procs.kill("rigd-b");
+    let killed = Instant::now();
+    let row = wait_js(
+        c,
+        "B unreachable in A's dashboard",
+        5,
+        &rig_row("rig-b"),
+        |v| v[0] == "false",
+    )
+    .await;
+    let took = killed.elapsed();
+    eprintln!(
+        "B unreachable in A's dashboard {:.2} s after the kill: {}",
+        took.as_secs_f64(),
+        row[3]
+    );
+    assert!(took <= Duration::from_secs(5), "{took:?}");
+    assert!(
+        row[3]
+            .as_str()
+            .is_some_and(|t| t.contains("cannot connect") || t.contains("connection")),
+        "{row}"
+    );
+    let badge = js(
+        c,
+        "return document.querySelector(\"#rigs tr[data-peer='rig-b'] [data-testid=peer-reachable]\").textContent",
+    )
+    .await;
+    assert_eq!(badge, json!("unreachable"));
+    let deadline = Instant::now() + Duration::from_secs(20);
+    let after = loop {
+        let (n, v) = frames_done(http, base_a, &id_a).await;
+        assert!(
+            ["running", "completed"].contains(&v["state"].as_str().unwrap_or("")),
+            "A's run after B died: {v}"
+        );
+        if n > before {
+            break n;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "A's run stopped at {before} frames: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    eprintln!("A's run: {before} frames at the kill, {after} after");
+    wait_js(
+        c,
+        "A's progress shown after B died",
+        10,
+        &rig_row("this rig"),
+        |v| {
+            v[2].as_i64().is_some_and(|n| n > before as i64)
+                || v[1] == "completed"
+                || v[1] == "idle"
+        },
+    )
+    .await;
+    // A's dashboard itself is live and B's row stays unreachable.
+    assert_eq!(js(c, CONN).await, json!("live"));
+    let png = c.screenshot().await.expect("screenshot");
+    let path = ctx.out.join("peers.png");
+    std::fs::write(&path, &png).expect("write the screenshot");
+    check_png(&png);
+    eprintln!("screenshot: {}", path.display());
 }

@@ -14,6 +14,7 @@
 use std::io::ErrorKind as IoKind;
 
 use rigd::engine::launch::RunError;
+use rigd::postprocess::slurm::SlurmError;
 use rigd::postprocess::ProcessError;
 use rigd::rig::hal::DeviceError;
 use rigd::server::ServerError;
@@ -78,19 +79,31 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         });
     }
     if let Some(e) = cause.downcast_ref::<ProcessError>() {
-        return match e {
-            ProcessError::Store(s) => Some(store_class(s)),
-            // A frame that cannot be read or registered, an option that
-            // does not fit the run: the data or the request is at fault.
-            _ => Some(EXIT_BAD_INPUT),
-        };
+        return Some(process_class(e));
+    }
+    if let Some(e) = cause.downcast_ref::<SlurmError>() {
+        return Some(match e {
+            SlurmError::Process(p) => process_class(p),
+            SlurmError::Cancelled { .. } => EXIT_INTERRUPTED,
+            e if e.is_bad_config() => EXIT_BAD_INPUT,
+            // The cluster failed: a command, or a task more often than allowed.
+            _ => EXIT_FAILURE,
+        });
+    }
+    // A peers file that cannot be read is the caller's input as much as
+    // one that does not parse (`rigd serve --peers`).
+    if cause.is::<rigd::server::peers::PeersError>() {
+        return Some(EXIT_BAD_INPUT);
     }
     if cause.is::<DeviceError>() {
         return Some(EXIT_FAILURE);
     }
     if let Some(e) = cause.downcast_ref::<ServerError>() {
         return Some(match e {
-            ServerError::Profile(_) | ServerError::Speed(_) => EXIT_BAD_INPUT,
+            ServerError::Profile(_)
+            | ServerError::Speed(_)
+            | ServerError::Peers(_)
+            | ServerError::Processing(_) => EXIT_BAD_INPUT,
             ServerError::DataDir { .. }
             | ServerError::Token { .. }
             | ServerError::Listen { .. } => EXIT_FAILURE,
@@ -120,6 +133,15 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<rigd::rig::shot::RenderError>()
         || cause.is::<rigd_sim::scene::SceneError>();
     bad_input.then_some(EXIT_BAD_INPUT)
+}
+
+fn process_class(e: &ProcessError) -> u8 {
+    match e {
+        ProcessError::Store(s) => store_class(s),
+        // A frame that cannot be read or registered, an option that does
+        // not fit the run: the data or the request is at fault.
+        _ => EXIT_BAD_INPUT,
+    }
 }
 
 fn store_class(e: &StoreError) -> u8 {

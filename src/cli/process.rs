@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 
 use super::exit::bad_input;
@@ -21,6 +21,7 @@ pub fn run(cmd: ProcessCmd) -> Result<ExitCode> {
         ProcessCmd::Fit(args) => fit(args)?,
         ProcessCmd::Mdf(args) => mdf(args)?,
         ProcessCmd::Render(args) => relight(args)?,
+        ProcessCmd::Part(args) => part(args)?,
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -62,6 +63,138 @@ pub enum ProcessCmd {
     /// light interpolated from the four nearest measured lights, the smooth
     /// shadow boundary of Sattler et al. eq. 6. Writes an 8-bit RGB PNG.
     Render(RelightArgs),
+    /// One part of a step, as a task of the Slurm job array that
+    /// `--executor slurm` submits runs it: frames of `rectify`, a view
+    /// slot of `btf` or `fit`, or a whole `mdf` or `photometric-stereo`.
+    /// It keeps its result where the step finds it and marks the part done
+    /// in RUN/processed/slurm/STEP/done/. Not needed by hand.
+    Part(PartArgs),
+}
+
+/// Where the steps run: this machine or a Slurm cluster.
+#[derive(Args, Clone)]
+pub struct ExecutorArgs {
+    /// local: on this machine's cores; slurm: as a Slurm job array per step
+    /// on the shared filesystem (docs/scaling.md), with sbatch, squeue,
+    /// sacct and scancel on the PATH.
+    #[arg(long, value_enum, default_value_t = ExecutorArg::Local)]
+    pub executor: ExecutorArg,
+    /// Slurm partition [default: the cluster's default].
+    #[arg(long)]
+    pub partition: Option<String>,
+    /// Slurm account [default: yours].
+    #[arg(long)]
+    pub account: Option<String>,
+    /// More sbatch options, split as a shell would, e.g.
+    /// "--time=00:30:00 --mem=4G --cpus-per-task=2".
+    #[arg(long, default_value = "", allow_hyphen_values = true)]
+    pub slurm_opts: String,
+    /// A folder the cluster's nodes mount at the same path; the run must be
+    /// inside one. Repeatable.
+    #[arg(long = "shared-path", value_name = "DIR")]
+    pub shared_paths: Vec<PathBuf>,
+    /// Frames per Slurm task of rectify.
+    #[arg(long, default_value_t = rigd::postprocess::slurm::SlurmConfig::default().frames_per_task)]
+    pub frames_per_task: usize,
+    /// View slots per Slurm task of btf and fit.
+    #[arg(long, default_value_t = rigd::postprocess::slurm::SlurmConfig::default().slots_per_task)]
+    pub slots_per_task: usize,
+    /// Times a failed Slurm task is submitted again.
+    #[arg(long, default_value_t = rigd::postprocess::slurm::SlurmConfig::default().max_retries)]
+    pub max_retries: u32,
+    /// The rigd the Slurm tasks run, at a path every node sees [default:
+    /// this executable].
+    #[arg(long, value_name = "PATH")]
+    pub slurm_rigd: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ExecutorArg {
+    Local,
+    Slurm,
+}
+
+impl ExecutorArgs {
+    /// The executor's configuration; Slurm-only options without `--executor
+    /// slurm` are refused rather than ignored.
+    fn config(&self) -> Result<rigd::postprocess::executor::ProcessingConfig> {
+        use rigd::postprocess::executor::{ExecutorKind, ProcessingConfig};
+        use rigd::postprocess::slurm::SlurmConfig;
+        let slurm_only = self.partition.is_some()
+            || self.account.is_some()
+            || !self.slurm_opts.is_empty()
+            || !self.shared_paths.is_empty()
+            || self.slurm_rigd.is_some();
+        if self.executor == ExecutorArg::Local && slurm_only {
+            return Err(bad_input(
+                "--partition, --account, --slurm-opts, --shared-path and --slurm-rigd need --executor slurm",
+            ));
+        }
+        Ok(ProcessingConfig {
+            executor: match self.executor {
+                ExecutorArg::Local => ExecutorKind::Local,
+                ExecutorArg::Slurm => ExecutorKind::Slurm,
+            },
+            slurm: SlurmConfig {
+                partition: self.partition.clone(),
+                account: self.account.clone(),
+                sbatch_options: self.slurm_opts.clone(),
+                shared_paths: self.shared_paths.clone(),
+                frames_per_task: self.frames_per_task,
+                slots_per_task: self.slots_per_task,
+                max_retries: self.max_retries,
+                rigd: self.slurm_rigd.clone(),
+                ..SlurmConfig::default()
+            },
+        })
+    }
+
+    fn is_slurm(&self) -> bool {
+        self.executor == ExecutorArg::Slurm
+    }
+}
+
+/// Runs `step` on Slurm as `--executor slurm` asks: the job arrays, then
+/// the join here. Ctrl-C cancels the jobs (`scancel`).
+fn on_slurm(
+    exec: &ExecutorArgs,
+    run: &std::path::Path,
+    step: rigd::postprocess::pipeline::Step,
+    opts: &rigd::postprocess::pipeline::ProcessOptions,
+) -> Result<String> {
+    let config = exec.config()?;
+    config.check(run)?;
+    let interrupted = super::signal::flag_on_signal();
+    let cancel = || interrupted.load(std::sync::atomic::Ordering::SeqCst);
+    let notes = |note: &str| eprintln!("{note}");
+    let progress = progress_line("Slurm tasks done, then joined");
+    config
+        .run_step(run, step, opts, &progress, &notes, &cancel)
+        .map_err(anyhow::Error::new)
+}
+
+#[derive(Args)]
+pub struct PartArgs {
+    /// The run directory (on the shared filesystem).
+    pub run: PathBuf,
+    /// The step: rectify, btf, fit, mdf or photometric-stereo.
+    #[arg(long, value_parser = rigd::postprocess::pipeline::Step::parse)]
+    pub step: rigd::postprocess::pipeline::Step,
+    /// This task's part, 0 … parts − 1 (Slurm's SLURM_ARRAY_TASK_ID).
+    #[arg(long)]
+    pub part: usize,
+    /// Parts the step was split into when it was submitted.
+    #[arg(long)]
+    pub parts: usize,
+    /// Frames per part of rectify, as submitted.
+    #[arg(long, default_value_t = rigd::postprocess::slurm::SlurmConfig::default().frames_per_task)]
+    pub frames_per_part: usize,
+    /// View slots per part of btf and fit, as submitted.
+    #[arg(long, default_value_t = rigd::postprocess::slurm::SlurmConfig::default().slots_per_task)]
+    pub slots_per_part: usize,
+    /// The step's options (the JSON of the daemon's process request).
+    #[arg(long)]
+    pub options: PathBuf,
 }
 
 #[derive(Args)]
@@ -95,6 +228,8 @@ pub struct PsArgs {
     /// viewer looks there].
     #[arg(long)]
     pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub exec: ExecutorArgs,
 }
 
 #[derive(Args)]
@@ -121,6 +256,8 @@ pub struct RectifyArgs {
     /// so the textures tile without seams. 0 = none.
     #[arg(long, default_value_t = 0)]
     pub blend: usize,
+    #[command(flatten)]
+    pub exec: ExecutorArgs,
 }
 
 #[derive(Args)]
@@ -130,6 +267,8 @@ pub struct BtfArgs {
     /// Components kept per view slot.
     #[arg(long, default_value_t = 16)]
     pub components: usize,
+    #[command(flatten)]
+    pub exec: ExecutorArgs,
 }
 
 #[derive(Args)]
@@ -139,6 +278,8 @@ pub struct FitArgs {
     /// Lobes of the non-linear model.
     #[arg(long, default_value_t = 2)]
     pub lobes: usize,
+    #[command(flatten)]
+    pub exec: ExecutorArgs,
 }
 
 #[derive(Args)]
@@ -163,6 +304,8 @@ pub struct MdfArgs {
     /// Gaussian filter before the strip search, pixels.
     #[arg(long, default_value_t = 1.0)]
     pub sigma: f64,
+    #[command(flatten)]
+    pub exec: ExecutorArgs,
 }
 
 #[derive(Args)]
@@ -224,6 +367,32 @@ fn parse_orbit(s: &str) -> Result<rigd_process::directions::Direction, String> {
 
 fn photometric_stereo(args: PsArgs) -> Result<()> {
     use rigd_process::photometric_stereo as ps;
+    args.exec.config()?;
+    if args.exec.is_slurm() {
+        use rigd::postprocess::pipeline::{ProcessOptions, PsOptions, Step};
+        let (Some(run), None) = (&args.run, &args.out) else {
+            return Err(bad_input(
+                "--executor slurm works on a run directory, into RUN/processed/ps (no --images, no --out)",
+            ));
+        };
+        if args.mask.is_some() {
+            return Err(bad_input(
+                "--mask is not sent to Slurm: leave it out with --executor slurm",
+            ));
+        }
+        let opts = ProcessOptions {
+            steps: vec![Step::PhotometricStereo],
+            photometric_stereo: PsOptions {
+                robust: args.robust,
+                max_condition: args.max_condition,
+            },
+            ..Default::default()
+        };
+        let started = Instant::now();
+        let summary = on_slurm(&args.exec, run, Step::PhotometricStereo, &opts)?;
+        println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
+        return Ok(());
+    }
     #[cfg_attr(not(feature = "sim"), allow(unused_variables))]
     let (mut dataset, run) = match (&args.run, &args.images, &args.lights) {
         (Some(run), _, _) => {
@@ -305,6 +474,32 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
 fn rectify(args: RectifyArgs) -> Result<()> {
     use rigd::postprocess::rectify::TextureBits;
     let bits = TextureBits::parse(&args.bits).map_err(|e| bad_input(format!("--{e}")))?;
+    args.exec.config()?;
+    if args.exec.is_slurm() {
+        use rigd::postprocess::pipeline::{ProcessOptions, RectifyOptions, Step};
+        let opts = ProcessOptions {
+            steps: vec![Step::Rectify],
+            rectify: RectifyOptions {
+                size: args.size,
+                final_size: args.final_size,
+                roi: args.roi,
+                bits: args.bits.clone(),
+                blend: args.blend,
+            },
+            ..Default::default()
+        };
+        opts.rectify
+            .config()
+            .map_err(|e| bad_input(format!("--{e}")))?;
+        let started = Instant::now();
+        let summary = on_slurm(&args.exec, &args.run, Step::Rectify, &opts)?;
+        println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
+        let index = rigd::postprocess::rectify::NormtextureIndex::read(&args.run)?;
+        if let Some(summary) = &index.summary {
+            print!("{}", summary.table());
+        }
+        return Ok(());
+    }
     let cfg = rigd::postprocess::rectify::RectifyConfig {
         size: args.size,
         roi: args.roi,
@@ -336,6 +531,21 @@ fn btf(args: BtfArgs) -> Result<()> {
     if args.components == 0 {
         return Err(bad_input("--components 0: expected at least 1"));
     }
+    args.exec.config()?;
+    if args.exec.is_slurm() {
+        use rigd::postprocess::pipeline::{BtfOptions, ProcessOptions, Step};
+        let opts = ProcessOptions {
+            steps: vec![Step::Btf],
+            btf: BtfOptions {
+                components: args.components,
+            },
+            ..Default::default()
+        };
+        let started = Instant::now();
+        let summary = on_slurm(&args.exec, &args.run, Step::Btf, &opts)?;
+        println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
+        return Ok(());
+    }
     let report = rigd::postprocess::btf::btf_run(
         &args.run,
         args.components,
@@ -366,6 +576,19 @@ fn fit(args: FitArgs) -> Result<()> {
             args.lobes
         )));
     }
+    args.exec.config()?;
+    if args.exec.is_slurm() {
+        use rigd::postprocess::pipeline::{FitOptions, ProcessOptions, Step};
+        let opts = ProcessOptions {
+            steps: vec![Step::Fit],
+            fit: FitOptions { lobes: args.lobes },
+            ..Default::default()
+        };
+        let started = Instant::now();
+        let summary = on_slurm(&args.exec, &args.run, Step::Fit, &opts)?;
+        println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
+        return Ok(());
+    }
     let rows = rigd::postprocess::fit::fit_run(
         &args.run,
         args.lobes,
@@ -387,6 +610,25 @@ fn mdf(args: MdfArgs) -> Result<()> {
             "--sigma {}: expected 0 ..= 20 pixels",
             args.sigma
         )));
+    }
+    args.exec.config()?;
+    if args.exec.is_slurm() {
+        use rigd::postprocess::pipeline::{MdfOptions, ProcessOptions, Step};
+        let opts = ProcessOptions {
+            steps: vec![Step::Mdf],
+            mdf: MdfOptions {
+                planes: args.planes,
+                sources: args.sources,
+                threshold: args.threshold,
+                line_threshold: args.line_threshold,
+                sigma: args.sigma,
+            },
+            ..Default::default()
+        };
+        let started = Instant::now();
+        let summary = on_slurm(&args.exec, &args.run, Step::Mdf, &opts)?;
+        println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
+        return Ok(());
     }
     let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
     let cfg = rigd::postprocess::mdf::MdfConfig {
@@ -427,6 +669,39 @@ fn mdf(args: MdfArgs) -> Result<()> {
     println!(
         "wrote {}",
         rigd::store::processed::mdf_dir(&args.run).display()
+    );
+    Ok(())
+}
+
+/// One part of a step, as a Slurm task runs it.
+fn part(args: PartArgs) -> Result<()> {
+    use rigd::postprocess::parts;
+    let bytes = std::fs::read(&args.options)
+        .with_context(|| format!("cannot read the options {}", args.options.display()))?;
+    let opts: rigd::postprocess::pipeline::ProcessOptions = serde_json::from_slice(&bytes)
+        .map_err(|e| bad_input(format!("{}: {e}", args.options.display())))?;
+    let sizes = parts::PartSizes {
+        frames: args.frames_per_part,
+        slots: args.slots_per_part,
+    };
+    let split = parts::split(&args.run, args.step, &opts, sizes)?;
+    if split.parts() != args.parts {
+        return Err(bad_input(format!(
+            "{} of {} splits into {} parts now, {} when it was submitted: the run changed",
+            args.step.name(),
+            args.run.display(),
+            split.parts(),
+            args.parts
+        )));
+    }
+    let started = Instant::now();
+    let summary = parts::run_part(&args.run, args.step, &opts, split, args.part, &|_, _| {})?;
+    rigd::postprocess::slurm::mark_done(&args.run, args.step, args.part, &summary)?;
+    println!(
+        "part {} of {}: {summary} ({:.1} s)",
+        args.part,
+        args.parts,
+        started.elapsed().as_secs_f64()
     );
     Ok(())
 }

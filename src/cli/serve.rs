@@ -37,10 +37,42 @@ pub struct ServeArgs {
     #[cfg(feature = "sim")]
     #[arg(long = "sim-fault", value_name = "SPEC")]
     pub sim_faults: Vec<FaultRule>,
+    /// The other rigs' daemons, shown with this one in the dashboard's
+    /// "Rigs" panel (GET /api/v1/peers), where their runs can be paused or
+    /// aborted: a TOML file of [[peer]] tables with name, url and token or
+    /// token_file (docs/api.md, "Peers"). A bad file stops the start.
+    #[arg(long, value_name = "FILE")]
+    pub peers: Option<PathBuf>,
+    /// The daemon's configuration: a TOML file whose [processing] table
+    /// says where process jobs run, e.g. executor = "slurm" and a
+    /// [processing.slurm] table with partition, shared_paths, … (docs/scaling.md).
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+}
+
+/// The file of `rigd serve --config`.
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+struct DaemonFile {
+    processing: rigd::postprocess::executor::ProcessingConfig,
+}
+
+fn read_config(path: &std::path::Path) -> Result<DaemonFile> {
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("cannot read the configuration {}", path.display()))?;
+    toml::from_str(&text).map_err(|e| super::exit::bad_input(format!("{}: {e}", path.display())))
 }
 
 /// Runs `rigd serve` until a signal stops it.
 pub fn run(args: ServeArgs) -> Result<ExitCode> {
+    let peers = match &args.peers {
+        Some(file) => rigd::server::peers::load(file)?,
+        None => Vec::new(),
+    };
+    let file = match &args.config {
+        Some(path) => read_config(path)?,
+        None => DaemonFile::default(),
+    };
     let config = rigd::server::ServerConfig {
         sim: args.sim || args.profile.is_none(),
         profile: args.profile,
@@ -52,6 +84,8 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         sim_faults: args.sim_faults,
         #[cfg(not(feature = "sim"))]
         sim_faults: Vec::<FaultRule>::new(),
+        peers,
+        processing: file.processing,
     };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -28,8 +28,9 @@ pub struct BtfReport {
     pub compress_s: f64,
     /// Size of `processed/btf/` on disk, bytes.
     pub bytes: u64,
-    /// View slots taken as compressed during the capture
-    /// ([`compress_slot_ahead`]) rather than compressed now.
+    /// View slots taken as compressed ahead, during the capture or as the
+    /// tasks of a cluster's job array ([`compress_slot_ahead`]), rather
+    /// than compressed now.
     pub slots_ahead: usize,
 }
 
@@ -169,7 +170,8 @@ pub fn btf_run(
     Ok(report)
 }
 
-/// Where view slots compressed during the capture wait for `btf`.
+/// Where view slots compressed ahead (during the capture, or as cluster
+/// tasks) wait for `btf`.
 const AHEAD_DIR: &str = "btf-ahead";
 
 /// What a slot compressed ahead is kept with: the key it was made for and
@@ -189,21 +191,23 @@ fn ahead_paths(run: &Path, slot: usize) -> (std::path::PathBuf, std::path::PathB
     )
 }
 
-/// What a slot's compression depends on: the rigd version, the components,
-/// the texture size and encoding, the lights, and per light its texture
+/// What a result computed from one view slot's textures depends on: the
+/// rigd version, the `setting` of the step (`C16`, a fit's lobes), the
+/// texture size and encoding, the lights, and per light its texture
 /// file's name, length and modification time. `rectify`'s later passes
 /// rewrite every texture they change, which gives it a new time; a
-/// texture they keep is the file the slot was compressed from.
-fn slot_key(
+/// texture they keep is the file the result was computed from. None when
+/// a light of the slot has no texture.
+pub(crate) fn slot_key(
     run: &Path,
     index: &NormtextureIndex,
     slot: usize,
-    components: usize,
+    setting: &str,
 ) -> Option<String> {
     use std::fmt::Write;
     let dir = crate::store::processed::normtextures_dir(run);
     let mut key = format!(
-        "{} C{components} {}² {} L{}",
+        "{} {setting} {}² {} L{}",
         env!("CARGO_PKG_VERSION"),
         index.size,
         index.encoding,
@@ -239,7 +243,7 @@ pub fn compress_slot_ahead(
     components: usize,
 ) -> Result<(), ProcessError> {
     use rigd_process::btf::{compress_slot, TextureShape};
-    let key = slot_key(run, index, slot, components).ok_or_else(|| {
+    let key = slot_key(run, index, slot, &format!("C{components}")).ok_or_else(|| {
         ProcessError::Invalid(format!("view slot {slot}: a light has no texture yet"))
     })?;
     let shape = TextureShape::new(index.size, index.size, 1)
@@ -269,6 +273,30 @@ pub fn compress_slot_ahead(
     Ok(())
 }
 
+/// Compresses the view slots `slots` of a rectified run and keeps each in
+/// `processed/btf-ahead/` for `btf` (one task of a cluster's job array,
+/// [`crate::postprocess::parts`]); a slot kept already from the same
+/// textures is left as it is. Returns how many it compressed.
+pub fn compress_slots_part(
+    run: &Path,
+    slots: std::ops::Range<usize>,
+    components: usize,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<usize, ProcessError> {
+    let index = NormtextureIndex::read(run)?;
+    index.check_slot_range(&slots)?;
+    let total = slots.len();
+    let mut compressed = 0;
+    for (n, slot) in slots.enumerate() {
+        if !slot_ahead_is_current(run, &index, slot, components) {
+            compress_slot_ahead(run, &index, slot, components)?;
+            compressed += 1;
+        }
+        progress(n + 1, total);
+    }
+    Ok(compressed)
+}
+
 /// Whether slot `slot` was compressed ahead from the textures `index`
 /// lists for it now, with `components` (a stream cut by a restart).
 pub fn slot_ahead_is_current(
@@ -281,7 +309,7 @@ pub fn slot_ahead_is_current(
     std::fs::read(meta_path)
         .ok()
         .and_then(|b| serde_json::from_slice::<SlotAhead>(&b).ok())
-        .is_some_and(|kept| Some(kept.key) == slot_key(run, index, slot, components))
+        .is_some_and(|kept| Some(kept.key) == slot_key(run, index, slot, &format!("C{components}")))
 }
 
 /// The slot compressed ahead, if it was made from the textures `index`
@@ -294,7 +322,7 @@ fn take_slot_ahead(
 ) -> Option<rigd_process::btf::SlotPca> {
     let (meta_path, bin_path) = ahead_paths(run, slot);
     let kept: SlotAhead = serde_json::from_slice(&std::fs::read(meta_path).ok()?).ok()?;
-    let key = slot_key(run, index, slot, components);
+    let key = slot_key(run, index, slot, &format!("C{components}"));
     if Some(&kept.key) != key.as_ref() {
         tracing::debug!(
             "view slot {slot} was compressed from other textures: {} then, {key:?} now",

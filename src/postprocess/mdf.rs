@@ -86,7 +86,7 @@ pub struct CalibrationSummary {
 }
 
 /// One view's merged displacement image.
-#[derive(Debug, Clone, Serialize)]
+#[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ViewSummary {
     /// The turntable's position for this view, degrees.
     pub turntable_deg: f64,
@@ -114,7 +114,7 @@ pub struct ViewSummary {
 }
 
 /// Depth error against the scene's true MDF, millimetres.
-#[derive(Debug, Clone, Copy, Serialize)]
+#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
 pub struct DepthError {
     /// Sample pixels with a measurement, over which the error is taken.
     pub pixels: usize,
@@ -177,12 +177,122 @@ struct SweepView<'a> {
     frames: Vec<&'a FrameEntry>,
 }
 
-/// Computes the MDF of a laser run into `processed/mdf/`.
+/// Where views merged ahead of `mdf` (tasks of a cluster's job array)
+/// wait for it, inside `processed/`.
+const AHEAD_DIR: &str = "mdf-ahead";
+
+/// A view merged ahead: the key of the frames and settings it was made
+/// from, its summary (None: none of its sweeps could be analysed) and the
+/// sweeps of it that were left out, and why. Its `.npy` and `.png` are in
+/// `processed/mdf/` already.
+#[derive(Serialize, Deserialize)]
+struct KeptView {
+    key: String,
+    summary: Option<ViewSummary>,
+    skipped: Vec<String>,
+}
+
+fn kept_view_path(run: &Path, view: usize) -> PathBuf {
+    crate::store::processed::processed_dir(run)
+        .join(AHEAD_DIR)
+        .join(format!("view_{view:03}.json"))
+}
+
+/// Computes the MDF of a laser run into `processed/mdf/`. Views merged
+/// ahead from the same frames and settings ([`mdf_views_part`]) are taken
+/// as they are.
 pub fn mdf_run(
     run: &RunFrames,
     cfg: &MdfConfig,
     progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<MdfReport, ProcessError> {
+    mdf_views(run, cfg, None, progress)?.ok_or_else(|| ProcessError::Invalid("no report".into()))
+}
+
+/// The views (turntable position × camera) of a laser run's MDF, in the
+/// order [`mdf_views_part`] numbers them.
+pub fn mdf_view_count(run: &RunFrames, cfg: &MdfConfig) -> Result<usize, ProcessError> {
+    let plan: &LaserPlan = run.meta.plan.laser.as_ref().ok_or_else(|| {
+        ProcessError::Invalid(format!(
+            "run {} is not a laser scan (plan `{}`)",
+            run.root.display(),
+            run.meta.plan.name
+        ))
+    })?;
+    let rig = LaserRig::of(&run.meta.profile).ok_or_else(|| {
+        ProcessError::Invalid(format!(
+            "profile `{}` has no laser unit",
+            run.meta.profile.name
+        ))
+    })?;
+    let sources = pick_sources(plan.sources, cfg.sources)?;
+    // A sweep's view is its first frame's, as `mdf_views` takes it.
+    let mut sweeps: BTreeMap<(usize, &str), u64> = BTreeMap::new();
+    for e in &run.entries {
+        if let Some(LaserStep {
+            role: LaserRole::Scan,
+            sweep: Some(id),
+            source,
+            ..
+        }) = e.laser
+        {
+            if sources.contains(&source) {
+                let turn = e.positions.axes.get(&rig.turntable).copied().unwrap_or(0.0);
+                sweeps
+                    .entry((id, e.camera.as_str()))
+                    .or_insert(turn.to_bits());
+            }
+        }
+    }
+    let views: std::collections::BTreeSet<(u64, &str)> = sweeps
+        .iter()
+        .map(|(&(_, camera), &turn)| (turn, camera))
+        .collect();
+    Ok(views.len())
+}
+
+/// Merges the views `views` (of [`mdf_view_count`]) of a laser run and
+/// keeps each in `processed/mdf-ahead/` for `mdf` (one task of a cluster's
+/// job array, [`crate::postprocess::parts`]); a view kept already from the
+/// same frames is left as it is.
+pub fn mdf_views_part(
+    run: &RunFrames,
+    cfg: &MdfConfig,
+    views: std::ops::Range<usize>,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<(), ProcessError> {
+    mdf_views(run, cfg, Some(views), progress).map(|_| ())
+}
+
+/// What a view's merge depends on: the rigd version, the settings, the
+/// view, and every frame of its sweeps and of its camera's calibration.
+fn view_key(
+    cfg: &MdfConfig,
+    view: &(u64, String),
+    frames: &mut dyn Iterator<Item = &FrameEntry>,
+) -> String {
+    use sha2::Digest;
+    let mut hash = sha2::Sha256::new();
+    for e in frames {
+        hash.update(e.sha256.as_bytes());
+    }
+    format!(
+        "{} {cfg:?} t{} {} {}",
+        env!("CARGO_PKG_VERSION"),
+        f64::from_bits(view.0),
+        view.1,
+        hex::encode(hash.finalize())
+    )
+}
+
+/// [`mdf_run`] (`views` None: every view, then the report) or the part of
+/// it a task does (`views` Some: those views, kept for `mdf`; no report).
+fn mdf_views(
+    run: &RunFrames,
+    cfg: &MdfConfig,
+    views: Option<std::ops::Range<usize>>,
+    progress: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Option<MdfReport>, ProcessError> {
     let started = std::time::Instant::now();
     let plan: &LaserPlan = run.meta.plan.laser.as_ref().ok_or_else(|| {
         ProcessError::Invalid(format!(
@@ -243,6 +353,57 @@ pub fn mdf_run(
     for s in sweeps.values_mut() {
         s.frames.sort_by_key(|e| e.laser.map_or(0, |l| l.frame));
     }
+    // The views, numbered as `mdf_view_count` numbers them.
+    let view_keys: Vec<(u64, String)> = sweeps
+        .values()
+        .map(|sv| (sv.turntable_deg.to_bits(), sv.camera.clone()))
+        .collect::<std::collections::BTreeSet<_>>()
+        .into_iter()
+        .collect();
+    let view_of = |sv: &SweepView| {
+        view_keys
+            .binary_search(&(sv.turntable_deg.to_bits(), sv.camera.clone()))
+            .unwrap_or(usize::MAX)
+    };
+    let part = views.is_some();
+    let selected = views.unwrap_or(0..view_keys.len());
+    if selected.end > view_keys.len() {
+        return Err(ProcessError::Invalid(format!(
+            "views {}..{}: the run has {}",
+            selected.start,
+            selected.end,
+            view_keys.len()
+        )));
+    }
+    let keys: BTreeMap<usize, String> = selected
+        .clone()
+        .map(|v| {
+            let mut frames = sweeps
+                .values()
+                .filter(|sv| view_of(sv) == v)
+                .flat_map(|sv| sv.frames.iter().copied())
+                .chain(
+                    calib
+                        .iter()
+                        .filter(|((_, camera, _), _)| *camera == view_keys[v].1)
+                        .map(|(_, e)| *e),
+                );
+            (v, view_key(cfg, &view_keys[v], &mut frames))
+        })
+        .collect();
+    let out = crate::store::processed::mdf_dir(&run.root);
+    let kept: BTreeMap<usize, KeptView> = keys
+        .iter()
+        .filter_map(|(&v, key)| {
+            let bytes = std::fs::read(kept_view_path(&run.root, v)).ok()?;
+            let k: KeptView = serde_json::from_slice(&bytes).ok()?;
+            let files = k
+                .summary
+                .as_ref()
+                .is_none_or(|s| out.join(format!("{}.npy", s.name)).is_file());
+            (k.key == *key && files).then_some((v, k))
+        })
+        .collect();
     let size = {
         let first = run
             .entries
@@ -329,8 +490,11 @@ pub fn mdf_run(
     let jobs: Vec<&SweepView> = sweeps
         .values()
         .filter(|sv| {
-            cfg.planes == PlaneModel::Emitter
-                || calibrated.contains_key(&(sv.source, sv.camera.clone()))
+            let v = view_of(sv);
+            selected.contains(&v)
+                && !kept.contains_key(&v)
+                && (cfg.planes == PlaneModel::Emitter
+                    || calibrated.contains_key(&(sv.source, sv.camera.clone())))
         })
         .collect();
     let done = std::sync::atomic::AtomicUsize::new(0);
@@ -357,41 +521,50 @@ pub fn mdf_run(
             r
         })
         .collect();
-    // Unreadable frames are an error; a sweep the analysis rejects is skipped.
+    // Unreadable frames are an error; a sweep the analysis rejects is
+    // skipped, and said with its view.
     let mut results = Vec::with_capacity(analysed.len());
-    let mut kept = Vec::with_capacity(analysed.len());
+    let mut analysed_jobs = Vec::with_capacity(analysed.len());
+    let mut view_skipped: BTreeMap<usize, Vec<String>> = BTreeMap::new();
     for (sv, r) in jobs.iter().zip(analysed) {
         match r {
             Ok(d) => {
                 results.push(d);
-                kept.push(*sv);
+                analysed_jobs.push(*sv);
             }
             Err(e @ ProcessError::Frame { .. }) => return Err(e),
-            Err(e) => skipped.push(e.to_string()),
+            Err(e) => view_skipped
+                .entry(view_of(sv))
+                .or_default()
+                .push(e.to_string()),
         }
     }
-    let jobs = kept;
-    if jobs.is_empty() {
-        return Err(ProcessError::Invalid(format!(
-            "no sweep could be analysed: {}",
-            skipped.join("; ")
-        )));
-    }
+    let jobs = analysed_jobs;
 
     // Merge the sources of each view.
-    let mut by_view: BTreeMap<(u64, String), Vec<usize>> = BTreeMap::new();
+    let mut by_view: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
     for (i, sv) in jobs.iter().enumerate() {
-        by_view
-            .entry((sv.turntable_deg.to_bits(), sv.camera.clone()))
-            .or_default()
-            .push(i);
+        by_view.entry(view_of(sv)).or_default().push(i);
     }
-    let out = crate::store::processed::mdf_dir(&run.root);
     std::fs::create_dir_all(&out).map_err(|e| io_error(&out, e))?;
     #[cfg(feature = "sim")]
     let scene = super::truth::mdf_truth_scene(run)?;
     let mut views = Vec::new();
-    for ((_, camera), members) in &by_view {
+    for v in selected.clone() {
+        if let Some(k) = kept.get(&v) {
+            views.extend(k.summary.clone());
+            skipped.extend(k.skipped.iter().cloned());
+            continue;
+        }
+        let left_out = view_skipped.remove(&v).unwrap_or_default();
+        let Some(members) = by_view.get(&v) else {
+            if part {
+                keep_view(&run.root, v, &keys[&v], None, &left_out)?;
+            }
+            skipped.extend(left_out);
+            continue;
+        };
+        let camera = &view_keys[v].1;
         let first = jobs[members[0]];
         let view = first.frames[0].achieved_view;
         let cam = camera_model(camera, view)?;
@@ -419,7 +592,7 @@ pub fn mdf_run(
         // Ground truth needs the simulator's scene.
         #[cfg(not(feature = "sim"))]
         let truth = None;
-        views.push(ViewSummary {
+        let summary = ViewSummary {
             turntable_deg: first.turntable_deg,
             camera: camera.clone(),
             view,
@@ -430,7 +603,21 @@ pub fn mdf_run(
             truth,
             #[cfg(feature = "sim")]
             truth_pixels,
-        });
+        };
+        if part {
+            keep_view(&run.root, v, &keys[&v], Some(&summary), &left_out)?;
+        }
+        skipped.extend(left_out);
+        views.push(summary);
+    }
+    if part {
+        return Ok(None);
+    }
+    if views.is_empty() {
+        return Err(ProcessError::Invalid(format!(
+            "no sweep could be analysed: {}",
+            skipped.join("; ")
+        )));
     }
     let errors: Vec<f64> = views
         .iter()
@@ -452,7 +639,35 @@ pub fn mdf_run(
         .map_err(|e| ProcessError::Invalid(format!("report: {e}")))?;
     let path = out.join("report.json");
     rigd_core::atomic::write(&path, &json).map_err(|e| io_error(&path, e.error))?;
-    Ok(report)
+    let ahead = crate::store::processed::processed_dir(&run.root).join(AHEAD_DIR);
+    if let Err(e) = std::fs::remove_dir_all(&ahead) {
+        if e.kind() != std::io::ErrorKind::NotFound {
+            tracing::warn!("{}: {e}", ahead.display());
+        }
+    }
+    Ok(Some(report))
+}
+
+/// Keeps view `view`'s merge for `mdf` (written after its files).
+fn keep_view(
+    run: &Path,
+    view: usize,
+    key: &str,
+    summary: Option<&ViewSummary>,
+    skipped: &[String],
+) -> Result<(), ProcessError> {
+    let path = kept_view_path(run, view);
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| io_error(dir, e))?;
+    }
+    let kept = KeptView {
+        key: key.to_string(),
+        summary: summary.cloned(),
+        skipped: skipped.to_vec(),
+    };
+    let json = serde_json::to_vec(&kept).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    crate::store::write_atomic(&path, &json)?;
+    Ok(())
 }
 
 /// `n` of `total` source indices, evenly spread (all when `n` is None).

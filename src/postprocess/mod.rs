@@ -5,12 +5,15 @@
 
 pub mod btf;
 pub mod dataset;
+pub mod executor;
 pub mod fit;
 pub mod frames;
 pub mod mdf;
+pub mod parts;
 pub mod pipeline;
 pub mod ps;
 pub mod rectify;
+pub mod slurm;
 #[cfg(feature = "sim")]
 pub mod truth;
 pub mod viewer;

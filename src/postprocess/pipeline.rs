@@ -188,6 +188,19 @@ impl Default for MdfOptions {
     }
 }
 
+impl MdfOptions {
+    /// The MDF's settings.
+    pub fn config(&self) -> MdfConfig {
+        MdfConfig {
+            sigma_px: self.sigma,
+            threshold: self.threshold,
+            line_threshold: self.line_threshold,
+            planes: self.planes,
+            sources: self.sources,
+        }
+    }
+}
+
 /// Options of the `photometric-stereo` step.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(default, deny_unknown_fields)]
@@ -531,7 +544,7 @@ pub fn run_step(
                 index.size,
                 if resumed > 0 {
                     format!(
-                        "; {resumed} registered before, during the capture or an interrupted run"
+                        "; {resumed} registered before (during the capture, as cluster tasks or by an interrupted run)"
                     )
                 } else {
                     String::new()
@@ -547,7 +560,10 @@ pub fn run_step(
                 r.components,
                 r.bytes as f64 / 1e6,
                 if r.slots_ahead > 0 {
-                    format!("; {} slots compressed during the capture", r.slots_ahead)
+                    format!(
+                        "; {} slots compressed ahead (during the capture or as cluster tasks)",
+                        r.slots_ahead
+                    )
                 } else {
                     String::new()
                 }
@@ -563,15 +579,7 @@ pub fn run_step(
         }
         Step::Mdf => {
             let run = RunFrames::open(root)?;
-            let m = &opts.mdf;
-            let cfg = MdfConfig {
-                sigma_px: m.sigma,
-                threshold: m.threshold,
-                line_threshold: m.line_threshold,
-                planes: m.planes,
-                sources: m.sources,
-            };
-            let r = super::mdf::mdf_run(&run, &cfg, progress)?;
+            let r = super::mdf::mdf_run(&run, &opts.mdf.config(), progress)?;
             Ok(format!(
                 "{} views{}",
                 r.views.len(),

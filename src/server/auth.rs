@@ -42,6 +42,17 @@ impl Token {
     }
 }
 
+/// The token in a token file's text: one line of at least 16 visible
+/// characters (surrounding whitespace ignored), or why not. The same rule
+/// holds for the tokens of `rigd serve --peers`.
+pub fn usable_secret(text: &str) -> Result<&str, &'static str> {
+    let secret = text.trim();
+    if secret.len() < 16 || secret.chars().any(|c| c.is_whitespace() || c.is_control()) {
+        return Err("expected one line of at least 16 visible characters");
+    }
+    Ok(secret)
+}
+
 /// Reads the token from `token_file`, or from `DATA/token`, generating it
 /// there (mode 0600) on first start.
 pub fn load_or_create(token_file: Option<&Path>, data_dir: &Path) -> Result<Token, ServerError> {
@@ -50,13 +61,10 @@ pub fn load_or_create(token_file: Option<&Path>, data_dir: &Path) -> Result<Toke
             path: path.to_path_buf(),
             why: e.to_string(),
         })?;
-        let secret = text.trim();
-        if secret.len() < 16 || secret.chars().any(|c| c.is_whitespace() || c.is_control()) {
-            return Err(ServerError::Token {
-                path: path.to_path_buf(),
-                why: "expected one line of at least 16 visible characters".into(),
-            });
-        }
+        let secret = usable_secret(&text).map_err(|why| ServerError::Token {
+            path: path.to_path_buf(),
+            why: why.into(),
+        })?;
         Ok(Token {
             secret: secret.into(),
             path: path.to_path_buf(),

@@ -15,7 +15,8 @@ pub struct ErrorBody {
     /// A short machine-readable code: `bad_request`, `invalid`, `unauthorized`,
     /// `not_found`, `method_not_allowed`, `conflict`, `payload_too_large`,
     /// `unsupported_media_type`, `device` (a device failed), `unavailable`,
-    /// `internal`.
+    /// `internal`; from `/peers/{name}/…`, `peer_unreachable` (502) and
+    /// `peer_timeout` (504).
     pub error: String,
     /// What went wrong, for a person.
     pub detail: String,

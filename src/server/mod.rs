@@ -9,6 +9,7 @@
 //! - [`persist`]: the queue file and the run history on disk
 //! - [`frames`]: frame and preview routes
 //! - [`error`]: `{error, detail}` errors
+//! - [`peers`]: the other rigs' daemons (`--peers FILE`), watched
 
 pub mod api;
 pub mod auth;
@@ -16,6 +17,7 @@ pub mod error;
 pub mod events;
 pub mod manual_session;
 pub mod model;
+pub mod peers;
 pub mod persist;
 pub mod plan_cache;
 pub mod processing;
@@ -35,7 +37,7 @@ use tokio::task::JoinHandle;
 
 use utoipa_swagger_ui::SwaggerUi;
 
-use api::{daemon, frames, manual, plans, process, queue, rig, runs, viewer};
+use api::{daemon, frames, manual, peers as peer_routes, plans, process, queue, rig, runs, viewer};
 #[cfg(feature = "sim")]
 use api::{sim, tradeoff};
 
@@ -72,6 +74,13 @@ pub struct ServerConfig {
     /// Faults injected into the simulated rig of every new run (demos and
     /// tests of fault handling).
     pub sim_faults: Vec<crate::rig::FaultRule>,
+    /// The other rigs' daemons, shown with this one in `GET /api/v1/peers`
+    /// and the dashboard (`--peers FILE`, read by [`peers::load`]); names
+    /// must be unique. Empty: this rig alone.
+    pub peers: Vec<peers::Peer>,
+    /// Where process jobs run: here, or on a Slurm cluster (the
+    /// `[processing]` table of `rigd serve --config FILE`).
+    pub processing: crate::postprocess::executor::ProcessingConfig,
 }
 
 impl ServerConfig {
@@ -85,6 +94,8 @@ impl ServerConfig {
             sim_speed: DEFAULT_SIM_SPEED,
             token_file: None,
             sim_faults: Vec::new(),
+            peers: Vec::new(),
+            processing: Default::default(),
         }
     }
 }
@@ -115,6 +126,14 @@ pub enum ServerError {
         /// What is wrong with it.
         why: String,
     },
+    /// Two peers of [`ServerConfig::peers`] have the same name.
+    #[error("peers: the name `{0}` is used twice")]
+    Peers(String),
+    /// The processing executor's configuration cannot work (Slurm's
+    /// commands missing, the data directory not on a shared path, an
+    /// unknown partition).
+    #[error("[processing]: {0}")]
+    Processing(crate::postprocess::slurm::SlurmError),
     /// The listen address cannot be bound.
     #[error("cannot listen on {addr}: {why}")]
     Listen {
@@ -182,12 +201,16 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
             "/runs/{id}/process",
             get(process::get_job).post(process::submit),
         )
+        .route("/runs/{id}/process/cancel", post(process::cancel))
         .route("/runs/{id}/frames/{index}", get(frames::frame_raw))
         .route(
             "/runs/{id}/frames/{index}/preview",
             get(frames::frame_preview),
         )
         .route("/estop", post(rig::estop))
+        .route("/peers", get(peer_routes::list_peers))
+        .route("/peers/{name}/pause", post(peer_routes::pause_peer))
+        .route("/peers/{name}/abort", post(peer_routes::abort_peer))
         .route("/events", get(daemon::events_sse))
         .route("/queue", get(queue::get_queue).post(queue::post_queue))
         .route("/queue/{item}", delete(queue::delete_queue))
@@ -249,6 +272,9 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
     if !(config.sim_speed.is_finite() && config.sim_speed > 0.0) {
         return Err(ServerError::Speed(config.sim_speed));
     }
+    if let Some(name) = peers::file::duplicate_name(&config.peers) {
+        return Err(ServerError::Peers(name.to_string()));
+    }
     let source = config
         .profile
         .clone()
@@ -263,6 +289,12 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         path: config.data_dir.clone(),
         why: e.to_string(),
     })?;
+    match config.processing.check(&config.data_dir) {
+        Err(e) if e.is_bad_config() => return Err(ServerError::Processing(e)),
+        // The cluster may come back; each job checks again before it queues.
+        Err(e) => tracing::warn!("processing on Slurm: {e}"),
+        Ok(()) => {}
+    }
     let token = auth::load_or_create(config.token_file.as_deref(), &config.data_dir)?;
     tracing::info!(path = %token.path.display(), "API token");
     let listener = tokio::net::TcpListener::bind(config.listen)
@@ -280,6 +312,8 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         path: daemon.data_dir.clone(),
         why: format!("cannot start the processing worker: {why}"),
     })?;
+    daemon.peers.set_local_url(format!("http://{addr}"));
+    peers::start(&daemon.peers, daemon.shutdown_tx.subscribe());
     let app = router(daemon.clone(), token.clone());
     let mut stop = daemon.shutdown_tx.subscribe();
     let server = tokio::spawn(async move {
@@ -324,6 +358,9 @@ pub async fn serve(config: ServerConfig) -> Result<(), ServerError> {
         handle.daemon.profile.name,
         handle.token.path.display()
     );
+    for p in handle.daemon.peers.views() {
+        eprintln!("watching peer `{}` at {}", p.name, p.url);
+    }
     wait_for_signal().await;
     eprintln!("shutting down: pausing the active run (resumable)");
     handle.shutdown().await;

@@ -35,6 +35,7 @@ use super::supervisor::{lock, Daemon, SupervisorError};
 use crate::model::run_state::RunState;
 use crate::postprocess::frames::RunFrames;
 use crate::postprocess::pipeline::{self, ProcessOptions, RunFacts, Step};
+use crate::postprocess::slurm::SlurmError;
 
 /// The job's file in `RUN/processed/`.
 pub const JOB_FILE: &str = "job.json";
@@ -78,6 +79,11 @@ pub struct StepStatus {
     pub eta_s: Option<f64>,
     /// What the step wrote, when done.
     pub summary: Option<String>,
+    /// The executor's latest word while the step runs on Slurm: the job
+    /// and its array, a task submitted again. `done` and `total` count
+    /// the array's tasks until they are all done, then the join's units.
+    #[serde(default)]
+    pub detail: Option<String>,
 }
 
 /// A run's process job, as `RUN/processed/job.json` keeps it.
@@ -112,6 +118,10 @@ pub struct ProcessJob {
     /// for each slot whose lights were all in); the step takes them.
     #[serde(default)]
     pub slots_ahead: usize,
+    /// The operator asked to cancel it while it ran: a step on Slurm stops
+    /// at once (`scancel`), a local step at its end.
+    #[serde(default)]
+    pub cancelling: bool,
 }
 
 impl ProcessJob {
@@ -130,6 +140,7 @@ impl ProcessJob {
                     elapsed_s: 0.0,
                     eta_s: None,
                     summary: None,
+                    detail: None,
                 })
                 .collect(),
             options,
@@ -141,6 +152,7 @@ impl ProcessJob {
             after_capture: false,
             streamed: 0,
             slots_ahead: 0,
+            cancelling: false,
         }
     }
 
@@ -148,6 +160,7 @@ impl ProcessJob {
     fn requeue(&mut self) {
         self.state = JobState::Queued;
         self.error = None;
+        self.cancelling = false;
         self.updated_at = crate::store::now_rfc3339();
         for s in &mut self.steps {
             if s.state != JobState::Done {
@@ -169,9 +182,11 @@ impl ProcessJob {
             "done": current.map(|s| s.done),
             "total": current.map(|s| s.total),
             "eta_s": current.and_then(|s| s.eta_s),
+            "detail": current.and_then(|s| s.detail.clone()),
             "steps_done": self.steps.iter().filter(|s| s.state == JobState::Done).count(),
             "steps_total": self.steps.len(),
             "error": self.error,
+            "cancelling": self.cancelling,
             "streamed": self.streamed,
             "slots_ahead": self.slots_ahead,
         })
@@ -211,6 +226,9 @@ pub struct Jobs {
     jobs: Mutex<BTreeMap<String, ProcessJob>>,
     wake: Condvar,
     stop: AtomicBool,
+    /// The operator asked to cancel the running job
+    /// (`POST /runs/{id}/process/cancel`).
+    cancel: AtomicBool,
 }
 
 impl Jobs {
@@ -347,6 +365,11 @@ impl Daemon {
         let options = options
             .resolve(&RunFacts::of_run(&frames))
             .map_err(SupervisorError::invalid)?;
+        // A cluster that cannot take the job is said now, not after it queued.
+        self.config
+            .processing
+            .check(&root)
+            .map_err(|e| SupervisorError::invalid(format!("processing on Slurm: {e}")))?;
         if options.steps.contains(&Step::Rectify) {
             if let Some(size) = view.frame_size {
                 pipeline::check_frame_size(size).map_err(SupervisorError::invalid)?;
@@ -393,6 +416,62 @@ impl Daemon {
         lock(&self.processing.jobs).insert(id.to_string(), job.clone());
         self.hub.publish(Some(id), "process", job.event());
         Ok(())
+    }
+}
+
+/// What a cancel request did.
+pub enum Cancelled {
+    /// The job was queued: it will not run (failed, "cancelled").
+    Dropped(ProcessJob),
+    /// The job runs: its Slurm jobs are cancelled now, a local step stops
+    /// at its end.
+    Stopping(ProcessJob),
+}
+
+/// The error of a job the operator cancelled.
+pub const CANCELLED: &str = "cancelled by the operator";
+
+impl Daemon {
+    /// Cancels run `id`'s process job: a queued one is dropped, a running
+    /// one stops (on Slurm its arrays are cancelled with `scancel`).
+    pub fn cancel_processing(&self, id: &str) -> Result<Cancelled, SupervisorError> {
+        let root = self
+            .run_root(id)
+            .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
+        let mut jobs = lock(&self.processing.jobs);
+        let job = jobs
+            .get_mut(id)
+            .ok_or_else(|| SupervisorError::not_found(format!("run `{id}` has no process job")))?;
+        let outcome = match job.state {
+            JobState::Queued => {
+                job.state = JobState::Failed;
+                job.error = Some(CANCELLED.into());
+                job.updated_at = crate::store::now_rfc3339();
+                write_job(&root, job).map_err(SupervisorError::internal)?;
+                Cancelled::Dropped(job.clone())
+            }
+            JobState::Running => {
+                job.cancelling = true;
+                self.processing.cancel.store(true, Ordering::SeqCst);
+                Cancelled::Stopping(job.clone())
+            }
+            JobState::Done | JobState::Failed => {
+                return Err(SupervisorError::conflict(format!(
+                    "run `{id}`'s process job has ended ({}): nothing to cancel",
+                    if job.state == JobState::Done {
+                        "done"
+                    } else {
+                        "failed"
+                    }
+                )));
+            }
+        };
+        let event = match &outcome {
+            Cancelled::Dropped(j) | Cancelled::Stopping(j) => j.event(),
+        };
+        drop(jobs);
+        self.hub.publish(Some(id), "process", event);
+        Ok(outcome)
     }
 }
 
@@ -508,8 +587,10 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
         }
         d.hub.publish(Some(id), "process", job.event());
     };
+    d.processing.cancel.store(false, Ordering::SeqCst);
     let Some(job) = d.processing.update(id, |j| {
         j.state = JobState::Running;
+        j.cancelling = false;
         j.updated_at = crate::store::now_rfc3339();
     }) else {
         return;
@@ -521,6 +602,17 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
         }
         if d.processing.stop.load(Ordering::SeqCst) {
             // Left running on disk: the next start resumes here.
+            return;
+        }
+        if d.processing.cancel.load(Ordering::SeqCst) {
+            if let Some(j) = d.processing.update(id, |j| {
+                j.state = JobState::Failed;
+                j.error = Some(CANCELLED.into());
+                j.cancelling = false;
+                j.updated_at = crate::store::now_rfc3339();
+            }) {
+                persist(&j);
+            }
             return;
         }
         let step = status.step;
@@ -558,12 +650,36 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
                 d.hub.publish(Some(id), "process", event);
             }
         };
+        let notes = |note: &str| {
+            tracing::info!("processing {id}: {note}");
+            if let Some(event) = d.processing.with_job(id, |j| {
+                j.steps[k].detail = Some(note.to_string());
+                j.event()
+            }) {
+                d.hub.publish(Some(id), "process", event);
+            }
+        };
         let options = job.options.clone();
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pool.install(|| pipeline::run_step(&root, step, &options, &progress))
+            pool.install(|| {
+                d.config
+                    .processing
+                    .run_step(&root, step, &options, &progress, &notes, &|| {
+                        d.processing.stop.load(Ordering::SeqCst)
+                            || d.processing.cancel.load(Ordering::SeqCst)
+                    })
+            })
         }));
         let outcome = match result {
             Ok(Ok(summary)) => Ok(summary),
+            Ok(Err(SlurmError::Cancelled { .. })) if d.processing.stop.load(Ordering::SeqCst) => {
+                // The daemon is stopping: the job stays running on disk and
+                // the next start submits what is not done again.
+                return;
+            }
+            Ok(Err(e @ SlurmError::Cancelled { .. })) => {
+                Err(format!("{}: {CANCELLED}: {e}", step.name()))
+            }
             Ok(Err(e)) => Err(format!("{}: {e}", step.name())),
             Err(_) => Err(format!(
                 "{}: internal error (a panic; see the log)",
@@ -587,6 +703,7 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
                     s.state = JobState::Failed;
                     j.state = JobState::Failed;
                     j.error = Some(e);
+                    j.cancelling = false;
                 }
             }
             j.updated_at = crate::store::now_rfc3339();
@@ -599,6 +716,8 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
     }
     if let Some(j) = d.processing.update(id, |j| {
         j.state = JobState::Done;
+        // A cancel that came during the last local step came too late.
+        j.cancelling = false;
         j.updated_at = crate::store::now_rfc3339();
     }) {
         persist(&j);

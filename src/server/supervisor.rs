@@ -84,6 +84,8 @@ pub struct Daemon {
     pub tradeoff_busy: std::sync::atomic::AtomicBool,
     /// The process jobs (`POST /api/v1/runs/{id}/process`) and their worker.
     pub processing: super::processing::Jobs,
+    /// The other rigs' daemons (`--peers FILE`) and what each last answered.
+    pub peers: Arc<super::peers::Peers>,
 }
 
 pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -171,6 +173,7 @@ impl Daemon {
         let processing = super::processing::Jobs::load(&runs_dir, inner.runs.keys());
         let (shutdown_tx, _) = watch::channel(false);
         let plans = PlanCache::new(profile.clone());
+        let peers = Arc::new(super::peers::Peers::new(&config.peers));
         plans.start();
         Ok(Arc::new(Daemon {
             config,
@@ -188,6 +191,7 @@ impl Daemon {
             schedules: Mutex::new(HashMap::new()),
             plans,
             processing,
+            peers,
         }))
     }
 

@@ -852,12 +852,16 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/resume",
         "/api/v1/runs/{id}/abort",
         "/api/v1/runs/{id}/process",
+        "/api/v1/runs/{id}/process/cancel",
         "/api/v1/estop",
         "/api/v1/events",
         "/api/v1/runs/{id}/frames/{index}",
         "/api/v1/runs/{id}/frames/{index}/preview",
         "/api/v1/queue",
         "/api/v1/queue/{item}",
+        "/api/v1/peers",
+        "/api/v1/peers/{name}/pause",
+        "/api/v1/peers/{name}/abort",
         "/api/v1/sim/render",
         "/api/v1/sim/scenes",
         "/api/v1/runs/{id}/btf",
@@ -970,7 +974,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 39, "operations checked");
+    assert_eq!(checked, 43, "operations checked");
     s.shutdown().await;
 }
 

@@ -303,3 +303,38 @@ fn rigd_run_process_captures_then_processes() {
     assert!(!err.contains('\r'), "{err:?}");
     assert!(err.contains("rectify: 4/4 (100%)"), "{err}");
 }
+
+/// A job waiting for its run's capture is dropped when cancelled: it ends
+/// `failed`, the worker never runs it, and asking again resumes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_queued_job_cancelled_never_runs() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Slow: the capture of 16 images lasts long enough to cancel in.
+    let mut s = start_in(dir.path(), 20.0).await;
+    let mut body = processable_run("felt", 4);
+    body["process"] = serde_json::from_str(SMALL).expect("options");
+    let (status, v) = s.post("/api/v1/runs", Some(body)).await;
+    assert_eq!(status, 201, "{v}");
+    let id = v["id"].as_str().expect("id").to_string();
+    let cancel = format!("/api/v1/runs/{id}/process/cancel");
+    let (status, v) = s.send("POST", &cancel, None, None).await;
+    assert_eq!(status, 401, "a cancel needs the token: {v}");
+    let (status, job) = s.post(&cancel, None).await;
+    assert_eq!(status, 200, "{job}");
+    assert_eq!(job["state"], "failed", "{job}");
+    assert_eq!(job["error"], "cancelled by the operator", "{job}");
+    let (status, v) = s.post(&cancel, None).await;
+    assert_eq!(status, 409, "nothing left to cancel: {v}");
+    let (status, v) = s
+        .post("/api/v1/runs/no-such-run/process/cancel", None)
+        .await;
+    assert_eq!(status, 404, "{v}");
+    let (status, v) = s.post(&format!("/api/v1/runs/{id}/abort"), None).await;
+    assert_eq!(status, 202, "{v}");
+    let v = s.wait_ended(&id, "aborted").await;
+    assert_eq!(
+        v["processing"]["state"], "failed",
+        "not run after the capture: {v}"
+    );
+    s.shutdown().await;
+}

@@ -277,6 +277,20 @@ impl RegistrationSummary {
 }
 
 impl NormtextureIndex {
+    /// Refuses view slots `slots` beyond the index's (a part of a cluster's
+    /// job array given a range from another run).
+    pub fn check_slot_range(&self, slots: &std::ops::Range<usize>) -> Result<(), ProcessError> {
+        if slots.end > self.views.len() {
+            return Err(ProcessError::Invalid(format!(
+                "view slots {}..{}: the run has {}",
+                slots.start,
+                slots.end,
+                self.views.len()
+            )));
+        }
+        Ok(())
+    }
+
     /// Reads a run's `processed/normtextures/index.json`, written by
     /// `rigd process rectify`.
     pub fn read(run: &Path) -> Result<NormtextureIndex, ProcessError> {
@@ -358,10 +372,12 @@ fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
     Ok((Holder::standard(), [half, half]))
 }
 
+mod part;
 mod resume;
 mod run;
 mod steps;
 mod stream;
+pub use part::first_pass_range;
 pub use run::rectify_run;
 pub use steps::{
     BLACK_FLOOR, BLACK_P99, BLACK_RATIO, MARKER_DOUBT_FACTOR, MARKER_DOUBT_PX, SATURATED_FRACTION,

@@ -4,6 +4,7 @@
 pub mod daemon;
 pub mod frames;
 pub mod manual;
+pub mod peers;
 pub mod plans;
 pub mod process;
 pub mod queue;
@@ -41,7 +42,8 @@ pub type AppState = Arc<Daemon>;
         frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
         viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh, manual::home, manual::jog,
         manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::release,
-        process::submit, process::get_job
+        process::submit, process::get_job, process::cancel, peers::list_peers, peers::pause_peer,
+        peers::abort_peer
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
@@ -54,7 +56,9 @@ pub type AppState = Arc<Daemon>;
         crate::server::processing::JobState, crate::postprocess::pipeline::ProcessOptions,
         crate::postprocess::pipeline::Step, crate::postprocess::pipeline::RectifyOptions,
         crate::postprocess::pipeline::BtfOptions, crate::postprocess::pipeline::FitOptions,
-        crate::postprocess::pipeline::MdfOptions, crate::postprocess::pipeline::PsOptions
+        crate::postprocess::pipeline::MdfOptions, crate::postprocess::pipeline::PsOptions,
+        crate::server::peers::PeerList, crate::server::peers::PeerView,
+        crate::server::peers::PeerRun
     )),
     modifiers(&BearerAuth),
     tags(
@@ -63,6 +67,7 @@ pub type AppState = Arc<Daemon>;
         (name = "manual", description = "Manual control for bring-up: 409 while a run is active"),
         (name = "runs", description = "Runs, their steps, frames and manifests"),
         (name = "queue", description = "Runs waiting for the rig"),
+        (name = "peers", description = "The other rigs' daemons (`rigd serve --peers FILE`): their state in one view, pause and abort of their runs"),
         (name = "sim", description = "The scene simulator: one frame on request"),
     )
 )]

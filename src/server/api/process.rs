@@ -9,7 +9,7 @@ use super::not_found_run;
 use super::AppState;
 use crate::postprocess::pipeline::ProcessOptions;
 use crate::server::error::{ApiError, ApiJson, ApiPath, ErrorBody};
-use crate::server::processing::{ProcessJob, Submitted};
+use crate::server::processing::{Cancelled, ProcessJob, Submitted};
 
 /// Processes a finished run in the background, one job at a time beside
 /// the capture: the steps (`rectify`, `btf`, `fit`, `mdf`,
@@ -63,4 +63,30 @@ pub async fn get_job(
             "run `{id}` has no process job: POST /api/v1/runs/{id}/process"
         ))
     })
+}
+
+/// Cancels the run's process job. A queued job is dropped (it ends
+/// `failed`, "cancelled by the operator"; asking for it again resumes it).
+/// A running job stops: a step on Slurm at once, its job arrays cancelled
+/// with `scancel`; a local step at its end. The answer is the job; a
+/// running one has `cancelling` true until it stops.
+#[utoipa::path(post, path = "/api/v1/runs/{id}/process/cancel", tag = "runs",
+    params(("id" = String, Path, description = "Run id")),
+    security(("bearer" = [])),
+    responses((status = 200, description = "Dropped (queued) or stopping (running)", body = ProcessJob),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 404, description = "No such run, or no job for it", body = ErrorBody),
+              (status = 409, description = "The job has ended: nothing to cancel", body = ErrorBody)))]
+pub async fn cancel(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Json<ProcessJob>, ApiError> {
+    // Dropping a queued job rewrites its file.
+    let daemon = d.clone();
+    let cancelled = tokio::task::spawn_blocking(move || daemon.cancel_processing(&id))
+        .await
+        .map_err(|e| ApiError::internal(e.to_string()))??;
+    Ok(Json(match cancelled {
+        Cancelled::Dropped(job) | Cancelled::Stopping(job) => job,
+    }))
 }

@@ -18,6 +18,8 @@ const state = {
   current: null, // last captured step
   queue: [],
   testFrame: false, // the preview shows a manual test frame
+  peers: [], // this rig and its peers (GET /peers)
+  peerBusy: {}, // peer name → the command on its way to it
 };
 
 // ---------------------------------------------------------------- API
@@ -251,7 +253,113 @@ async function loadQueue() {
 }
 
 async function loadAll() {
-  await Promise.all([loadRig(), loadRuns(), loadQueue(), state.plans.length ? null : loadPlans(), loadTradeoff()]);
+  await Promise.all([loadRig(), loadRuns(), loadQueue(), state.plans.length ? null : loadPlans(), loadTradeoff(), loadPeers()]);
+}
+
+// ------------------------------------------------------------- peers
+
+// With peers (`rigd serve --peers`), the "Rigs" card lists every rig,
+// asked again every second; the daemon answers from memory (it polls the
+// peers itself), so a dead peer never slows this down.
+let peersTimer = null;
+let peersSeq = 0;
+async function loadPeers() {
+  const seq = ++peersSeq;
+  try {
+    const list = await api("GET", "/peers");
+    if (seq === peersSeq) {
+      state.peers = list.peers;
+      renderPeers();
+    }
+  } catch (e) {
+    // Our own daemon did not answer: the indicator at the top says so.
+    $("rigs-card").dataset.error = errText(e);
+  }
+  clearTimeout(peersTimer);
+  if (state.peers.length > 1) peersTimer = setTimeout(loadPeers, 1000);
+}
+
+let peersShown = "";
+function renderPeers() {
+  const peers = state.peers;
+  const card = $("rigs-card");
+  card.hidden = peers.length < 2;
+  delete card.dataset.error;
+  if (card.hidden) return;
+  // Rebuilt only when something shown changed (buttons keep their focus).
+  const key = JSON.stringify([peers.map((p) => ({ ...p, last_seen: null, seen_ago_s: p.reachable ? null : Math.round(p.seen_ago_s ?? -1) })), state.peerBusy]);
+  if (key === peersShown) return;
+  peersShown = key;
+  const tbody = $("rigs").tBodies[0];
+  tbody.replaceChildren(...peers.map(peerRow));
+}
+
+function peerRow(p) {
+  const tr = text("tr", null, { "data-peer": p.name, "data-reachable": String(p.reachable) });
+  if (!p.reachable) tr.className = "unreachable";
+  const name = text("td");
+  name.append(text("strong", p.name));
+  if (p.profile) name.append(text("div", `${p.profile}${p.sim ? " (simulated)" : ""}`, { class: "muted small" }));
+  const daemon = text("td");
+  const reach = p.local ? "this daemon" : p.reachable ? "reachable" : "unreachable";
+  daemon.append(text("span", reach, { class: "badge", "data-testid": "peer-reachable", "data-state": p.reachable ? "reachable" : "unreachable" }));
+  daemon.append(text("div", p.url, { class: "mono muted small" }));
+  if (!p.reachable) {
+    const seen = p.seen_ago_s != null ? `last seen ${fmtDuration(p.seen_ago_s)} ago` : "never seen";
+    daemon.append(text("div", `${p.error || "no answer"}; ${seen}`, { class: "fault-text small", "data-testid": "peer-error" }));
+  }
+  const st = text("td");
+  if (p.state) st.append(text("span", p.state, { class: "badge", "data-state": p.state, "data-testid": "peer-state" }));
+  else st.append("—");
+  const run = p.active_run;
+  const runCell = text("td", null, { "data-testid": "peer-run" });
+  if (run) {
+    const pct = run.steps_total ? ((100 * run.steps_done) / run.steps_total).toFixed(1) : "0";
+    const bar = text("progress", null, { "aria-label": `${p.name}: frames captured` });
+    bar.max = Math.max(run.steps_total, 1);
+    bar.value = run.steps_done;
+    runCell.dataset.done = String(run.steps_done);
+    runCell.append(text("div", `${run.id}`, { class: "mono" }), bar,
+      text("div", `${run.state}: ${run.steps_done} / ${run.steps_total} frames (${pct} %)${run.eta_wall_s != null && ["running", "preparing"].includes(run.state) ? ` · ≈ ${fmtDuration(run.eta_wall_s)} left` : ""}`, { class: "small" }));
+    if (run.reason) runCell.append(text("div", run.reason, { class: "muted small" }));
+  } else runCell.append(p.state ? "none" : "—");
+  const queue = text("td", p.queue_length == null ? "—" : String(p.queue_length), { "data-testid": "peer-queue" });
+  const faults = text("td", null, { "data-testid": "peer-faults" });
+  if (p.faults.length) for (const f of p.faults) faults.append(text("div", f, { class: "fault-text small" }));
+  else faults.append(p.state ? "none" : "—");
+  const actions = text("td");
+  if (!p.local) {
+    actions.append(text("a", "Open", { href: `${p.url}/`, target: "_blank", rel: "noopener", "data-testid": "peer-open", title: `${p.name}'s own dashboard` }));
+    const busy = state.peerBusy[p.name];
+    const live = p.reachable && run && !busy;
+    const pause = text("button", "Pause", { type: "button", class: "small", "data-testid": "peer-pause", "aria-label": `Pause ${p.name}'s run` });
+    pause.disabled = !(live && ["running", "preparing"].includes(run.state));
+    pause.addEventListener("click", () => peerCommand(p, "pause"));
+    const stop = text("button", "Stop…", { type: "button", class: "small danger", "data-testid": "peer-abort", "aria-label": `Stop ${p.name}'s run` });
+    stop.disabled = !(live && ["running", "preparing", "paused"].includes(run.state));
+    stop.addEventListener("click", () => peerCommand(p, "abort"));
+    actions.append(" ", pause, " ", stop);
+  }
+  tr.append(name, daemon, st, runCell, queue, faults, actions);
+  return tr;
+}
+
+// Pause or stop (abort) a peer's active run, through this daemon.
+async function peerCommand(p, cmd) {
+  const run = p.active_run;
+  if (!run) return;
+  if (cmd === "abort" && !confirm(`Stop (abort) run ${run.id} on ${p.name}? Its frames so far are kept; it cannot be resumed.`)) return;
+  state.peerBusy[p.name] = cmd;
+  renderPeers();
+  try {
+    const r = await api("POST", `/peers/${encodeURIComponent(p.name)}/${cmd}`);
+    log("info", `${cmd} sent to ${p.name}'s run ${(r && r.run && r.run.id) || run.id}`);
+  } catch (e) {
+    showMessage(`${p.name}: ${cmd}: ${errText(e)}`);
+  } finally {
+    delete state.peerBusy[p.name];
+    loadPeers();
+  }
 }
 
 // ------------------------------------------------------ trade-off plot
@@ -665,9 +773,11 @@ function processStatus(r) {
     done: cur && cur.done,
     total: cur && cur.total,
     eta_s: cur && cur.eta_s,
+    detail: cur && cur.detail,
     steps_done: job.steps.filter((s) => s.state === "done").length,
     steps_total: job.steps.length,
     error: job.error,
+    cancelling: !!job.cancelling,
     streamed: job.streamed || 0,
     slots_ahead: job.slots_ahead || 0,
   };
@@ -693,6 +803,25 @@ function processCell(r) {
       if (p.eta_s != null) label += `, ${fmtDuration(p.eta_s)} left`;
     }
     td.append(bar, text("span", `step ${Math.min(p.steps_done + 1, p.steps_total)}/${p.steps_total}: ${label}`, { class: "process-status" }));
+    // On Slurm: the job and its array, a task submitted again.
+    if (p.state === "running" && p.detail) {
+      td.append(text("div", p.detail, { class: "process-detail", "data-testid": "process-detail" }));
+    }
+    const cancel = text("button", p.cancelling ? "Cancelling…" : "Cancel", {
+      type: "button", class: "small", "data-testid": "process-cancel",
+      title: "Stop this process job: on Slurm at once (scancel), a local step at its end",
+    });
+    cancel.disabled = !!p.cancelling;
+    cancel.addEventListener("click", async () => {
+      try {
+        r.processing = await api("POST", `/runs/${encodeURIComponent(r.id)}/process/cancel`);
+        r.processEvent = null;
+        renderHistory();
+      } catch (e) {
+        showMessage(`cancel processing of ${r.id}: ${errText(e)}`);
+      }
+    });
+    td.append(" ", cancel);
     return td;
   }
   if (p && p.state === "done") {
@@ -774,7 +903,7 @@ function describe(ev) {
     case "queue_changed":
       return `${(e.items || []).length} queued`;
     case "process":
-      return `${ev.run}: processing ${e.state}${e.step ? `, ${e.step}${e.total ? ` ${e.done}/${e.total}` : ""}` : ""}${e.error ? `: ${e.error}` : ""}`;
+      return `${ev.run}: processing ${e.state}${e.step ? `, ${e.step}${e.total ? ` ${e.done}/${e.total}` : ""}` : ""}${e.detail ? ` (${e.detail})` : ""}${e.error ? `: ${e.error}` : ""}`;
     case "tradeoff":
       return `trade-off report: ${e.state}${e.step ? ` (${e.step})` : ""}${e.error ? `: ${e.error}` : ""}`;
     case "estop":
