@@ -192,6 +192,10 @@ fn an_h2_processed_on_slurm_gives_the_local_btf_with_a_killed_task_redone() {
     // The MDF of a laser scan, one view per task.
     mdf_on_slurm_matches_local(&cluster, work.path());
 
+    // Ctrl-C cancels the arrays: with the partition down the tasks wait in
+    // the queue, SIGINT reaches rigd, and it scancels them and exits 130.
+    interrupt_cancels_the_jobs(&cluster, run_s, &shared);
+
     // The daemon's process jobs, with [processing] executor = "slurm".
     let runtime = tokio::runtime::Runtime::new().expect("runtime");
     runtime.block_on(daemon_processes_on_slurm(&cluster, work.path()));
@@ -675,4 +679,65 @@ fn slurm_configuration_errors_are_said_before_anything_is_submitted() {
     std::fs::write(&config, "[processing]\nexecuter = \"slurm\"\n").expect("config");
     let e = serve_refused();
     assert!(e.contains("unknown field `executer`"), "{e}");
+}
+
+fn interrupt_cancels_the_jobs(cluster: &SlurmCluster, run: &str, shared: &str) {
+    let partition = format!("PartitionName={}", cluster.partition);
+    cluster.command("scontrol", &["update", &partition, "State=DOWN"]);
+    let mut child = crate::common::Child(
+        rigd()
+            .args([
+                "process",
+                "btf",
+                run,
+                "--executor",
+                "slurm",
+                "--shared-path",
+                shared,
+            ])
+            .envs(cluster.env())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn rigd"),
+    );
+    let started = Instant::now();
+    while !cluster
+        .command("squeue", &["-h", "--me", "-t", "PENDING", "-o", "%i"])
+        .contains('_')
+    {
+        assert!(
+            started.elapsed() < Duration::from_secs(60),
+            "no task queued\n{}",
+            cluster.logs()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // SAFETY: kill(2) of the child this test started.
+    unsafe {
+        libc::kill(child.0.id() as libc::pid_t, libc::SIGINT);
+    }
+    let status = loop {
+        if let Ok(Some(status)) = child.0.try_wait() {
+            break status;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(90),
+            "rigd did not stop after SIGINT"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    let mut stderr = String::new();
+    if let Some(mut e) = child.0.stderr.take() {
+        use std::io::Read;
+        let _ = e.read_to_string(&mut stderr);
+    }
+    assert_eq!(status.code(), Some(130), "interrupted: {stderr}");
+    assert!(stderr.contains("cancelled with scancel"), "{stderr}");
+    assert_eq!(
+        cluster.command("squeue", &["-h", "--me"]).trim(),
+        "",
+        "the array is gone"
+    );
+    cluster.command("scontrol", &["update", &partition, "State=UP"]);
 }
