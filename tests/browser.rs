@@ -303,24 +303,15 @@ fn spawn_daemon(
     profile: Option<&Path>,
     log: &Path,
 ) {
-    let mut cmd = Command::new(env!("CARGO_BIN_EXE_rigd"));
-    cmd.args([
-        "serve",
-        "--data",
-        data.to_str().expect("utf-8 path"),
-        "--listen",
-        &format!("127.0.0.1:{port}"),
-        "--sim-speed",
-        speed,
-    ]);
-    if let Some(profile) = profile {
-        cmd.args(["--sim", "--profile", profile.to_str().expect("utf-8 path")]);
-    }
-    procs.spawn("rigd", &mut cmd, log);
+    let extra: Vec<&str> = match profile {
+        Some(profile) => vec!["--sim", "--profile", profile.to_str().expect("utf-8 path")],
+        None => Vec::new(),
+    };
+    spawn_rig(procs, "rigd", (data, port, speed), &extra, log);
 }
 
-/// `rigd serve` of the embedded simulated Bonn rig on `data` at `speed`,
-/// known to `procs` as `name`, with `extra` arguments.
+/// `rigd serve` on `data` at `speed` (the embedded simulated Bonn rig
+/// unless `extra` names a profile), known to `procs` as `name`.
 fn spawn_rig(
     procs: &mut Procs,
     name: &'static str,
