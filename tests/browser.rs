@@ -12,6 +12,8 @@
 //! them this test fails: it never skips.
 
 mod common;
+#[path = "browser/mdf_viewer.rs"]
+mod mdf_viewer;
 
 use std::fs::File;
 use std::net::TcpListener;
@@ -1004,16 +1006,8 @@ fn mean_of(px: &[u8]) -> f64 {
     px.iter().map(|&v| f64::from(v)).sum::<f64>() / px.len() as f64
 }
 
-/// Sets the viewer to a mesh, light and view; returns its pixels and the
-/// reference render of the same.
-async fn viewer_case(
-    c: &Client,
-    run: &Path,
-    mesh: &str,
-    light: (f64, f64),
-    view: (f64, f64),
-) -> (Vec<u8>, rigd_process::relight::RgbImage) {
-    use rigd_process::directions::Direction;
+/// Sets the viewer to a mesh, light and view and returns its pixels.
+async fn show_case(c: &Client, mesh: &str, light: (f64, f64), view: (f64, f64)) -> Vec<u8> {
     js(
         c,
         &format!(
@@ -1032,7 +1026,20 @@ async fn viewer_case(
         |v| v == &json!(true),
     )
     .await;
-    let got = viewer_pixels(c).await;
+    viewer_pixels(c).await
+}
+
+/// Sets the viewer to a mesh, light and view; returns its pixels and the
+/// reference render of the same.
+async fn viewer_case(
+    c: &Client,
+    run: &Path,
+    mesh: &str,
+    light: (f64, f64),
+    view: (f64, f64),
+) -> (Vec<u8>, rigd_process::relight::RgbImage) {
+    use rigd_process::directions::Direction;
+    let got = show_case(c, mesh, light, view).await;
     let settings = rigd_process::relight::RelightSettings {
         width: VIEWER_SIZE,
         height: VIEWER_SIZE,

@@ -127,6 +127,7 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<rectify::RectifyError>()
         || cause.is::<reflectance_fit::FitError>()
         || cause.is::<relight::RelightError>()
+        || cause.is::<rigd_process::silhouette::SilhouetteError>()
         || cause.is::<webgl::PackError>();
     #[cfg(feature = "sim")]
     let bad_input = bad_input

@@ -20,6 +20,7 @@ pub fn run(cmd: ProcessCmd) -> Result<ExitCode> {
         ProcessCmd::Btf(args) => btf(args)?,
         ProcessCmd::Fit(args) => fit(args)?,
         ProcessCmd::Mdf(args) => mdf(args)?,
+        ProcessCmd::MdfTexture(args) => mdf_texture(args)?,
         ProcessCmd::Render(args) => relight(args)?,
         ProcessCmd::Part(args) => part(args)?,
     }
@@ -58,10 +59,18 @@ pub enum ProcessCmd {
     /// .png per view and report.json; prints the depth error against the
     /// scene for simulated runs.
     Mdf(MdfArgs),
+    /// A laser run's MDF resampled into a BTF run's texture space (Wang et
+    /// al., §4): one layer per measured view, depths below the
+    /// mesostructure's top plane, in RUN/processed/mdf-texture/, where the
+    /// viewer's MDF silhouettes and shadows and `rigd process render
+    /// --silhouettes mdf` read it.
+    MdfTexture(MdfTextureArgs),
     /// The reference render of a processed run's BTF on a mesh, exactly as
     /// the viewer (`/viewer/RUN`) draws it: the four nearest view slots, the
     /// light interpolated from the four nearest measured lights, the smooth
-    /// shadow boundary of Sattler et al. eq. 6. Writes an 8-bit RGB PNG.
+    /// shadow boundary of Sattler et al. eq. 6; with `--silhouettes mdf`
+    /// and `--shadows mdf` the mesostructure's silhouettes and shadows from
+    /// the run's MDF texture (Wang et al., §4). Writes an 8-bit RGB PNG.
     Render(RelightArgs),
     /// One part of a step, as a task of the Slurm job array that
     /// `--executor slurm` submits runs it: frames of `rectify`, a view
@@ -309,10 +318,35 @@ pub struct MdfArgs {
 }
 
 #[derive(Args)]
+pub struct MdfTextureArgs {
+    /// The BTF run the MDF is for (its texture space and sample).
+    pub run: PathBuf,
+    /// The laser run of the same sample, after `rigd process mdf`.
+    #[arg(long)]
+    pub laser: PathBuf,
+    /// Side of the texture, texels.
+    #[arg(long, default_value_t = rigd::postprocess::mdf_texture::DEFAULT_MDF_TEXTURE_SIZE)]
+    pub size: usize,
+    /// Side of the sample square one texture tile covers, mm [default: the
+    /// BTF run's sample; give sample × roi if it was rectified with --roi].
+    #[arg(long)]
+    pub tile_mm: Option<f64>,
+}
+
+/// Whether a render uses the MDF.
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum MdfUse {
+    /// Not at all: the mesh's own silhouette and no cast shadows.
+    None,
+    /// The run's MDF texture (`rigd process mdf-texture`).
+    Mdf,
+}
+
+#[derive(Args)]
 pub struct RelightArgs {
     /// The run directory (after `rigd process btf`).
     pub run: PathBuf,
-    /// flat, cylinder or cloth.
+    /// flat, cylinder, cloth or sphere.
     #[arg(long, default_value = "flat")]
     pub mesh: rigd_process::mesh::MeshKind,
     /// Directional light θ,φ in degrees, world frame (z up); θ up to 180
@@ -338,6 +372,13 @@ pub struct RelightArgs {
     /// Material tiles per world unit (the flat sample is 2 units across).
     #[arg(long, default_value_t = rigd::postprocess::viewer::DEFAULT_DENSITY)]
     pub density: f64,
+    /// Mesostructure silhouettes (Wang et al., §4): every interval of the
+    /// pixel's ray through the mesh tested against the MDF.
+    #[arg(long, value_enum, default_value_t = MdfUse::None)]
+    pub silhouettes: MdfUse,
+    /// Cast shadows from an MDF-offset shadow map of the light.
+    #[arg(long, value_enum, default_value_t = MdfUse::None)]
+    pub shadows: MdfUse,
     /// The PNG to write.
     #[arg(long)]
     pub out: PathBuf,
@@ -732,9 +773,14 @@ fn relight(args: RelightArgs) -> Result<()> {
             ShadingArg::Plain => Shading::Plain,
         },
     };
+    let meso = rigd_process::silhouette::MesoSettings {
+        silhouettes: args.silhouettes == MdfUse::Mdf,
+        shadows: args.shadows == MdfUse::Mdf,
+        density: args.density,
+    };
     let started = Instant::now();
-    let img =
-        rigd::postprocess::viewer::relight_run(&args.run, args.mesh, args.density, &settings)?;
+    let (img, report) =
+        rigd::postprocess::viewer::render_run(&args.run, args.mesh, &settings, &meso)?;
     let data = img.pixels.iter().map(|&v| f32::from(v) / 255.0).collect();
     let image = rigd_process::image_io::Image {
         width: img.width,
@@ -755,6 +801,39 @@ fn relight(args: RelightArgs) -> Result<()> {
         img.height,
         started.elapsed().as_secs_f64(),
         args.out.display()
+    );
+    if let Some(r) = report {
+        println!(
+            "mesh outline {} px, background inside it {} px, cast shadow {} px, ray layers up to {} (of {})",
+            r.outline_pixels,
+            r.background_inside_outline,
+            r.shadowed_pixels,
+            r.layers_used,
+            rigd_process::silhouette::MAX_PEEL_LAYERS
+        );
+    }
+    Ok(())
+}
+
+fn mdf_texture(args: MdfTextureArgs) -> Result<()> {
+    let cfg = rigd::postprocess::mdf_texture::MdfTextureConfig {
+        size: args.size,
+        tile_mm: args.tile_mm,
+    };
+    let started = Instant::now();
+    let header = rigd::postprocess::mdf_texture::mdf_texture(&args.run, &args.laser, &cfg)?;
+    let mean = header.coverage.iter().sum::<f64>() / header.coverage.len().max(1) as f64;
+    println!(
+        "{} views of {} as {}×{} texels over a {:.1} mm tile, top plane {:.2} mm over the turntable, {:.0} % of texels measured on average ({:.1} s) -> {}",
+        header.views.len(),
+        args.laser.display(),
+        header.size,
+        header.size,
+        header.tile_mm,
+        header.top_mm,
+        100.0 * mean,
+        started.elapsed().as_secs_f64(),
+        rigd::store::processed::mdf_texture_dir(&args.run).display()
     );
     Ok(())
 }

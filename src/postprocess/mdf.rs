@@ -168,6 +168,31 @@ fn max_depth_m(reference_m: f64, view: Direction) -> f64 {
     (reference_m + DEPTH_MARGIN_M) / view.theta_deg.to_radians().cos().max(MIN_VIEW_COS)
 }
 
+/// The pinhole model of `camera` looking at the sample from `view`
+/// (sample frame) in frames of `size` pixels: what the space-time analysis
+/// triangulates with, and what maps a view's displacement image back onto
+/// the sample.
+pub(crate) fn view_camera(
+    profile: &crate::model::profile::Profile,
+    camera: &str,
+    size: [u32; 2],
+    view: Direction,
+) -> Result<PinholeCamera, ProcessError> {
+    let g = camera_geometry(profile, camera, size)
+        .ok_or_else(|| ProcessError::Invalid(format!("camera `{camera}` has no intrinsics")))?;
+    let distance = g
+        .distance_m
+        .ok_or_else(|| ProcessError::Invalid(format!("camera `{camera}` has no distance_m")))?;
+    PinholeCamera::looking_at_origin(
+        view.to_vector(),
+        distance,
+        g.focal_px,
+        size[0] as usize,
+        size[1] as usize,
+    )
+    .map_err(|e| ProcessError::Invalid(format!("camera `{camera}`: {e}")))
+}
+
 /// Frames of one sweep seen by one camera, in frame order.
 struct SweepView<'a> {
     source: usize,
@@ -412,21 +437,7 @@ fn mdf_views(
             .ok_or_else(|| ProcessError::Invalid("no laser frames".into()))?;
         [first.width, first.height]
     };
-    let camera_model = |camera: &str, view: Direction| -> Result<PinholeCamera, ProcessError> {
-        let g = camera_geometry(profile, camera, size)
-            .ok_or_else(|| ProcessError::Invalid(format!("camera `{camera}` has no intrinsics")))?;
-        let distance = g
-            .distance_m
-            .ok_or_else(|| ProcessError::Invalid(format!("camera `{camera}` has no distance_m")))?;
-        PinholeCamera::looking_at_origin(
-            view.to_vector(),
-            distance,
-            g.focal_px,
-            size[0] as usize,
-            size[1] as usize,
-        )
-        .map_err(|e| ProcessError::Invalid(format!("camera `{camera}`: {e}")))
-    };
+    let camera_model = |camera: &str, view: Direction| view_camera(profile, camera, size, view);
     let box_half = plan.box_mm * 0.5e-3;
 
     // The calibration of every (source, camera), at turntable 0.

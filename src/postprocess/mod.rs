@@ -9,6 +9,7 @@ pub mod executor;
 pub mod fit;
 pub mod frames;
 pub mod mdf;
+pub mod mdf_texture;
 pub mod parts;
 pub mod pipeline;
 pub mod ps;

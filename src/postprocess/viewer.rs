@@ -7,10 +7,12 @@ use std::path::{Path, PathBuf};
 
 use rigd_process::btf::{BtfError, BtfHeader, BtfStore, TextureShape, HEADER_FILE};
 use rigd_process::directions::{DirectionError, DirectionTable};
+use rigd_process::mdf::{MdfTexture, MDF_TEXTURE_HEADER};
 use rigd_process::mesh::{Mesh, MeshKind};
 use rigd_process::npy::{self, NpyError};
 use rigd_process::relight::{self, RelightError, RelightSettings, RgbImage};
-use rigd_process::webgl::{self, BlobManifest, PackError};
+use rigd_process::silhouette::{self, MesoSettings, SilhouetteError, SilhouetteReport};
+use rigd_process::webgl::{self, BlobManifest, MdfManifest, PackError};
 use serde::Serialize;
 
 /// Material tiles per world unit on the viewer's meshes (two across the
@@ -56,6 +58,23 @@ pub enum ViewerError {
     /// The reference render failed.
     #[error(transparent)]
     Render(#[from] RelightError),
+    /// Silhouettes or shadows from the MDF were asked of a run without an
+    /// MDF texture.
+    #[error(
+        "{run} has no MDF texture ({dir}): capture a laser scan of the same sample (`rigd run --plan laser`), run `rigd process mdf LASER_RUN`, then `rigd process mdf-texture {run} --laser LASER_RUN`"
+    )]
+    NoMdf {
+        /// The run directory.
+        run: String,
+        /// Where the MDF texture was looked for.
+        dir: String,
+    },
+    /// The run's MDF texture cannot be read.
+    #[error("the MDF texture: {0}")]
+    Mdf(#[from] rigd_process::mdf::MdfError),
+    /// The render with silhouettes or shadows refused.
+    #[error(transparent)]
+    Silhouette(#[from] SilhouetteError),
 }
 
 /// `btf` or `photometric-stereo` when the run holds what the viewer shows.
@@ -191,6 +210,52 @@ pub fn mesh_view(run: &Path, kind: MeshKind, density: f64) -> Result<MeshView, V
         visibility,
         visibility_directions,
     })
+}
+
+/// The run's MDF texture (`processed/mdf-texture/`).
+pub fn mdf_texture(run: &Path) -> Result<MdfTexture, ViewerError> {
+    let dir = crate::store::processed::mdf_texture_dir(run);
+    if !dir.join(MDF_TEXTURE_HEADER).is_file() {
+        return Err(ViewerError::NoMdf {
+            run: run.display().to_string(),
+            dir: dir.display().to_string(),
+        });
+    }
+    Ok(MdfTexture::read(&dir)?)
+}
+
+/// The manifest of the viewer's MDF blob ([`webgl::pack_mdf`]).
+pub fn mdf_manifest(run: &Path) -> Result<MdfManifest, ViewerError> {
+    Ok(webgl::mdf_manifest(&mdf_texture(run)?))
+}
+
+/// The viewer's MDF blob.
+pub fn mdf_pack(run: &Path) -> Result<Vec<u8>, ViewerError> {
+    Ok(webgl::pack_mdf(&mdf_texture(run)?).1)
+}
+
+/// The reference render with the MDF's silhouettes and shadows as `meso`
+/// asks ([`rigd_process::silhouette`]); with both off, [`relight_run`]'s
+/// image and no report.
+pub fn render_run(
+    run: &Path,
+    kind: MeshKind,
+    settings: &RelightSettings,
+    meso: &MesoSettings,
+) -> Result<(RgbImage, Option<SilhouetteReport>), ViewerError> {
+    if !meso.silhouettes && !meso.shadows {
+        return Ok((relight_run(run, kind, meso.density, settings)?, None));
+    }
+    let Material::Btf(store) = open(run)? else {
+        return Err(ViewerError::NeedsBtf {
+            what: "the reference renderer",
+            run: run.display().to_string(),
+        });
+    };
+    let mdf = mdf_texture(run)?;
+    let mesh = Mesh::build(kind, meso.density);
+    let (image, report) = silhouette::render(&store, &mesh, &mdf, settings, meso)?;
+    Ok((image, Some(report)))
 }
 
 /// The reference render of a BTF run (`rigd process render`).

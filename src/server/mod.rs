@@ -216,7 +216,9 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
         .route("/queue/{item}", delete(queue::delete_queue))
         .route("/runs/{id}/btf", get(viewer::btf_manifest))
         .route("/runs/{id}/btf/data", get(viewer::btf_data))
-        .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh));
+        .route("/runs/{id}/btf/mesh/{kind}", get(viewer::btf_mesh))
+        .route("/runs/{id}/mdf", get(viewer::mdf_manifest))
+        .route("/runs/{id}/mdf/data", get(viewer::mdf_data));
     #[cfg(feature = "sim")]
     let v1 = v1
         .route("/tradeoff", get(tradeoff::get_report).post(tradeoff::start))

@@ -44,6 +44,12 @@ pub fn mdf_dir(run: &Path) -> PathBuf {
     processed_dir(run).join("mdf")
 }
 
+/// `RUN/processed/mdf-texture/`: a laser run's MDF resampled to this
+/// run's texture space (`rigd process mdf-texture`), for the renderers.
+pub fn mdf_texture_dir(run: &Path) -> PathBuf {
+    processed_dir(run).join("mdf-texture")
+}
+
 /// `RUN/processed/ps/`: a photometric-stereo result.
 pub fn ps_dir(run: &Path) -> PathBuf {
     processed_dir(run).join("ps")

@@ -867,6 +867,8 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
         "/api/v1/runs/{id}/btf",
         "/api/v1/runs/{id}/btf/data",
         "/api/v1/runs/{id}/btf/mesh/{kind}",
+        "/api/v1/runs/{id}/mdf",
+        "/api/v1/runs/{id}/mdf/data",
         "/api/v1/tradeoff",
         "/api/v1/tradeoff/choice",
         "/api/v1/tradeoff/figure",
@@ -974,7 +976,7 @@ async fn openapi_spec_validates_and_every_route_answers_as_documented() {
             checked += 1;
         }
     }
-    assert_eq!(checked, 43, "operations checked");
+    assert_eq!(checked, 45, "operations checked");
     s.shutdown().await;
 }
 
@@ -1163,11 +1165,19 @@ async fn viewer_routes_serve_a_processed_run_and_explain_the_rest() {
         mesh["positions"].as_array().map(Vec::len),
         Some(3 * verts as usize)
     );
-    let (status, v) = s.get(&format!("/api/v1/runs/{run}/btf/mesh/sphere")).await;
+    // No MDF texture yet: the manifest and the blob say how to make one.
+    for route in ["mdf", "mdf/data"] {
+        let (status, v) = s.get(&format!("/api/v1/runs/{run}/{route}")).await;
+        assert_eq!(status, 404, "{route}: {v}");
+        assert!(v["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("rigd process mdf-texture")));
+    }
+    let (status, v) = s.get(&format!("/api/v1/runs/{run}/btf/mesh/torus")).await;
     assert_eq!(status, 404);
     assert!(v["detail"]
         .as_str()
-        .is_some_and(|d| d.contains("flat, cylinder or cloth")));
+        .is_some_and(|d| d.contains("flat, cylinder, cloth or sphere")));
     let (status, _) = s
         .get(&format!("/api/v1/runs/{run}/btf/mesh/flat?density=0"))
         .await;

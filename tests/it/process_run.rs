@@ -142,7 +142,7 @@ fn a_capture_is_rectified_and_compressed() {
         assert_eq!((img.width, img.height, img.channels), (80, 60, 3));
     }
     for (flag, value, why) in [
-        ("--mesh", "sphere", "flat, cylinder or cloth"),
+        ("--mesh", "torus", "flat, cylinder, cloth or sphere"),
         ("--view", "95,0", "0 ..= 89"),
         ("--light", "45", "θ,φ"),
     ] {
@@ -159,6 +159,36 @@ fn a_capture_is_rectified_and_compressed() {
             "{flag} {value}: {err}"
         );
     }
+    // MDF silhouettes need the run's MDF texture, and that needs a laser
+    // run's MDF: each refusal names the command that makes what is missing.
+    let sil = rigd()
+        .args([
+            "process",
+            "render",
+            "--silhouettes",
+            "mdf",
+            "--mesh",
+            "sphere",
+        ])
+        .arg(&run)
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&sil.stderr);
+    assert_eq!(sil.status.code(), Some(2), "{err}");
+    assert!(err.contains("rigd process mdf-texture"), "{err}");
+    let tex = rigd()
+        .args(["process", "mdf-texture"])
+        .arg(&run)
+        .arg("--laser")
+        .arg(&run)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&tex.stderr);
+    assert_eq!(tex.status.code(), Some(2), "{err}");
+    assert!(err.contains("rigd process mdf"), "{err}");
+    assert!(!run.join("processed/mdf-texture").exists());
     let store = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).unwrap();
     let tex = store
         .reconstruct(

@@ -15,4 +15,5 @@ pub mod photometric_stereo;
 pub mod rectify;
 pub mod reflectance_fit;
 pub mod relight;
+pub mod silhouette;
 pub mod webgl;

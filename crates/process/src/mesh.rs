@@ -1,5 +1,5 @@
 //! The meshes the BTF viewer and the reference renderer draw the material
-//! on (issue 8): a flat sample, a cylinder and a procedurally draped cloth.
+//! on: a flat sample, a cylinder, a procedurally draped cloth and a sphere.
 //!
 //! Every mesh is a grid of `nu × nv` vertices over a parameter square
 //! (u, v) ∈ [0, 1]², two triangles per cell, so the viewer (WebGL) and the
@@ -39,14 +39,17 @@ pub enum MeshKind {
     /// A draped cloth with two diagonal folds and a ripple, steep enough to
     /// shade itself.
     Cloth,
+    /// A sphere of radius 0.8 world units, closed: what Wang et al.'s
+    /// silhouette test per interval needs all round its outline.
+    Sphere,
 }
 
 /// Why a mesh name was not understood.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum MeshError {
-    /// The name is not `flat`, `cylinder` or `cloth` (holds at most its first
-    /// 32 characters).
-    #[error("unknown mesh `{0}`: expected flat, cylinder or cloth")]
+    /// The name is not `flat`, `cylinder`, `cloth` or `sphere` (holds at
+    /// most its first 32 characters).
+    #[error("unknown mesh `{0}`: expected flat, cylinder, cloth or sphere")]
     UnknownKind(String),
 }
 
@@ -58,6 +61,7 @@ impl std::str::FromStr for MeshKind {
             "flat" => Ok(MeshKind::Flat),
             "cylinder" => Ok(MeshKind::Cylinder),
             "cloth" => Ok(MeshKind::Cloth),
+            "sphere" => Ok(MeshKind::Sphere),
             other => Err(MeshError::UnknownKind(other.chars().take(32).collect())),
         }
     }
@@ -65,6 +69,8 @@ impl std::str::FromStr for MeshKind {
 
 /// Cylinder radius, world units (its axis runs along x, two units long).
 const CYLINDER_RADIUS: f64 = 0.6;
+/// Sphere radius, world units.
+const SPHERE_RADIUS: f64 = 0.8;
 /// Step of the central differences that give the surface's derivatives.
 const DERIVATIVE_STEP: f64 = 1e-4;
 /// Ray-march step and reach for the cloth's self-visibility, world units.
@@ -73,15 +79,21 @@ const MARCH_REACH: f64 = 3.0;
 
 impl MeshKind {
     /// Every mesh kind.
-    pub const ALL: [MeshKind; 3] = [MeshKind::Flat, MeshKind::Cylinder, MeshKind::Cloth];
+    pub const ALL: [MeshKind; 4] = [
+        MeshKind::Flat,
+        MeshKind::Cylinder,
+        MeshKind::Cloth,
+        MeshKind::Sphere,
+    ];
 
     /// The lowercase name the command line and the API use (`flat`,
-    /// `cylinder`, `cloth`); `parse` reads it back.
+    /// `cylinder`, `cloth`, `sphere`); `parse` reads it back.
     pub fn name(self) -> &'static str {
         match self {
             MeshKind::Flat => "flat",
             MeshKind::Cylinder => "cylinder",
             MeshKind::Cloth => "cloth",
+            MeshKind::Sphere => "sphere",
         }
     }
 
@@ -92,6 +104,7 @@ impl MeshKind {
             MeshKind::Flat => (9, 9),
             MeshKind::Cylinder => (9, 65),
             MeshKind::Cloth => (65, 65),
+            MeshKind::Sphere => (65, 33),
         }
     }
 
@@ -100,6 +113,10 @@ impl MeshKind {
         match self {
             MeshKind::Flat | MeshKind::Cloth => (2.0, 2.0),
             MeshKind::Cylinder => (2.0, 2.0 * std::f64::consts::PI * CYLINDER_RADIUS),
+            MeshKind::Sphere => (
+                2.0 * std::f64::consts::PI * SPHERE_RADIUS,
+                std::f64::consts::PI * SPHERE_RADIUS,
+            ),
         }
     }
 
@@ -119,6 +136,17 @@ impl MeshKind {
                 let (x, y) = (2.0 * u - 1.0, 2.0 * v - 1.0);
                 [x, y, cloth_height(x, y)]
             }
+            MeshKind::Sphere => {
+                // u the longitude, v from the south pole to the north, so
+                // ∂p/∂u × ∂p/∂v points outwards.
+                let (sp, cp) = (2.0 * std::f64::consts::PI * u).sin_cos();
+                let (st, ct) = (std::f64::consts::PI * (1.0 - v)).sin_cos();
+                [
+                    SPHERE_RADIUS * st * cp,
+                    SPHERE_RADIUS * st * sp,
+                    SPHERE_RADIUS * ct,
+                ]
+            }
         }
     }
 
@@ -126,8 +154,8 @@ impl MeshKind {
     fn hides(self, origin: [f64; 3], dir: [f64; 3]) -> bool {
         match self {
             // Above the local horizon neither a plane nor a convex
-            // cylinder can meet itself again.
-            MeshKind::Flat | MeshKind::Cylinder => false,
+            // cylinder or sphere can meet itself again.
+            MeshKind::Flat | MeshKind::Cylinder | MeshKind::Sphere => false,
             MeshKind::Cloth => {
                 let mut s = 2.0 * MARCH_STEP;
                 while s < MARCH_REACH {
@@ -276,6 +304,14 @@ impl Mesh {
 /// Unit normal and tangent at (u, v) from central differences of the
 /// surface, the tangent along u made orthogonal to the normal.
 fn frame(kind: MeshKind, u: f64, v: f64) -> ([f64; 3], [f64; 3]) {
+    if kind == MeshKind::Sphere {
+        // Exact, and defined at the poles where ∂p/∂u vanishes.
+        let (sp, cp) = (2.0 * std::f64::consts::PI * u).sin_cos();
+        let n = unit(kind.point(u, v)).unwrap_or([0.0, 0.0, 1.0]);
+        let t =
+            unit(sub([-sp, cp, 0.0], scale(n, dot([-sp, cp, 0.0], n)))).unwrap_or([-sp, cp, 0.0]);
+        return (n, t);
+    }
     let h = DERIVATIVE_STEP;
     let du = scale(sub(kind.point(u + h, v), kind.point(u - h, v)), 0.5 / h);
     let dv = scale(sub(kind.point(u, v + h), kind.point(u, v - h)), 0.5 / h);
@@ -325,7 +361,7 @@ mod tests {
             Direction::new(80.0, 180.0),
             Direction::new(60.0, 90.0),
         ];
-        for kind in [MeshKind::Flat, MeshKind::Cylinder] {
+        for kind in [MeshKind::Flat, MeshKind::Cylinder, MeshKind::Sphere] {
             let vis = Mesh::build(kind, 1.0).visibility(&dirs);
             assert!(vis.iter().all(|&v| v == 1), "{kind:?}");
         }
@@ -343,7 +379,7 @@ mod tests {
         for kind in MeshKind::ALL {
             assert_eq!(kind.name().parse::<MeshKind>(), Ok(kind));
         }
-        let err = "sphere".parse::<MeshKind>().unwrap_err().to_string();
-        assert!(err.contains("flat, cylinder or cloth"), "{err}");
+        let err = "torus".parse::<MeshKind>().unwrap_err().to_string();
+        assert!(err.contains("flat, cylinder, cloth or sphere"), "{err}");
     }
 }

@@ -202,7 +202,7 @@ impl Camera {
 }
 
 /// θ and φ (degrees) of a local direction; φ = 0 at the pole.
-fn angles(local: [f64; 3]) -> Direction {
+pub fn local_angles(local: [f64; 3]) -> Direction {
     let theta = local[2].clamp(-1.0, 1.0).acos().to_degrees();
     let phi = local[1].atan2(local[0]).to_degrees();
     Direction::new(theta, phi)
@@ -286,16 +286,30 @@ fn btf_value(
     out
 }
 
-/// Per pixel: the triangle that won the depth test and its
-/// perspective-correct barycentric weights.
-struct Fragment {
-    triangle: usize,
-    bary: [f64; 3],
+/// A triangle's fragment at a pixel: the triangle, its perspective-correct
+/// barycentric weights, its depth (NDC z) and whether its winding faces
+/// the viewer (`gl_FrontFacing`).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Fragment {
+    pub(crate) triangle: usize,
+    pub(crate) bary: [f64; 3],
+    pub(crate) depth: f64,
+    pub(crate) front: bool,
 }
 
-fn rasterise(mesh: &Mesh, camera: &Camera, width: usize, height: usize) -> Vec<Option<Fragment>> {
+/// Per pixel, the fragments of the triangles covering its centre, nearest
+/// first, at most `layers` of them (1: the depth test's winner alone).
+/// `clip` takes a world point to clip coordinates; `to_viewer` gives the
+/// direction from a point towards the viewer, for the facing.
+pub(crate) fn rasterise_layers(
+    mesh: &Mesh,
+    clip: &dyn Fn([f64; 3]) -> [f64; 4],
+    to_viewer: &dyn Fn([f64; 3]) -> [f64; 3],
+    (width, height): (usize, usize),
+    layers: usize,
+) -> Vec<Vec<Fragment>> {
     let clips: Vec<[f64; 4]> = (0..mesh.vertex_count())
-        .map(|v| camera.clip(mesh.position(v)))
+        .map(|v| clip(mesh.position(v)))
         .collect();
     let screen: Vec<[f64; 3]> = clips
         .iter()
@@ -308,8 +322,7 @@ fn rasterise(mesh: &Mesh, camera: &Camera, width: usize, height: usize) -> Vec<O
             ]
         })
         .collect();
-    let mut depth = vec![f64::INFINITY; width * height];
-    let mut frags: Vec<Option<Fragment>> = (0..width * height).map(|_| None).collect();
+    let mut frags: Vec<Vec<Fragment>> = (0..width * height).map(|_| Vec::new()).collect();
     for (triangle, tri) in mesh.indices.chunks_exact(3).enumerate() {
         let ids = [tri[0] as usize, tri[1] as usize, tri[2] as usize];
         let [a, b, c] = ids.map(|i| screen[i]);
@@ -317,6 +330,8 @@ fn rasterise(mesh: &Mesh, camera: &Camera, width: usize, height: usize) -> Vec<O
         if area.abs() < 1e-12 || ids.iter().any(|&i| clips[i][3] <= NEAR * 0.5) {
             continue;
         }
+        let [pa, pb, pc] = ids.map(|i| mesh.position(i));
+        let front = dot(cross(sub(pb, pa), sub(pc, pa)), to_viewer(pa)) > 0.0;
         let min_x = a[0].min(b[0]).min(c[0]).floor().max(0.0) as usize;
         let max_x = (a[0].max(b[0]).max(c[0]).ceil() as usize).min(width);
         let min_y = a[1].min(b[1]).min(c[1]).floor().max(0.0) as usize;
@@ -334,25 +349,239 @@ fn rasterise(mesh: &Mesh, camera: &Camera, width: usize, height: usize) -> Vec<O
                     continue;
                 }
                 let z = l0 * a[2] + l1 * b[2] + l2 * c[2];
-                let at = y * width + x;
-                if !(-1.0..=1.0).contains(&z) || z >= depth[at] {
+                let here = &mut frags[y * width + x];
+                if !(-1.0..=1.0).contains(&z)
+                    || (layers == 1 && here.first().is_some_and(|f| z >= f.depth))
+                {
                     continue;
                 }
-                depth[at] = z;
                 let p = [
                     l0 / clips[ids[0]][3],
                     l1 / clips[ids[1]][3],
                     l2 / clips[ids[2]][3],
                 ];
                 let sum = p[0] + p[1] + p[2];
-                frags[at] = Some(Fragment {
+                let frag = Fragment {
                     triangle,
                     bary: [p[0] / sum, p[1] / sum, p[2] / sum],
-                });
+                    depth: z,
+                    front,
+                };
+                if layers == 1 {
+                    here.clear();
+                }
+                here.push(frag);
             }
         }
     }
+    if layers > 1 {
+        for here in &mut frags {
+            here.sort_by(|a, b| a.depth.total_cmp(&b.depth));
+            // A pixel centre on an edge two triangles share: GL draws one.
+            here.dedup_by(|b, a| a.front == b.front && (b.depth - a.depth).abs() < 1e-12);
+            here.truncate(layers);
+        }
+    }
     frags
+}
+
+/// A fragment's interpolated surface: position, local frame (t, b, n)
+/// when the normal is not degenerate, texture coordinate (s, r) in tiles
+/// and eq. 6's coordinate.
+pub(crate) struct Surface {
+    pub(crate) p: [f64; 3],
+    pub(crate) frame: Option<[[f64; 3]; 3]>,
+    pub(crate) tex: [f64; 2],
+    pub(crate) shadow_u: f64,
+}
+
+impl Surface {
+    /// `w` (world) in the local frame (t, b, n).
+    pub(crate) fn to_local(frame: &[[f64; 3]; 3], w: [f64; 3]) -> [f64; 3] {
+        [dot(w, frame[0]), dot(w, frame[1]), dot(w, frame[2])]
+    }
+}
+
+/// Everything the shading of a fragment needs, checked once per image.
+pub(crate) struct Shader<'a> {
+    store: &'a BtfStore,
+    mesh: &'a Mesh,
+    settings: RelightSettings,
+    pub(crate) camera: Camera,
+    pub(crate) light: [f64; 3],
+    shadow_u: Vec<f64>,
+    plain_weights: (Interpolation, Interpolation),
+}
+
+impl<'a> Shader<'a> {
+    /// Checks `settings` and prepares the camera, the light and eq. 6's
+    /// per-vertex coordinates.
+    pub(crate) fn new(
+        store: &'a BtfStore,
+        mesh: &'a Mesh,
+        settings: &RelightSettings,
+    ) -> Result<Shader<'a>, RelightError> {
+        let (width, height) = (settings.width, settings.height);
+        if !(1..=MAX_SIDE).contains(&width) || !(1..=MAX_SIDE).contains(&height) {
+            return Err(RelightError::Size { width, height });
+        }
+        if !(settings.exposure.is_finite() && settings.exposure > 0.0) {
+            return Err(RelightError::Exposure(settings.exposure));
+        }
+        let view_theta = settings.view.theta_deg;
+        if !(view_theta.is_finite()
+            && (0.0..=89.0).contains(&view_theta)
+            && settings.view.phi_deg.is_finite())
+        {
+            return Err(RelightError::ViewElevation(view_theta));
+        }
+        if !(settings.light.theta_deg.is_finite() && settings.light.phi_deg.is_finite()) {
+            return Err(DirectionError::NonFiniteQuery {
+                theta_deg: settings.light.theta_deg,
+                phi_deg: settings.light.phi_deg,
+            }
+            .into());
+        }
+        let camera = Camera::orbit(settings.view, width as f64 / height as f64);
+        let light = world(settings.light);
+        let shadow_u = (0..mesh.vertex_count())
+            .map(|v| shadow_coordinate(mesh.normal(v), light, settings.shadow_alpha_deg))
+            .collect();
+        let frontal = Direction::new(0.0, 0.0);
+        let plain_weights = (
+            store.views().interpolate(frontal)?,
+            store.lights().interpolate(frontal)?,
+        );
+        Ok(Shader {
+            store,
+            mesh,
+            settings: *settings,
+            camera,
+            light,
+            shadow_u,
+            plain_weights,
+        })
+    }
+
+    /// The fragments the camera sees, at most `layers` per pixel.
+    pub(crate) fn rasterise(&self, layers: usize) -> Vec<Vec<Fragment>> {
+        let eye = self.camera.eye;
+        rasterise_layers(
+            self.mesh,
+            &|p| self.camera.clip(p),
+            &|p| sub(eye, p),
+            (self.settings.width, self.settings.height),
+            layers,
+        )
+    }
+
+    /// The interpolated surface of a fragment.
+    pub(crate) fn surface(&self, frag: &Fragment) -> Surface {
+        surface_of(self.mesh, frag, &self.shadow_u)
+    }
+
+    /// The display colour of a fragment, its direct light multiplied by
+    /// `light_factor` (0 in a cast shadow).
+    pub(crate) fn shade(
+        &self,
+        frag: &Fragment,
+        light_factor: f64,
+    ) -> Result<[u8; 3], RelightError> {
+        let surface = self.surface(frag);
+        let Some(frame) = surface.frame else {
+            return Ok([(BACKGROUND * 255.0).round() as u8; 3]);
+        };
+        let l = Surface::to_local(&frame, self.light);
+        let v = Surface::to_local(
+            &frame,
+            unit(sub(self.camera.eye, surface.p)).unwrap_or(frame[2]),
+        );
+        let st = [surface.tex[0], -surface.tex[1]];
+        let value = match self.settings.shading {
+            Shading::Btf => {
+                let views = self.store.views().interpolate(local_angles(v))?;
+                let lights = self.store.lights().interpolate(local_angles(l))?;
+                btf_value(self.store, &views, &lights, st)
+            }
+            Shading::Plain => {
+                let base = btf_value(self.store, &self.plain_weights.0, &self.plain_weights.1, st);
+                base.map(|c| c * l[2].max(0.0))
+            }
+        };
+        let gain = self.settings.exposure * shadow_factor(surface.shadow_u) * light_factor;
+        Ok(value.map(|c| {
+            let linear = (gain * c).clamp(0.0, 1.0);
+            (linear.powf(1.0 / DISPLAY_GAMMA) * 255.0).round() as u8
+        }))
+    }
+
+    /// The image from one colour (or none: background) per pixel.
+    pub(crate) fn image(
+        &self,
+        shaded: Vec<Result<Option<[u8; 3]>, RelightError>>,
+    ) -> Result<RgbImage, RelightError> {
+        let (width, height) = (self.settings.width, self.settings.height);
+        let background = (BACKGROUND * 255.0).round() as u8;
+        let mut pixels = Vec::with_capacity(3 * width * height);
+        let mut covered = Vec::with_capacity(width * height);
+        for px in shaded {
+            match px? {
+                Some(rgb) => {
+                    pixels.extend(rgb);
+                    covered.push(true);
+                }
+                None => {
+                    pixels.extend([background; 3]);
+                    covered.push(false);
+                }
+            }
+        }
+        Ok(RgbImage {
+            width,
+            height,
+            pixels,
+            covered,
+        })
+    }
+}
+
+/// The interpolated surface of `frag` on `mesh`; `shadow_u` per vertex.
+pub(crate) fn surface_of(mesh: &Mesh, frag: &Fragment, shadow_u: &[f64]) -> Surface {
+    let tri = &mesh.indices[3 * frag.triangle..3 * frag.triangle + 3];
+    let ids = [tri[0] as usize, tri[1] as usize, tri[2] as usize];
+    let mix3 = |f: &dyn Fn(usize) -> [f64; 3]| {
+        let mut out = [0.0; 3];
+        for (k, &id) in ids.iter().enumerate() {
+            let v = f(id);
+            for c in 0..3 {
+                out[c] += frag.bary[k] * v[c];
+            }
+        }
+        out
+    };
+    let p = mix3(&|v| mesh.position(v));
+    let n_raw = mix3(&|v| mesh.normal(v));
+    let t_raw = mix3(&|v| mesh.tangent(v));
+    let tex = mix3(&|v| {
+        [
+            f64::from(mesh.texcoords[2 * v]),
+            f64::from(mesh.texcoords[2 * v + 1]),
+            0.0,
+        ]
+    });
+    let shadow_u = (0..3)
+        .map(|k| frag.bary[k] * shadow_u.get(ids[k]).copied().unwrap_or(0.0))
+        .sum();
+    let frame = unit(n_raw).map(|n| {
+        let t = unit(sub(t_raw, scale(n, dot(n, t_raw)))).unwrap_or([1.0, 0.0, 0.0]);
+        [t, cross(n, t), n]
+    });
+    Surface {
+        p,
+        frame,
+        tex: [tex[0], tex[1]],
+        shadow_u,
+    }
 }
 
 /// Renders `store` on `mesh`; see the module documentation for each step.
@@ -361,118 +590,17 @@ pub fn relight(
     mesh: &Mesh,
     settings: &RelightSettings,
 ) -> Result<RgbImage, RelightError> {
-    let (width, height) = (settings.width, settings.height);
-    if !(1..=MAX_SIDE).contains(&width) || !(1..=MAX_SIDE).contains(&height) {
-        return Err(RelightError::Size { width, height });
-    }
-    if !(settings.exposure.is_finite() && settings.exposure > 0.0) {
-        return Err(RelightError::Exposure(settings.exposure));
-    }
-    let view_theta = settings.view.theta_deg;
-    if !(view_theta.is_finite()
-        && (0.0..=89.0).contains(&view_theta)
-        && settings.view.phi_deg.is_finite())
-    {
-        return Err(RelightError::ViewElevation(view_theta));
-    }
-    if !(settings.light.theta_deg.is_finite() && settings.light.phi_deg.is_finite()) {
-        return Err(DirectionError::NonFiniteQuery {
-            theta_deg: settings.light.theta_deg,
-            phi_deg: settings.light.phi_deg,
-        }
-        .into());
-    }
-    let camera = Camera::orbit(settings.view, width as f64 / height as f64);
-    let light = world(settings.light);
-    let frags = rasterise(mesh, &camera, width, height);
-    let shadow_u: Vec<f64> = (0..mesh.vertex_count())
-        .map(|v| shadow_coordinate(mesh.normal(v), light, settings.shadow_alpha_deg))
-        .collect();
-    let frontal = Direction::new(0.0, 0.0);
-    let plain_weights = (
-        store.views().interpolate(frontal)?,
-        store.lights().interpolate(frontal)?,
-    );
-    let background = (BACKGROUND * 255.0).round() as u8;
-    let shaded: Vec<Result<Option<[u8; 3]>, RelightError>> = frags
+    let shader = Shader::new(store, mesh, settings)?;
+    let frags = shader.rasterise(1);
+    let shaded = frags
         .par_iter()
-        .map(|frag| {
-            let Some(frag) = frag else {
-                return Ok(None);
-            };
-            let tri = &mesh.indices[3 * frag.triangle..3 * frag.triangle + 3];
-            let ids = [tri[0] as usize, tri[1] as usize, tri[2] as usize];
-            let mix3 = |f: &dyn Fn(usize) -> [f64; 3]| {
-                let mut out = [0.0; 3];
-                for (k, &id) in ids.iter().enumerate() {
-                    let v = f(id);
-                    for c in 0..3 {
-                        out[c] += frag.bary[k] * v[c];
-                    }
-                }
-                out
-            };
-            let p = mix3(&|v| mesh.position(v));
-            let n_raw = mix3(&|v| mesh.normal(v));
-            let t_raw = mix3(&|v| mesh.tangent(v));
-            let st = mix3(&|v| {
-                [
-                    f64::from(mesh.texcoords[2 * v]),
-                    -f64::from(mesh.texcoords[2 * v + 1]),
-                    0.0,
-                ]
-            });
-            let u: f64 = (0..3).map(|k| frag.bary[k] * shadow_u[ids[k]]).sum();
-            let Some(n) = unit(n_raw) else {
-                return Ok(Some([background; 3]));
-            };
-            let t = unit(sub(t_raw, scale(n, dot(n, t_raw)))).unwrap_or([1.0, 0.0, 0.0]);
-            let b = cross(n, t);
-            let to_local = |w: [f64; 3]| [dot(w, t), dot(w, b), dot(w, n)];
-            let l = to_local(light);
-            let v = to_local(unit(sub(camera.eye, p)).unwrap_or(n));
-            let value = match settings.shading {
-                Shading::Btf => {
-                    let views = store.views().interpolate(angles(v))?;
-                    let lights = store.lights().interpolate(angles(l))?;
-                    btf_value(store, &views, &lights, [st[0], st[1]])
-                }
-                Shading::Plain => {
-                    let base = btf_value(store, &plain_weights.0, &plain_weights.1, [st[0], st[1]]);
-                    base.map(|c| c * l[2].max(0.0))
-                }
-            };
-            let gain = settings.exposure * shadow_factor(u);
-            Ok(Some(value.map(|c| {
-                let linear = (gain * c).clamp(0.0, 1.0);
-                (linear.powf(1.0 / DISPLAY_GAMMA) * 255.0).round() as u8
-            })))
-        })
+        .map(|layers| layers.first().map(|f| shader.shade(f, 1.0)).transpose())
         .collect();
-    let mut pixels = Vec::with_capacity(3 * width * height);
-    let mut covered = Vec::with_capacity(width * height);
-    for px in shaded {
-        match px? {
-            Some(rgb) => {
-                pixels.extend(rgb);
-                covered.push(true);
-            }
-            None => {
-                pixels.extend([background; 3]);
-                covered.push(false);
-            }
-        }
-    }
-    Ok(RgbImage {
-        width,
-        height,
-        pixels,
-        covered,
-    })
+    shader.image(shaded)
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::btf::{compress_slot, TextureShape};
     use crate::directions::{h1, DirectionTable};
@@ -480,7 +608,7 @@ mod tests {
 
     /// A BTF whose value is the light's cosine (a Lambertian material) with
     /// a checker so texture mapping shows.
-    fn lambert_store(size: usize) -> BtfStore {
+    pub(crate) fn lambert_store(size: usize) -> BtfStore {
         let shape = TextureShape::new(size, size, 3).unwrap();
         let lights = DirectionTable::new(h1()).unwrap();
         let views = DirectionTable::new(h1()).unwrap();

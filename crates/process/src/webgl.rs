@@ -33,6 +33,7 @@ use serde::Serialize;
 
 use crate::btf::{BtfStore, TextureShape};
 use crate::directions::{Direction, DirectionTable, RingLayout};
+use crate::mdf::{MdfTexture, NO_DEPTH};
 
 /// The format version the viewer checks.
 pub const PACK_VERSION: u32 = 1;
@@ -100,6 +101,61 @@ pub struct BlobManifest {
     pub view_table: Option<TableLayout>,
     /// Total blob size.
     pub bytes: usize,
+}
+
+/// The manifest of an MDF texture's blob ([`pack_mdf`]): one little-endian
+/// f32 layer per view, `size` rows of `size` texels, rows as the BTF's
+/// layers, millimetres along the view ray below the top plane, −1 = no
+/// measurement: what `texImage3D(TEXTURE_2D_ARRAY, 0, R32F, size, size,
+/// views, 0, RED, FLOAT, …)` takes.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MdfManifest {
+    /// Format version, [`PACK_VERSION`].
+    pub version: u32,
+    /// Side of every layer, texels.
+    pub size: usize,
+    /// Layers, one per view direction.
+    pub views: usize,
+    /// The view directions and their rings, for the same interpolation as
+    /// the BTF's view slots.
+    pub view_table: TableLayout,
+    /// Side of the sample square one texture tile covers, mm: a depth in
+    /// world units is `mm / (tile_mm · density)`.
+    pub tile_mm: f64,
+    /// Height of the top plane over the turntable, mm (for people).
+    pub top_mm: f64,
+    /// The value of a texel without a measurement.
+    pub no_measurement: f32,
+    /// The depths.
+    pub depth: Section,
+}
+
+/// The manifest of `texture`'s blob, without packing it.
+pub fn mdf_manifest(texture: &MdfTexture) -> MdfManifest {
+    let header = texture.header();
+    MdfManifest {
+        version: PACK_VERSION,
+        size: header.size,
+        views: header.views.len(),
+        view_table: TableLayout::of(texture.views()),
+        tile_mm: header.tile_mm,
+        top_mm: header.top_mm,
+        no_measurement: NO_DEPTH,
+        depth: Section {
+            offset: 0,
+            bytes: 4 * texture.depth_mm().len(),
+            encoding: "f32le",
+        },
+    }
+}
+
+/// The viewer's blob of an MDF texture and its manifest.
+pub fn pack_mdf(texture: &MdfTexture) -> (MdfManifest, Vec<u8>) {
+    let mut out = Vec::with_capacity(4 * texture.depth_mm().len());
+    for v in texture.depth_mm() {
+        out.extend(v.to_le_bytes());
+    }
+    (mdf_manifest(texture), out)
 }
 
 fn push_f16(out: &mut Vec<u8>, values: impl Iterator<Item = f32>) {

@@ -354,7 +354,7 @@ pub(super) fn slot_of(list: &mut Vec<Direction>, d: Direction) -> usize {
 
 /// The holder plate the run's frames show and the sample's half-sides
 /// (metres): a simulated run's scene's, the standard plate on hardware.
-fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
+pub(crate) fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
     if meta.simulated {
         #[cfg(feature = "sim")]
         {

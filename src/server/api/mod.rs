@@ -40,7 +40,7 @@ pub type AppState = Arc<Daemon>;
         runs::create_run, runs::get_run, runs::run_steps, runs::run_manifest, runs::pause_run,
         runs::resume_run, runs::abort_run, rig::estop, daemon::events_sse, frames::frame_raw,
         frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
-        viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh, manual::home, manual::jog,
+        viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh, viewer::mdf_manifest, viewer::mdf_data, manual::home, manual::jog,
         manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::release,
         process::submit, process::get_job, process::cancel, peers::list_peers, peers::pause_peer,
         peers::abort_peer

@@ -36,9 +36,9 @@ pub struct MeshQuery {
 
 fn viewer_error(e: ViewerError) -> ApiError {
     match e {
-        ViewerError::NotProcessed { .. } | ViewerError::NeedsBtf { .. } => {
-            ApiError::not_found(e.to_string())
-        }
+        ViewerError::NotProcessed { .. }
+        | ViewerError::NeedsBtf { .. }
+        | ViewerError::NoMdf { .. } => ApiError::not_found(e.to_string()),
         other => ApiError::internal(other.to_string()),
     }
 }
@@ -108,7 +108,7 @@ pub async fn btf_data(
 /// the visibility of each of the run's measured light directions (Ganster et al.).
 #[utoipa::path(get, path = "/api/v1/runs/{id}/btf/mesh/{kind}", tag = "runs",
     params(("id" = String, Path, description = "Run id"),
-           ("kind" = String, Path, description = "flat, cylinder or cloth"), MeshQuery),
+           ("kind" = String, Path, description = "flat, cylinder, cloth or sphere"), MeshQuery),
     responses((status = 200, description = "The mesh", content_type = "application/json", body = Object),
               (status = 404, description = "No such run or mesh, or not processed yet", body = crate::server::error::ErrorBody),
               (status = 422, description = "Density out of range", body = crate::server::error::ErrorBody)))]
@@ -129,6 +129,39 @@ pub async fn btf_mesh(
     }
     let view = on_run(&d, &id, move |root| viewer::mesh_view(root, kind, density)).await?;
     Ok(axum::Json(view).into_response())
+}
+
+/// The run's MDF in texture space (`rigd process mdf-texture`) for the
+/// viewer's MDF silhouettes and shadows: the manifest of the blob at
+/// `…/mdf/data` (view table, texture side, tile size; `docs/viewer.md`).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/mdf", tag = "runs",
+    params(("id" = String, Path, description = "Run id")),
+    responses((status = 200, description = "The manifest", content_type = "application/json", body = Object),
+              (status = 404, description = "No such run, or no MDF texture", body = crate::server::error::ErrorBody)))]
+pub async fn mdf_manifest(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Response, ApiError> {
+    let manifest = on_run(&d, &id, viewer::mdf_manifest).await?;
+    let mut body =
+        serde_json::to_value(&manifest).map_err(|e| ApiError::internal(e.to_string()))?;
+    body["data_url"] = serde_json::Value::String(format!("/api/v1/runs/{id}/mdf/data"));
+    Ok(axum::Json(body).into_response())
+}
+
+/// The MDF blob the manifest describes: little-endian f32, one layer per
+/// view, as `texImage3D(TEXTURE_2D_ARRAY, 0, R32F, …, RED, FLOAT, …)`
+/// takes it (`application/octet-stream`).
+#[utoipa::path(get, path = "/api/v1/runs/{id}/mdf/data", tag = "runs",
+    params(("id" = String, Path, description = "Run id")),
+    responses((status = 200, description = "The MDF texture", content_type = "application/octet-stream", body = Vec<u8>),
+              (status = 404, description = "No such run, or no MDF texture", body = crate::server::error::ErrorBody)))]
+pub async fn mdf_data(
+    State(d): State<AppState>,
+    ApiPath(id): ApiPath<String>,
+) -> Result<Response, ApiError> {
+    let data = on_run(&d, &id, viewer::mdf_pack).await?;
+    Ok(([(header::CONTENT_TYPE, "application/octet-stream")], data).into_response())
 }
 
 /// The viewer page; the run id is read by the page from its own path.

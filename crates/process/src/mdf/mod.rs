@@ -176,6 +176,7 @@ mod line_detection;
 mod merge;
 mod output;
 mod space_time;
+mod texture;
 pub use calibration::*;
 pub use camera::*;
 pub use laser_plane::*;
@@ -183,6 +184,7 @@ pub use line_detection::*;
 pub use merge::*;
 pub use output::*;
 pub use space_time::*;
+pub use texture::*;
 
 #[cfg(test)]
 mod tests {
