@@ -105,6 +105,7 @@ fn make_run(run: &Path) -> Vec<Vec<f32>> {
         views: dirs,
         frames,
         summary: None,
+        roi: None,
     };
     let json = serde_json::to_vec_pretty(&index).expect("index json");
     std::fs::write(out.join(NORMTEXTURE_INDEX), json).expect("write index");

@@ -328,7 +328,7 @@ pub struct MdfTextureArgs {
     #[arg(long, default_value_t = rigd::postprocess::mdf_texture::DEFAULT_MDF_TEXTURE_SIZE)]
     pub size: usize,
     /// Side of the sample square one texture tile covers, mm [default: the
-    /// BTF run's sample; give sample × roi if it was rectified with --roi].
+    /// BTF run's sample times the --roi it was rectified with].
     #[arg(long)]
     pub tile_mm: Option<f64>,
 }

@@ -96,6 +96,7 @@ pub fn import_textures(
         views,
         frames,
         summary: None,
+        roi: None,
     };
     let mut json =
         serde_json::to_vec_pretty(&index).map_err(|e| ProcessError::Invalid(e.to_string()))?;

@@ -33,8 +33,7 @@ pub struct MdfTextureConfig {
     /// Side of the texture, texels.
     pub size: usize,
     /// Side of the sample square one texture tile covers, mm; None: the
-    /// BTF run's sample (the holder's, as `rectify` resamples it at the
-    /// default `--roi 1`).
+    /// BTF run's sample (the holder's) times the ROI `rectify` kept.
     pub tile_mm: Option<f64>,
 }
 
@@ -81,6 +80,18 @@ impl ViewImage {
     }
 }
 
+/// The side of the sample square a BTF run's textures cover, mm: its
+/// holder's sample times the ROI its `rectify` kept (1 for an index that
+/// does not say, as `rectify` wrote before it recorded the ROI).
+pub fn default_tile_mm(btf_run: &Path) -> Result<f64, ProcessError> {
+    let meta = crate::store::read_meta(btf_run)?;
+    let (_, half) = super::rectify::holder_of(&meta)?;
+    let roi = super::rectify::NormtextureIndex::read(btf_run)?
+        .roi
+        .unwrap_or(1.0);
+    Ok(2.0 * half[0] * 1e3 * roi)
+}
+
 /// Resamples `laser_run`'s MDF into `btf_run`'s texture space and writes it
 /// to `btf_run/processed/mdf-texture/`.
 pub fn mdf_texture(
@@ -101,11 +112,7 @@ pub fn mdf_texture(
                 "tile {t} mm: expected a positive side"
             )))
         }
-        None => {
-            let meta = crate::store::read_meta(btf_run)?;
-            let (_, half) = super::rectify::holder_of(&meta)?;
-            2.0 * half[0] * 1e3
-        }
+        None => default_tile_mm(btf_run)?,
     };
     let laser = RunFrames::open(laser_run)?;
     let mdf_dir = crate::store::processed::mdf_dir(laser_run);

@@ -270,7 +270,10 @@ fn a_capture_is_rectified_and_compressed() {
     // The stored parameters reproduce the reported errors.
     stored_fits_reproduce_the_report(&run, &rows);
 
-    // Sattler et al.'s 16-bit floats and edge blending; the BTF reads them.
+    // Sattler et al.'s 16-bit floats, ROI and edge blending; the BTF reads
+    // them. The index records the ROI, so an MDF texture for this run
+    // covers the same square of the sample.
+    let whole_sample = rigd::postprocess::mdf_texture::default_tile_mm(&run).unwrap();
     common::run_ok(&[
         "process",
         "rectify",
@@ -280,6 +283,8 @@ fn a_capture_is_rectified_and_compressed() {
         "64",
         "--bits",
         "half",
+        "--roi",
+        "0.55",
         "--blend",
         "8",
         run.to_str().unwrap(),
@@ -289,6 +294,12 @@ fn a_capture_is_rectified_and_compressed() {
     )
     .unwrap();
     assert_eq!(index["encoding"], "npy-f16");
+    assert_eq!(index["roi"], 0.55);
+    let tile = rigd::postprocess::mdf_texture::default_tile_mm(&run).unwrap();
+    assert!(
+        (tile - 0.55 * whole_sample).abs() < 1e-9,
+        "{tile} of {whole_sample} mm"
+    );
     let file = index["frames"][0]["file"].as_str().unwrap();
     let tex = rigd_process::npy::read_f32(&run.join("processed/normtextures").join(file)).unwrap();
     assert_eq!(tex.shape, vec![64, 64]);

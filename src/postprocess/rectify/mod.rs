@@ -196,6 +196,10 @@ pub struct NormtextureIndex {
     /// before rigd recorded it, or imported.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub summary: Option<RegistrationSummary>,
+    /// Fraction of the sample's side the textures cover (`rectify --roi`);
+    /// None for an index written before rigd recorded it, or imported.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub roi: Option<f64>,
 }
 
 /// What `rigd process rectify` prints and `index.json` keeps: how the

@@ -318,6 +318,7 @@ pub fn rectify_run(
         views: views.clone(),
         frames: frames.clone(),
         summary: None,
+        roi: Some(cfg.roi),
     };
     type Filled = Result<(Option<String>, Vec<usize>), String>;
     let fills: Vec<(usize, Filled)> = (0..frames.len())

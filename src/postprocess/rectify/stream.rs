@@ -111,6 +111,7 @@ impl RectifyStream {
             views: self.views.clone(),
             frames: self.recs.clone(),
             summary: None,
+            roi: Some(self.cfg.roi),
         }
     }
 
