@@ -992,6 +992,23 @@ async fn viewer_pixels(c: &Client) -> Vec<u8> {
         .collect()
 }
 
+/// Asserts the viewer's pixels within [`VIEWER_RMS_BOUND`] of the
+/// reference's, keeping both images as `{prefix}-got.png` and
+/// `{prefix}-want.png` in `out` when not; prints and returns the RMS.
+fn assert_near_reference(got: &[u8], want: &[u8], case: &str, out: &Path, prefix: &str) -> f64 {
+    let e = rms(got, want);
+    eprintln!("{case}: RMS {e:.2} levels");
+    if e > VIEWER_RMS_BOUND {
+        write_rgb(&out.join(format!("{prefix}-got.png")), VIEWER_SIZE, got);
+        write_rgb(&out.join(format!("{prefix}-want.png")), VIEWER_SIZE, want);
+    }
+    assert!(
+        e <= VIEWER_RMS_BOUND,
+        "{case}: RMS {e:.2} > {VIEWER_RMS_BOUND}"
+    );
+    e
+}
+
 fn rms(a: &[u8], b: &[u8]) -> f64 {
     assert_eq!(a.len(), b.len());
     let sum: f64 = a
@@ -1239,15 +1256,12 @@ async fn view_and_compare(
     let mut worst = 0.0f64;
     for (mesh, light, view) in cases {
         let (got, want) = viewer_case(c, run, mesh, light, view).await;
-        let e = rms(&got, &want.pixels);
-        eprintln!("viewer vs reference, {mesh} light {light:?} view {view:?}: RMS {e:.2} levels");
-        if e > VIEWER_RMS_BOUND {
-            write_rgb(&out.join("viewer-got.png"), VIEWER_SIZE, &got);
-            write_rgb(&out.join("viewer-want.png"), VIEWER_SIZE, &want.pixels);
-        }
-        assert!(
-            e <= VIEWER_RMS_BOUND,
-            "{mesh} {light:?} {view:?}: RMS {e:.2} > {VIEWER_RMS_BOUND}"
+        let e = assert_near_reference(
+            &got,
+            &want.pixels,
+            &format!("viewer vs reference, {mesh} light {light:?} view {view:?}"),
+            out,
+            "viewer",
         );
         worst = worst.max(e);
         if mesh == "flat" {

@@ -11,8 +11,9 @@ use std::time::Instant;
 use serde_json::{json, Value};
 
 use super::{
-    chromium, end_session, free_port, js, out_dir, rms, show_case, spawn_daemon, viewer_plan,
-    wait_http, wait_js, wait_viewer, write_rgb, Procs, ONE_BROWSER, VIEWER_RMS_BOUND, VIEWER_SIZE,
+    assert_near_reference, chromium, end_session, free_port, js, out_dir, rms, show_case,
+    spawn_daemon, viewer_plan, wait_http, wait_js, wait_viewer, Procs, ONE_BROWSER,
+    VIEWER_RMS_BOUND, VIEWER_SIZE,
 };
 use fantoccini::Client;
 use futures::FutureExt;
@@ -332,19 +333,17 @@ async fn compare(c: &Client, base: &str, run: &Path, out: &Path) {
     let mut cloth_shadows = Vec::new();
     for (mesh, light, view) in cases {
         let (got, want, report) = case(c, run, mesh, light, view).await;
-        let e = rms(&got, &want.pixels);
         eprintln!(
-            "MDF viewer vs reference, {mesh} light {light:?} view {view:?}: RMS {e:.2} levels; \
-             reference: {} px background inside the outline, {} px in cast shadow, {} layers",
+            "reference, {mesh} light {light:?} view {view:?}: {} px background inside the \
+             outline, {} px in cast shadow, {} layers",
             report.background_inside_outline, report.shadowed_pixels, report.layers_used
         );
-        if e > VIEWER_RMS_BOUND {
-            write_rgb(&out.join("mdf-viewer-got.png"), VIEWER_SIZE, &got);
-            write_rgb(&out.join("mdf-viewer-want.png"), VIEWER_SIZE, &want.pixels);
-        }
-        assert!(
-            e <= VIEWER_RMS_BOUND,
-            "{mesh} {light:?} {view:?}: RMS {e:.2} > {VIEWER_RMS_BOUND}"
+        let e = assert_near_reference(
+            &got,
+            &want.pixels,
+            &format!("MDF viewer vs reference, {mesh} light {light:?} view {view:?}"),
+            out,
+            "mdf-viewer",
         );
         worst = worst.max(e);
         if mesh == "cloth" {

@@ -265,26 +265,22 @@ impl ShadowMap {
         let depth: Vec<Result<[f64; 2], DirectionError>> = frags
             .par_iter()
             .map(|layers| {
-                let walked: Vec<(Layer, f64)> = layers
+                let walked = layers
                     .iter()
                     .map(|f| {
                         let s = surface_of(mesh, f, &no_shadow_u);
                         let towards = if f.front { light } else { scale(light, -1.0) };
-                        let offset = offset_at(mdf, &s, towards, density)?;
-                        let t = -dot(s.p, light);
-                        Ok((
-                            Layer {
-                                t,
-                                offset,
-                                front: f.front,
-                            },
-                            if f.front { offset } else { 0.0 },
-                        ))
+                        Ok(Layer {
+                            t: -dot(s.p, light),
+                            offset: offset_at(mdf, &s, towards, density)?,
+                            front: f.front,
+                        })
                     })
-                    .collect::<Result<_, DirectionError>>()?;
-                let only: Vec<Layer> = walked.iter().map(|(l, _)| *l).collect();
-                Ok(walk(&only).map_or([f64::INFINITY; 2], |i| {
-                    [walked[i].0.t, walked[i].0.t + walked[i].1]
+                    .collect::<Result<Vec<Layer>, DirectionError>>()?;
+                // An unpaired back fragment's mesostructure faces away: 0.
+                Ok(walk(&walked).map_or([f64::INFINITY; 2], |i| {
+                    let hit = walked[i];
+                    [hit.t, hit.t + if hit.front { hit.offset } else { 0.0 }]
                 }))
             })
             .collect();
