@@ -843,7 +843,7 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
     assert_eq!(rows, json!(2), "both runs in the history");
 }
 
-/// Waits for the token dialog, types `token` and saves it.
+/// Clicks the element with id `id`.
 async fn click_id(c: &Client, id: &str) {
     c.find(Locator::Id(id))
         .await
@@ -851,6 +851,26 @@ async fn click_id(c: &Client, id: &str) {
         .click()
         .await
         .unwrap_or_else(|e| panic!("click #{id}: {e}"));
+}
+
+/// Clicks the element `css` finds. The dashboard re-renders its run
+/// history and rig rows on every poll, so an element found a moment ago may
+/// have been replaced before the click lands: then it is found again.
+async fn click_css(c: &Client, css: &str, what: &str) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let element = c
+            .find(Locator::Css(css))
+            .await
+            .unwrap_or_else(|e| panic!("{what} ({css}): {e}"));
+        match element.click().await {
+            Ok(()) => return,
+            Err(e) if e.is_stale_element_reference() && Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(e) => panic!("click {what} ({css}): {e}"),
+        }
+    }
 }
 
 /// Opens the rig card's "Manual control" section.
@@ -1199,12 +1219,7 @@ async fn view_and_compare(
         |v| v == &json!(true),
     )
     .await;
-    c.find(Locator::Css(&button))
-        .await
-        .expect("Process button")
-        .click()
-        .await
-        .expect("click Process");
+    click_css(c, &button, "the Process button").await;
     let bar_seen = wait_js(
         c,
         "the processing bar or the result",
@@ -1228,12 +1243,7 @@ async fn view_and_compare(
         |v| v == &json!(true),
     )
     .await;
-    c.find(Locator::Css(&link))
-        .await
-        .expect("viewer link")
-        .click()
-        .await
-        .expect("open the viewer");
+    click_css(c, &link, "the viewer link").await;
     wait_viewer(c).await;
     let path = js(c, "return location.pathname").await;
     assert_eq!(path, json!(format!("/viewer/{run_id}")));
@@ -1554,11 +1564,7 @@ async fn view_and_compare(
     let png = c.screenshot().await.expect("screenshot");
     std::fs::write(out.join("dashboard-tradeoff.png"), png).expect("write the screenshot");
     // Clicking a plan puts it into the start form with its time and volume.
-    let hit = c
-        .find(Locator::Css(&point("h2, 4 rings")))
-        .await
-        .expect("the 4-ring point");
-    hit.click().await.expect("click the 4-ring point");
+    click_css(c, &point("h2, 4 rings"), "the 4-ring point").await;
     let form = js(
         c,
         "return [document.getElementById('plan').value, \
@@ -1874,12 +1880,7 @@ async fn operate_rigs(c: &Client, ctx: &PeersCtx<'_>, procs: &mut Procs) {
         |v| v == &json!(true),
     )
     .await;
-    c.find(Locator::Css(pause))
-        .await
-        .expect("B's Pause button")
-        .click()
-        .await
-        .expect("click Pause on B's row");
+    click_css(c, pause, "Pause on B's row").await;
     let deadline = Instant::now() + Duration::from_secs(15);
     loop {
         let (_, v) = frames_done(http, base_b, &id_b).await;
