@@ -32,6 +32,7 @@ fn frame() -> Frame {
         height: H,
         bit_depth: 12,
         pixels,
+        device: None,
     }
 }
 

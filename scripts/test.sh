@@ -35,6 +35,15 @@ if ! command -v slurmctld >/dev/null || ! command -v slurmd >/dev/null \
     apt_install slurm-wlm munge
 fi
 
+# GenICam cameras (tests/it/genicam.rs): rigd links Debian's Aravis 0.8
+# (libaravis-dev; its pkg-config file also asks for libusb-1.0's) with the
+# cargo feature `genicam`, and the tests run Aravis's fake GigE Vision camera
+# (arv-fake-gv-camera-0.8, in aravis-tools) on 127.0.0.1.
+if ! command -v arv-fake-gv-camera-0.8 >/dev/null || ! pkg-config --exists aravis-0.8 2>/dev/null; then
+    echo "== installing aravis-tools and libaravis-dev (for tests/it/genicam.rs)"
+    apt_install aravis-tools libaravis-dev libusb-1.0-0-dev pkg-config
+fi
+
 # The Modbus tests run tests/support/relay_module.py, a relay module served by
 # pymodbus, from a venv of their own (target/ is not committed). It is made
 # again only when missing, broken, or at another pymodbus version.
@@ -59,15 +68,16 @@ fi
 
 echo "== cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy"
-cargo clippy --workspace --all-targets --locked -- -D warnings
-# The hardware path builds without the simulator (no rigd-sim in the build).
-echo "== cargo clippy --no-default-features (rigd without the simulator)"
+echo "== cargo clippy --features genicam"
+cargo clippy --workspace --all-targets --locked --features genicam -- -D warnings
+# The hardware path builds without the simulator (no rigd-sim in the build),
+# and without Aravis (no `genicam` feature).
+echo "== cargo clippy --no-default-features (rigd without the simulator or Aravis)"
 cargo clippy -p rigd --no-default-features --lib --bins --locked -- -D warnings
-echo "== cargo test"
+echo "== cargo test --features genicam"
 log="$(mktemp)"
 trap 'rm -f "$log"' EXIT
-cargo test --workspace --locked 2>&1 | tee "$log"
+cargo test --workspace --locked --features genicam 2>&1 | tee "$log"
 # One closing line for the whole suite (cargo ends with the doc tests' own count).
 awk '/^test result:/ { for (i = 1; i <= NF; i++) { if ($(i+1) ~ /^passed/) p += $i; if ($(i+1) ~ /^failed/) f += $i } }
      END { printf "tests: %d passed, %d failed\n", p, f }' "$log"

@@ -1337,6 +1337,7 @@ async fn finish(
                 }
                 l
             }),
+            device: None,
         };
         work.push((entry, frame));
     }

@@ -199,9 +199,9 @@ pub struct Device {
     /// decides the tables it needs.
     pub kind: DeviceKind,
     /// How the daemon reaches it: `{ type = "serial" | "modbus_rtu" |
-    /// "modbus_tcp" | "usb" | "ptp_tcp", ... }`.
+    /// "modbus_tcp" | "usb" | "ptp_tcp" | "genicam", ... }`.
     pub transport: Transport,
-    /// Wire protocol: `grbl`, `modbus`, `acl` or `ptp`.
+    /// Wire protocol: `grbl`, `modbus`, `acl`, `ptp` or `genicam`.
     pub protocol: String,
     /// Axis soft limits, in degrees.
     #[serde(default)]
@@ -255,6 +255,51 @@ pub struct Device {
     /// Camera: exposure, readout and transfer time per frame (required).
     #[serde(default)]
     pub timing: Option<CameraTiming>,
+    /// GenICam camera: the features rigd sets at connect.
+    #[serde(default)]
+    pub genicam: Option<GenicamSettings>,
+}
+
+/// The GenICam features of a camera on `transport = { type = "genicam" }`,
+/// set by their SFNC names at every connect. `Width` and `Height` come from
+/// `intrinsics.resolution`, `ExposureTime` from `timing.exposure_s` (or the
+/// run's exposure).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GenicamSettings {
+    /// `PixelFormat`, unpacked: `Mono8` … `Mono16`, `BayerRG8` …
+    /// `BayerBG16`. Its bit depth must be `intrinsics.bit_depth`. Default:
+    /// the monochrome format of that depth.
+    #[serde(default)]
+    pub pixel_format: Option<String>,
+    /// `Gain` in dB; absent: the camera's own.
+    #[serde(default)]
+    pub gain_db: Option<f64>,
+    /// `TriggerSource` of the frame-start trigger: `Software` (default,
+    /// rigd fires it for each exposure) or a line (`Line0`, …) that an
+    /// external trigger drives.
+    #[serde(default)]
+    pub trigger_source: Option<String>,
+}
+
+impl GenicamSettings {
+    /// The pixel format asked of a camera of `bit_depth` bits.
+    pub fn pixel_format_for(
+        settings: Option<&GenicamSettings>,
+        bit_depth: u8,
+    ) -> Result<rigd_core::PixelFormat, rigd_core::pixel_format::UnknownPixelFormat> {
+        match settings.and_then(|g| g.pixel_format.as_deref()) {
+            Some(name) => name.parse(),
+            None => Ok(rigd_core::PixelFormat::mono_for_depth(bit_depth)),
+        }
+    }
+
+    /// The trigger source, `Software` unless set.
+    pub fn trigger_source_of(settings: Option<&GenicamSettings>) -> String {
+        settings
+            .and_then(|g| g.trigger_source.clone())
+            .unwrap_or_else(|| "Software".into())
+    }
 }
 
 /// Soft limits of an axis or joint.
@@ -412,6 +457,13 @@ pub enum Transport {
         /// TCP port of the camera link.
         port: u16,
     },
+    /// A GenICam camera (GigE Vision or USB3 Vision) reached through
+    /// Aravis; needs a rigd built with the `genicam` feature.
+    Genicam {
+        /// What Aravis opens: the camera's IP address, or its device id
+        /// (`Vendor-Model-Serial`, as `arv-tool-0.8` lists it).
+        id: String,
+    },
 }
 
 fn default_unit() -> u8 {
@@ -430,7 +482,7 @@ impl Transport {
                 host, port, unit, ..
             } => Some(format!("modbus-tcp:{host}:{port}#{unit}")),
             Transport::Serial { port, .. } => Some(format!("modbus-rtu:{port}#1")),
-            Transport::Usb { .. } | Transport::PtpTcp { .. } => None,
+            Transport::Usb { .. } | Transport::PtpTcp { .. } | Transport::Genicam { .. } => None,
         }
     }
 
@@ -1015,6 +1067,7 @@ impl Device {
                 }
                 non_negative(&format!("{key}.timing.readout_s"), Some(t.readout_s))?;
                 non_negative(&format!("{key}.timing.transfer_s"), Some(t.transfer_s))?;
+                self.validate_genicam(key, intr.bit_depth)?;
             }
             DeviceKind::Laser => {}
         }
@@ -1025,6 +1078,60 @@ impl Device {
                     format!("expected 0 to 90 degrees, got {}", d.theta_deg),
                 ));
             }
+        }
+        Ok(())
+    }
+
+    /// A GenICam camera's transport, protocol and features agree, and its
+    /// pixel format is one rigd takes, of the sensor's bit depth.
+    fn validate_genicam(&self, key: &str, bit_depth: u8) -> Result<(), (String, String)> {
+        let on_genicam = matches!(self.transport, Transport::Genicam { .. });
+        if on_genicam != (self.protocol == "genicam") {
+            return Err((
+                format!("{key}.protocol"),
+                "a camera on `transport = { type = \"genicam\", id = ... }` speaks `protocol = \"genicam\"`, and only it does".into(),
+            ));
+        }
+        if self.genicam.is_some() && !on_genicam {
+            return Err((
+                format!("{key}.genicam"),
+                "is for cameras on `transport = { type = \"genicam\" }`".into(),
+            ));
+        }
+        if let Transport::Genicam { id } = &self.transport {
+            if id.trim().is_empty() {
+                return Err((
+                    format!("{key}.transport.id"),
+                    "expected the camera's IP address or Aravis device id".into(),
+                ));
+            }
+        }
+        let settings = self.genicam.as_ref();
+        let format = GenicamSettings::pixel_format_for(settings, bit_depth)
+            .map_err(|e| (format!("{key}.genicam.pixel_format"), e.to_string()))?;
+        if format.bit_depth() != bit_depth && on_genicam {
+            return Err((
+                format!("{key}.genicam.pixel_format"),
+                format!(
+                    "{format} has {} bits, but intrinsics.bit_depth is {bit_depth}",
+                    format.bit_depth()
+                ),
+            ));
+        }
+        if let Some(g) = settings.and_then(|g| g.gain_db) {
+            if !g.is_finite() {
+                return Err((
+                    format!("{key}.genicam.gain_db"),
+                    format!("expected a finite gain in dB, got {g}"),
+                ));
+            }
+        }
+        let source = GenicamSettings::trigger_source_of(settings);
+        if source != "Software" && !source.starts_with("Line") {
+            return Err((
+                format!("{key}.genicam.trigger_source"),
+                format!("expected `Software` or a line (`Line0`, …), got `{source}`"),
+            ));
         }
         Ok(())
     }
@@ -1108,5 +1215,88 @@ mod tests {
         // On another unit it is another module.
         let other = one.replacen("unit = 1 }", "unit = 2 }", 2);
         Profile::parse(&other, "other.toml").expect("two modules");
+    }
+
+    /// The VirTex camera moved to a GenICam transport, with `extra` lines
+    /// in its table and the protocol and bit depth given.
+    fn genicam_virtex(protocol: &str, bit_depth: u8, extra: &str) -> Result<Profile, ProfileError> {
+        let text = EMBEDDED
+            .iter()
+            .find(|(n, _)| *n == "virtex-photometric-stereo")
+            .map(|(_, t)| *t)
+            .unwrap_or_default();
+        let usb = "protocol = \"ptp\"\ntransport = { type = \"usb\", vendor_id = 0x04a9, product_id = 0x3200 }";
+        assert!(text.contains(usb), "fixture drifted");
+        let genicam = format!(
+            "protocol = \"{protocol}\"\ntransport = {{ type = \"genicam\", id = \"192.168.1.20\" }}\n{extra}"
+        );
+        let text = text
+            .replace(usb, &genicam)
+            .replace("bit_depth = 12", &format!("bit_depth = {bit_depth}"));
+        Profile::parse(&text, "genicam.toml")
+    }
+
+    #[test]
+    fn a_genicam_camera_names_a_pixel_format_of_its_depth_and_a_trigger() {
+        let p = genicam_virtex("genicam", 12, "").expect("Mono12 by default");
+        let cam = &p.devices["camera"];
+        assert_eq!(
+            GenicamSettings::pixel_format_for(cam.genicam.as_ref(), 12).map(|f| f.to_string()),
+            Ok("Mono12".into())
+        );
+        genicam_virtex(
+            "genicam",
+            8,
+            "genicam = { pixel_format = \"BayerRG8\", gain_db = 3.0, trigger_source = \"Line0\" }",
+        )
+        .expect("Bayer on a line trigger");
+        for (protocol, depth, extra, key, says) in [
+            (
+                "ptp",
+                12,
+                "",
+                "devices.camera.protocol",
+                "speaks `protocol = \"genicam\"`",
+            ),
+            (
+                "genicam",
+                12,
+                "genicam = { pixel_format = \"Mono8\" }",
+                "devices.camera.genicam.pixel_format",
+                "Mono8 has 8 bits, but intrinsics.bit_depth is 12",
+            ),
+            (
+                "genicam",
+                12,
+                "genicam = { pixel_format = \"Mono12p\" }",
+                "devices.camera.genicam.pixel_format",
+                "packed formats",
+            ),
+            (
+                "genicam",
+                9,
+                "",
+                "devices.camera.genicam.pixel_format",
+                "Mono10 has 10 bits",
+            ),
+            (
+                "genicam",
+                12,
+                "genicam = { trigger_source = \"Soft\" }",
+                "devices.camera.genicam.trigger_source",
+                "`Software` or a line",
+            ),
+            (
+                "genicam",
+                12,
+                "genicam = { gain_db = nan }",
+                "devices.camera.genicam.gain_db",
+                "finite gain",
+            ),
+        ] {
+            let e = genicam_virtex(protocol, depth, extra).expect_err(extra);
+            assert_eq!(e.key, key, "{e}");
+            assert!(e.message.contains(says), "{says}: {e}");
+        }
     }
 }

@@ -94,9 +94,16 @@ impl RigCheck {
 /// What to do about a device error of this kind, unless its message
 /// already says (GRBL's settings and state errors carry their own fix).
 fn fix_for(name: &str, e: &DeviceError) -> Option<String> {
-    let says_fix = ["`configure = true`", "`$X`", "0° mark", "check ballast"]
-        .iter()
-        .any(|m| e.message.contains(m));
+    let says_fix = [
+        "`configure = true`",
+        "`$X`",
+        "0° mark",
+        "check ballast",
+        "to what the camera offers",
+        "--features genicam",
+    ]
+    .iter()
+    .any(|m| e.message.contains(m));
     if says_fix {
         return None;
     }

@@ -82,6 +82,21 @@ pub struct Frame {
     pub bit_depth: u8,
     /// `width × height` values, row by row.
     pub pixels: Vec<u16>,
+    /// What the camera said of the frame itself, where it says anything
+    /// (GenICam stream buffers); None for cameras that do not.
+    pub device: Option<DeviceFrameInfo>,
+}
+
+/// A frame as the camera labelled it: recorded in the manifest beside
+/// rigd's own index, so a frame can be matched to the camera's log.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct DeviceFrameInfo {
+    /// The camera's frame (block) id, counted by the camera.
+    pub frame_id: u64,
+    /// The camera's timestamp of the frame, nanoseconds of its own clock.
+    pub timestamp_ns: u64,
+    /// The pixel format the frame was delivered in (PFNC name).
+    pub pixel_format: String,
 }
 
 impl Frame {
@@ -281,6 +296,7 @@ mod tests {
             height: 2,
             bit_depth: 12,
             pixels: vec![0, 1, 4095, 7],
+            device: None,
         };
         assert!(f.validate("cam").is_ok());
         f.pixels[1] = 4096;

@@ -1,5 +1,6 @@
-//! Links to real hardware: serial ports (tokio-serial), Modbus TCP sockets
-//! and USB cameras (nusb), as the profile's `transport` of each device says.
+//! Links to real hardware: serial ports (tokio-serial), Modbus TCP sockets,
+//! USB cameras (nusb) and GenICam cameras (Aravis), as the profile's
+//! `transport` of each device says.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -8,6 +9,7 @@ use async_trait::async_trait;
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::model::profile::{DeviceKind, Profile, Transport};
+use crate::rig::drivers::genicam;
 use crate::rig::drivers::usb::{NusbPipe, UsbError};
 use crate::rig::hal::{DeviceError, Rig};
 use rigd_core::Clock;
@@ -151,6 +153,7 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                     host: host.clone(),
                     port: *port,
                 })),
+                (Transport::Genicam { id }, _) => Link::Genicam(genicam::opener(id)),
                 (Transport::Serial { port, baud }, _) => Link::Line(Arc::new(SerialOpener {
                     port: port.clone(),
                     baud: *baud,

@@ -50,6 +50,7 @@ use tokio_modbus::Slave;
 
 use crate::model::profile::{Device, DeviceKind, Profile};
 use crate::rig::drivers::acl::{AclArm, AclConfig, AclJointConfig};
+use crate::rig::drivers::genicam::{GenicamCamera, GenicamConfig, GenicamOpener};
 use crate::rig::drivers::grbl::{GrblAxis, GrblConfig};
 use crate::rig::drivers::modbus::{all_off, ModbusConfig, ModbusLamp, ModbusLaser, SharedBus};
 use crate::rig::drivers::ptp::{PtpCamera, PtpConfig};
@@ -111,6 +112,8 @@ pub enum Link {
     },
     /// A USB camera.
     Usb(Arc<dyn PipeOpener>),
+    /// A GenICam camera (Aravis opens it by IP address or device id).
+    Genicam(Arc<dyn GenicamOpener>),
 }
 
 /// Deadline for opening a link (physical time).
@@ -249,7 +252,7 @@ pub async fn build_rig(
         })?;
         match (dev.kind, link) {
             (DeviceKind::Axis | DeviceKind::Arm, link @ Link::Line(_))
-            | (DeviceKind::Camera, link @ Link::Usb(_)) => {
+            | (DeviceKind::Camera, link @ (Link::Usb(_) | Link::Genicam(_))) => {
                 wiring.push((name, Wiring::Own(dev, link)));
             }
             (
@@ -480,6 +483,31 @@ pub(crate) async fn connect_device(
                 })),
                 identity,
             ))
+        }
+        (DeviceKind::Camera, Link::Genicam(opener)) => {
+            let Some(cfg) = GenicamConfig::of(name, dev) else {
+                return Err(wrong_transport(name, dev));
+            };
+            let format = cfg.pixel_format;
+            let [w, h] = cfg.size;
+            let source = cfg.trigger_source.clone();
+            let (cam, id) = GenicamCamera::connect(cfg, opener, clock.clone()).await?;
+            tracing::info!(
+                device = %name,
+                vendor = %id.vendor,
+                model = %id.model,
+                serial = %id.serial,
+                "GenICam camera connected"
+            );
+            let identity = Identity::usable(format!(
+                "GenICam camera {} {}, serial {}, version {}; {format} {w}x{h}, trigger {source}; at {}",
+                id.vendor,
+                id.model,
+                id.serial,
+                id.version,
+                cam.describe()
+            ));
+            Ok((Connected::Camera(Box::new(cam)), identity))
         }
         _ => Err(wrong_transport(name, dev)),
     }

@@ -189,6 +189,8 @@ pub async fn serve(
                     protocol: "PTP over TCP".into(),
                 });
             }
+            // The simulator's cameras are PTP cameras; it serves no GenICam.
+            Link::Genicam(_) => {}
         }
     }
     // The faults are the served firmware's business, not the client's.

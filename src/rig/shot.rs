@@ -260,6 +260,7 @@ impl RenderOutput {
             height: self.rendered.height,
             bit_depth: self.rendered.bit_depth,
             pixels: self.rendered.pixels.clone(),
+            device: None,
         }
     }
 

@@ -703,6 +703,7 @@ mod tests {
                 status_registers,
             },
             Link::Usb(o) => Link::Usb(Arc::new(SlowPipe(o, c, delay))),
+            genicam @ Link::Genicam(_) => genicam,
         }
     }
 

@@ -189,6 +189,10 @@ pub struct FrameEntry {
     /// Laser frames: source, and the tilt measured around the exposure.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub laser: Option<crate::schedule::laser::LaserStep>,
+    /// The camera's own frame id, timestamp and pixel format, for cameras
+    /// that report them (GenICam); absent otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub device: Option<crate::rig::hal::DeviceFrameInfo>,
 }
 
 /// The run's last known state, replaced atomically on every change.
@@ -437,6 +441,7 @@ impl RunDir {
         entry.width = frame.width;
         entry.height = frame.height;
         entry.bit_depth = frame.bit_depth;
+        entry.device = frame.device.clone();
         Ok(entry)
     }
 
@@ -698,6 +703,7 @@ mod tests {
             height: 0,
             bit_depth: 0,
             laser: None,
+            device: None,
         }
     }
 
@@ -710,6 +716,7 @@ mod tests {
                 height: 2,
                 bit_depth: depth,
                 pixels: vec![0, 1, max, 7, 100, max / 2],
+                device: None,
             };
             let bytes = encode_png(&f).unwrap_or_default();
             let (w, h, px) = crate::rig::hal::decode_png(&bytes).unwrap_or_else(|e| panic!("{e}"));

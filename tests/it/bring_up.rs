@@ -15,7 +15,7 @@ use rigd::rig::hal::Lamp;
 use rigd_core::Clock;
 
 /// `rigd rig check --profile FILE [--json]`: exit code and stdout.
-fn rig_check(profile: &Path, json: bool) -> (i32, String) {
+pub(crate) fn rig_check(profile: &Path, json: bool) -> (i32, String) {
     let mut cmd = rigd();
     cmd.args(["rig", "check", "--profile"]).arg(profile);
     if json {
@@ -28,21 +28,21 @@ fn rig_check(profile: &Path, json: bool) -> (i32, String) {
     (o.status.code().unwrap_or(-1), stdout)
 }
 
-fn line_of<'a>(out: &'a str, device: &str) -> &'a str {
+pub(crate) fn line_of<'a>(out: &'a str, device: &str) -> &'a str {
     out.lines()
         .find(|l| l.split_whitespace().nth(1) == Some(device))
         .unwrap_or_else(|| panic!("no line for {device}:\n{out}"))
 }
 
 /// A profile as TOML, edited in place.
-fn edit(path: &Path, out: &Path, f: impl FnOnce(&mut toml::Table)) {
+pub(crate) fn edit(path: &Path, out: &Path, f: impl FnOnce(&mut toml::Table)) {
     let text = std::fs::read_to_string(path).expect("read profile");
     let mut t: toml::Table = text.parse().expect("profile is TOML");
     f(&mut t);
     std::fs::write(out, toml::to_string(&t).expect("write TOML")).expect("write profile");
 }
 
-fn device<'a>(t: &'a mut toml::Table, name: &str) -> &'a mut toml::Table {
+pub(crate) fn device<'a>(t: &'a mut toml::Table, name: &str) -> &'a mut toml::Table {
     t.get_mut("devices")
         .and_then(|d| d.get_mut(name))
         .and_then(|d| d.as_table_mut())

@@ -20,6 +20,8 @@ mod estop;
 mod fault_kinds;
 mod faults;
 mod full_runs;
+#[cfg(feature = "genicam")]
+mod genicam;
 mod grbl_e2e;
 mod grbl_transcripts;
 mod laser_mdf;
@@ -37,3 +39,14 @@ mod sim_serve;
 mod slurm;
 mod stability;
 mod tradeoff;
+
+/// The GenICam tests (tests/it/genicam.rs) need a rigd built with Aravis:
+/// without the feature they would vanish from the suite, so this fails
+/// instead, saying how to run them.
+#[cfg(not(feature = "genicam"))]
+#[test]
+fn genicam_tests_need_the_genicam_feature() {
+    panic!(
+        "the GenICam tests need `--features genicam` and Debian's libaravis-dev and aravis-tools: run scripts/test.sh, which installs them and passes the feature"
+    );
+}

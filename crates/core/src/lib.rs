@@ -3,7 +3,8 @@
 //! axis or robot joint ([`motion`]), directions on the hemisphere with the
 //! vector and rotation helpers around them ([`geometry`]), and the physical
 //! things both the simulator and the processing model: the camera
-//! ([`camera`]) and the sample holder with its markers ([`holder`]).
+//! ([`camera`]) and the sample holder with its markers ([`holder`]); and
+//! the pixel formats of raw frames ([`pixel_format`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
@@ -15,7 +16,9 @@ pub mod clock;
 pub mod geometry;
 pub mod holder;
 pub mod motion;
+pub mod pixel_format;
 
 pub use clock::{Clock, DeadlineElapsed};
 pub use geometry::Direction;
 pub use motion::Trapezoid;
+pub use pixel_format::PixelFormat;

@@ -3,6 +3,9 @@
 //! so tests can connect it to the simulated firmware in `rigd-sim`.
 
 pub mod acl;
+#[cfg(feature = "genicam")]
+pub mod aravis;
+pub mod genicam;
 pub mod grbl;
 pub mod modbus;
 pub mod ptp;

@@ -328,6 +328,7 @@ impl<P: UsbPipe> PtpCamera<P> {
             height: raw.height,
             bit_depth: raw.bit_depth,
             pixels: raw.pixels,
+            device: None,
         };
         frame
             .validate(&self.name)

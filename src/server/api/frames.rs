@@ -148,6 +148,7 @@ mod tests {
             height: 300,
             bit_depth: 12,
             pixels: (0..600 * 300).map(|i| (i % 4096) as u16).collect(),
+            device: None,
         };
         let png16 = crate::rig::hal::encode_png(&frame).expect("encode");
         let out = make_preview(&png16, 256).expect("preview");
