@@ -1187,11 +1187,7 @@ mod tests {
     /// it that disagree are refused, naming both; another module may differ.
     #[test]
     fn devices_on_one_module_agree_about_its_status_registers() {
-        let text = EMBEDDED
-            .iter()
-            .find(|(n, _)| *n == "virtex-photometric-stereo")
-            .map(|(_, t)| *t)
-            .unwrap_or_default();
+        let text = virtex_text();
         let rtu = "transport = { type = \"modbus_rtu\", port = \"/dev/ttyUSB1\", baud = 19200, unit = 1 }";
         assert_eq!(text.matches(rtu).count(), 3, "fixture drifted");
         let coil_only = rtu.replace(" }", ", status_registers = false }");
@@ -1217,14 +1213,19 @@ mod tests {
         Profile::parse(&other, "other.toml").expect("two modules");
     }
 
-    /// The VirTex camera moved to a GenICam transport, with `extra` lines
-    /// in its table and the protocol and bit depth given.
-    fn genicam_virtex(protocol: &str, bit_depth: u8, extra: &str) -> Result<Profile, ProfileError> {
-        let text = EMBEDDED
+    /// The embedded VirTex profile's text.
+    fn virtex_text() -> &'static str {
+        EMBEDDED
             .iter()
             .find(|(n, _)| *n == "virtex-photometric-stereo")
             .map(|(_, t)| *t)
-            .unwrap_or_default();
+            .unwrap_or_default()
+    }
+
+    /// The VirTex camera moved to a GenICam transport, with `extra` lines
+    /// in its table and the protocol and bit depth given.
+    fn genicam_virtex(protocol: &str, bit_depth: u8, extra: &str) -> Result<Profile, ProfileError> {
+        let text = virtex_text();
         let usb = "protocol = \"ptp\"\ntransport = { type = \"usb\", vendor_id = 0x04a9, product_id = 0x3200 }";
         assert!(text.contains(usb), "fixture drifted");
         let genicam = format!(

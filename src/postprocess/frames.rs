@@ -2,6 +2,7 @@
 
 use std::path::{Path, PathBuf};
 
+use rigd_process::demosaic;
 use rigd_process::image_io::Image;
 
 use super::ProcessError;
@@ -42,11 +43,74 @@ impl RunFrames {
             path: path.clone(),
             message,
         })?;
-        let full = ((1u32 << entry.bit_depth.clamp(1, 16)) - 1) as f32;
-        let mut img = Image::new(w as usize, h as usize, 1);
-        for (d, p) in img.data.iter_mut().zip(pixels) {
-            *d = p as f32 / full;
+        linear_grey(entry, w, h, &pixels).map_err(|e| ProcessError::Frame {
+            path,
+            message: e.to_string(),
+        })
+    }
+}
+
+/// A frame's samples as linear grey in [0, 1]. A Bayer frame is stored as
+/// its mosaic; until the colour pipeline lands, processing reads it as
+/// grey (see `rigd_process::demosaic`).
+fn linear_grey(
+    entry: &FrameEntry,
+    w: u32,
+    h: u32,
+    pixels: &[u16],
+) -> Result<Image, demosaic::TooSmall> {
+    let full = ((1u32 << entry.bit_depth.clamp(1, 16)) - 1) as f32;
+    let mut img = Image::new(w as usize, h as usize, 1);
+    for (d, &p) in img.data.iter_mut().zip(pixels) {
+        *d = p as f32 / full;
+    }
+    let cfa = entry
+        .device
+        .as_ref()
+        .and_then(|d| d.pixel_format.parse::<rigd_core::PixelFormat>().ok())
+        .and_then(|f| f.cfa());
+    if let Some(cfa) = cfa {
+        let rgb = demosaic::bilinear(&img.data, img.width, img.height, cfa)?;
+        img.data = demosaic::luminance(&rgb);
+    }
+    Ok(img)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn entry(pixel_format: Option<&str>) -> FrameEntry {
+        let d = serde_json::json!({"theta_deg": 0.0, "phi_deg": 0.0});
+        let mut e = serde_json::json!({
+            "index": 0, "trigger": 0, "file": "frames/000000.png", "sha256": "",
+            "light": d, "view": d, "achieved_light": d, "achieved_view": d,
+            "camera": "camera", "exposure_s": 0.01, "t_s": 0.0,
+            "positions": {"axes": {}, "arm": null, "lamp": "lamp0"},
+            "width": 4, "height": 2, "bit_depth": 8
+        });
+        if let Some(f) = pixel_format {
+            e["device"] = serde_json::json!({"frame_id": 1, "timestamp_ns": 2, "pixel_format": f});
         }
-        Ok(img)
+        serde_json::from_value(e).expect("a frame entry")
+    }
+
+    #[test]
+    fn a_bayer_mosaic_reads_as_grey_and_a_mono_frame_as_it_is() {
+        // Red 255, green 51, blue 0 behind an RGGB tile.
+        let mosaic = [255, 51, 255, 51, 51, 0, 51, 0];
+        let grey = linear_grey(&entry(Some("BayerRG8")), 4, 2, &mosaic).expect("grey");
+        let want = (0.25 * 255.0 + 0.5 * 51.0) / 255.0;
+        assert!(
+            grey.data.iter().all(|v| (v - want).abs() < 1e-6),
+            "{:?}",
+            grey.data
+        );
+        for format in [None, Some("Mono8")] {
+            let mono = linear_grey(&entry(format), 4, 2, &mosaic).expect("mono");
+            assert_eq!(mono.data[1], 51.0 / 255.0, "{format:?}");
+        }
+        let e = linear_grey(&entry(Some("BayerRG8")), 4, 1, &mosaic[..4]).expect_err("1 row");
+        assert_eq!(e.height, 1);
     }
 }

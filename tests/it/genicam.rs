@@ -133,9 +133,25 @@ fn virtex_on_fake_camera(
     (server, profile)
 }
 
+/// `rigd run --profile PROFILE --out RUN`: the profile's default plan (the
+/// VirTex lamps) on its hardware.
+fn capture(profile: &Path, run: &Path) -> std::process::Output {
+    rigd()
+        .args(["run", "--profile"])
+        .arg(profile)
+        .args(["--sample", "knit", "--progress", "none", "--out"])
+        .arg(run)
+        .output()
+        .expect("rigd run")
+}
+
 /// The manifest's frames: every one labelled by the camera, in its
 /// format and size, ids rising within one camera session.
 fn assert_camera_labels(run: &Path, frames: usize) -> Vec<u64> {
+    assert_camera_frames(run, frames, "Mono8")
+}
+
+fn assert_camera_frames(run: &Path, frames: usize, pixel_format: &str) -> Vec<u64> {
     let m = assert_complete_run(run, frames);
     let mut ids = Vec::new();
     for f in &m.frames {
@@ -143,7 +159,7 @@ fn assert_camera_labels(run: &Path, frames: usize) -> Vec<u64> {
             .device
             .as_ref()
             .unwrap_or_else(|| panic!("frame {} has no camera label", f.index));
-        assert_eq!(d.pixel_format, "Mono8");
+        assert_eq!(d.pixel_format, pixel_format);
         assert!(d.timestamp_ns > 0, "{d:?}");
         assert_eq!((f.width, f.height, f.bit_depth), (64, 48, 8));
         let png = std::fs::read(run.join(&f.file)).expect("frame file");
@@ -178,19 +194,46 @@ fn a_virtex_capture_takes_its_frames_from_aravis_fake_camera() {
     }
 
     let run = tmp.path().join("run");
-    let o = rigd()
-        .args(["run", "--profile"])
-        .arg(&profile)
-        .args(["--sample", "knit", "--progress", "none", "--out"])
-        .arg(&run)
-        .output()
-        .expect("rigd run");
+    let o = capture(&profile, &run);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let ids = assert_camera_labels(&run, 3);
     let mut sorted = ids.clone();
     sorted.sort_unstable();
     sorted.dedup();
     assert_eq!(sorted.len(), 3, "three distinct camera frames: {ids:?}");
+}
+
+/// A Bayer camera's frames are stored as their raw mosaic, labelled with
+/// the colour filter array, and processing reads them as grey through the
+/// bilinear demosaic.
+#[test]
+fn a_bayer_capture_is_stored_as_its_mosaic_and_processed_as_grey() {
+    let _port = one_camera_at_a_time();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let _camera = fake_camera("RIGD-GV6", 0, &tmp.path().join("camera.log"));
+    let (_server, profile) = virtex_on_fake_camera(tmp.path(), "BayerRG8", 8, 20.0);
+    let run = tmp.path().join("run");
+    let o = capture(&profile, &run);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_camera_frames(&run, 3, "BayerRG8");
+    let frames = rigd::postprocess::frames::RunFrames::open(&run).expect("run");
+    for e in &frames.entries {
+        let png = std::fs::read(run.join(&e.file)).expect("frame");
+        let (_, _, mosaic) = rigd::rig::hal::decode_png(&png).expect("PNG");
+        let grey = frames.image(e).expect("a grey image");
+        assert_eq!((grey.width, grey.height, grey.channels), (64, 48, 1));
+        assert!(grey.data.iter().all(|v| (0.0..=1.0).contains(v)));
+        // The demosaic smooths the mosaic: no grey pixel lies outside the
+        // range of the samples around it.
+        let (lo, hi) = (
+            f32::from(*mosaic.iter().min().unwrap_or(&0)) / 255.0,
+            f32::from(*mosaic.iter().max().unwrap_or(&255)) / 255.0,
+        );
+        assert!(grey
+            .data
+            .iter()
+            .all(|v| (lo - 1e-6..=hi + 1e-6).contains(v)));
+    }
 }
 
 /// A camera asked for a pixel format it does not have: `rig check` names
@@ -218,13 +261,7 @@ fn a_pixel_format_the_camera_refuses_is_named_with_what_it_offers() {
     ] {
         assert!(line.contains(part), "{part}\n{line}");
     }
-    let o = rigd()
-        .args(["run", "--profile"])
-        .arg(&profile)
-        .args(["--sample", "knit", "--progress", "none", "--out"])
-        .arg(tmp.path().join("run"))
-        .output()
-        .expect("rigd run");
+    let o = capture(&profile, &tmp.path().join("run"));
     assert_eq!(o.status.code(), Some(1));
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("PixelFormat = Mono12"), "{err}");
@@ -290,13 +327,7 @@ fn a_capture_on_a_lossy_camera_completes_with_whole_frames() {
     let _camera = fake_camera("RIGD-GV4", 10, &tmp.path().join("camera.log"));
     let (_server, profile) = virtex_on_fake_camera(tmp.path(), "Mono8", 8, 20.0);
     let run = tmp.path().join("run");
-    let o = rigd()
-        .args(["run", "--profile"])
-        .arg(&profile)
-        .args(["--sample", "knit", "--progress", "none", "--out"])
-        .arg(&run)
-        .output()
-        .expect("rigd run");
+    let o = capture(&profile, &run);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(o.status.success(), "{err}");
     eprintln!(

@@ -5,6 +5,7 @@
 #![warn(missing_docs)]
 
 pub mod btf;
+pub mod demosaic;
 pub mod directions;
 pub mod export;
 pub mod image_io;

@@ -569,6 +569,82 @@ mod tests {
         assert!(e.message.contains("--features genicam"), "{e}");
     }
 
+    /// A camera whose trigger returns only once `expected` triggers are
+    /// in flight at the same moment (or fails after 10 s).
+    struct Rendezvous {
+        arrived: Mutex<usize>,
+        all_in: std::sync::Condvar,
+        expected: usize,
+    }
+
+    struct TogetherSession(Arc<Rendezvous>);
+
+    impl GenicamSession for TogetherSession {
+        fn identity(&self) -> GenicamIdentity {
+            GenicamIdentity::default()
+        }
+        fn set_exposure_us(&mut self, _us: f64) -> Result<(), SessionError> {
+            Ok(())
+        }
+        fn trigger(&mut self) -> Result<(), SessionError> {
+            let r = &self.0;
+            let mut n = r.arrived.lock().unwrap();
+            *n += 1;
+            r.all_in.notify_all();
+            let (n, wait) = r
+                .all_in
+                .wait_timeout_while(n, Duration::from_secs(10), |n| *n < r.expected)
+                .unwrap();
+            if wait.timed_out() {
+                return Err(SessionError::new(
+                    ErrorKind::Timeout,
+                    format!("only {} of {} triggers together", *n, r.expected),
+                ));
+            }
+            Ok(())
+        }
+        fn next_buffer(&mut self, _t: Duration) -> Result<Option<StreamBuffer>, SessionError> {
+            Ok(None)
+        }
+    }
+
+    struct TogetherOpener(Arc<Rendezvous>);
+
+    impl GenicamOpener for TogetherOpener {
+        fn describe(&self) -> String {
+            "camera on the arc".into()
+        }
+        fn open(&self, _cfg: &GenicamConfig) -> Result<Box<dyn GenicamSession>, SessionError> {
+            Ok(Box::new(TogetherSession(self.0.clone())))
+        }
+    }
+
+    /// The cameras of one trigger, exposed together as the engine does
+    /// (`join_all`), have their software triggers in flight at once: no
+    /// camera waits for another's trigger (the MSRA arc of Wang et al.
+    /// fires its cameras together).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_cameras_of_one_trigger_fire_together() {
+        let arc = 4;
+        let meet = Arc::new(Rendezvous {
+            arrived: Mutex::new(0),
+            all_in: std::sync::Condvar::new(),
+            expected: arc,
+        });
+        let mut cams = Vec::new();
+        for _ in 0..arc {
+            let opener = Arc::new(TogetherOpener(meet.clone()));
+            let (cam, _) = GenicamCamera::connect(cfg(PixelFormat::Mono(8)), opener, Clock::real())
+                .await
+                .expect("connect");
+            cams.push(cam);
+        }
+        let fired = futures::future::join_all(cams.iter_mut().map(|c| c.expose())).await;
+        for r in fired {
+            r.expect("every trigger met the others");
+        }
+    }
+
     #[test]
     fn the_buffer_timeout_grows_with_the_exposure_and_survives_nonsense() {
         let c = cfg(PixelFormat::Mono(8));
