@@ -491,7 +491,17 @@ pub(crate) async fn connect_device(
             let format = cfg.pixel_format;
             let [w, h] = cfg.size;
             let source = cfg.trigger_source.clone();
-            let (cam, id) = GenicamCamera::connect(cfg, opener, clock.clone()).await?;
+            let connect = GenicamCamera::connect(cfg, opener, clock.clone());
+            let (cam, id) = match clock.deadline(OPEN_TIMEOUT, connect).await {
+                Ok(connected) => connected?,
+                Err(_) => {
+                    return Err(DeviceError::new(
+                        name,
+                        ErrorKind::Timeout,
+                        format!("opening the GenICam camera took over {OPEN_TIMEOUT:?}"),
+                    ))
+                }
+            };
             tracing::info!(
                 device = %name,
                 vendor = %id.vendor,

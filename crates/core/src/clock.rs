@@ -87,6 +87,22 @@ impl Clock {
         }
     }
 
+    /// Whether `physical` has passed since `since` (a reading of
+    /// [`Clock::now`]), by the same rule as [`Clock::deadline`]: on a
+    /// sped-up clock, also at least [`MIN_WALL_DEADLINE`] of wall time. For
+    /// polling loops that give up after a limit but must not cancel a
+    /// request in flight to do so.
+    pub fn has_passed(&self, since: Duration, physical: Duration) -> bool {
+        let elapsed = self.now().saturating_sub(since);
+        if elapsed < physical {
+            return false;
+        }
+        if self.speed > 1.0 && !self.virtual_time {
+            return elapsed.div_f64(self.speed) >= MIN_WALL_DEADLINE;
+        }
+        true
+    }
+
     /// Runs `fut` with a physical deadline. On a sped-up clock the
     /// deadline never ends sooner than [`MIN_WALL_DEADLINE`] of wall time:
     /// the software's own latency (scheduling on a loaded machine, a pipe's
@@ -119,6 +135,27 @@ mod tests {
         clock.sleep(Duration::from_secs(3600)).await;
         assert!(clock.now() >= Duration::from_secs(3600));
         assert!(wall.elapsed() < Duration::from_secs(5));
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_limit_passes_in_physical_time_with_the_wall_floor_when_sped_up() {
+        let limit = Duration::from_secs(182);
+        // Virtual time: exactly the physical limit.
+        let clock = Clock::virtual_time();
+        let t0 = clock.now();
+        clock.sleep(Duration::from_secs(181)).await;
+        assert!(!clock.has_passed(t0, limit));
+        clock.sleep(Duration::from_secs(1)).await;
+        assert!(clock.has_passed(t0, limit));
+        // 1000x: 182 s physical is 0.182 s of wall time, under the floor,
+        // so a loaded machine's millisecond stalls are not a dead lamp.
+        let fast = Clock::scaled(1000.0);
+        let t0 = fast.now();
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        assert!(fast.now() - t0 >= limit);
+        assert!(!fast.has_passed(t0, limit), "before the wall floor");
+        tokio::time::sleep(MIN_WALL_DEADLINE).await;
+        assert!(fast.has_passed(t0, limit));
     }
 
     #[tokio::test(start_paused = true)]

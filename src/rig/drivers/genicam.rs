@@ -252,6 +252,23 @@ impl GenicamCamera {
     }
 }
 
+impl Drop for GenicamCamera {
+    fn drop(&mut self) {
+        // Closing a session stops the acquisition: a control call that can
+        // take the transport's timeouts on a vanished camera, so it runs on
+        // the blocking pool, not on the runtime's worker. A call still in
+        // flight holds the state, and the session closes where that call
+        // lets go of it.
+        let session = match self.state.try_lock() {
+            Ok(mut st) => st.session.take(),
+            Err(_) => None,
+        };
+        if let (Some(session), Ok(rt)) = (session, tokio::runtime::Handle::try_current()) {
+            rt.spawn_blocking(move || drop(session));
+        }
+    }
+}
+
 #[async_trait]
 impl Camera for GenicamCamera {
     async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError> {
