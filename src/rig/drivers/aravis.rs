@@ -10,7 +10,7 @@ use std::time::Duration;
 
 use aravis::glib;
 use aravis::prelude::*;
-use aravis::{AcquisitionMode, Buffer, BufferStatus, Camera, Stream};
+use aravis::{AcquisitionMode, Buffer, BufferPayloadType, BufferStatus, Camera, Stream};
 
 use super::genicam::{
     GenicamConfig, GenicamIdentity, GenicamOpener, GenicamSession, SessionError, StreamBuffer,
@@ -245,7 +245,12 @@ impl GenicamSession for AravisSession {
             return Ok(None);
         };
         let status = b.status();
-        let out = if status == BufferStatus::Success {
+        let payload = b.payload_type();
+        let image = matches!(
+            payload,
+            BufferPayloadType::Image | BufferPayloadType::ExtendedChunkData
+        );
+        let out = if status == BufferStatus::Success && image {
             let (w, h) = (b.image_width(), b.image_height());
             StreamBuffer {
                 complete: Ok(()),
@@ -255,10 +260,16 @@ impl GenicamSession for AravisSession {
                 data: b.image_data(),
             }
         } else {
-            // Only the status of a failed buffer is meaningful: its image
-            // fields are not filled in.
+            // Only the status of a failed buffer (or the type of a payload
+            // that is no raw image) is meaningful: no image fields are
+            // filled in.
+            let why = if status == BufferStatus::Success {
+                format!("a {payload:?} payload, not a raw image")
+            } else {
+                format!("{status:?}")
+            };
             StreamBuffer {
-                complete: Err(format!("{status:?}")),
+                complete: Err(why),
                 frame_id: b.frame_id(),
                 timestamp_ns: 0,
                 size: [0, 0],
