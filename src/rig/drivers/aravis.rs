@@ -73,6 +73,13 @@ fn refused(
     )
 }
 
+/// The camera's `ExposureTime` range, for a refusal's message.
+fn exposure_range(cam: &Camera) -> Option<String> {
+    cam.exposure_time_bounds()
+        .ok()
+        .map(|(lo, hi)| format!("{lo} to {hi} µs"))
+}
+
 impl GenicamOpener for AravisOpener {
     fn describe(&self) -> String {
         format!("GenICam camera `{}` (Aravis)", self.id)
@@ -144,10 +151,7 @@ impl GenicamOpener for AravisOpener {
             })?;
         }
         cam.set_exposure_time(cfg.exposure_s * 1e6).map_err(|e| {
-            let offers = cam
-                .exposure_time_bounds()
-                .ok()
-                .map(|(lo, hi)| format!("{lo} to {hi} µs"));
+            let offers = exposure_range(&cam);
             refused(
                 "ExposureTime",
                 &format!("{} µs", cfg.exposure_s * 1e6),
@@ -212,11 +216,7 @@ impl GenicamSession for AravisSession {
 
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<(), SessionError> {
         self.cam.set_exposure_time(exposure_us).map_err(|e| {
-            let offers = self
-                .cam
-                .exposure_time_bounds()
-                .ok()
-                .map(|(lo, hi)| format!("{lo} to {hi} µs"));
+            let offers = exposure_range(&self.cam);
             refused(
                 "ExposureTime",
                 &format!("{exposure_us} µs"),
