@@ -33,6 +33,7 @@ fn frame() -> Frame {
         bit_depth: 12,
         pixels,
         device: None,
+        original: None,
     }
 }
 

@@ -44,6 +44,14 @@ if ! command -v arv-fake-gv-camera-0.8 >/dev/null || ! pkg-config --exists aravi
     apt_install aravis-tools libaravis-dev libusb-1.0-0-dev pkg-config
 fi
 
+# Camera files (tests/it/camera_files.rs): every DNG a simulated PTP run
+# stores is opened by LibRaw's sample programs (raw-identify,
+# unprocessed_raw), a raw decoder independent of the one rigd uses.
+if ! command -v raw-identify >/dev/null || ! command -v unprocessed_raw >/dev/null; then
+    echo "== installing libraw-bin (for tests/it/camera_files.rs)"
+    apt_install libraw-bin
+fi
+
 # The Modbus tests run tests/support/relay_module.py, a relay module served by
 # pymodbus, from a venv of their own (target/ is not committed). It is made
 # again only when missing, broken, or at another pymodbus version.

@@ -376,6 +376,11 @@ pub struct Intrinsics {
     pub focal_px: f64,
     /// Bits per pixel sample of the raw frames, 8 to 16.
     pub bit_depth: u8,
+    /// The sensor's colour filter array, `"RGGB"`, `"GRBG"`, `"GBRG"` or
+    /// `"BGGR"`, read from the frame's first pixel; absent for a
+    /// monochrome sensor. A raw frame with another layout is refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cfa: Option<rigd_core::Cfa>,
 }
 
 /// What one frame costs the camera, in seconds.
@@ -1118,6 +1123,16 @@ impl Device {
                 ),
             ));
         }
+        // The pixel format decides a GenICam camera's filter array; the
+        // profile's `intrinsics.cfa`, where given, must say the same.
+        if let (true, Some(cfa)) = (on_genicam, self.intrinsics.and_then(|i| i.cfa)) {
+            if format.cfa() != Some(cfa) {
+                return Err((
+                    format!("{key}.genicam.pixel_format"),
+                    format!("{format} is not behind the {cfa} filter array `intrinsics.cfa` names"),
+                ));
+            }
+        }
         if let Some(g) = settings.and_then(|g| g.gain_db) {
             if !g.is_finite() {
                 return Err((
@@ -1225,16 +1240,42 @@ mod tests {
     /// The VirTex camera moved to a GenICam transport, with `extra` lines
     /// in its table and the protocol and bit depth given.
     fn genicam_virtex(protocol: &str, bit_depth: u8, extra: &str) -> Result<Profile, ProfileError> {
+        let text = genicam_virtex_text(protocol, extra)
+            .replace("bit_depth = 12", &format!("bit_depth = {bit_depth}"));
+        Profile::parse(&text, "genicam.toml")
+    }
+
+    /// The VirTex profile's text with its camera moved to a GenICam transport.
+    fn genicam_virtex_text(protocol: &str, extra: &str) -> String {
         let text = virtex_text();
         let usb = "protocol = \"ptp\"\ntransport = { type = \"usb\", vendor_id = 0x04a9, product_id = 0x3200 }";
         assert!(text.contains(usb), "fixture drifted");
         let genicam = format!(
             "protocol = \"{protocol}\"\ntransport = {{ type = \"genicam\", id = \"192.168.1.20\" }}\n{extra}"
         );
-        let text = text
-            .replace(usb, &genicam)
-            .replace("bit_depth = 12", &format!("bit_depth = {bit_depth}"));
-        Profile::parse(&text, "genicam.toml")
+        text.replace(usb, &genicam)
+    }
+
+    #[test]
+    fn a_genicam_pixel_format_agrees_with_the_named_filter_array() {
+        let with_cfa = |cfa: &str, format: &str| {
+            let text = genicam_virtex_text(
+                "genicam",
+                &format!("genicam = {{ pixel_format = \"{format}\" }}"),
+            )
+            .replace("bit_depth = 12", &format!("bit_depth = 8, cfa = \"{cfa}\""));
+            Profile::parse(&text, "genicam.toml")
+        };
+        let p = with_cfa("RGGB", "BayerRG8").expect("the same tile");
+        assert_eq!(
+            p.devices["camera"].intrinsics.and_then(|i| i.cfa),
+            Some(rigd_core::Cfa::Rggb)
+        );
+        for format in ["BayerBG8", "Mono8"] {
+            let e = with_cfa("RGGB", format).expect_err(format);
+            assert_eq!(e.key, "devices.camera.genicam.pixel_format", "{e}");
+            assert!(e.message.contains("RGGB filter array"), "{e}");
+        }
     }
 
     #[test]

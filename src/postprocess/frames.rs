@@ -6,6 +6,7 @@ use rigd_process::demosaic;
 use rigd_process::image_io::Image;
 
 use super::ProcessError;
+use crate::rig::camera_file::{self, CameraImage};
 use crate::rig::hal::decode_png;
 use crate::store::{read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
 
@@ -39,15 +40,39 @@ impl RunFrames {
             path: path.clone(),
             message: e.to_string(),
         })?;
-        let (w, h, pixels) = decode_png(&bytes).map_err(|message| ProcessError::Frame {
+        let frame_err = |message: String| ProcessError::Frame {
             path: path.clone(),
             message,
-        })?;
-        linear_grey(entry, w, h, &pixels).map_err(|e| ProcessError::Frame {
-            path,
-            message: e.to_string(),
-        })
+        };
+        if !bytes.starts_with(PNG_MAGIC) {
+            let img = camera_file::decode(&bytes).map_err(|e| frame_err(e.to_string()))?;
+            return camera_file_grey(&img).map_err(|e| frame_err(e.to_string()));
+        }
+        let (w, h, pixels) = decode_png(&bytes).map_err(frame_err)?;
+        linear_grey(entry, w, h, &pixels).map_err(|e| frame_err(e.to_string()))
     }
+}
+
+/// The first bytes of every PNG file: how rigd's own frames are told from
+/// camera files.
+const PNG_MAGIC: &[u8] = b"\x89PNG\r\n\x1a\n";
+
+/// A camera file's image as linear grey in [0, 1]: black level off, scaled
+/// by the white level, sRGB decoded; a Bayer mosaic demosaiced and RGB
+/// weighted as `rigd_process::demosaic::luminance` weights it.
+pub fn camera_file_grey(img: &CameraImage) -> Result<Image, demosaic::TooSmall> {
+    let (w, h) = (img.width as usize, img.height as usize);
+    let linear = img.linear();
+    let mut out = Image::new(w, h, 1);
+    out.data = match (img.channels, img.cfa) {
+        (3, _) => linear
+            .chunks_exact(3)
+            .map(|c| 0.25 * c[0] + 0.5 * c[1] + 0.25 * c[2])
+            .collect(),
+        (_, Some(cfa)) => demosaic::luminance(&demosaic::bilinear(&linear, w, h, cfa)?),
+        _ => linear,
+    };
+    Ok(out)
 }
 
 /// A frame's samples as linear grey in [0, 1]. A Bayer frame is stored as

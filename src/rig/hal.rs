@@ -85,6 +85,21 @@ pub struct Frame {
     /// What the camera said of the frame itself, where it says anything
     /// (GenICam stream buffers); None for cameras that do not.
     pub device: Option<DeviceFrameInfo>,
+    /// The file the camera delivered (a PTP camera's DNG, raw or JPEG),
+    /// which the store keeps as the frame; None for cameras that deliver
+    /// bare samples, stored as PNG.
+    pub original: Option<OriginalFile>,
+}
+
+/// A frame as a camera's own file, kept byte for byte: `pixels` are what
+/// it decodes to, this is what it is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OriginalFile {
+    /// The file's bytes, as delivered.
+    pub bytes: Vec<u8>,
+    /// The stored file's extension (lowercase, one of
+    /// [`camera_file::EXTENSIONS`](super::camera_file::EXTENSIONS)).
+    pub extension: &'static str,
 }
 
 /// A frame as the camera labelled it: recorded in the manifest beside
@@ -297,6 +312,7 @@ mod tests {
             bit_depth: 12,
             pixels: vec![0, 1, 4095, 7],
             device: None,
+            original: None,
         };
         assert!(f.validate("cam").is_ok());
         f.pixels[1] = 4096;

@@ -8,6 +8,7 @@
 //! which is how a run resumes after a disconnect once the operator has
 //! fixed the cable.
 
+pub mod camera_file;
 pub mod check;
 pub mod drivers;
 pub mod hal;
@@ -401,6 +402,16 @@ pub async fn build_rig(
 }
 
 /// Opens and connects one line device or camera, and says what it found.
+/// The PTP driver's settings for camera `name`: the default deadlines, and
+/// the sensor layout its profile describes.
+fn ptp_config(name: &str, dev: &Device) -> PtpConfig {
+    PtpConfig {
+        cfa: dev.intrinsics.and_then(|i| i.cfa),
+        cfa_key: format!("devices.{name}.intrinsics.cfa"),
+        ..PtpConfig::default()
+    }
+}
+
 pub(crate) async fn connect_device(
     name: &str,
     dev: &Device,
@@ -462,7 +473,8 @@ pub(crate) async fn connect_device(
         }
         (DeviceKind::Camera, Link::Usb(opener)) => {
             let pipe = open_pipe(clock, name, opener.as_ref()).await?;
-            let mut cam = PtpCamera::new(name, pipe, clock.clone(), PtpConfig::default());
+            let config = ptp_config(name, dev);
+            let mut cam = PtpCamera::new(name, pipe, clock.clone(), config.clone());
             let info = cam
                 .connect()
                 .await
@@ -476,6 +488,7 @@ pub(crate) async fn connect_device(
                 Connected::Camera(Box::new(LinkedCamera {
                     name: name.to_string(),
                     cam,
+                    config,
                     opener,
                     clock: clock.clone(),
                     lost: false,
@@ -794,6 +807,8 @@ impl EmergencyStop for BusStop {
 struct LinkedCamera {
     name: String,
     cam: PtpCamera<BoxPipe>,
+    /// The driver's settings, for a reconnect.
+    config: PtpConfig,
     opener: Arc<dyn PipeOpener>,
     clock: Clock,
     lost: bool,
@@ -807,7 +822,7 @@ impl LinkedCamera {
             return Ok(());
         }
         let pipe = open_pipe(&self.clock, &self.name, self.opener.as_ref()).await?;
-        let mut cam = PtpCamera::new(&self.name, pipe, self.clock.clone(), PtpConfig::default());
+        let mut cam = PtpCamera::new(&self.name, pipe, self.clock.clone(), self.config.clone());
         cam.connect()
             .await
             .map_err(|e| DeviceError::new(&self.name, e.kind(), e.to_string()))?;

@@ -261,6 +261,7 @@ impl RenderOutput {
             bit_depth: self.rendered.bit_depth,
             pixels: self.rendered.pixels.clone(),
             device: None,
+            original: None,
         }
     }
 

@@ -385,6 +385,7 @@ pub(crate) fn firmware(
                             readout_s: t.readout_s,
                             transfer_s: t.transfer_s,
                         },
+                        cfa: dev.intrinsics.and_then(|i| i.cfa),
                     },
                     ctx: SimContext::new(clock.clone(), faults.clone()),
                     view: CameraView {

@@ -4,7 +4,9 @@
 //! RUN/run.json          what was asked: profile snapshot, plan, sample, operator, versions, start
 //! RUN/journal.ndjson    one line per image written, appended and fsynced: the source of truth
 //! RUN/state.json        the run's last known state (replaced atomically)
-//! RUN/frames/NNNNNN.png the frames, 16-bit grey PNG (8-bit for 8-bit cameras), raw sensor values
+//! RUN/frames/NNNNNN.png the frames, 16-bit grey PNG (8-bit for 8-bit cameras), raw sensor values;
+//!                       a camera that delivers files (PTP: DNG, raw, JPEG) has its file kept as
+//!                       delivered instead, NNNNNN.dng and so on
 //! RUN/manifest.json     written atomically when the run ends
 //! ```
 //!
@@ -43,7 +45,7 @@ pub const JOURNAL_FILE: &str = "journal.ndjson";
 pub const STATE_FILE: &str = "state.json";
 /// File name of the [`Manifest`], written when the run ends.
 pub const MANIFEST_FILE: &str = "manifest.json";
-/// Folder of the frames, `NNNNNN.png` by image index.
+/// Folder of the frames, `NNNNNN.png` (or the camera file's own extension) by image index.
 pub const FRAMES_DIR: &str = "frames";
 
 /// Why a run directory could not be created, opened, read or written.
@@ -157,9 +159,10 @@ pub struct FrameEntry {
     pub index: usize,
     /// Index of the trigger that took it; images taken together share it.
     pub trigger: usize,
-    /// Path relative to the run directory.
+    /// Path relative to the run directory: `frames/NNNNNN.png` for
+    /// samples rigd encoded, or the camera's own file (`.dng`, `.jpg`, …).
     pub file: String,
-    /// SHA-256 of the frame's PNG file, lowercase hex.
+    /// SHA-256 of the frame's file, lowercase hex.
     pub sha256: String,
     /// Commanded directions, sample frame.
     pub light: Direction,
@@ -315,9 +318,15 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
     hex::encode(Sha256::digest(bytes))
 }
 
-/// Relative path of image `index`'s frame.
+/// Relative path of image `index`'s frame as rigd encodes it (PNG).
 pub fn frame_file(index: usize) -> String {
-    format!("{FRAMES_DIR}/{index:06}.png")
+    frame_file_with(index, "png")
+}
+
+/// Relative path of image `index`'s frame stored with extension `ext`: a
+/// camera file keeps its own (`dng`, `nef`, `jpg`, …).
+pub fn frame_file_with(index: usize, ext: &str) -> String {
+    format!("{FRAMES_DIR}/{index:06}.{ext}")
 }
 
 impl RunDir {
@@ -414,30 +423,39 @@ impl RunDir {
         &self.root
     }
 
-    /// Encodes and writes a frame under its final name (via a temporary),
-    /// returning the entry with its file and checksum filled in. Does not
-    /// journal it: see [`RunDir::append_journal`].
+    /// Writes a frame under its final name (via a temporary), returning
+    /// the entry with its file and checksum filled in: the camera's own
+    /// file byte for byte where it delivered one, else the samples encoded
+    /// as PNG. Does not journal it: see [`RunDir::append_journal`].
     pub fn write_frame(
         root: &Path,
         mut entry: FrameEntry,
         frame: &Frame,
     ) -> Result<FrameEntry, StoreError> {
-        let rel = frame_file(entry.index);
+        let ext = frame.original.as_ref().map_or("png", |o| o.extension);
+        let rel = frame_file_with(entry.index, ext);
         let path = root.join(&rel);
-        let bytes = encode_png(frame).map_err(|why| StoreError::Corrupt {
-            path: path.clone(),
-            why,
-        })?;
+        let encoded;
+        let bytes = match &frame.original {
+            Some(original) => &original.bytes,
+            None => {
+                encoded = encode_png(frame).map_err(|why| StoreError::Corrupt {
+                    path: path.clone(),
+                    why,
+                })?;
+                &encoded
+            }
+        };
         let tmp = root
             .join(FRAMES_DIR)
-            .join(format!(".{:06}.png.tmp", entry.index));
+            .join(format!(".{:06}.{ext}.tmp", entry.index));
         {
             let mut f = File::create(&tmp).map_err(io(&tmp, "create"))?;
-            f.write_all(&bytes).map_err(io(&tmp, "write"))?;
+            f.write_all(bytes).map_err(io(&tmp, "write"))?;
         }
         fs::rename(&tmp, &path).map_err(io(&path, "rename"))?;
         entry.file = rel;
-        entry.sha256 = sha256_hex(&bytes);
+        entry.sha256 = sha256_hex(bytes);
         entry.width = frame.width;
         entry.height = frame.height;
         entry.bit_depth = frame.bit_depth;
@@ -662,7 +680,7 @@ pub fn read_journal(path: &Path) -> Result<(Vec<FrameEntry>, u64), StoreError> {
     Ok((entries, torn))
 }
 
-/// Removes what a crash left half-written in `dir`: frames (`.NNNNNN.png.tmp`)
+/// Removes what a crash left half-written in `dir`: frames (`.NNNNNN.EXT.tmp`)
 /// and records (`.state.json.tmp.PID.N`, from `rigd_core::atomic`).
 fn remove_temporaries(dir: &Path) -> Result<(), StoreError> {
     for entry in fs::read_dir(dir).map_err(io(dir, "read directory"))? {
@@ -717,6 +735,7 @@ mod tests {
                 bit_depth: depth,
                 pixels: vec![0, 1, max, 7, 100, max / 2],
                 device: None,
+                original: None,
             };
             let bytes = encode_png(&f).unwrap_or_default();
             let (w, h, px) = crate::rig::hal::decode_png(&bytes).unwrap_or_else(|e| panic!("{e}"));

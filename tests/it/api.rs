@@ -356,13 +356,14 @@ async fn a_run_completes_with_steps_frames_and_manifest() {
     assert_eq!(m["state"], "completed");
     assert_eq!(m["frames_written"], 9);
 
-    let (status, ct, png) = s.get_bytes(&format!("/api/v1/runs/{id}/frames/4")).await;
-    assert_eq!((status, ct.as_str()), (200, "image/png"));
+    // The simulated PTP camera's DNG, served as stored.
+    let (status, ct, dng) = s.get_bytes(&format!("/api/v1/runs/{id}/frames/4")).await;
+    assert_eq!((status, ct.as_str()), (200, "image/x-adobe-dng"));
     let on_disk =
-        std::fs::read(s.data.join("runs").join(&id).join("frames/000004.png")).expect("frame");
-    assert_eq!(png, on_disk);
-    let (w, h, _) = rigd::rig::hal::decode_png(&png).expect("decodes");
-    assert_eq!((w, h), (16, 12));
+        std::fs::read(s.data.join("runs").join(&id).join("frames/000004.dng")).expect("frame");
+    assert_eq!(dng, on_disk);
+    let img = rigd::rig::camera_file::decode(&dng).expect("decodes");
+    assert_eq!((img.width, img.height), (16, 12));
     let (status, ct, prev) = s
         .get_bytes(&format!("/api/v1/runs/{id}/frames/4/preview"))
         .await;

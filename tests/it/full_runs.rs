@@ -145,9 +145,9 @@ fn virtex_default_plan_is_one_frame_per_lamp() {
     // Each frame is lit: brighter than the unlit holder.
     for f in &m.frames {
         let bytes = std::fs::read(out.join(&f.file)).expect("frame");
-        let (_, _, px) = rigd::rig::hal::decode_png(&bytes).expect("png");
+        let img = rigd::rig::camera_file::decode(&bytes).expect("the camera's DNG");
         assert!(
-            px.iter().copied().max().unwrap_or(0) > 1000,
+            img.samples.iter().copied().max().unwrap_or(0) > 1000,
             "{} is dark",
             f.file
         );

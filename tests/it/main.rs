@@ -13,6 +13,7 @@ mod api_restart;
 mod architecture;
 mod bring_up;
 mod btf_accuracy;
+mod camera_files;
 mod cli;
 mod crash_resume;
 mod disk_full;

@@ -9,8 +9,9 @@ use std::time::Duration;
 use rigd::rig::drivers::ptp::{PtpCamera, PtpConfig};
 use rigd::rig::drivers::usb::{memory_pair, MemoryPipe};
 use rigd::rig::hal::{Camera, ErrorKind};
-use rigd_core::Clock;
+use rigd_core::{Cfa, Clock};
 use rigd_sim::devices::{CameraTimes, SimContext};
+use rigd_sim::firmware::dng::{encode as encode_dng, to_raw, DngCamera};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
 use rigd_sim::scene::Shot;
 use rigd_sim::{FaultInjector, FaultRule};
@@ -39,6 +40,7 @@ fn rig(faults: &[&str], bit_depth: u8) -> (PtpCamera<MemoryPipe>, Clock) {
             readout_s: READOUT_S,
             transfer_s: TRANSFER_S,
         },
+        cfa: None,
     };
     let shot = move || Shot {
         light: [0.0, 0.0, 1.0],
@@ -79,6 +81,10 @@ async fn capture_end_to_end_takes_the_physical_time() {
     assert_eq!((f.width, f.height, f.bit_depth), (320, 240, 12));
     assert_eq!(f.pixels.len(), 320 * 240);
     assert!(f.validate("cam").is_ok());
+    // The frame is the camera's DNG, kept as delivered.
+    let original = f.original.as_ref().expect("the camera's file");
+    assert_eq!(original.extension, "dng");
+    assert_eq!(&original.bytes[..4], b"II*\0");
     let bright_long = f.pixels.iter().map(|&p| p as u64).sum::<u64>();
 
     // A shorter exposure gives a darker frame, and a second capture works.
@@ -204,12 +210,19 @@ async fn a_dead_camera_is_noticed_within_the_deadline() {
     assert!(close(clock.now_s(), 2.0));
 }
 
-/// A scripted camera whose frames disagree with what it announces: the
-/// driver must call that a bad frame, not deliver it.
-fn lying_camera(mut dev: rigd::rig::drivers::usb::MemoryDevice, payload: Vec<u8>) {
+/// What a scripted camera says of its one object, and the object.
+struct Scripted {
+    format: u16,
+    /// ObjectCompressedSize as announced.
+    announced: u32,
+    payload: Vec<u8>,
+}
+
+/// A scripted camera whose objects may disagree with what it announces, or
+/// with the profile: the driver must refuse those, not deliver them.
+fn scripted_camera(mut dev: rigd::rig::drivers::usb::MemoryDevice, object: Scripted) {
     use rigd_proto::ptp::{
         Container, ContainerKind, DeviceInfo, EventCode, ObjectInfo, OpCode, ResponseCode,
-        FORMAT_RIGD_RAW,
     };
     tokio::spawn(async move {
         let send = |dev: &rigd::rig::drivers::usb::MemoryDevice, c: Container, int: bool| {
@@ -249,17 +262,21 @@ fn lying_camera(mut dev: rigd::rig::drivers::usb::MemoryDevice, payload: Vec<u8>
                     continue;
                 }
                 OpCode::GetObjectInfo => {
+                    // Real cameras give the rendered JPEG's size for raw
+                    // files: the driver must not hold the file to it.
                     let info = ObjectInfo {
-                        object_format: FORMAT_RIGD_RAW,
-                        image_width: 4,
-                        image_height: 2,
-                        image_bit_depth: 12,
+                        object_format: object.format,
+                        compressed_size: object.announced,
+                        image_width: 6000,
+                        image_height: 4000,
+                        image_bit_depth: 24,
                         ..ObjectInfo::default()
                     };
                     send(&dev, Container::data(c.code, tid, info.encode()), false);
                 }
                 OpCode::GetObject => {
-                    send(&dev, Container::data(c.code, tid, payload.clone()), false);
+                    let payload = object.payload.clone();
+                    send(&dev, Container::data(c.code, tid, payload), false);
                 }
                 _ => {}
             }
@@ -268,45 +285,142 @@ fn lying_camera(mut dev: rigd::rig::drivers::usb::MemoryDevice, payload: Vec<u8>
     });
 }
 
+/// The samples of the scripted 4 × 2 frames, before the black level.
+const SCRIPTED: [u16; 8] = [0, 500, 1000, 1500, 2000, 2500, 3000, 4095];
+
+/// A 4 × 2 DNG of a 12-bit sensor behind `cfa` (None: monochrome).
+fn dng(cfa: Option<Cfa>) -> Vec<u8> {
+    let camera = DngCamera {
+        make: "Test",
+        model: "Scripted",
+        cfa,
+        bit_depth: 12,
+    };
+    let raw = to_raw(&SCRIPTED, 12);
+    encode_dng(&camera, 4, 2, &raw, 0.1).unwrap_or_else(|e| panic!("{e}"))
+}
+
+/// A 4 × 4 red JPEG, as a camera set to JPEG sends it.
+fn jpeg() -> Vec<u8> {
+    let mut out = Vec::new();
+    let pixels: Vec<u8> = (0..16).flat_map(|_| [220u8, 20, 20]).collect();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 95)
+        .encode(&pixels, 4, 4, image::ExtendedColorType::Rgb8)
+        .unwrap_or_else(|e| panic!("{e}"));
+    out
+}
+
+async fn fetch_scripted(
+    object: Scripted,
+    cfa: Option<Cfa>,
+) -> Result<rigd::rig::hal::Frame, rigd::rig::hal::DeviceError> {
+    let (host, dev) = memory_pair();
+    scripted_camera(dev, object);
+    let config = PtpConfig {
+        cfa,
+        cfa_key: "devices.cam.intrinsics.cfa".into(),
+        ..PtpConfig::default()
+    };
+    let mut cam = PtpCamera::new("cam", host, Clock::virtual_time(), config);
+    cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+    cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+    cam.transfer().await
+}
+
+fn whole(format: u16, payload: Vec<u8>) -> Scripted {
+    Scripted {
+        format,
+        announced: payload.len() as u32,
+        payload,
+    }
+}
+
 #[tokio::test(start_paused = true)]
-async fn frames_that_disagree_with_their_size_are_bad_frames() {
-    use rigd_proto::ptp::RawFrame;
-    let short = RawFrame {
-        width: 4,
-        height: 2,
-        bit_depth: 12,
-        pixels: vec![1; 7],
-    };
-    let other_size = RawFrame {
-        width: 2,
-        height: 4,
-        bit_depth: 12,
-        pixels: vec![1; 8],
-    };
-    let too_deep = RawFrame {
-        width: 4,
-        height: 2,
-        bit_depth: 12,
-        pixels: vec![4096; 8],
-    };
-    let good = RawFrame {
-        width: 4,
-        height: 2,
-        bit_depth: 12,
-        pixels: vec![4095; 8],
-    };
-    for (frame, expect) in [
-        (short, Some(ErrorKind::BadFrame)),
-        (other_size, Some(ErrorKind::BadFrame)),
-        (too_deep, Some(ErrorKind::BadFrame)),
-        (good, None),
-    ] {
-        let (host, dev) = memory_pair();
-        lying_camera(dev, frame.encode());
-        let mut cam = PtpCamera::new("cam", host, Clock::virtual_time(), PtpConfig::default());
-        cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
-        cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
-        let r = cam.transfer().await;
-        assert_eq!(r.as_ref().err().map(|e| e.kind), expect, "{frame:?}: {r:?}");
+async fn a_camera_file_is_kept_as_delivered_and_read_by_its_bytes() {
+    use rigd_proto::ptp::{FORMAT_DNG, FORMAT_EXIF_JPEG, FORMAT_UNDEFINED};
+    let file = dng(Some(Cfa::Rggb));
+    // DNG, or the same file labelled Undefined as some bodies do.
+    for format in [FORMAT_DNG, FORMAT_UNDEFINED] {
+        let f = fetch_scripted(whole(format, file.clone()), Some(Cfa::Rggb))
+            .await
+            .unwrap_or_else(|e| panic!("{e}"));
+        let original = f.original.expect("the file");
+        assert_eq!((original.extension, &original.bytes), ("dng", &file));
+        assert_eq!((f.width, f.height, f.bit_depth), (4, 2, 12));
+        assert_eq!(f.pixels, to_raw(&SCRIPTED, 12));
+    }
+    let monochrome = fetch_scripted(whole(FORMAT_DNG, dng(None)), None).await;
+    assert!(monochrome.is_ok(), "{monochrome:?}");
+    // A JPEG is RGB already: there is no filter array to hold it to.
+    let file = jpeg();
+    let f = fetch_scripted(whole(FORMAT_EXIF_JPEG, file.clone()), Some(Cfa::Rggb))
+        .await
+        .unwrap_or_else(|e| panic!("{e}"));
+    let original = f.original.expect("the file");
+    assert_eq!((original.extension, &original.bytes), ("jpg", &file));
+    assert_eq!((f.width, f.height, f.bit_depth), (4, 4, 8));
+}
+
+#[tokio::test(start_paused = true)]
+async fn broken_or_unexpected_camera_files_are_refused_with_the_reason() {
+    use rigd_proto::ptp::{FORMAT_ASSOCIATION, FORMAT_DNG};
+    let file = dng(Some(Cfa::Rggb));
+    let half = file[..file.len() / 2].to_vec();
+    let cases = [
+        // The data phase ends early but is whole as a container.
+        (
+            Scripted {
+                format: FORMAT_DNG,
+                announced: file.len() as u32,
+                payload: half.clone(),
+            },
+            Some(Cfa::Rggb),
+            ErrorKind::BadFrame,
+            "bytes arrived",
+        ),
+        // Announced as it is, but no decoder opens it.
+        (
+            whole(FORMAT_DNG, half),
+            Some(Cfa::Rggb),
+            ErrorKind::BadFrame,
+            "cannot be decoded",
+        ),
+        (
+            whole(FORMAT_DNG, b"not a camera file".to_vec()),
+            None,
+            ErrorKind::BadFrame,
+            "not a camera file",
+        ),
+        // Whole, but not the sensor the profile describes: no retake mends it.
+        (
+            whole(FORMAT_DNG, dng(Some(Cfa::Bggr))),
+            Some(Cfa::Rggb),
+            ErrorKind::DeviceFault,
+            "delivers a BGGR DNG frame but the profile describes a RGGB sensor; \
+             set `devices.cam.intrinsics.cfa` = \"BGGR\"",
+        ),
+        (
+            whole(FORMAT_DNG, dng(Some(Cfa::Rggb))),
+            None,
+            ErrorKind::DeviceFault,
+            "describes a monochrome sensor",
+        ),
+        (
+            whole(FORMAT_DNG, dng(None)),
+            Some(Cfa::Rggb),
+            ErrorKind::DeviceFault,
+            "remove `devices.cam.intrinsics.cfa`",
+        ),
+        (
+            whole(FORMAT_ASSOCIATION, file.clone()),
+            Some(Cfa::Rggb),
+            ErrorKind::DeviceFault,
+            "0x3001 is no image",
+        ),
+    ];
+    for (i, (object, cfa, kind, says)) in cases.into_iter().enumerate() {
+        let e = fetch_scripted(object, cfa).await.expect_err("refused");
+        assert_eq!(e.kind, kind, "case {i}: {e}");
+        assert!(e.message.contains(says), "case {i}: {e}");
     }
 }

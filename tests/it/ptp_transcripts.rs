@@ -8,10 +8,8 @@ use std::time::Duration;
 use rigd::rig::drivers::ptp::{PtpCamera, PtpConfig};
 use rigd::rig::drivers::usb::{memory_pair, MemoryDevice, MemoryPipe};
 use rigd::rig::hal::{Camera, ErrorKind};
-use rigd_core::Clock;
-use rigd_proto::ptp::{
-    Container, ContainerKind, EventCode, Header, OpCode, ResponseCode, HEADER_LEN,
-};
+use rigd_core::{Cfa, Clock};
+use rigd_proto::ptp::{Container, ContainerKind, EventCode, Header, OpCode, ResponseCode};
 use rigd_sim::devices::{CameraTimes, SimContext};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
 use rigd_sim::scene::Shot;
@@ -246,12 +244,13 @@ fn firmware(clock: &Clock, faults: Vec<FaultRule>) -> (MemoryPipe, Arc<FaultInje
             readout_s: 0.2,
             transfer_s: 0.3,
         },
+        cfa: Some(Cfa::Rggb),
     };
     let shot = || Shot {
         light: [0.0, 0.0, 1.0],
         view: [0.0, 0.0, 1.0],
-        width: 64,
-        height: 48,
+        width: 4,
+        height: 2,
         bit_depth: 12,
         ..Shot::default()
     };
@@ -271,6 +270,15 @@ fn container_of(w: &Wire) -> Vec<u8> {
     c.encode().unwrap_or_else(|e| panic!("{e}"))
 }
 
+/// Bytes as the transcripts write them: hex in groups of four bytes.
+fn hex_groups(bytes: &[u8]) -> String {
+    bytes
+        .chunks(4)
+        .map(|c| c.iter().map(|b| format!("{b:02x}")).collect::<String>())
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
 fn check(w: &Wire, bytes: &[u8]) {
     let h = Header::decode(bytes).unwrap_or_else(|e| panic!("{}: {e}", w.text));
     assert_eq!(
@@ -287,12 +295,21 @@ fn check(w: &Wire, bytes: &[u8]) {
         w.text
     );
     if c.kind == ContainerKind::Data {
-        assert_eq!(c.payload.len(), w.len, "{}: payload length", w.text);
+        // On a mismatch, show what was sent in the transcript's own syntax,
+        // ready to paste once the change is meant.
+        let sent = || format!("len={} data={}", c.payload.len(), hex_groups(&c.payload));
         assert_eq!(
-            &c.payload[..w.data.len()],
-            &w.data[..],
-            "{}: payload",
-            w.text
+            c.payload.len(),
+            w.len,
+            "{}: payload length; sent {}",
+            w.text,
+            sent()
+        );
+        assert!(
+            c.payload.get(..w.data.len()) == Some(&w.data[..]),
+            "{}: payload; sent {}",
+            w.text,
+            sent()
         );
     } else {
         assert_eq!(c.params(), w.params, "{}: params", w.text);
@@ -378,7 +395,11 @@ async fn run_calls(
 async fn replay_against_driver(lines: &[Line]) {
     let clock = Clock::virtual_time();
     let (host, mut dev): (MemoryPipe, MemoryDevice) = memory_pair();
-    let cam = PtpCamera::new("cam", host, clock.clone(), PtpConfig::default());
+    let config = PtpConfig {
+        cfa: Some(Cfa::Rggb),
+        ..PtpConfig::default()
+    };
+    let cam = PtpCamera::new("cam", host, clock.clone(), config);
     let mut calls = Vec::new();
     let mut expected = Vec::new();
     for line in lines {
@@ -431,7 +452,12 @@ fn the_spec_has_the_required_transcripts() {
     assert!(has(
         &|w| w.kind == ContainerKind::Response && w.code != ResponseCode::OK.0
     ));
-    assert!(has(&|w| w.elided && w.len > w.data.len() + HEADER_LEN));
+    // A whole frame file: the reference camera's DNG, byte for byte.
+    assert!(has(&|w| w.code == OpCode::GetObject.0
+        && w.kind == ContainerKind::Data
+        && w.data.starts_with(b"II*\0")
+        && !w.elided
+        && w.len == w.data.len()));
 }
 
 #[tokio::test(start_paused = true)]

@@ -21,4 +21,4 @@ pub mod pixel_format;
 pub use clock::{Clock, DeadlineElapsed};
 pub use geometry::Direction;
 pub use motion::Trapezoid;
-pub use pixel_format::PixelFormat;
+pub use pixel_format::{Cfa, PixelFormat};

@@ -12,7 +12,10 @@ use std::str::FromStr;
 
 /// The 2×2 tile of a Bayer colour filter array, read left to right, top to
 /// bottom from the frame's first pixel (PFNC: `BayerRG` starts with red).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+///
+/// In a profile and in messages it is named by its tile, `"RGGB"`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "UPPERCASE")]
 pub enum Cfa {
     /// Red, green / green, blue.
     Rggb,
@@ -25,6 +28,16 @@ pub enum Cfa {
 }
 
 impl Cfa {
+    /// The tile's name: `RGGB`, `GRBG`, `GBRG` or `BGGR`.
+    pub fn tile(self) -> &'static str {
+        match self {
+            Cfa::Rggb => "RGGB",
+            Cfa::Grbg => "GRBG",
+            Cfa::Gbrg => "GBRG",
+            Cfa::Bggr => "BGGR",
+        }
+    }
+
     /// The PFNC infix: `RG`, `GR`, `GB` or `BG`.
     pub fn pfnc(self) -> &'static str {
         match self {
@@ -33,6 +46,12 @@ impl Cfa {
             Cfa::Gbrg => "GB",
             Cfa::Bggr => "BG",
         }
+    }
+}
+
+impl fmt::Display for Cfa {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.tile())
     }
 }
 

@@ -17,14 +17,31 @@ use std::fmt;
 pub const HEADER_LEN: usize = 12;
 /// Commands, responses and events carry at most five u32 parameters.
 pub const MAX_PARAMS: usize = 5;
-/// The vendor-defined image format code of rigd's raw frame payload
-/// ([`RawFrame`]): bit 15 set marks vendor formats, 0x0800 marks images.
-pub const FORMAT_RIGD_RAW: u16 = 0xB801;
-/// Magic that opens a rigd raw frame payload, so a payload of another format
-/// is refused instead of read as pixels.
-pub const RAW_MAGIC: [u8; 4] = *b"RGRW";
-/// Length of the raw frame header before the pixels.
-pub const RAW_HEADER_LEN: usize = 16;
+/// ObjectFormat Undefined (ISO 15740 §6): many cameras label their vendor
+/// raw files (NEF, ARW) so.
+pub const FORMAT_UNDEFINED: u16 = 0x3000;
+/// ObjectFormat Association: a folder, never a frame.
+pub const FORMAT_ASSOCIATION: u16 = 0x3001;
+/// ObjectFormat EXIF/JPEG.
+pub const FORMAT_EXIF_JPEG: u16 = 0x3801;
+/// ObjectFormat TIFF/EP (ISO 12234-2), the base of most raw files.
+pub const FORMAT_TIFF_EP: u16 = 0x3802;
+/// ObjectFormat JFIF.
+pub const FORMAT_JFIF: u16 = 0x3808;
+/// ObjectFormat TIFF.
+pub const FORMAT_TIFF: u16 = 0x380D;
+/// ObjectFormat DNG (added by PTP 1.1).
+pub const FORMAT_DNG: u16 = 0x3811;
+
+/// Whether an ObjectFormat code may hold a frame: the image formats
+/// (0x38xx), Undefined (vendor raw files), and vendor-defined codes (bit 15
+/// set, e.g. Canon's CR2 0xB103 and CR3 0xB108). The file's own bytes say
+/// what it is.
+pub fn may_be_image(object_format: u16) -> bool {
+    object_format & 0xFF00 == 0x3800
+        || object_format == FORMAT_UNDEFINED
+        || object_format & 0x8000 != 0
+}
 /// PTP strings hold at most 255 UTF-16 units including the terminating NUL.
 pub const MAX_STRING_UNITS: usize = 254;
 
@@ -70,11 +87,6 @@ pub enum CodecError {
     /// Bytes were left after a dataset was decoded (carries their number).
     #[error("{0} trailing bytes after the dataset")]
     Trailing(usize),
-    /// A [`RawFrame`] payload lacks the magic, has a bit depth outside the
-    /// range 1..=16 or a pixel count other than width × height (carries
-    /// the reason).
-    #[error("raw frame: {0}")]
-    BadRaw(String),
 }
 
 /// What a container is (the `type` field of the header).
@@ -620,7 +632,7 @@ impl DeviceInfo {
 pub struct ObjectInfo {
     /// StorageID: the storage holding the object.
     pub storage_id: u32,
-    /// ObjectFormat: the object's format code (rigd: [`FORMAT_RIGD_RAW`]).
+    /// ObjectFormat: the object's format code (the simulated camera: [`FORMAT_DNG`]).
     pub object_format: u16,
     /// ProtectionStatus: 0 no protection, 1 read-only.
     pub protection_status: u16,
@@ -714,83 +726,6 @@ impl ObjectInfo {
     }
 }
 
-/// rigd's raw frame payload (object format [`FORMAT_RIGD_RAW`]): the magic
-/// `RGRW`, u32 width, u32 height, u8 bit depth, three zero bytes, then
-/// width × height little-endian u16 pixels, row-major. A rigd convention for
-/// the simulated and raw-capable cameras, documented in
-/// `firmware-protocols/ptp-camera.md`.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub struct RawFrame {
-    /// Width in pixels.
-    pub width: u32,
-    /// Height in pixels.
-    pub height: u32,
-    /// Significant bits per pixel, 1..=16.
-    pub bit_depth: u8,
-    /// The pixel values, row-major.
-    pub pixels: Vec<u16>,
-}
-
-impl RawFrame {
-    /// The payload size of a `width` × `height` frame, if it fits a u32.
-    pub fn payload_len(width: u32, height: u32) -> Option<u32> {
-        (width as u64)
-            .checked_mul(height as u64)
-            .and_then(|n| n.checked_mul(2))
-            .and_then(|n| n.checked_add(RAW_HEADER_LEN as u64))
-            .and_then(|n| u32::try_from(n).ok())
-    }
-
-    /// Encodes whatever pixels the frame holds (a simulated fault may hold
-    /// fewer than width × height; the decoder will notice).
-    pub fn encode(&self) -> Vec<u8> {
-        let mut o = Vec::with_capacity(RAW_HEADER_LEN + 2 * self.pixels.len());
-        o.extend_from_slice(&RAW_MAGIC);
-        o.extend_from_slice(&self.width.to_le_bytes());
-        o.extend_from_slice(&self.height.to_le_bytes());
-        o.push(self.bit_depth);
-        o.extend_from_slice(&[0, 0, 0]);
-        for p in &self.pixels {
-            o.extend_from_slice(&p.to_le_bytes());
-        }
-        o
-    }
-
-    /// Decodes a payload whose pixel count must equal width × height and
-    /// whose depth must be 1..=16.
-    pub fn decode(buf: &[u8]) -> Result<RawFrame, CodecError> {
-        let mut r = Reader::new(buf);
-        if r.bytes(4)? != RAW_MAGIC {
-            return Err(CodecError::BadRaw("missing RGRW magic".into()));
-        }
-        let width = r.u32()?;
-        let height = r.u32()?;
-        let bit_depth = r.u8()?;
-        r.bytes(3)?;
-        if !(1..=16).contains(&bit_depth) {
-            return Err(CodecError::BadRaw(format!("bit depth {bit_depth}")));
-        }
-        let body = &buf[RAW_HEADER_LEN..];
-        let expected = (width as u64) * (height as u64) * 2;
-        if body.len() as u64 != expected {
-            return Err(CodecError::BadRaw(format!(
-                "{} pixel bytes for {width}x{height} (expected {expected})",
-                body.len()
-            )));
-        }
-        let pixels = body
-            .chunks_exact(2)
-            .map(|c| u16::from_le_bytes([c[0], c[1]]))
-            .collect();
-        Ok(RawFrame {
-            width,
-            height,
-            bit_depth,
-            pixels,
-        })
-    }
-}
-
 /// Converts an exposure in seconds to the ExposureTime property (0.1 ms
 /// units); `None` if it is not positive, not finite or too long for a u32.
 pub fn exposure_to_prop(exposure_s: f64) -> Option<u32> {
@@ -852,18 +787,19 @@ mod tests {
     }
 
     #[test]
-    fn raw_frame_size_is_checked() {
-        let f = RawFrame {
-            width: 3,
-            height: 2,
-            bit_depth: 12,
-            pixels: vec![1, 2, 3, 4, 5, 4095],
-        };
-        let mut b = f.encode();
-        assert_eq!(b.len() as u32, RawFrame::payload_len(3, 2).unwrap_or(0));
-        assert_eq!(RawFrame::decode(&b), Ok(f));
-        b.truncate(b.len() - 2);
-        assert!(matches!(RawFrame::decode(&b), Err(CodecError::BadRaw(_))));
+    fn image_formats_are_told_from_folders_and_scripts() {
+        for f in [
+            FORMAT_EXIF_JPEG,
+            FORMAT_TIFF,
+            FORMAT_DNG,
+            FORMAT_UNDEFINED,
+            0xB103,
+        ] {
+            assert!(may_be_image(f), "0x{f:04X}");
+        }
+        for f in [FORMAT_ASSOCIATION, 0x3002, 0x300A] {
+            assert!(!may_be_image(f), "0x{f:04X}");
+        }
     }
 
     #[test]
@@ -986,19 +922,6 @@ mod tests {
         #[test]
         fn object_info_round_trips(d in arb_object_info()) {
             prop_assert_eq!(ObjectInfo::decode(&d.encode()), Ok(d));
-        }
-
-        #[test]
-        fn raw_frame_decode_never_panics(b in proptest::collection::vec(any::<u8>(), 0..100)) {
-            let _ = RawFrame::decode(&b);
-        }
-
-        #[test]
-        fn raw_frame_round_trips(w in 0u32..16, h in 0u32..16, depth in 1u8..=16, seed in any::<u16>()) {
-            let max = if depth == 16 { u16::MAX } else { (1u16 << depth) - 1 };
-            let pixels = (0..w * h).map(|i| (seed.wrapping_add(i as u16)) & max).collect();
-            let f = RawFrame { width: w, height: h, bit_depth: depth, pixels };
-            prop_assert_eq!(RawFrame::decode(&f.encode()), Ok(f));
         }
     }
 }

@@ -349,6 +349,7 @@ fn frame_of(cfg: &GenicamConfig, b: StreamBuffer) -> Result<Frame, SessionError>
             timestamp_ns: b.timestamp_ns,
             pixel_format: cfg.pixel_format.to_string(),
         }),
+        original: None,
     })
 }
 

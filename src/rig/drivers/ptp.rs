@@ -7,18 +7,25 @@
 //! ExposureTime; `expose` is InitiateCapture plus waiting for ObjectAdded
 //! and CaptureComplete on the interrupt endpoint; `transfer` is
 //! GetObjectInfo, GetObject, DeleteObject.
+//!
+//! A frame is the object exactly as the camera delivered it (DNG, vendor
+//! raw, TIFF or JPEG), kept as [`Frame::original`]; the driver decodes it
+//! ([`camera_file`]) to refuse a broken file and to check that its colour
+//! filter array is the one the profile describes.
 
 use std::time::Duration;
 
 use async_trait::async_trait;
+use rigd_core::Cfa;
 use rigd_core::Clock;
 use rigd_proto::ptp::{
-    exposure_to_prop, CodecError, Container, ContainerKind, DeviceInfo, EventCode, Header,
-    ObjectInfo, OpCode, PropCode, RawFrame, ResponseCode, FORMAT_RIGD_RAW, HEADER_LEN,
+    exposure_to_prop, may_be_image, CodecError, Container, ContainerKind, DeviceInfo, EventCode,
+    Header, ObjectInfo, OpCode, PropCode, ResponseCode, HEADER_LEN,
 };
 
 use super::usb::{UsbError, UsbPipe};
-use crate::rig::hal::{Camera, DeviceError, ErrorKind, Frame};
+use crate::rig::camera_file::{self, CameraImage};
+use crate::rig::hal::{Camera, DeviceError, ErrorKind, Frame, OriginalFile};
 
 /// Bulk-in reads ask for this much: a multiple of every USB packet size, so
 /// a shorter read always means the device ended its transfer.
@@ -47,6 +54,12 @@ pub struct PtpConfig {
     pub transfer_timeout: Duration,
     /// The session id sent with OpenSession (any non-zero value).
     pub session_id: u32,
+    /// The sensor's colour filter array as the profile describes it
+    /// (`intrinsics.cfa`); None for a monochrome sensor. A raw frame with
+    /// another one is refused.
+    pub cfa: Option<Cfa>,
+    /// The profile key that sets [`PtpConfig::cfa`], for messages.
+    pub cfa_key: String,
 }
 
 impl Default for PtpConfig {
@@ -56,6 +69,8 @@ impl Default for PtpConfig {
             capture_slack: Duration::from_secs(30),
             transfer_timeout: Duration::from_secs(60),
             session_id: 1,
+            cfa: None,
+            cfa_key: "intrinsics.cfa".into(),
         }
     }
 }
@@ -113,6 +128,10 @@ pub enum PtpError {
     /// An exposure time (seconds) outside what the camera can set.
     #[error("exposure {0} s cannot be set (0.1 ms to 119 h)")]
     BadExposure(f64),
+    /// The frame's sensor layout is not the one the profile describes: a
+    /// set-up error that no retake mends.
+    #[error("{0}")]
+    WrongSensor(String),
     /// An operation was called before `connect` opened a session.
     #[error("no session: connect first")]
     NotConnected,
@@ -128,9 +147,10 @@ impl PtpError {
             PtpError::Timeout { .. } => ErrorKind::Timeout,
             PtpError::Usb(UsbError::Disconnected) => ErrorKind::Disconnected,
             PtpError::Usb(_) => ErrorKind::DeviceFault,
-            PtpError::Response { .. } | PtpError::Protocol { .. } | PtpError::Unsupported(_) => {
-                ErrorKind::DeviceFault
-            }
+            PtpError::Response { .. }
+            | PtpError::Protocol { .. }
+            | PtpError::Unsupported(_)
+            | PtpError::WrongSensor(_) => ErrorKind::DeviceFault,
             PtpError::Truncated { .. } | PtpError::BadFrame(_) => ErrorKind::BadFrame,
             PtpError::BadExposure(_) => ErrorKind::OutOfLimits,
             PtpError::NotConnected | PtpError::NothingExposed => ErrorKind::NotReady,
@@ -300,35 +320,37 @@ impl<P: UsbPipe> PtpCamera<P> {
         let (_, data) = self.transaction(op, &[handle], None).await?;
         let data = data.ok_or_else(|| protocol(op, "no ObjectInfo data phase"))?;
         let info = ObjectInfo::decode(&data).map_err(|e| protocol(op, e))?;
-        if info.object_format != FORMAT_RIGD_RAW {
+        if !may_be_image(info.object_format) {
             return Err(protocol(
                 op,
-                format!("object format 0x{:04X} is not rigd raw", info.object_format),
+                format!(
+                    "object format 0x{:04X} is no image (a folder or a script?)",
+                    info.object_format
+                ),
             ));
         }
         let op = OpCode::GetObject;
         let (_, data) = self.transaction(op, &[handle], None).await?;
         let data = data.ok_or_else(|| PtpError::BadFrame("GetObject sent no data".into()))?;
-        let raw = RawFrame::decode(&data).map_err(|e| PtpError::BadFrame(e.to_string()))?;
-        if (raw.width, raw.height, raw.bit_depth as u32)
-            != (info.image_width, info.image_height, info.image_bit_depth)
-        {
+        if info.compressed_size != u32::MAX && data.len() != info.compressed_size as usize {
             return Err(PtpError::BadFrame(format!(
-                "frame is {}x{}@{} but ObjectInfo said {}x{}@{}",
-                raw.width,
-                raw.height,
-                raw.bit_depth,
-                info.image_width,
-                info.image_height,
-                info.image_bit_depth
+                "{} bytes arrived of the {} ObjectInfo announced",
+                data.len(),
+                info.compressed_size
             )));
         }
+        let image = camera_file::decode(&data).map_err(|e| PtpError::BadFrame(e.to_string()))?;
+        self.check_sensor(&image)?;
         let frame = Frame {
-            width: raw.width,
-            height: raw.height,
-            bit_depth: raw.bit_depth,
-            pixels: raw.pixels,
+            width: image.width,
+            height: image.height,
+            bit_depth: image.bit_depth(),
+            pixels: grey_or_mosaic(&image),
             device: None,
+            original: Some(OriginalFile {
+                extension: image.format.extension(),
+                bytes: data,
+            }),
         };
         frame
             .validate(&self.name)
@@ -457,8 +479,37 @@ impl<P: UsbPipe> PtpCamera<P> {
         Ok((header, buf))
     }
 
+    /// Refuses a raw frame whose colour filter array is not the profile's.
+    fn check_sensor(&self, image: &CameraImage) -> Result<(), PtpError> {
+        if image.channels != 1 || image.cfa == self.config.cfa {
+            return Ok(());
+        }
+        let name = |c: Option<Cfa>| c.map_or("monochrome".to_string(), |c| format!("{c}"));
+        let set = match image.cfa {
+            Some(c) => format!("set `{}` = \"{c}\"", self.config.cfa_key),
+            None => format!("remove `{}`", self.config.cfa_key),
+        };
+        Err(PtpError::WrongSensor(format!(
+            "the camera delivers a {} {} frame but the profile describes a {} sensor; \
+             {set} if the camera is right",
+            name(image.cfa),
+            image.format.extension().to_uppercase(),
+            name(self.config.cfa),
+        )))
+    }
+
     fn device_error(&self, e: PtpError) -> DeviceError {
         DeviceError::new(&self.name, e.kind(), e.to_string())
+    }
+}
+
+/// The samples a frame holds for in-flight checks and manual-shot
+/// statistics: a mosaic or grey as it is, RGB as its green channel.
+fn grey_or_mosaic(image: &CameraImage) -> Vec<u16> {
+    if image.channels == 3 {
+        image.samples.iter().skip(1).step_by(3).copied().collect()
+    } else {
+        image.samples.clone()
     }
 }
 

@@ -1,4 +1,5 @@
-//! Frame routes: the raw PNG, and an 8-bit downscaled preview. The run id
+//! Frame routes: the frame as stored (rigd's PNG, or the camera's own file:
+//! DNG, raw, JPEG), and an 8-bit downscaled preview. The run id
 //! must name a known run and the index must be a plain integer below the
 //! run's image count; the path is built from those, never from raw input.
 
@@ -8,10 +9,11 @@ use axum::response::{IntoResponse, Response};
 use axum::extract::State;
 
 use super::AppState;
+use crate::rig::camera_file::{self, FileFormat};
 use crate::rig::hal::decode_png;
 use crate::server::error::{ApiError, ApiPath, ErrorBody};
 use crate::server::supervisor::Daemon;
-use crate::store::frame_file;
+use crate::store::frame_file_with;
 
 /// Longest side of a preview, pixels.
 pub const PREVIEW_MAX: u32 = 256;
@@ -26,7 +28,13 @@ fn parse_index(s: &str) -> Result<usize, ApiError> {
         .map_err(|_| ApiError::bad_request("the frame index must be a non-negative integer"))
 }
 
-async fn read_frame(d: &Daemon, id: &str, index: &str) -> Result<Vec<u8>, ApiError> {
+/// A stored frame's bytes and the extension it is stored with.
+struct StoredFrame {
+    bytes: Vec<u8>,
+    extension: &'static str,
+}
+
+async fn read_frame(d: &Daemon, id: &str, index: &str) -> Result<StoredFrame, ApiError> {
     let index = parse_index(index)?;
     let root = d
         .run_root(id)
@@ -37,19 +45,27 @@ async fn read_frame(d: &Daemon, id: &str, index: &str) -> Result<Vec<u8>, ApiErr
             "frame {index}: the run has {total} images"
         )));
     }
-    match tokio::fs::read(root.join(frame_file(index))).await {
-        Ok(b) => Ok(b),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(ApiError::not_found(format!(
-            "frame {index} is not taken yet"
-        ))),
-        Err(e) => Err(ApiError::internal(e.to_string())),
+    // The name comes from the index and a fixed list of extensions only.
+    for extension in std::iter::once("png").chain(camera_file::EXTENSIONS) {
+        match tokio::fs::read(root.join(frame_file_with(index, extension))).await {
+            Ok(bytes) => return Ok(StoredFrame { bytes, extension }),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => return Err(ApiError::internal(e.to_string())),
+        }
     }
+    Err(ApiError::not_found(format!(
+        "frame {index} is not taken yet"
+    )))
 }
 
 fn png(bytes: Vec<u8>) -> Response {
+    image(bytes, "image/png")
+}
+
+fn image(bytes: Vec<u8>, content_type: &'static str) -> Response {
     (
         [
-            (header::CONTENT_TYPE, "image/png"),
+            (header::CONTENT_TYPE, content_type),
             (header::CACHE_CONTROL, "max-age=3600"),
         ],
         bytes,
@@ -57,18 +73,31 @@ fn png(bytes: Vec<u8>) -> Response {
         .into_response()
 }
 
-/// Image `index` of run `id` as stored: the frame's PNG, raw sensor values.
+/// The MIME type of a frame stored with `extension`.
+fn mime_of(extension: &str) -> &'static str {
+    match extension {
+        "png" => "image/png",
+        "dng" => FileFormat::Dng.mime(),
+        "jpg" => FileFormat::Jpeg.mime(),
+        "tif" => FileFormat::Tiff.mime(),
+        _ => "application/octet-stream",
+    }
+}
+
+/// Image `index` of run `id` as stored: rigd's PNG of raw sensor values,
+/// or the camera's own file (DNG, vendor raw, TIFF, JPEG) byte for byte.
 /// 400 when `index` is not a plain integer; 404 for an unknown run, an
 /// index past the run's image count, or a frame not taken yet.
 pub async fn raw(d: &Daemon, id: &str, index: &str) -> Result<Response, ApiError> {
-    read_frame(d, id, index).await.map(png)
+    let frame = read_frame(d, id, index).await?;
+    Ok(image(frame.bytes, mime_of(frame.extension)))
 }
 
 /// Image `index` of run `id` as an 8-bit PNG, box-filtered to at most
 /// [`PREVIEW_MAX`] pixels on its longer side and stretched to its own
 /// brightest pixel; the errors of [`raw`].
 pub async fn preview(d: &Daemon, id: &str, index: &str) -> Result<Response, ApiError> {
-    let bytes = read_frame(d, id, index).await?;
+    let bytes = read_frame(d, id, index).await?.bytes;
     let out = tokio::task::spawn_blocking(move || make_preview(&bytes, PREVIEW_MAX))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
@@ -76,10 +105,27 @@ pub async fn preview(d: &Daemon, id: &str, index: &str) -> Result<Response, ApiE
     Ok(png(out))
 }
 
-/// Box-filters a frame down to at most `max` px on its longer side and
-/// stretches it to 8 bits by the frame's own maximum.
-pub fn make_preview(png_bytes: &[u8], max: u32) -> Result<Vec<u8>, String> {
-    let (w, h, px) = decode_png(png_bytes)?;
+/// A stored frame's values for a preview: a PNG's samples, a camera file's
+/// light (a mosaic as it is, RGB as the mean of its channels).
+fn preview_values(bytes: &[u8]) -> Result<(u32, u32, Vec<f64>), String> {
+    if bytes.starts_with(b"\x89PNG") {
+        let (w, h, px) = decode_png(bytes)?;
+        return Ok((w, h, px.into_iter().map(f64::from).collect()));
+    }
+    let img = camera_file::decode(bytes).map_err(|e| e.to_string())?;
+    let linear = img.linear();
+    let values = linear
+        .chunks_exact(img.channels.max(1))
+        .map(|c| c.iter().map(|&v| f64::from(v)).sum::<f64>() / c.len() as f64)
+        .collect();
+    Ok((img.width, img.height, values))
+}
+
+/// Box-filters a stored frame (PNG or camera file) down to at most `max`
+/// px on its longer side and stretches it to 8 bits by the frame's own
+/// maximum.
+pub fn make_preview(frame_bytes: &[u8], max: u32) -> Result<Vec<u8>, String> {
+    let (w, h, px) = preview_values(frame_bytes)?;
     if w == 0 || h == 0 || px.len() < (w as usize) * (h as usize) {
         return Err("frame with no pixels".into());
     }
@@ -93,7 +139,7 @@ pub fn make_preview(png_bytes: &[u8], max: u32) -> Result<Vec<u8>, String> {
         for x in 0..w {
             let ox = ((x as u64 * ow as u64) / w as u64) as u32;
             let o = (oy * ow + ox) as usize;
-            sums[o] += px[(y * w + x) as usize] as f64;
+            sums[o] += px[(y * w + x) as usize];
             counts[o] += 1;
         }
     }
@@ -102,7 +148,8 @@ pub fn make_preview(png_bytes: &[u8], max: u32) -> Result<Vec<u8>, String> {
         .zip(&counts)
         .map(|(s, &c)| if c > 0 { s / c as f64 } else { 0.0 })
         .collect();
-    let peak = avg.iter().cloned().fold(0.0, f64::max).max(1.0);
+    let peak = avg.iter().cloned().fold(0.0, f64::max);
+    let peak = if peak > 0.0 { peak } else { 1.0 };
     let data: Vec<u8> = avg
         .iter()
         .map(|v| ((v / peak) * 255.0).round().clamp(0.0, 255.0) as u8)
@@ -149,6 +196,7 @@ mod tests {
             bit_depth: 12,
             pixels: (0..600 * 300).map(|i| (i % 4096) as u16).collect(),
             device: None,
+            original: None,
         };
         let png16 = crate::rig::hal::encode_png(&frame).expect("encode");
         let out = make_preview(&png16, 256).expect("preview");
@@ -160,10 +208,14 @@ mod tests {
     }
 }
 
-/// The raw frame: a greyscale PNG holding the sensor values (16-bit for >8-bit cameras).
+/// The frame as stored: a greyscale PNG holding the sensor values (16-bit for >8-bit cameras),
+/// or the camera's own file byte for byte (`image/x-adobe-dng`, `image/jpeg`, `image/tiff`,
+/// vendor raw as `application/octet-stream`).
 #[utoipa::path(get, path = "/api/v1/runs/{id}/frames/{index}", tag = "runs",
     params(("id" = String, Path, description = "Run id"), ("index" = u64, Path, description = "Image index")),
-    responses((status = 200, description = "The frame", content_type = "image/png", body = Vec<u8>),
+    responses((status = 200, description = "The frame as stored", content(
+                  (Vec<u8> = "image/png"), (Vec<u8> = "image/x-adobe-dng"), (Vec<u8> = "image/jpeg"),
+                  (Vec<u8> = "image/tiff"), (Vec<u8> = "application/octet-stream"))),
               (status = 400, description = "Index not a non-negative integer", body = ErrorBody),
               (status = 404, description = "No such run or frame not taken", body = ErrorBody)))]
 pub async fn frame_raw(

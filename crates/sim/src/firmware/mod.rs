@@ -3,6 +3,7 @@
 //! drivers can be tested against it without hardware.
 
 pub mod acl;
+pub mod dng;
 pub mod grbl;
 pub mod modbus;
 pub mod ptp;

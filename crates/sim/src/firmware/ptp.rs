@@ -14,16 +14,24 @@
 //! `delete_object`. `timeout` leaves the command unanswered, `disconnect`
 //! closes the link, `alarm=…` answers GeneralError, `bad-frame` cuts the
 //! GetObject data phase short.
+//!
+//! Frames are DNG files ([`super::dng`]), object format DNG (0x3811), as a
+//! camera that shoots DNG delivers them: the Bayer mosaic of a colour
+//! sensor (or the samples of a monochrome one) above a black level, with
+//! the tags a raw decoder needs.
 
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::pin::Pin;
 
+use rigd_core::Cfa;
 use rigd_proto::ptp::link::{DeviceEnd, LinkClosed};
 use rigd_proto::ptp::{
     exposure_to_prop, prop_to_exposure, Container, ContainerKind, DeviceInfo, EventCode,
-    ObjectInfo, OpCode, PropCode, RawFrame, ResponseCode, FORMAT_RIGD_RAW, HEADER_LEN,
+    ObjectInfo, OpCode, PropCode, ResponseCode, FORMAT_DNG, HEADER_LEN,
 };
+
+use super::dng::{self, DngCamera};
 
 use crate::devices::{CameraTimes, SimContext};
 use crate::faults::FaultKind;
@@ -52,6 +60,17 @@ pub struct PtpCameraSpec {
     /// Exposure (also the nominal one frames are scaled against), readout
     /// and transfer times.
     pub times: CameraTimes,
+    /// The sensor's colour filter array; None for a monochrome sensor.
+    pub cfa: Option<Cfa>,
+}
+
+/// A captured frame waiting on the camera: its DNG file and what
+/// ObjectInfo says of it.
+struct StoredObject {
+    file: Vec<u8>,
+    width: u32,
+    height: u32,
+    bit_depth: u8,
 }
 
 /// Supplies the scene at the moment of an InitiateCapture.
@@ -78,7 +97,7 @@ pub struct PtpFirmware {
     scene: Option<Arc<Scene>>,
     session: Option<u32>,
     exposure_units: u32,
-    objects: BTreeMap<u32, RawFrame>,
+    objects: BTreeMap<u32, StoredObject>,
     next_handle: u32,
     capture: Option<Capture>,
 }
@@ -136,8 +155,8 @@ impl PtpFirmware {
             operations_supported: OpCode::ALL.iter().map(|c| c.0).collect(),
             events_supported: vec![EventCode::ObjectAdded.0, EventCode::CaptureComplete.0],
             device_properties_supported: vec![PropCode::ExposureTime.0],
-            capture_formats: vec![FORMAT_RIGD_RAW],
-            image_formats: vec![FORMAT_RIGD_RAW],
+            capture_formats: vec![FORMAT_DNG],
+            image_formats: vec![FORMAT_DNG],
             manufacturer: self.spec.manufacturer.clone(),
             model: self.spec.model.clone(),
             device_version: self.spec.version.clone(),
@@ -270,7 +289,7 @@ impl PtpFirmware {
                 let format = params.get(1).copied().unwrap_or(0);
                 if busy {
                     respond(dev, ResponseCode::DeviceBusy, tid, &[])?;
-                } else if format != 0 && format != FORMAT_RIGD_RAW as u32 {
+                } else if format != 0 && format != u32::from(FORMAT_DNG) {
                     respond(dev, ResponseCode::InvalidObjectFormatCode, tid, &[])?;
                 } else {
                     respond(dev, ResponseCode::OK, tid, &[])?;
@@ -289,7 +308,7 @@ impl PtpFirmware {
             },
             OpCode::GetObject => match self.objects.get(&p0) {
                 Some(f) => {
-                    let payload = f.encode();
+                    let payload = f.file.clone();
                     self.ctx.clock.sleep_s(self.spec.times.transfer_s).await;
                     let mut bytes = Container::data(op.0, tid, payload)
                         .encode()
@@ -359,11 +378,23 @@ impl PtpFirmware {
             }
             None => vec![0; shot.width as usize * shot.height as usize],
         };
-        let frame = RawFrame {
+        let camera = DngCamera {
+            make: &self.spec.manufacturer,
+            model: &self.spec.model,
+            cfa: self.spec.cfa,
+            bit_depth: shot.bit_depth,
+        };
+        let raw = dng::to_raw(&pixels, shot.bit_depth);
+        let exposure_s = prop_to_exposure(self.exposure_units);
+        // A frame the encoder cannot write (no pixels) is stored empty: the
+        // host's decoder refuses it as a bad frame, as it would a broken file.
+        let file =
+            dng::encode(&camera, shot.width, shot.height, &raw, exposure_s).unwrap_or_default();
+        let frame = StoredObject {
+            file,
             width: shot.width,
             height: shot.height,
             bit_depth: shot.bit_depth,
-            pixels,
         };
         self.next_handle = self.next_handle.wrapping_add(1);
         self.objects.insert(handle, frame);
@@ -421,16 +452,16 @@ pub fn fault_op(op: OpCode) -> &'static str {
     }
 }
 
-fn object_info(f: &RawFrame, sequence: u32) -> ObjectInfo {
+fn object_info(f: &StoredObject, sequence: u32) -> ObjectInfo {
     ObjectInfo {
         storage_id: STORAGE_ID,
-        object_format: FORMAT_RIGD_RAW,
-        compressed_size: RawFrame::payload_len(f.width, f.height).unwrap_or(u32::MAX),
+        object_format: FORMAT_DNG,
+        compressed_size: u32::try_from(f.file.len()).unwrap_or(u32::MAX),
         image_width: f.width,
         image_height: f.height,
         image_bit_depth: f.bit_depth as u32,
         sequence_number: sequence,
-        filename: format!("IMG_{sequence:04}.RAW"),
+        filename: format!("IMG_{sequence:04}.DNG"),
         ..ObjectInfo::default()
     }
 }
@@ -495,6 +526,7 @@ mod tests {
                 readout_s: 0.2,
                 transfer_s: 0.3,
             },
+            cfa: Some(Cfa::Rggb),
         }
     }
 

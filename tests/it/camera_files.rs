@@ -1,0 +1,158 @@
+//! Frames as camera files: a simulated PTP run keeps every frame as the DNG
+//! its camera delivered, with the file's SHA-256 in the manifest. LibRaw
+//! (Debian's `libraw-bin`, a raw decoder rigd does not use) opens each one
+//! and reads the same samples rigd reads; processing runs on them.
+
+use std::path::Path;
+use std::process::Command;
+
+use rigd::rig::camera_file::{self, FileFormat};
+use rigd_core::Cfa;
+
+use crate::bring_up::{device, edit};
+use crate::common::{assert_complete_run, repo_file, run_ok};
+
+/// Runs a LibRaw sample program, which must be installed (scripts/test.sh).
+fn libraw(program: &str, args: &[&Path]) -> String {
+    let out = Command::new(program)
+        .args(args)
+        .output()
+        .unwrap_or_else(|e| {
+            panic!("{program} (Debian libraw-bin, installed by scripts/test.sh): {e}")
+        });
+    assert!(out.status.success(), "{program}: {out:?}");
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The samples of a 16-bit binary PGM, as `unprocessed_raw` writes them.
+fn pgm_samples(bytes: &[u8]) -> (u32, u32, Vec<u16>) {
+    let mut fields = Vec::new();
+    let mut at = 0;
+    while fields.len() < 4 {
+        while bytes[at].is_ascii_whitespace() {
+            at += 1;
+        }
+        let start = at;
+        while !bytes[at].is_ascii_whitespace() {
+            at += 1;
+        }
+        fields.push(String::from_utf8_lossy(&bytes[start..at]).into_owned());
+    }
+    assert_eq!((fields[0].as_str(), fields[3].as_str()), ("P5", "65535"));
+    let (w, h): (u32, u32) = (
+        fields[1].parse().expect("width"),
+        fields[2].parse().expect("height"),
+    );
+    let samples = bytes[at + 1..]
+        .chunks_exact(2)
+        .map(|c| u16::from_be_bytes([c[0], c[1]]))
+        .collect();
+    (w, h, samples)
+}
+
+/// The VirTex rig (three lamps, one PTP camera) with its camera's sensor
+/// behind `cfa`, or monochrome.
+fn virtex_with(dir: &Path, cfa: Option<&str>) -> std::path::PathBuf {
+    let profile = dir.join("virtex.toml");
+    edit(
+        &repo_file("rig-profiles/virtex-photometric-stereo.toml"),
+        &profile,
+        |t| {
+            if let Some(cfa) = cfa {
+                let camera = device(t, "camera");
+                let intrinsics = camera
+                    .get_mut("intrinsics")
+                    .and_then(|i| i.as_table_mut())
+                    .expect("intrinsics");
+                intrinsics.insert("cfa".into(), cfa.into());
+            }
+        },
+    );
+    profile
+}
+
+fn capture(profile: &Path, out: &Path) {
+    run_ok(&[
+        "run",
+        "--sim",
+        "--profile",
+        profile.to_str().expect("utf8"),
+        "--frame-size",
+        "96x64",
+        "--progress",
+        "none",
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+}
+
+#[test]
+fn every_frame_of_a_simulated_ptp_run_is_a_dng_libraw_reads_as_rigd_does() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for (cfa, want) in [(Some("RGGB"), Some(Cfa::Rggb)), (None, None)] {
+        let out = dir.path().join(format!("run-{}", cfa.unwrap_or("mono")));
+        capture(&virtex_with(dir.path(), cfa), &out);
+        // Every checksum matches its file (assert_complete_run reads them).
+        let m = assert_complete_run(&out, 3);
+        for f in &m.frames {
+            assert!(f.file.ends_with(".dng"), "{}", f.file);
+            let path = out.join(&f.file);
+            let bytes = std::fs::read(&path).expect("frame");
+            let img = camera_file::decode(&bytes).unwrap_or_else(|e| panic!("{}: {e}", f.file));
+            assert_eq!(img.format, FileFormat::Dng);
+            assert_eq!((img.width, img.height, img.cfa), (96, 64, want));
+            assert_eq!((img.black, img.white), (255.0, 4095.0));
+            assert_eq!((f.width, f.height, f.bit_depth), (96, 64, 12));
+
+            // raw-identify aligns its columns: compare with single spaces.
+            let said = libraw("raw-identify", &[Path::new("-v"), &path])
+                .lines()
+                .map(|l| l.split_whitespace().collect::<Vec<_>>().join(" "))
+                .collect::<Vec<_>>()
+                .join("\n");
+            for line in ["DNG Version: 1.4.0.0", "Full size: 96 x 64", "black: 255"] {
+                assert!(said.contains(line), "{} lacks {line:?}:\n{said}", f.file);
+            }
+            if let Some(cfa) = cfa {
+                // LibRaw prints the 2x2 tile four times over, and the
+                // colour matrix the camera declares.
+                assert!(said.contains("DNG Illuminant 1: D65"), "{said}");
+                let pattern = format!("Filter pattern: {}", cfa.repeat(4));
+                assert!(
+                    said.contains(&pattern),
+                    "{} lacks {pattern:?}:\n{said}",
+                    f.file
+                );
+            }
+            // LibRaw's unpacked samples, written next to the frame.
+            libraw("unprocessed_raw", &[Path::new("-q"), &path]);
+            let pgm = std::fs::read(path.with_extension("dng.pgm")).expect("LibRaw's PGM");
+            assert_eq!(
+                pgm_samples(&pgm),
+                (96, 64, img.samples.clone()),
+                "{}",
+                f.file
+            );
+            // Lit frames: the lamp's light is well above black.
+            assert!(img.samples.iter().any(|&s| s > 1000), "{} is dark", f.file);
+        }
+    }
+}
+
+#[test]
+fn photometric_stereo_reads_a_bayer_camera_s_dngs() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let run = dir.path().join("run");
+    capture(&virtex_with(dir.path(), Some("GRBG")), &run);
+    let out = dir.path().join("ps");
+    run_ok(&[
+        "process",
+        "photometric-stereo",
+        run.to_str().expect("utf8"),
+        "--out",
+        out.to_str().expect("utf8"),
+    ]);
+    for file in ["normals.npy", "albedo.npy", "report.json"] {
+        assert!(out.join(file).is_file(), "{file}");
+    }
+}
