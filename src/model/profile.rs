@@ -258,6 +258,21 @@ pub struct Device {
     /// GenICam camera: the features rigd sets at connect.
     #[serde(default)]
     pub genicam: Option<GenicamSettings>,
+    /// PTP camera: the device properties rigd sets at connect.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ptp: Option<PtpSettings>,
+}
+
+/// The PTP device properties of a camera on `protocol = "ptp"`, set at
+/// every connect (ExposureTime comes from `timing.exposure_s` or the run's
+/// exposure, at every exposure).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PtpSettings {
+    /// ExposureIndex, the ISO sensitivity (1 to 65535); absent: the
+    /// camera's own. A measurement keeps it fixed, so set it.
+    #[serde(default)]
+    pub exposure_index: Option<u16>,
 }
 
 /// The GenICam features of a camera on `transport = { type = "genicam" }`,
@@ -1097,6 +1112,20 @@ impl Device {
                 "a camera on `transport = { type = \"genicam\", id = ... }` speaks `protocol = \"genicam\"`, and only it does".into(),
             ));
         }
+        if let Some(ptp) = &self.ptp {
+            if self.protocol != "ptp" {
+                return Err((
+                    format!("{key}.ptp"),
+                    "is for cameras on `protocol = \"ptp\"`".into(),
+                ));
+            }
+            if ptp.exposure_index == Some(0) {
+                return Err((
+                    format!("{key}.ptp.exposure_index"),
+                    "expected an ISO sensitivity of 1 or more".into(),
+                ));
+            }
+        }
         if self.genicam.is_some() && !on_genicam {
             return Err((
                 format!("{key}.genicam"),
@@ -1254,6 +1283,30 @@ mod tests {
             "protocol = \"{protocol}\"\ntransport = {{ type = \"genicam\", id = \"192.168.1.20\" }}\n{extra}"
         );
         text.replace(usb, &genicam)
+    }
+
+    #[test]
+    fn a_ptp_camera_s_iso_is_positive_and_only_for_ptp() {
+        let with = |text: String| Profile::parse(&text, "ptp.toml");
+        let ptp = |extra: &str| {
+            virtex_text().replace(
+                "protocol = \"ptp\"\n",
+                &format!("protocol = \"ptp\"\n{extra}\n"),
+            )
+        };
+        let p = with(ptp("ptp = { exposure_index = 200 }")).expect("ISO 200");
+        assert_eq!(
+            p.devices["camera"].ptp.and_then(|p| p.exposure_index),
+            Some(200)
+        );
+        let e = with(ptp("ptp = { exposure_index = 0 }")).expect_err("ISO 0");
+        assert_eq!(e.key, "devices.camera.ptp.exposure_index", "{e}");
+        let e = with(genicam_virtex_text(
+            "genicam",
+            "ptp = { exposure_index = 100 }",
+        ))
+        .expect_err("not PTP");
+        assert_eq!(e.key, "devices.camera.ptp", "{e}");
     }
 
     #[test]

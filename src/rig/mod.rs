@@ -408,6 +408,7 @@ fn ptp_config(name: &str, dev: &Device) -> PtpConfig {
     PtpConfig {
         cfa: dev.intrinsics.and_then(|i| i.cfa),
         cfa_key: format!("devices.{name}.intrinsics.cfa"),
+        exposure_index: dev.ptp.and_then(|p| p.exposure_index),
         ..PtpConfig::default()
     }
 }

@@ -23,6 +23,11 @@ const TRANSFER_S: f64 = 0.3;
 /// A camera with 320 × 240 frames: larger than one 64 KiB bulk read, so the
 /// driver must join several reads into one data phase.
 fn rig(faults: &[&str], bit_depth: u8) -> (PtpCamera<MemoryPipe>, Clock) {
+    rig_with(faults, bit_depth, PtpConfig::default())
+}
+
+/// [`rig`] with the driver's settings given.
+fn rig_with(faults: &[&str], bit_depth: u8, config: PtpConfig) -> (PtpCamera<MemoryPipe>, Clock) {
     let clock = Clock::virtual_time();
     let rules: Vec<FaultRule> = faults
         .iter()
@@ -52,7 +57,7 @@ fn rig(faults: &[&str], bit_depth: u8) -> (PtpCamera<MemoryPipe>, Clock) {
     };
     let (host, dev) = memory_pair();
     PtpFirmware::new(spec, ctx, Box::new(shot)).spawn(dev);
-    let cam = PtpCamera::new("cam", host, clock.clone(), PtpConfig::default());
+    let cam = PtpCamera::new("cam", host, clock.clone(), config);
     (cam, clock)
 }
 
@@ -102,6 +107,42 @@ async fn capture_end_to_end_takes_the_physical_time() {
     // Transferred frames are gone: nothing is pending.
     let e = cam.transfer().await.err().map(|e| e.kind);
     assert_eq!(e, Some(ErrorKind::NotReady));
+}
+
+#[tokio::test(start_paused = true)]
+async fn the_profile_s_iso_is_set_at_connect_and_a_camera_without_it_is_refused() {
+    let mean = |f: &rigd::rig::hal::Frame| {
+        f.pixels.iter().map(|&p| f64::from(p)).sum::<f64>() / f.pixels.len() as f64
+    };
+    let mut means = Vec::new();
+    for iso in [None, Some(200)] {
+        let config = PtpConfig {
+            exposure_index: iso,
+            ..PtpConfig::default()
+        };
+        let (mut cam, _clock) = rig_with(&[], 12, config);
+        cam.connect().await.unwrap_or_else(|e| panic!("{e}"));
+        cam.set_exposure(0.02)
+            .await
+            .unwrap_or_else(|e| panic!("{e}"));
+        cam.expose().await.unwrap_or_else(|e| panic!("{e}"));
+        let f = cam.transfer().await.unwrap_or_else(|e| panic!("{e}"));
+        means.push(mean(&f) - 255.0);
+    }
+    // ISO 200 doubles the signal above black (ISO 100 is the camera's own).
+    let ratio = means[1] / means[0];
+    assert!((ratio - 2.0).abs() < 0.05, "{means:?}");
+
+    let (host, dev) = memory_pair();
+    scripted_camera(dev, whole(rigd_proto::ptp::FORMAT_DNG, dng(None)));
+    let config = PtpConfig {
+        exposure_index: Some(100),
+        ..PtpConfig::default()
+    };
+    let mut cam = PtpCamera::new("cam", host, Clock::virtual_time(), config);
+    let e = cam.connect().await.expect_err("no ExposureIndex");
+    assert_eq!(e.kind(), ErrorKind::DeviceFault);
+    assert!(e.to_string().contains("no ExposureIndex property"), "{e}");
 }
 
 #[tokio::test(start_paused = true)]

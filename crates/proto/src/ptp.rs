@@ -275,6 +275,8 @@ codes! {
     PropCode {
         /// u32, in units of 0.1 ms (ISO 15740 §13.5.13).
         ExposureTime = 0x500D,
+        /// u16, the ISO arithmetic speed (ISO 15740 §13.5.15).
+        ExposureIndex = 0x500F,
     }
 }
 

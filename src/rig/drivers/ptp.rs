@@ -60,6 +60,8 @@ pub struct PtpConfig {
     pub cfa: Option<Cfa>,
     /// The profile key that sets [`PtpConfig::cfa`], for messages.
     pub cfa_key: String,
+    /// ExposureIndex (ISO) set at every connect; None leaves the camera's.
+    pub exposure_index: Option<u16>,
 }
 
 impl Default for PtpConfig {
@@ -71,6 +73,7 @@ impl Default for PtpConfig {
             session_id: 1,
             cfa: None,
             cfa_key: "intrinsics.cfa".into(),
+            exposure_index: None,
         }
     }
 }
@@ -125,6 +128,9 @@ pub enum PtpError {
     /// The camera's DeviceInfo lacks an operation the driver needs.
     #[error("the camera does not support {0}")]
     Unsupported(OpCode),
+    /// The profile sets a device property the camera does not list.
+    #[error("the camera has no {0} property; remove it from the profile's `ptp` table")]
+    NoProperty(PropCode),
     /// An exposure time (seconds) outside what the camera can set.
     #[error("exposure {0} s cannot be set (0.1 ms to 119 h)")]
     BadExposure(f64),
@@ -150,6 +156,7 @@ impl PtpError {
             PtpError::Response { .. }
             | PtpError::Protocol { .. }
             | PtpError::Unsupported(_)
+            | PtpError::NoProperty(_)
             | PtpError::WrongSensor(_) => ErrorKind::DeviceFault,
             PtpError::Truncated { .. } | PtpError::BadFrame(_) => ErrorKind::BadFrame,
             PtpError::BadExposure(_) => ErrorKind::OutOfLimits,
@@ -223,6 +230,18 @@ impl<P: UsbPipe> PtpCamera<P> {
         self.session_open = true;
         self.next_tid = 1;
         self.info = Some(info.clone());
+        if let Some(iso) = self.config.exposure_index {
+            if !info
+                .device_properties_supported
+                .contains(&PropCode::ExposureIndex.0)
+            {
+                return Err(PtpError::NoProperty(PropCode::ExposureIndex));
+            }
+            let params = [u32::from(PropCode::ExposureIndex.0)];
+            let data = iso.to_le_bytes().to_vec();
+            self.transaction(OpCode::SetDevicePropValue, &params, Some(data))
+                .await?;
+        }
         Ok(info)
     }
 

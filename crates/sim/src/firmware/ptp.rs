@@ -41,6 +41,9 @@ use crate::scene::{Scene, Shot, DEFAULT_SCENE};
 
 /// The storage every simulated frame is stored on.
 pub const STORAGE_ID: u32 = 0x0001_0001;
+/// The ExposureIndex (ISO) the simulated camera starts at, at which frames
+/// have the scene's nominal brightness.
+pub const BASE_ISO: u16 = 100;
 /// The handle of the first captured object; later ones count up.
 pub const FIRST_HANDLE: u32 = 0x0001_0001;
 
@@ -97,6 +100,9 @@ pub struct PtpFirmware {
     scene: Option<Arc<Scene>>,
     session: Option<u32>,
     exposure_units: u32,
+    /// ExposureIndex (ISO); frames are as bright as at [`BASE_ISO`] times
+    /// this over it.
+    exposure_index: u16,
     objects: BTreeMap<u32, StoredObject>,
     next_handle: u32,
     capture: Option<Capture>,
@@ -132,6 +138,7 @@ impl PtpFirmware {
             scene: Scene::load(DEFAULT_SCENE).ok(),
             session: None,
             exposure_units,
+            exposure_index: BASE_ISO,
             objects: BTreeMap::new(),
             next_handle: FIRST_HANDLE,
             capture: None,
@@ -154,7 +161,7 @@ impl PtpFirmware {
             functional_mode: 0,
             operations_supported: OpCode::ALL.iter().map(|c| c.0).collect(),
             events_supported: vec![EventCode::ObjectAdded.0, EventCode::CaptureComplete.0],
-            device_properties_supported: vec![PropCode::ExposureTime.0],
+            device_properties_supported: vec![PropCode::ExposureTime.0, PropCode::ExposureIndex.0],
             capture_formats: vec![FORMAT_DNG],
             image_formats: vec![FORMAT_DNG],
             manufacturer: self.spec.manufacturer.clone(),
@@ -258,11 +265,19 @@ impl PtpFirmware {
                 respond(dev, ResponseCode::OK, tid, &[])?;
             }
             OpCode::GetDevicePropValue => {
-                if p0 == PropCode::ExposureTime.0 as u32 {
-                    send_data(dev, op, tid, self.exposure_units.to_le_bytes().to_vec())?;
-                    respond(dev, ResponseCode::OK, tid, &[])?;
+                let value = if p0 == u32::from(PropCode::ExposureTime.0) {
+                    Some(self.exposure_units.to_le_bytes().to_vec())
+                } else if p0 == u32::from(PropCode::ExposureIndex.0) {
+                    Some(self.exposure_index.to_le_bytes().to_vec())
                 } else {
-                    respond(dev, ResponseCode::DevicePropNotSupported, tid, &[])?;
+                    None
+                };
+                match value {
+                    Some(v) => {
+                        send_data(dev, op, tid, v)?;
+                        respond(dev, ResponseCode::OK, tid, &[])?;
+                    }
+                    None => respond(dev, ResponseCode::DevicePropNotSupported, tid, &[])?,
                 }
             }
             OpCode::SetDevicePropValue => {
@@ -270,7 +285,20 @@ impl PtpFirmware {
                     .as_deref()
                     .and_then(|d| <[u8; 4]>::try_from(d).ok())
                     .map(u32::from_le_bytes);
-                let code = if p0 != PropCode::ExposureTime.0 as u32 {
+                let iso = data_out
+                    .as_deref()
+                    .and_then(|d| <[u8; 2]>::try_from(d).ok())
+                    .map(u16::from_le_bytes);
+                let code = if p0 == u32::from(PropCode::ExposureIndex.0) {
+                    match iso {
+                        _ if busy => ResponseCode::DeviceBusy,
+                        Some(v) if v > 0 => {
+                            self.exposure_index = v;
+                            ResponseCode::OK
+                        }
+                        _ => ResponseCode::InvalidDevicePropValue,
+                    }
+                } else if p0 != u32::from(PropCode::ExposureTime.0) {
                     ResponseCode::DevicePropNotSupported
                 } else if busy {
                     ResponseCode::DeviceBusy
@@ -363,6 +391,7 @@ impl PtpFirmware {
         } else {
             1.0
         };
+        shot.gain *= f64::from(self.exposure_index) / f64::from(BASE_ISO);
         let handle = self.next_handle;
         shot.seed = u64::from(handle);
         if cap.frame_fault == Some(FaultKind::Dark) {
