@@ -51,19 +51,20 @@ fn pgm_samples(bytes: &[u8]) -> (u32, u32, Vec<u16>) {
 }
 
 /// The VirTex rig (three lamps, one PTP camera) with its camera's sensor
-/// behind `cfa`, or monochrome.
-fn virtex_with(dir: &Path, cfa: Option<&str>) -> std::path::PathBuf {
-    let profile = dir.join("virtex.toml");
+/// behind `cfa`, or monochrome, of `bit_depth` bits.
+fn virtex_with(dir: &Path, cfa: Option<&str>, bit_depth: u8) -> std::path::PathBuf {
+    let profile = dir.join(format!("virtex-{}-{bit_depth}.toml", cfa.unwrap_or("mono")));
     edit(
         &repo_file("rig-profiles/virtex-photometric-stereo.toml"),
         &profile,
         |t| {
+            let camera = device(t, "camera");
+            let intrinsics = camera
+                .get_mut("intrinsics")
+                .and_then(|i| i.as_table_mut())
+                .expect("intrinsics");
+            intrinsics.insert("bit_depth".into(), i64::from(bit_depth).into());
             if let Some(cfa) = cfa {
-                let camera = device(t, "camera");
-                let intrinsics = camera
-                    .get_mut("intrinsics")
-                    .and_then(|i| i.as_table_mut())
-                    .expect("intrinsics");
                 intrinsics.insert("cfa".into(), cfa.into());
             }
         },
@@ -89,9 +90,16 @@ fn capture(profile: &Path, out: &Path) {
 #[test]
 fn every_frame_of_a_simulated_ptp_run_is_a_dng_libraw_reads_as_rigd_does() {
     let dir = tempfile::tempdir().expect("tempdir");
-    for (cfa, want) in [(Some("RGGB"), Some(Cfa::Rggb)), (None, None)] {
-        let out = dir.path().join(format!("run-{}", cfa.unwrap_or("mono")));
-        capture(&virtex_with(dir.path(), cfa), &out);
+    for (cfa, want, depth) in [
+        (Some("RGGB"), Some(Cfa::Rggb), 12u8),
+        (None, None, 12),
+        (Some("BGGR"), Some(Cfa::Bggr), 8),
+    ] {
+        let (black, white): (u16, u16) = if depth == 8 { (15, 255) } else { (255, 4095) };
+        let out = dir
+            .path()
+            .join(format!("run-{}-{depth}", cfa.unwrap_or("mono")));
+        capture(&virtex_with(dir.path(), cfa, depth), &out);
         // Every checksum matches its file (assert_complete_run reads them).
         let m = assert_complete_run(&out, 3);
         for f in &m.frames {
@@ -101,8 +109,8 @@ fn every_frame_of_a_simulated_ptp_run_is_a_dng_libraw_reads_as_rigd_does() {
             let img = camera_file::decode(&bytes).unwrap_or_else(|e| panic!("{}: {e}", f.file));
             assert_eq!(img.format, FileFormat::Dng);
             assert_eq!((img.width, img.height, img.cfa), (96, 64, want));
-            assert_eq!((img.black, img.white), (255.0, 4095.0));
-            assert_eq!((f.width, f.height, f.bit_depth), (96, 64, 12));
+            assert_eq!((img.black, img.white), (f32::from(black), f32::from(white)));
+            assert_eq!((f.width, f.height, f.bit_depth), (96, 64, depth));
 
             // raw-identify aligns its columns: compare with single spaces.
             let said = libraw("raw-identify", &[Path::new("-v"), &path])
@@ -110,7 +118,8 @@ fn every_frame_of_a_simulated_ptp_run_is_a_dng_libraw_reads_as_rigd_does() {
                 .map(|l| l.split_whitespace().collect::<Vec<_>>().join(" "))
                 .collect::<Vec<_>>()
                 .join("\n");
-            for line in ["DNG Version: 1.4.0.0", "Full size: 96 x 64", "black: 255"] {
+            let black_line = format!("black: {black}");
+            for line in ["DNG Version: 1.4.0.0", "Full size: 96 x 64", &black_line] {
                 assert!(said.contains(line), "{} lacks {line:?}:\n{said}", f.file);
             }
             if let Some(cfa) = cfa {
@@ -134,7 +143,11 @@ fn every_frame_of_a_simulated_ptp_run_is_a_dng_libraw_reads_as_rigd_does() {
                 f.file
             );
             // Lit frames: the lamp's light is well above black.
-            assert!(img.samples.iter().any(|&s| s > 1000), "{} is dark", f.file);
+            assert!(
+                img.samples.iter().any(|&s| s > 4 * black),
+                "{} is dark",
+                f.file
+            );
         }
     }
 }
@@ -143,7 +156,7 @@ fn every_frame_of_a_simulated_ptp_run_is_a_dng_libraw_reads_as_rigd_does() {
 fn photometric_stereo_reads_a_bayer_camera_s_dngs() {
     let dir = tempfile::tempdir().expect("tempdir");
     let run = dir.path().join("run");
-    capture(&virtex_with(dir.path(), Some("GRBG")), &run);
+    capture(&virtex_with(dir.path(), Some("GRBG"), 12), &run);
     let out = dir.path().join("ps");
     run_ok(&[
         "process",

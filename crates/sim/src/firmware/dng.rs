@@ -1,7 +1,8 @@
 //! The simulated PTP camera's file format: a DNG, as a camera that shoots
 //! DNG delivers it (Adobe's DNG specification 1.4 over TIFF 6.0).
 //!
-//! One uncompressed 16-bit strip holds the sensor's samples as read out: a
+//! One uncompressed strip (8-bit samples for sensors of 8 bits or fewer,
+//! else 16-bit) holds the sensor's samples as read out: a
 //! colour camera's Bayer mosaic (PhotometricInterpretation CFA, with its
 //! CFAPattern) or a monochrome camera's grey samples (LinearRaw, one
 //! sample per pixel). The tags a raw decoder needs to turn the samples into
@@ -119,15 +120,24 @@ pub fn encode(
     let mut out = Cursor::new(Vec::new());
     let mut enc = TiffEncoder::new(&mut out).map_err(err)?;
     let mut dir = enc.image_directory().map_err(err)?;
-    let strip_bytes = u32::try_from(raw.len() * 2)
+    // A sensor of 8 bits or fewer gets one byte a sample, as cameras write
+    // it; deeper ones two.
+    let bytes_per_sample = if camera.bit_depth <= 8 { 1 } else { 2 };
+    let strip_bytes = u32::try_from(raw.len() * bytes_per_sample)
         .map_err(|_| DngError(format!("a {width}x{height} frame is too big for one strip")))?;
-    let strip = dir.write_data(raw).map_err(err)?;
+    let strip = if bytes_per_sample == 1 {
+        let bytes: Vec<u8> = raw.iter().map(|&v| v.min(255) as u8).collect();
+        dir.write_data(&bytes[..]).map_err(err)?
+    } else {
+        dir.write_data(raw).map_err(err)?
+    };
     let strip = u32::try_from(strip).map_err(|e| DngError(e.to_string()))?;
     let t = |n: u16| Tag::Unknown(n);
     dir.write_tag(Tag::NewSubfileType, 0u32).map_err(err)?;
     dir.write_tag(Tag::ImageWidth, width).map_err(err)?;
     dir.write_tag(Tag::ImageLength, height).map_err(err)?;
-    dir.write_tag(Tag::BitsPerSample, 16u16).map_err(err)?;
+    dir.write_tag(Tag::BitsPerSample, 8 * bytes_per_sample as u16)
+        .map_err(err)?;
     dir.write_tag(Tag::Compression, 1u16).map_err(err)?;
     dir.write_tag(Tag::Make, camera.make).map_err(err)?;
     dir.write_tag(Tag::Model, camera.model).map_err(err)?;
@@ -261,5 +271,21 @@ mod tests {
         assert_eq!(photometric, Some(u32::from(tags::PHOTOMETRIC_LINEAR_RAW)));
         assert!(entries.iter().all(|e| e.0 != tags::CFA_PATTERN));
         assert!(encode(&cam, 4, 2, &raw[..7], 0.25).is_err());
+        // An 8-bit sensor: one byte a sample.
+        let eight = DngCamera {
+            bit_depth: 8,
+            ..cam
+        };
+        let raw8 = to_raw(&[0, 255, 128, 64, 1, 2, 3, 4], 8);
+        let dng = encode(&eight, 4, 2, &raw8, 0.25).expect("dng");
+        let entries = ifd0(&dng);
+        let tag = |t: u16| entries.iter().find(|e| e.0 == t).map(|e| e.3);
+        assert_eq!((tag(258), tag(279)), (Some(8), Some(8)));
+        let strip = tag(273).expect("StripOffsets") as usize;
+        let stored: Vec<u16> = dng[strip..strip + 8]
+            .iter()
+            .map(|&b| u16::from(b))
+            .collect();
+        assert_eq!(stored, raw8);
     }
 }
