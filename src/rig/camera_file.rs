@@ -182,6 +182,14 @@ fn is_jpeg(bytes: &[u8]) -> bool {
 
 /// Decodes a camera file by its content.
 pub fn decode(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
+    // The decoders parse files from cameras and disks; rawler asserts on
+    // some malformed ones. A panic in any of them is a corrupt file, not a
+    // crashed daemon.
+    std::panic::catch_unwind(|| decode_by_content(bytes))
+        .unwrap_or_else(|_| Err(corrupt("camera", "the decoder gave up on a malformed file")))
+}
+
+fn decode_by_content(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
     if is_jpeg(bytes) {
         return decode_jpeg(bytes);
     }
@@ -224,17 +232,52 @@ fn raw_format(hint: rawler::decoders::FormatHint) -> FileFormat {
     FileFormat::VendorRaw(ext)
 }
 
-fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
-    // rawler is a parser of untrusted files that asserts on some malformed
-    // ones (and so does its CFA code): a panic there is a corrupt file, not
-    // a crashed daemon.
-    std::panic::catch_unwind(|| raw_image(bytes))
-        .unwrap_or_else(|_| Err(corrupt("raw", "the decoder gave up on a malformed file")))
+/// The most samples a raw file may claim per byte it holds: no raw codec
+/// packs a sample into less than half a bit (lossless JPEG reaches about
+/// 2:1 on 12- to 14-bit data).
+const MAX_SAMPLES_PER_BYTE: usize = 16;
+
+/// Refuses a TIFF-based raw file (DNG, NEF, CR2, ARW, …) whose directories
+/// claim an image bigger than its bytes could hold. rawler allocates the
+/// claimed size before it reads a sample (one flipped bit asked for 26 GB
+/// in the property test), and a failed allocation aborts the process,
+/// which no `catch_unwind` stops.
+fn check_claimed_size(bytes: &[u8]) -> Result<(), CameraFileError> {
+    use rawler::formats::tiff::reader::TiffReader;
+    use rawler::formats::tiff::GenericTiffReader;
+    use rawler::tags::TiffCommonTag;
+    if !is_tiff(bytes) {
+        return Ok(());
+    }
+    // A TIFF structure rawler cannot read is refused by its decoder anyway.
+    let Ok(tiff) = GenericTiffReader::new_with_buffer(bytes, 0, 0, Some(16)) else {
+        return Ok(());
+    };
+    let limit = bytes.len().saturating_mul(MAX_SAMPLES_PER_BYTE);
+    for ifd in tiff.find_ifds_with_tag(TiffCommonTag::ImageWidth) {
+        let value = |tag| ifd.get_entry(tag).map_or(0, |e| e.value.force_usize(0));
+        let (w, h) = (
+            value(TiffCommonTag::ImageWidth),
+            value(TiffCommonTag::ImageLength),
+        );
+        let samples = value(TiffCommonTag::SamplesPerPixel).max(1);
+        if w.saturating_mul(h).saturating_mul(samples) > limit {
+            return Err(corrupt(
+                "raw",
+                format!(
+                    "it claims a {w}x{h} image, more than its {} bytes can hold",
+                    bytes.len()
+                ),
+            ));
+        }
+    }
+    Ok(())
 }
 
-fn raw_image(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
+fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
     use rawler::decoders::RawDecodeParams;
     use rawler::rawimage::{RawImageData, RawPhotometricInterpretation};
+    check_claimed_size(bytes)?;
     let source = rawler::rawsource::RawSource::new_from_slice(bytes);
     // No raw decoder knows these bytes: they are no raw file.
     let decoder =
