@@ -106,6 +106,7 @@ fn make_run(run: &Path) -> Vec<Vec<f32>> {
         frames,
         summary: None,
         roi: None,
+        channels: 1,
     };
     let json = serde_json::to_vec_pretty(&index).expect("index json");
     std::fs::write(out.join(NORMTEXTURE_INDEX), json).expect("write index");

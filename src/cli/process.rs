@@ -17,6 +17,7 @@ pub fn run(cmd: ProcessCmd) -> Result<ExitCode> {
     match cmd {
         ProcessCmd::PhotometricStereo(args) => photometric_stereo(args)?,
         ProcessCmd::Rectify(args) => rectify(args)?,
+        ProcessCmd::Colour(args) => colour(args)?,
         ProcessCmd::Btf(args) => btf(args)?,
         ProcessCmd::Fit(args) => fit(args)?,
         ProcessCmd::Mdf(args) => mdf(args)?,
@@ -41,6 +42,13 @@ pub enum ProcessCmd {
     /// pixels, the markers used and rejected). Frames whose markers cannot be
     /// found are named in the error and the index.
     Rectify(RectifyArgs),
+    /// White balance and a 3×3 colour correction of a colour camera, from
+    /// the reference patches on the holder (white, red, green, grey, blue,
+    /// yellow) in the run's most frontal frame, registered by its markers.
+    /// Prints and keeps in RUN/processed/colour.json the gains, the matrix
+    /// and each patch's colour difference ΔE*ab (CIE 1976) after
+    /// correction, with the matrix fitted with and without that patch.
+    Colour(ColourArgs),
     /// Compress a rectified run's BTF: a PCA per view slot (Sattler et al., §4.1)
     /// into RUN/processed/btf/ (btf.json + slot files), with the eigenvalue
     /// decay and the RMS error for C = 1 … 32 per slot in report.json.
@@ -276,8 +284,41 @@ pub struct BtfArgs {
     /// Components kept per view slot.
     #[arg(long, default_value_t = 16)]
     pub components: usize,
+    /// For a simulated run: after compressing, print the BTF's RMS error
+    /// against the scene's true BTF (per channel for an RGB BTF) at this
+    /// light and view, "θl,φl,θv,φv" in degrees, ideally a pair the plan
+    /// did not measure. Repeatable.
+    #[arg(long = "held-out", value_name = "θl,φl,θv,φv")]
+    pub held_out: Vec<String>,
     #[command(flatten)]
     pub exec: ExecutorArgs,
+}
+
+/// Parses "θl,φl,θv,φv" (degrees) into a light and a view.
+fn held_out_pair(
+    s: &str,
+) -> Result<(
+    rigd_core::geometry::Direction,
+    rigd_core::geometry::Direction,
+)> {
+    use rigd_core::geometry::Direction;
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| bad_input(format!("--held-out {s}: expected θl,φl,θv,φv in degrees")))?;
+    match v[..] {
+        [tl, pl, tv, pv]
+            if v.iter().all(|x| x.is_finite())
+                && (0.0..90.0).contains(&tl)
+                && (0.0..90.0).contains(&tv) =>
+        {
+            Ok((Direction::new(tl, pl), Direction::new(tv, pv)))
+        }
+        _ => Err(bad_input(format!(
+            "--held-out {s}: expected θl,φl,θv,φv in degrees, θ in [0, 90)"
+        ))),
+    }
 }
 
 #[derive(Args)]
@@ -315,6 +356,13 @@ pub struct MdfArgs {
     pub sigma: f64,
     #[command(flatten)]
     pub exec: ExecutorArgs,
+}
+
+#[derive(Args)]
+pub struct ColourArgs {
+    /// The run directory: a colour camera's frames of a holder with
+    /// colour patches.
+    pub run: PathBuf,
 }
 
 #[derive(Args)]
@@ -572,6 +620,16 @@ fn btf(args: BtfArgs) -> Result<()> {
     if args.components == 0 {
         return Err(bad_input("--components 0: expected at least 1"));
     }
+    let held_out = args
+        .held_out
+        .iter()
+        .map(|s| held_out_pair(s))
+        .collect::<Result<Vec<_>>>()?;
+    if !held_out.is_empty() && !rigd::store::read_meta(&args.run)?.simulated {
+        return Err(bad_input(
+            "--held-out: ground truth exists only for simulated runs",
+        ));
+    }
     args.exec.config()?;
     if args.exec.is_slurm() {
         use rigd::postprocess::pipeline::{BtfOptions, ProcessOptions, Step};
@@ -607,7 +665,57 @@ fn btf(args: BtfArgs) -> Result<()> {
             println!("{}\t{:.5}", c + 1, rms);
         }
     }
+    print_truth_error(&args.run, &held_out)
+}
+
+/// The BTF's error against the simulated scene's truth at each pair.
+#[cfg(feature = "sim")]
+fn print_truth_error(
+    run: &std::path::Path,
+    pairs: &[(
+        rigd_core::geometry::Direction,
+        rigd_core::geometry::Direction,
+    )],
+) -> Result<()> {
+    if pairs.is_empty() {
+        return Ok(());
+    }
+    let errors = rigd::postprocess::truth::btf_truth_error(run, pairs)?;
+    println!("held out: RMS error against the true BTF, relative to the truth's RMS (per channel)");
+    for e in errors {
+        let per: Vec<String> = e
+            .rms_by_channel
+            .iter()
+            .zip(&e.truth_rms_by_channel)
+            .map(|(r, t)| format!("{r:.4} ({:.1} %)", 100.0 * r / t.max(f64::MIN_POSITIVE)))
+            .collect();
+        println!(
+            "light θ {:.1}° φ {:.1}°, view θ {:.1}° φ {:.1}°: {}",
+            e.light.theta_deg,
+            e.light.phi_deg,
+            e.view.theta_deg,
+            e.view.phi_deg,
+            per.join(", ")
+        );
+    }
     Ok(())
+}
+
+#[cfg(not(feature = "sim"))]
+fn print_truth_error(
+    _run: &std::path::Path,
+    pairs: &[(
+        rigd_core::geometry::Direction,
+        rigd_core::geometry::Direction,
+    )],
+) -> Result<()> {
+    if pairs.is_empty() {
+        Ok(())
+    } else {
+        Err(bad_input(
+            "--held-out needs the simulator, and this rigd was built without it (cargo feature `sim`)",
+        ))
+    }
 }
 
 fn fit(args: FitArgs) -> Result<()> {
@@ -812,6 +920,19 @@ fn relight(args: RelightArgs) -> Result<()> {
             rigd_process::silhouette::MAX_PEEL_LAYERS
         );
     }
+    Ok(())
+}
+
+fn colour(args: ColourArgs) -> Result<()> {
+    use rigd::postprocess::{colour, ProcessError};
+    let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
+    let report = match colour::calibrate_run(&run) {
+        Ok(report) => report,
+        Err(ProcessError::Invalid(m)) => return Err(bad_input(m)),
+        Err(e) => return Err(e.into()),
+    };
+    print!("{}", report.table());
+    println!("-> {}", colour::colour_file(&args.run).display());
     Ok(())
 }
 

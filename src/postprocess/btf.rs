@@ -78,7 +78,7 @@ pub fn btf_run(
         .map_err(|e| ProcessError::Invalid(e.to_string()))
     };
     let (lights, views) = (table(&index.lights)?, table(&index.views)?);
-    let shape = TextureShape::new(index.size, index.size, 1)
+    let shape = TextureShape::new(index.size, index.size, index.channels)
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let dir = crate::store::processed::btf_dir(run);
     let started = std::time::Instant::now();
@@ -246,7 +246,7 @@ pub fn compress_slot_ahead(
     let key = slot_key(run, index, slot, &format!("C{components}")).ok_or_else(|| {
         ProcessError::Invalid(format!("view slot {slot}: a light has no texture yet"))
     })?;
-    let shape = TextureShape::new(index.size, index.size, 1)
+    let shape = TextureShape::new(index.size, index.size, index.channels)
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let images = (0..index.lights.len())
         .map(|l| index.load(run, slot, l).map(|img| img.data))
@@ -355,6 +355,11 @@ pub struct HeldOutError {
     pub rms: f64,
     /// RMS of the truth itself, for scale.
     pub truth_rms: f64,
+    /// `rms` per channel (red, green, blue for an RGB BTF; one value for
+    /// grey).
+    pub rms_by_channel: Vec<f64>,
+    /// `truth_rms` per channel.
+    pub truth_rms_by_channel: Vec<f64>,
 }
 
 /// RMS differences between the run's compressed BTF at each pair and the
@@ -380,18 +385,23 @@ pub fn btf_error(
                     truth.len()
                 )));
             }
+            // Values are texel-major with the channels interleaved.
+            let channels = store.shape().channels().max(1);
+            let (mut err2, mut truth2) = (vec![0.0; channels], vec![0.0; channels]);
+            for (k, (a, b)) in tex.iter().zip(truth).enumerate() {
+                err2[k % channels] += f64::from(a - b).powi(2);
+                truth2[k % channels] += f64::from(*b).powi(2);
+            }
             let n = tex.len().max(1) as f64;
-            let err2: f64 = tex
-                .iter()
-                .zip(truth)
-                .map(|(a, b)| f64::from(a - b).powi(2))
-                .sum();
-            let truth2: f64 = truth.iter().map(|b| f64::from(*b).powi(2)).sum();
+            let per_channel = (tex.len() / channels).max(1) as f64;
+            let rms = |sums: &[f64], n: f64| sums.iter().map(|s| (s / n).sqrt()).collect();
             Ok(HeldOutError {
                 light,
                 view,
-                rms: (err2 / n).sqrt(),
-                truth_rms: (truth2 / n).sqrt(),
+                rms: (err2.iter().sum::<f64>() / n).sqrt(),
+                truth_rms: (truth2.iter().sum::<f64>() / n).sqrt(),
+                rms_by_channel: rms(&err2, per_channel),
+                truth_rms_by_channel: rms(&truth2, per_channel),
             })
         })
         .collect()

@@ -63,6 +63,14 @@ pub fn import_textures(
     })?;
     let (mut lights, mut views, mut frames) = (Vec::new(), Vec::new(), Vec::new());
     for (i, t) in textures.iter().enumerate() {
+        if t.image.channels != first.image.channels {
+            return Err(ProcessError::Invalid(format!(
+                "{}: texture {i} has {} channels, the first {}",
+                path.display(),
+                t.image.channels,
+                first.image.channels
+            )));
+        }
         if t.image.width != size || t.image.height != size {
             return Err(ProcessError::Invalid(format!(
                 "{}: texture {i} is {}x{}, the first is {size}x{size}",
@@ -97,6 +105,7 @@ pub fn import_textures(
         frames,
         summary: None,
         roi: None,
+        channels: first.image.channels,
     };
     let mut json =
         serde_json::to_vec_pretty(&index).map_err(|e| ProcessError::Invalid(e.to_string()))?;

@@ -107,7 +107,9 @@ fn fit_one_slot(
             images[l].data.len()
         )));
     }
-    // Texel-major: each texel's values under every light.
+    // Texel-major: each texel's values under every light. An RGB texture
+    // (channels interleaved) is fitted per channel: each of a texel's
+    // channels is a series of its own.
     let mut values = Vec::with_capacity(texels * lights.len());
     for t in 0..texels {
         values.extend(images.iter().map(|img| img.data[t]));
@@ -118,9 +120,11 @@ fn fit_one_slot(
     let started = std::time::Instant::now();
     let fit = fit_slot(&lights, &values, lobes, &FitOptions::default()).map_err(|e| invalid(&e))?;
     let fit_s = started.elapsed().as_secs_f64();
-    // The fitted parameters, per texel: Meseth et al.'s (a, b, c, n) per
-    // lobe, and the six PTM coefficients.
+    // The fitted parameters, per texel (and channel): Meseth et al.'s
+    // (a, b, c, n) per lobe, and the six PTM coefficients.
     let side = index.size;
+    // An RGB texel's channels' parameters side by side (npy is rank 3).
+    let shape = |per_series: usize| [side, side, index.channels.max(1) * per_series];
     let mut lobe_params = Vec::with_capacity(texels * lobes * 4);
     for t in &fit.texels {
         let mut coefficients = t.model.to_paper_coefficients();
@@ -138,8 +142,8 @@ fn fit_one_slot(
         rigd_process::npy::write_f32(&path, shape, data)
             .map_err(|e| ProcessError::Invalid(format!("{}: {e}", path.display())))
     };
-    write(lobes_file, &[side, side, 4 * lobes], &lobe_params)?;
-    write(ptm_file, &[side, side, 6], &ptm_params)?;
+    write(lobes_file, &shape(4 * lobes), &lobe_params)?;
+    write(ptm_file, &shape(6), &ptm_params)?;
     Ok([
         SlotStats {
             mean_abs_error: ptm.mean_abs_error(),

@@ -7,8 +7,9 @@ use rigd_process::image_io::Image;
 
 use super::ProcessError;
 use crate::rig::camera_file::{self, CameraImage};
-use crate::rig::hal::decode_png;
+use crate::rig::hal::{decode_png, is_png};
 use crate::store::{read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
+use rigd_core::Cfa;
 
 /// A run's metadata and every frame it wrote, in capture order.
 pub struct RunFrames {
@@ -35,6 +36,50 @@ impl RunFrames {
 
     /// One frame as linear values in [0, 1].
     pub fn image(&self, entry: &FrameEntry) -> Result<Image, ProcessError> {
+        let linear = self.linear(entry)?;
+        linear.grey().map_err(|e| self.frame_error(entry, e))
+    }
+
+    /// One frame's red, green and blue planes, linear in [0, 1], with its
+    /// width and height: a Bayer mosaic demosaiced (bilinear, as
+    /// [`Self::image`] reads it), an RGB file as it is. `None` for a
+    /// monochrome camera's frame.
+    pub fn colour_planes(&self, entry: &FrameEntry) -> Result<Option<ColourPlanes>, ProcessError> {
+        let linear = self.linear(entry)?;
+        linear.planes().map_err(|e| self.frame_error(entry, e))
+    }
+
+    /// One frame white-balanced and colour-corrected by `calibration`:
+    /// three interleaved channels of linear sRGB. `None` for a monochrome
+    /// camera's frame.
+    pub fn corrected(
+        &self,
+        entry: &FrameEntry,
+        calibration: &rigd_process::colour::ColourCalibration,
+    ) -> Result<Option<Image>, ProcessError> {
+        let Some(planes) = self.colour_planes(entry)? else {
+            return Ok(None);
+        };
+        let mut out = Image::new(planes.width, planes.height, 3);
+        let [r, g, b] = &planes.rgb;
+        for (((px, r), g), b) in out.data.chunks_exact_mut(3).zip(r).zip(g).zip(b) {
+            let c = calibration.apply([f64::from(*r), f64::from(*g), f64::from(*b)]);
+            for (d, v) in px.iter_mut().zip(c) {
+                *d = v as f32;
+            }
+        }
+        Ok(Some(out))
+    }
+
+    fn frame_error(&self, entry: &FrameEntry, e: impl std::fmt::Display) -> ProcessError {
+        ProcessError::Frame {
+            path: self.root.join(&entry.file),
+            message: e.to_string(),
+        }
+    }
+
+    /// The frame's samples, linear in [0, 1], as the camera recorded them.
+    fn linear(&self, entry: &FrameEntry) -> Result<Linear, ProcessError> {
         let path = self.root.join(&entry.file);
         let bytes = std::fs::read(&path).map_err(|e| ProcessError::Frame {
             path: path.clone(),
@@ -44,46 +89,127 @@ impl RunFrames {
             path: path.clone(),
             message,
         };
-        if !bytes.starts_with(PNG_MAGIC) {
+        if !is_png(&bytes) {
             let img = camera_file::decode(&bytes).map_err(|e| frame_err(e.to_string()))?;
-            return camera_file_grey(&img).map_err(|e| frame_err(e.to_string()));
+            return Ok(camera_file_linear(&img));
         }
         let (w, h, pixels) = decode_png(&bytes).map_err(frame_err)?;
-        linear_grey(entry, w, h, &pixels).map_err(|e| frame_err(e.to_string()))
+        Ok(png_linear(entry, w, h, &pixels))
     }
 }
 
-/// The first bytes of every PNG file: how rigd's own frames are told from
-/// camera files.
-const PNG_MAGIC: &[u8] = b"\x89PNG\r\n\x1a\n";
+/// A colour frame as red, green and blue planes, linear in [0, 1].
+pub struct ColourPlanes {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// Red, green and blue, row-major from the top row.
+    pub rgb: [Vec<f32>; 3],
+}
+
+impl ColourPlanes {
+    /// The colour at continuous pixel position (x, y) (pixel (i, j)'s
+    /// centre is (i + ½, j + ½)), bilinear; `None` outside the frame.
+    pub fn sample(&self, x: f64, y: f64) -> Option<[f64; 3]> {
+        let (u, v) = (x - 0.5, y - 0.5);
+        if !(u >= 0.0 && v >= 0.0) {
+            return None;
+        }
+        let (i, j) = (u.floor() as usize, v.floor() as usize);
+        if i + 1 >= self.width || j + 1 >= self.height {
+            return None;
+        }
+        let (fu, fv) = ((u - i as f64) as f32, (v - j as f64) as f32);
+        let at =
+            |p: &[f32], i: usize, j: usize| p.get(j * self.width + i).copied().unwrap_or(f32::NAN);
+        Some(self.rgb.each_ref().map(|p| {
+            let top = at(p, i, j) * (1.0 - fu) + at(p, i + 1, j) * fu;
+            let bottom = at(p, i, j + 1) * (1.0 - fu) + at(p, i + 1, j + 1) * fu;
+            f64::from(top * (1.0 - fv) + bottom * fv)
+        }))
+    }
+}
+
+/// A frame's samples, linear in [0, 1], before any demosaicing.
+enum Linear {
+    /// A monochrome sensor's.
+    Grey(Image),
+    /// A Bayer sensor's mosaic (one channel) behind its filter array.
+    Mosaic(Image, Cfa),
+    /// Three interleaved channels (a rendered JPEG or TIFF).
+    Rgb(Image),
+}
+
+impl Linear {
+    /// Grey: a mosaic demosaiced and weighted (R + 2G + B) / 4 as
+    /// [`demosaic::luminance`] does, RGB weighted alike.
+    fn grey(self) -> Result<Image, demosaic::TooSmall> {
+        Ok(match self {
+            Linear::Grey(img) => img,
+            Linear::Mosaic(img, cfa) => Image {
+                data: demosaic::luminance(&demosaic::bilinear(
+                    &img.data, img.width, img.height, cfa,
+                )?),
+                ..img
+            },
+            Linear::Rgb(img) => {
+                let mut out = Image::new(img.width, img.height, 1);
+                out.data = img
+                    .data
+                    .chunks_exact(3)
+                    .map(|c| 0.25 * c[0] + 0.5 * c[1] + 0.25 * c[2])
+                    .collect();
+                out
+            }
+        })
+    }
+
+    /// Red, green and blue planes with the width and height; `None` for
+    /// a monochrome frame.
+    fn planes(self) -> Result<Option<ColourPlanes>, demosaic::TooSmall> {
+        Ok(match self {
+            Linear::Grey(_) => None,
+            Linear::Mosaic(img, cfa) => Some(ColourPlanes {
+                width: img.width,
+                height: img.height,
+                rgb: demosaic::bilinear(&img.data, img.width, img.height, cfa)?,
+            }),
+            Linear::Rgb(img) => {
+                let plane = |c: usize| img.data.iter().skip(c).step_by(3).copied().collect();
+                Some(ColourPlanes {
+                    width: img.width,
+                    height: img.height,
+                    rgb: [plane(0), plane(1), plane(2)],
+                })
+            }
+        })
+    }
+}
 
 /// A camera file's image as linear grey in [0, 1]: black level off, scaled
 /// by the white level, sRGB decoded; a Bayer mosaic demosaiced and RGB
 /// weighted as `rigd_process::demosaic::luminance` weights it.
 pub fn camera_file_grey(img: &CameraImage) -> Result<Image, demosaic::TooSmall> {
-    let (w, h) = (img.width as usize, img.height as usize);
-    let linear = img.linear();
-    let mut out = Image::new(w, h, 1);
-    out.data = match (img.channels, img.cfa) {
-        (3, _) => linear
-            .chunks_exact(3)
-            .map(|c| 0.25 * c[0] + 0.5 * c[1] + 0.25 * c[2])
-            .collect(),
-        (_, Some(cfa)) => demosaic::luminance(&demosaic::bilinear(&linear, w, h, cfa)?),
-        _ => linear,
-    };
-    Ok(out)
+    camera_file_linear(img).grey()
 }
 
-/// A frame's samples as linear grey in [0, 1]. A Bayer frame is stored as
-/// its mosaic; until the colour pipeline lands, processing reads it as
-/// grey (see `rigd_process::demosaic`).
-fn linear_grey(
-    entry: &FrameEntry,
-    w: u32,
-    h: u32,
-    pixels: &[u16],
-) -> Result<Image, demosaic::TooSmall> {
+/// A camera file's samples, linear in [0, 1].
+fn camera_file_linear(img: &CameraImage) -> Linear {
+    let (w, h) = (img.width as usize, img.height as usize);
+    let channels = if img.channels == 3 { 3 } else { 1 };
+    let mut out = Image::new(w, h, channels);
+    out.data = img.linear();
+    match (channels, img.cfa) {
+        (3, _) => Linear::Rgb(out),
+        (_, Some(cfa)) => Linear::Mosaic(out, cfa),
+        _ => Linear::Grey(out),
+    }
+}
+
+/// A PNG frame's samples as linear values in [0, 1]. A Bayer frame (its
+/// device's pixel format names a filter array) is kept as its mosaic.
+fn png_linear(entry: &FrameEntry, w: u32, h: u32, pixels: &[u16]) -> Linear {
     let full = ((1u32 << entry.bit_depth.clamp(1, 16)) - 1) as f32;
     let mut img = Image::new(w as usize, h as usize, 1);
     for (d, &p) in img.data.iter_mut().zip(pixels) {
@@ -94,11 +220,10 @@ fn linear_grey(
         .as_ref()
         .and_then(|d| d.pixel_format.parse::<rigd_core::PixelFormat>().ok())
         .and_then(|f| f.cfa());
-    if let Some(cfa) = cfa {
-        let rgb = demosaic::bilinear(&img.data, img.width, img.height, cfa)?;
-        img.data = demosaic::luminance(&rgb);
+    match cfa {
+        Some(cfa) => Linear::Mosaic(img, cfa),
+        None => Linear::Grey(img),
     }
-    Ok(img)
 }
 
 #[cfg(test)]
@@ -124,7 +249,9 @@ mod tests {
     fn a_bayer_mosaic_reads_as_grey_and_a_mono_frame_as_it_is() {
         // Red 255, green 51, blue 0 behind an RGGB tile.
         let mosaic = [255, 51, 255, 51, 51, 0, 51, 0];
-        let grey = linear_grey(&entry(Some("BayerRG8")), 4, 2, &mosaic).expect("grey");
+        let grey = png_linear(&entry(Some("BayerRG8")), 4, 2, &mosaic)
+            .grey()
+            .expect("grey");
         let want = (0.25 * 255.0 + 0.5 * 51.0) / 255.0;
         assert!(
             grey.data.iter().all(|v| (v - want).abs() < 1e-6),
@@ -132,10 +259,14 @@ mod tests {
             grey.data
         );
         for format in [None, Some("Mono8")] {
-            let mono = linear_grey(&entry(format), 4, 2, &mosaic).expect("mono");
+            let mono = png_linear(&entry(format), 4, 2, &mosaic)
+                .grey()
+                .expect("mono");
             assert_eq!(mono.data[1], 51.0 / 255.0, "{format:?}");
         }
-        let e = linear_grey(&entry(Some("BayerRG8")), 4, 1, &mosaic[..4]).expect_err("1 row");
+        let e = png_linear(&entry(Some("BayerRG8")), 4, 1, &mosaic[..4])
+            .grey()
+            .expect_err("1 row");
         assert_eq!(e.height, 1);
     }
 }

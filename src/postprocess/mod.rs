@@ -4,6 +4,7 @@
 //! writes into `RUN/processed/` ([`crate::store::processed`]).
 
 pub mod btf;
+pub mod colour;
 pub mod dataset;
 pub mod executor;
 pub mod fit;

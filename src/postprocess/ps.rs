@@ -12,6 +12,12 @@ use crate::store::FrameEntry;
 /// taken under. The camera's image axes are the sample's x and y (the
 /// simulated and real VirTex cameras sit at the pole), so lights in the
 /// sample frame are lights in the image frame photometric stereo expects.
+///
+/// A colour camera's frames are white-balanced and colour-corrected by the
+/// run's colour calibration (measured now on the holder's patches if there
+/// is none yet; [`super::colour::texture_colour`]): photometric stereo
+/// then solves the normals on their luminance and gives RGB albedo, as
+/// Spence et al. do. Without a calibration the frames are read as grey.
 pub fn ps_dataset_from_run(run: &RunFrames) -> Result<PsDataset, ProcessError> {
     let first = run.entries.first().ok_or_else(|| {
         ProcessError::Invalid(format!("{}: the run has no frames", run.root.display()))
@@ -28,9 +34,17 @@ pub fn ps_dataset_from_run(run: &RunFrames) -> Result<PsDataset, ProcessError> {
             )));
         }
     }
+    let colour = super::colour::texture_colour(run, true)?;
     let mut images = Vec::with_capacity(entries.len());
     for e in &entries {
-        images.push(run.image(e)?);
+        let rgb = match &colour {
+            Some(calibration) => run.corrected(e, calibration)?,
+            None => None,
+        };
+        images.push(match rgb {
+            Some(rgb) => rgb,
+            None => run.image(e)?,
+        });
     }
     Ok(PsDataset {
         image_names: entries.iter().map(|e| e.file.clone()).collect(),

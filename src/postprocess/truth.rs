@@ -170,15 +170,30 @@ pub fn tile_spread(width: usize, pixels: impl Iterator<Item = (usize, f64)>) -> 
 /// scale for a white Lambertian sample lit frontally) with a directional
 /// lamp (a rig's lamp fall-off therefore counts as error).
 pub fn true_texture(scene: &Scene, size: usize, light: Direction, view: Direction) -> Vec<f32> {
+    true_texture_channels(scene, size, light, view, 1)
+}
+
+/// [`true_texture`] with `channels` values per texel: 1 grey, 3 linear
+/// sRGB red, green and blue interleaved ([`Scene::true_btf_channel`]),
+/// what a colour-corrected RGB normtexture holds.
+pub fn true_texture_channels(
+    scene: &Scene,
+    size: usize,
+    light: Direction,
+    view: Direction,
+    channels: usize,
+) -> Vec<f32> {
     use rayon::prelude::*;
     const SUB: usize = 4;
     let [hx, hy] = scene.sample_half;
     let (l, v) = (light.to_vector(), view.to_vector());
-    let mut out = vec![0f32; size * size];
-    out.par_chunks_mut(size.max(1))
+    let channels = if channels == 3 { 3 } else { 1 };
+    let mut out = vec![0f32; size * size * channels];
+    out.par_chunks_mut((size * channels).max(1))
         .enumerate()
         .for_each(|(j, row)| {
-            for (i, texel) in row.iter_mut().enumerate() {
+            for (k, texel) in row.iter_mut().enumerate() {
+                let (i, c) = (k / channels, k % channels);
                 let mut sum = 0.0;
                 for sj in 0..SUB {
                     let y =
@@ -186,7 +201,11 @@ pub fn true_texture(scene: &Scene, size: usize, light: Direction, view: Directio
                     for si in 0..SUB {
                         let x = -hx
                             + (i as f64 + (si as f64 + 0.5) / SUB as f64) / size as f64 * 2.0 * hx;
-                        sum += scene.true_btf(x, y, l, v, Default::default());
+                        sum += if channels == 3 {
+                            scene.true_btf_channel(x, y, l, v, c)
+                        } else {
+                            scene.true_btf(x, y, l, v, Default::default())
+                        };
                     }
                 }
                 *texel = (rigd_sim::scene::WHITE_LEVEL * sum / (SUB * SUB) as f64) as f32;
@@ -209,10 +228,10 @@ pub fn btf_truth_error(
         )));
     }
     let scene = Scene::load(meta.profile.sim.scene_name())?;
-    let size = NormtextureIndex::read(run)?.size;
+    let index = NormtextureIndex::read(run)?;
     let truths: Vec<Vec<f32>> = pairs
         .iter()
-        .map(|&(l, v)| true_texture(&scene, size, l, v))
+        .map(|&(l, v)| true_texture_channels(&scene, index.size, l, v, index.channels))
         .collect();
     btf_error(run, pairs, &truths)
 }

@@ -282,6 +282,12 @@ pub fn encode_png(frame: &Frame) -> Result<Vec<u8>, String> {
     Ok(out)
 }
 
+/// Whether `bytes` are a PNG file (its 8-byte signature): how rigd's own
+/// frames are told from camera files.
+pub fn is_png(bytes: &[u8]) -> bool {
+    bytes.starts_with(b"\x89PNG\r\n\x1a\n")
+}
+
 /// Decodes a frame PNG written by [`encode_png`] back to pixel values.
 pub fn decode_png(bytes: &[u8]) -> Result<(u32, u32, Vec<u16>), String> {
     let dec = png::Decoder::new(bytes);

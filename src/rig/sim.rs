@@ -397,6 +397,7 @@ pub(crate) fn firmware(
                         lamp_distance_m: lamp_distances(profile),
                         laser: crate::plan::laser::LaserRig::of(profile),
                         holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
+                        cfa: dev.intrinsics.and_then(|i| i.cfa),
                     },
                     scene: scene.clone(),
                 });
@@ -528,6 +529,8 @@ struct CameraView {
     laser: Option<crate::plan::laser::LaserRig>,
     /// `[sim] holder_offset_mm`, metres.
     holder_offset_m: [f64; 2],
+    /// The sensor's colour filter array (`intrinsics.cfa`); `None`: mono.
+    cfa: Option<rigd_core::Cfa>,
 }
 
 impl CameraView {
@@ -589,6 +592,7 @@ impl CameraView {
             laser,
             plate_height_m: world.plate_mm.map(|h| h * 1e-3),
             holder_offset_m: self.holder_offset_m,
+            cfa: self.cfa,
             ..Shot::default()
         }
     }

@@ -38,6 +38,18 @@ impl Cfa {
         }
     }
 
+    /// The colour channel (0 red, 1 green, 2 blue) of the photosite at
+    /// (`x`, `y`), counted from the frame's first pixel.
+    pub fn channel_at(self, x: usize, y: usize) -> usize {
+        let tile = match self {
+            Cfa::Rggb => [0, 1, 1, 2],
+            Cfa::Grbg => [1, 0, 2, 1],
+            Cfa::Gbrg => [1, 2, 0, 1],
+            Cfa::Bggr => [2, 1, 1, 0],
+        };
+        tile[(y % 2) * 2 + x % 2]
+    }
+
     /// The PFNC infix: `RG`, `GR`, `GB` or `BG`.
     pub fn pfnc(self) -> &'static str {
         match self {

@@ -12,11 +12,12 @@
 //! resamples every frame into texture space anyway, which low-passes
 //! the result further.
 //!
-//! Until the colour pipeline lands, processing reads a Bayer frame as grey
-//! through [`luminance`]: (R + 2G + B) / 4 of the demosaiced pixel. That is
-//! the mean of a 2×2 tile's samples, so a neutral scene seen through a
-//! sensor with equal channel responses reads exactly as a monochrome
-//! sensor would. No white balance is applied: none is measured yet.
+//! The steps that work on grey read a Bayer frame through [`luminance`]:
+//! (R + 2G + B) / 4 of the demosaiced pixel. That is the mean of a 2×2
+//! tile's samples, so a neutral scene seen through a sensor with equal
+//! channel responses reads exactly as a monochrome sensor would. No white
+//! balance is applied there; `rigd process colour` measures one (see
+//! [`crate::colour`]) for the RGB steps.
 
 use rigd_core::pixel_format::Cfa;
 
@@ -28,19 +29,6 @@ pub struct TooSmall {
     pub width: usize,
     /// Frame height, pixels.
     pub height: usize,
-}
-
-/// The colour channel (0 red, 1 green, 2 blue) of the photosite at
-/// (`x`, `y`).
-pub fn channel_at(cfa: Cfa, x: usize, y: usize) -> usize {
-    // The tile, row-major from the frame's first pixel.
-    let tile = match cfa {
-        Cfa::Rggb => [0, 1, 1, 2],
-        Cfa::Grbg => [1, 0, 2, 1],
-        Cfa::Gbrg => [1, 2, 0, 1],
-        Cfa::Bggr => [2, 1, 1, 0],
-    };
-    tile[(y % 2) * 2 + x % 2]
 }
 
 /// Bilinear demosaicing of a `width × height` mosaic (row by row): red,
@@ -61,7 +49,7 @@ pub fn bilinear(
     ];
     for y in 0..height {
         for x in 0..width {
-            let own = channel_at(cfa, x, y);
+            let own = cfa.channel_at(x, y);
             let mut sum = [0.0f32; 3];
             let mut count = [0u32; 3];
             for ny in y.saturating_sub(1)..=(y + 1).min(height - 1) {
@@ -69,7 +57,7 @@ pub fn bilinear(
                     if (nx, ny) == (x, y) {
                         continue;
                     }
-                    let c = channel_at(cfa, nx, ny);
+                    let c = cfa.channel_at(nx, ny);
                     sum[c] += mosaic[ny * width + nx];
                     count[c] += 1;
                 }
@@ -112,7 +100,7 @@ mod tests {
     fn record(cfa: Cfa, w: usize, h: usize, scene: impl Fn(usize, usize) -> [f32; 3]) -> Vec<f32> {
         (0..h)
             .flat_map(|y| (0..w).map(move |x| (x, y)))
-            .map(|(x, y)| scene(x, y)[channel_at(cfa, x, y)])
+            .map(|(x, y)| scene(x, y)[cfa.channel_at(x, y)])
             .collect()
     }
 
@@ -121,14 +109,14 @@ mod tests {
         for cfa in ALL {
             let mut n = [0; 3];
             for (x, y) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                n[channel_at(cfa, x, y)] += 1;
+                n[cfa.channel_at(x, y)] += 1;
             }
             assert_eq!(n, [1, 2, 1], "{cfa:?}");
         }
-        assert_eq!(channel_at(Cfa::Rggb, 0, 0), 0);
-        assert_eq!(channel_at(Cfa::Bggr, 0, 0), 2);
+        assert_eq!(Cfa::Rggb.channel_at(0, 0), 0);
+        assert_eq!(Cfa::Bggr.channel_at(0, 0), 2);
         // The tile repeats.
-        assert_eq!(channel_at(Cfa::Grbg, 5, 4), channel_at(Cfa::Grbg, 1, 0));
+        assert_eq!(Cfa::Grbg.channel_at(5, 4), Cfa::Grbg.channel_at(1, 0));
     }
 
     #[test]

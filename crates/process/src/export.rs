@@ -10,7 +10,10 @@
 //!
 //! Angles are rounded to whole degrees, as both formats name them; two
 //! measured directions that round to the same name are an error rather
-//! than a silent overwrite. Textures are grey, values in [0, 1].
+//! than a silent overwrite. Textures are grey or RGB (linear sRGB, the
+//! channels interleaved), values in [0, 1]; RGB textures are written as
+//! RGB PNGs and 3-channel JPEGs, as the Bonn database's are, and read back
+//! as RGB.
 
 use std::collections::BTreeSet;
 use std::io::{Read, Write};
@@ -46,8 +49,8 @@ pub struct Texture {
     pub light: Direction,
     /// View direction the texture was measured from.
     pub view: Direction,
-    /// The texture: grey (1 channel), values in [0, 1], at most 65535 pixels
-    /// a side.
+    /// The texture: grey (1 channel) or RGB (3), values in [0, 1], at most
+    /// 65535 pixels a side.
     pub image: Image,
 }
 
@@ -81,9 +84,10 @@ pub enum ExportError {
         /// The name that did not parse.
         name: String,
     },
-    /// A texture to export is not grey, or has a side of 0 or more than 65535
+    /// A texture to export is neither grey nor RGB, or has a side of 0 or
+    /// more than 65535
     /// pixels.
-    #[error("texture for {what} is {width}x{height} with {channels} channels: expected grey, at most 65535 pixels a side")]
+    #[error("texture for {what} is {width}x{height} with {channels} channels: expected grey or RGB, at most 65535 pixels a side")]
     BadTexture {
         /// The file name the texture would have had.
         what: String,
@@ -158,7 +162,7 @@ fn check_names<'a>(
             });
         }
         let img = &t.image;
-        if img.channels != 1
+        if !(img.channels == 1 || img.channels == 3)
             || img.width > 65535
             || img.height > 65535
             || img.width == 0
@@ -226,7 +230,11 @@ pub fn write(
                             &codes8(&t.image),
                             t.image.width as u16,
                             t.image.height as u16,
-                            jpeg_encoder::ColorType::Luma,
+                            if t.image.channels == 3 {
+                                jpeg_encoder::ColorType::Rgb
+                            } else {
+                                jpeg_encoder::ColorType::Luma
+                            },
                         )
                         .map_err(|e| std::io::Error::other(format!("{name}: {e}")))?;
                     zip.start_file(name.as_str(), options)
@@ -304,23 +312,35 @@ pub fn read(format: Format, path: &Path) -> Result<Vec<Texture>, ExportError> {
     Ok(out)
 }
 
-/// A JPEG as a grey image in [0, 1] (colour JPEGs are read as luma).
+/// A JPEG as an image in [0, 1]: grey for a one-component JPEG, RGB for a
+/// colour one.
 fn decode_jpeg(bytes: &[u8]) -> Result<Image, String> {
     use zune_core::bytestream::ZCursor;
     use zune_core::colorspace::ColorSpace;
     use zune_core::options::DecoderOptions;
-    let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::Luma);
+    // The header says whether the JPEG is grey; decode it as what it is.
+    let mut probe = zune_jpeg::JpegDecoder::new(ZCursor::new(bytes));
+    probe.decode_headers().map_err(|e| e.to_string())?;
+    let grey = probe
+        .input_colorspace()
+        .is_some_and(|c| c.num_components() == 1);
+    let (space, channels) = if grey {
+        (ColorSpace::Luma, 1)
+    } else {
+        (ColorSpace::RGB, 3)
+    };
+    let options = DecoderOptions::default().jpeg_set_out_colorspace(space);
     let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
     decoder.decode_headers().map_err(|e| e.to_string())?;
     let (w, h) = decoder.dimensions().ok_or("no image dimensions")?;
     let pixels = decoder.decode().map_err(|e| e.to_string())?;
-    if pixels.len() != w * h {
+    if pixels.len() != w * h * channels {
         return Err(format!(
-            "decoded {} values for {w}x{h} grey pixels",
+            "decoded {} values for {w}x{h} pixels of {channels} channels",
             pixels.len()
         ));
     }
-    let mut image = Image::new(w, h, 1);
+    let mut image = Image::new(w, h, channels);
     for (d, p) in image.data.iter_mut().zip(pixels) {
         *d = f32::from(p) / 255.0;
     }

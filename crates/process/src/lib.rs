@@ -5,6 +5,7 @@
 #![warn(missing_docs)]
 
 pub mod btf;
+pub mod colour;
 pub mod demosaic;
 pub mod directions;
 pub mod export;

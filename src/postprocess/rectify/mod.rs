@@ -200,6 +200,14 @@ pub struct NormtextureIndex {
     /// None for an index written before rigd recorded it, or imported.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub roi: Option<f64>,
+    /// Values per texel: 1 (grey) or 3 (RGB, linear sRGB, corrected by
+    /// the run's `processed/colour.json`).
+    #[serde(default = "one_channel")]
+    pub channels: usize,
+}
+
+fn one_channel() -> usize {
+    1
 }
 
 /// What `rigd process rectify` prints and `index.json` keeps: how the
@@ -332,7 +340,14 @@ impl NormtextureIndex {
         if self.encoding.starts_with("npy-") {
             let a = rigd_process::npy::read_f32(&path).map_err(|e| frame_err(e.to_string()))?;
             let (h, w) = (a.shape[0], a.shape.get(1).copied().unwrap_or(1));
-            let mut img = Image::new(w, h, 1);
+            let channels = a.shape.get(2).copied().unwrap_or(1);
+            if a.data.len() != w * h * channels {
+                return Err(frame_err(format!(
+                    "shape {:?} does not hold its values",
+                    a.shape
+                )));
+            }
+            let mut img = Image::new(w, h, channels);
             img.data = a.data;
             Ok(img)
         } else {
@@ -374,6 +389,29 @@ pub(crate) fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessErr
     }
     let half = STANDARD_SAMPLE_MM * 1e-3 / 2.0;
     Ok((Holder::standard(), [half, half]))
+}
+
+/// A frame's plate → image homography from its holder's point markers, as
+/// `rigd process rectify` registers it, for steps that read the holder
+/// itself (the colour patches). `image` is the frame as
+/// [`RunFrames::image`] reads it.
+pub(crate) fn register_by_markers(
+    run: &RunFrames,
+    entry: &crate::store::FrameEntry,
+    image: &Image,
+) -> Result<rigd_process::rectify::Homography, String> {
+    let (holder, layout) = run::holder_layout(&run.meta).map_err(|e| e.to_string())?;
+    let cfg = RectifyConfig::default();
+    let rectifier = steps::Rectifier {
+        run,
+        cfg: &cfg,
+        holder,
+        layout,
+        out_dir: std::path::PathBuf::new(),
+        colour: None,
+    };
+    let camera = rectifier.camera(entry)?;
+    Ok(rectifier.markers(image, &camera, entry)?.homography)
 }
 
 mod part;

@@ -47,8 +47,9 @@ pub fn first_pass_range(
         holder,
         layout,
         out_dir: out_dir.clone(),
+        colour: crate::postprocess::colour::texture_colour(run, true)?,
     };
-    let store = FirstPassStore::new(&out_dir, cfg);
+    let store = FirstPassStore::new(&out_dir, cfg, rectifier.colour.as_ref());
     let total = positions.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let registered: usize = positions

@@ -41,12 +41,17 @@ pub(super) struct FirstPassStore {
 }
 
 impl FirstPassStore {
-    /// The store in `out_dir` (the normtextures folder) for `cfg`.
-    pub(super) fn new(out_dir: &Path, cfg: &RectifyConfig) -> FirstPassStore {
+    /// The store in `out_dir` (the normtextures folder) for `cfg` and the
+    /// colour calibration the textures are corrected by.
+    pub(super) fn new(
+        out_dir: &Path,
+        cfg: &RectifyConfig,
+        colour: Option<&rigd_process::colour::ColourCalibration>,
+    ) -> FirstPassStore {
         FirstPassStore {
             dir: out_dir.join(FIRST_PASS_DIR),
             out_dir: out_dir.to_path_buf(),
-            settings: format!("{} {cfg:?}", env!("CARGO_PKG_VERSION")),
+            settings: format!("{} {cfg:?} {colour:?}", env!("CARGO_PKG_VERSION")),
         }
     }
 

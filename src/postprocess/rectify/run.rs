@@ -44,6 +44,7 @@ pub fn rectify_run(
         holder,
         layout,
         out_dir: out_dir.clone(),
+        colour: crate::postprocess::colour::texture_colour(run, true)?,
     };
     let (lights, views, slots) = assign_slots(&run.entries);
     let done = std::sync::atomic::AtomicUsize::new(0);
@@ -56,7 +57,7 @@ pub fn rectify_run(
 
     // 1. Markers, where they are found; frames an interrupted run of this
     // step had done come from its store.
-    let store = FirstPassStore::new(&out_dir, cfg);
+    let store = FirstPassStore::new(&out_dir, cfg, rectifier.colour.as_ref());
     let resumed = std::sync::atomic::AtomicUsize::new(0);
     let mut first: Vec<FirstPass> = slots
         .par_iter()
@@ -252,8 +253,8 @@ pub fn rectify_run(
         .par_iter()
         .filter_map(|&i| {
             let f = &first[i];
-            let image = run.image(&run.entries[i]).ok()?;
-            let (h, method) = refine(i, &image);
+            let images = rectifier.frame_images(&run.entries[i]).ok()?;
+            let (h, method) = refine(i, images.grey());
             (method == RegistrationMethod::PoseTexture)
                 .then(|| rect::disagreement_px(&h, f.markers.as_ref()?, region))
                 .flatten()
@@ -283,11 +284,11 @@ pub fn rectify_run(
             let mut rec = f.rec.clone();
             let mut usable = false;
             let entry = &run.entries[i];
-            match run.image(entry) {
+            match rectifier.frame_images(entry) {
                 Err(e) => rec.problem = Some(format!("lost: {e}")),
-                Ok(image) => {
-                    let (h, method) = refine(i, &image);
-                    match rectifier.write_texture(&mut rec, &image, &h, entry.bit_depth) {
+                Ok(images) => {
+                    let (h, method) = refine(i, images.grey());
+                    match rectifier.write_texture(&mut rec, &images.texture, &h, entry.bit_depth) {
                         Ok(()) => {
                             rec.method = Some(method);
                             rec.error_px = match method {
@@ -319,6 +320,7 @@ pub fn rectify_run(
         frames: frames.clone(),
         summary: None,
         roi: Some(cfg.roi),
+        channels: rectifier.channels(),
     };
     type Filled = Result<(Option<String>, Vec<usize>), String>;
     let fills: Vec<(usize, Filled)> = (0..frames.len())

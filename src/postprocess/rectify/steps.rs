@@ -77,9 +77,64 @@ pub(super) struct Rectifier<'a> {
     pub(super) holder: Holder,
     pub(super) layout: rigd_process::rectify::MarkerLayout,
     pub(super) out_dir: std::path::PathBuf,
+    /// The run's colour calibration (`rigd process colour`): textures are
+    /// then RGB, corrected by it; `None`: grey.
+    pub(super) colour: Option<rigd_process::colour::ColourCalibration>,
+}
+
+/// A frame as rectification reads it: what its texture is made of, and
+/// grey for registering it.
+pub(super) struct FrameImages {
+    /// Colour-corrected RGB with a colour calibration, else grey.
+    pub(super) texture: Image,
+    /// Its grey (luminance), when `texture` is RGB.
+    rgb_grey: Option<Image>,
+}
+
+impl FrameImages {
+    /// The grey image registration and the texture alignment work on.
+    pub(super) fn grey(&self) -> &Image {
+        self.rgb_grey.as_ref().unwrap_or(&self.texture)
+    }
 }
 
 impl Rectifier<'_> {
+    /// Textures per texel: 3 with a colour calibration, else 1.
+    pub(super) fn channels(&self) -> usize {
+        if self.colour.is_some() {
+            3
+        } else {
+            1
+        }
+    }
+
+    /// A frame as its texture is made and as it is registered.
+    pub(super) fn frame_images(
+        &self,
+        entry: &crate::store::FrameEntry,
+    ) -> Result<FrameImages, crate::postprocess::ProcessError> {
+        let Some(colour) = &self.colour else {
+            return Ok(FrameImages {
+                texture: self.run.image(entry)?,
+                rgb_grey: None,
+            });
+        };
+        let Some(rgb) = self.run.corrected(entry, colour)? else {
+            return Err(crate::postprocess::ProcessError::Invalid(format!(
+                "frame {} is monochrome, and the run has a colour calibration",
+                entry.index
+            )));
+        };
+        let mut grey = Image::new(rgb.width, rgb.height, 1);
+        for (g, c) in grey.data.iter_mut().zip(rgb.data.chunks_exact(3)) {
+            *g = rigd_core::holder::luminance([c[0], c[1], c[2]].map(f64::from)) as f32;
+        }
+        Ok(FrameImages {
+            texture: rgb,
+            rgb_grey: Some(grey),
+        })
+    }
+
     /// The frame's camera at its achieved pose.
     pub(super) fn camera(&self, entry: &crate::store::FrameEntry) -> Result<Camera, String> {
         let geometry = camera_geometry(
@@ -217,13 +272,12 @@ impl Rectifier<'_> {
             }
             None => {
                 let file = format!("{name}.npy");
-                rigd_process::npy::write(
-                    &self.out_dir.join(&file),
-                    &[texture.height, texture.width],
-                    &texture.data,
-                    dtype,
-                )
-                .map_err(|e| e.to_string())?;
+                let shape = match texture.channels {
+                    1 => vec![texture.height, texture.width],
+                    c => vec![texture.height, texture.width, c],
+                };
+                rigd_process::npy::write(&self.out_dir.join(&file), &shape, &texture.data, dtype)
+                    .map_err(|e| e.to_string())?;
                 file
             }
         };
@@ -249,8 +303,8 @@ impl Rectifier<'_> {
             unusable: false,
             p99: 0.0,
         };
-        let image = match self.run.image(entry) {
-            Ok(image) => image,
+        let images = match self.frame_images(entry) {
+            Ok(images) => images,
             Err(e) => {
                 out.rec.problem = Some(format!("lost: {e}"));
                 out.unusable = true;
@@ -258,6 +312,7 @@ impl Rectifier<'_> {
             }
         };
         // Whether it is black is decided against its neighbours, later.
+        let image = images.grey();
         out.p99 = percentile_f32(&image.data, 0.99);
         let camera = match self.camera(entry) {
             Ok(c) => c,
@@ -272,14 +327,19 @@ impl Rectifier<'_> {
             rigd_process::rectify::Region::centred([self.holder.half, self.holder.half]),
         )
         .ok();
-        match self.markers(&image, &camera, entry) {
+        match self.markers(image, &camera, entry) {
             Ok(reg) => {
                 out.rec.rms_px = Some(reg.rms_px);
                 out.rec.max_px = Some(reg.max_px);
                 out.rec.markers_found = reg.found;
                 out.rec.markers_used = reg.used;
                 out.rec.markers_rejected = reg.rejected.clone();
-                match self.write_texture(&mut out.rec, &image, &reg.homography, entry.bit_depth) {
+                match self.write_texture(
+                    &mut out.rec,
+                    &images.texture,
+                    &reg.homography,
+                    entry.bit_depth,
+                ) {
                     Ok(()) => {
                         out.rec.method = Some(RegistrationMethod::Markers);
                         out.rec.error_px = Some(reg.rms_px);
@@ -308,10 +368,10 @@ impl Rectifier<'_> {
     /// correlation size.
     pub(super) fn reference_texture(&self, first: &FirstPass) -> Option<Image> {
         let entry = self.run.entries.get(first.position)?;
-        let image = self.run.image(entry).ok()?;
+        let images = self.frame_images(entry).ok()?;
         let side = CORRELATION_SIZE.min(self.cfg.size);
         Some(
-            self.sample_texture(&image, first.markers.as_ref()?, side)
+            self.sample_texture(images.grey(), first.markers.as_ref()?, side)
                 .ok()?
                 .texture,
         )
@@ -464,6 +524,7 @@ pub(super) fn fill_from_neighbours(
         holder: rectifier.holder.clone(),
         layout: rectifier.layout.clone(),
         out_dir: rectifier.out_dir.clone(),
+        colour: rectifier.colour,
     };
     local.store(rec, &mean, bits)?;
     Ok(neighbours.iter().map(|(_, f)| f.index).collect())

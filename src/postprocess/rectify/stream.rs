@@ -55,6 +55,8 @@ pub struct RectifyStream {
     lights: Vec<Direction>,
     views: Vec<Direction>,
     bit_depth: u8,
+    /// Values per texel of the textures so far.
+    channels: usize,
 }
 
 impl RectifyStream {
@@ -79,6 +81,7 @@ impl RectifyStream {
             lights: Vec::new(),
             views: Vec::new(),
             bit_depth: 8,
+            channels: 1,
         })
     }
 
@@ -112,6 +115,7 @@ impl RectifyStream {
             frames: self.recs.clone(),
             summary: None,
             roi: Some(self.cfg.roi),
+            channels: self.channels,
         }
     }
 
@@ -149,8 +153,10 @@ impl RectifyStream {
             holder: self.holder.clone(),
             layout: self.layout.clone(),
             out_dir: out_dir.clone(),
+            colour: crate::postprocess::colour::texture_colour(&run, false)?,
         };
-        let store = FirstPassStore::new(&out_dir, &self.cfg);
+        self.channels = rectifier.channels();
+        let store = FirstPassStore::new(&out_dir, &self.cfg, rectifier.colour.as_ref());
         let done: Vec<(FrameRegistration, bool)> = (self.next..end)
             .into_par_iter()
             .map(|position| {

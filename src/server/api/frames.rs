@@ -108,7 +108,7 @@ pub async fn preview(d: &Daemon, id: &str, index: &str) -> Result<Response, ApiE
 /// A stored frame's values for a preview: a PNG's samples, a camera file's
 /// light (a mosaic as it is, RGB as the mean of its channels).
 fn preview_values(bytes: &[u8]) -> Result<(u32, u32, Vec<f64>), String> {
-    if bytes.starts_with(b"\x89PNG") {
+    if crate::rig::hal::is_png(bytes) {
         let (w, h, px) = decode_png(bytes)?;
         return Ok((w, h, px.into_iter().map(f64::from).collect()));
     }

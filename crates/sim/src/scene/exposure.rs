@@ -41,6 +41,8 @@ pub(crate) struct Exposure<'a> {
     /// Points that land on the floor beyond the plate are 0 without
     /// shading them.
     skip_off_holder: bool,
+    /// A colour camera's filter array: each pixel records its channel.
+    cfa: Option<rigd_core::Cfa>,
 }
 
 impl<'a> Exposure<'a> {
@@ -77,6 +79,7 @@ impl<'a> Exposure<'a> {
             vignette,
             coverage,
             skip_off_holder,
+            cfa: shot.cfa,
         }
     }
 
@@ -218,7 +221,7 @@ impl Run {
         let row = exposure.rays.row(j);
         self.trace(exposure, &row);
         self.light(&exposure.frame);
-        self.expose(exposure, &row);
+        self.expose(exposure, j, &row);
     }
 
     /// Where each pixel's ray meets the surface, relief marches side by
@@ -299,7 +302,7 @@ impl Run {
 
     /// The rest of the shading, the gain and the vignetting: each pixel's
     /// linear value.
-    fn expose(&mut self, exposure: &Exposure, row: &Row) {
+    fn expose(&mut self, exposure: &Exposure, j: usize, row: &Row) {
         let frame = &exposure.frame;
         for k in 0..self.len {
             self.value[k] = if self.lit[k] {
@@ -308,8 +311,19 @@ impl Run {
                     (inc, direct(&inc, self.visibility[k]))
                 });
                 let to_eye = scale(self.dir[k], -1.0);
-                let radiance =
-                    frame.shade_from(self.point[k], to_eye, &self.surface[k], lit.as_ref());
+                let filter = exposure.cfa.map(|cfa| {
+                    frame
+                        .scene
+                        .response
+                        .filter(cfa.channel_at(self.first + k, j))
+                });
+                let radiance = frame.shade_from(
+                    self.point[k],
+                    to_eye,
+                    &self.surface[k],
+                    lit.as_ref(),
+                    filter,
+                );
                 let mut v = radiance * exposure.gain;
                 if let Some(s) = exposure.vignette {
                     v *= exposure.rays.vignetting(self.first + k, row, s);

@@ -5,6 +5,7 @@
 //! and the request call for ([`effects`]). [`truth`] gives what a perfect
 //! rig would measure, for judging the post-processing.
 
+mod colour;
 mod coverage;
 pub mod effects;
 mod exposure;
@@ -22,6 +23,7 @@ mod visibility;
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, OnceLock};
 
+use colour::{Response, SampleColour};
 pub use effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
 pub use render::{LaserSheet, Rendered, Shot, WHITE_LEVEL};
 pub use rigd_core::holder::{Holder, Marker};
@@ -49,6 +51,10 @@ const BUILTIN: &[(&str, &str)] = &[
     ),
     ("ps-target", include_str!("../../scenes/ps-target.toml")),
 ];
+
+/// The narrowest colour patch a scene's holder may carry, mm: a few
+/// pixels across at the rigs' resolutions, after demosaicing.
+const MIN_PATCH_MM: f64 = 5.0;
 
 /// The scene simulated cameras render when a profile names none.
 pub const DEFAULT_SCENE: &str = "flat-calibration";
@@ -114,6 +120,10 @@ pub struct Scene {
     pub holder: Holder,
     pub(crate) relief: Option<Relief>,
     pub(crate) albedo: Grid,
+    /// The sample's tint over its albedo; `None`: neutral.
+    pub(crate) colour: Option<SampleColour>,
+    /// What a colour camera's photosites record.
+    pub(crate) response: Response,
     pub(crate) specular: Option<Specular>,
     /// Subsurface blur standard deviation, metres.
     pub(crate) subsurface: f64,
@@ -242,6 +252,32 @@ impl Scene {
             };
             surface::albedo(&s.albedo, albedo_image.as_ref(), x, y, rel)
         });
+        let colour = match &s.colour {
+            Some(c) => {
+                let colour = SampleColour::new(c).map_err(|m| invalid(origin, m))?;
+                let peak = albedo.max() * colour.max_component();
+                if peak > 1.0 + 1e-9 {
+                    return Err(invalid(
+                        origin,
+                        format!(
+                            "sample.colour: a channel's reflectance would reach {peak:.2} \
+                             where the albedo is highest; lower the albedo or choose a \
+                             less saturated colour"
+                        ),
+                    ));
+                }
+                Some(colour)
+            }
+            None => None,
+        };
+        let response = match spec.sensor.colour_response {
+            Some(m) => Response::new(m).map_err(|m| invalid(origin, m))?,
+            None => Response::default(),
+        };
+        let holder = Holder::new(&spec.holder, half);
+        holder
+            .check_patches(MIN_PATCH_MM)
+            .map_err(|m| invalid(origin, format!("holder.colour_patches: {m}")))?;
         let relief = match (&meso, &s.macro_shape) {
             (None, None) => None,
             _ => {
@@ -284,9 +320,11 @@ impl Scene {
             name: spec.name.clone(),
             description: spec.description.clone(),
             sample_half: half,
-            holder: Holder::new(&spec.holder, half),
+            holder,
             relief,
             albedo,
+            colour,
+            response,
             specular,
             subsurface: s.subsurface_mm * 1e-3,
             visibility,
@@ -330,6 +368,31 @@ impl Scene {
         } else {
             self.holder.albedo(x, y)
         }
+    }
+
+    /// Diffuse reflectance at (x, y) in linear sRGB: the sample's albedo
+    /// times its tint, or the holder's (a colour patch's where there is
+    /// one).
+    pub fn albedo_rgb(&self, x: f64, y: f64) -> [f64; 3] {
+        if self.on_sample(x, y) {
+            let a = self.albedo.sample(x, y);
+            self.tint(x, y).map(|t| a * t)
+        } else {
+            self.holder.reflectance(x, y)
+        }
+    }
+
+    /// The sample's tint at (x, y) (luminance 1).
+    #[inline]
+    pub(crate) fn tint(&self, x: f64, y: f64) -> [f64; 3] {
+        self.colour
+            .as_ref()
+            .map_or(colour::NEUTRAL, |c| c.tint(x, y))
+    }
+
+    /// Whether the sample has a colour (else it is neutral grey).
+    pub fn is_coloured(&self) -> bool {
+        self.colour.is_some()
     }
 
     /// The top of the relief: the BTF's and MDF's reference plane.

@@ -76,6 +76,9 @@ pub struct Shot {
     /// real rig has and its pose model does not know (markers see it, the
     /// pose does not).
     pub holder_offset_m: [f64; 2],
+    /// A colour camera's filter array: each pixel records its own channel
+    /// through the scene's colour response. `None`: a monochrome sensor.
+    pub cfa: Option<rigd_core::Cfa>,
 }
 
 impl Default for Shot {
@@ -96,6 +99,7 @@ impl Default for Shot {
             seed: 0,
             effects: EffectSwitches::default(),
             holder_offset_m: [0.0, 0.0],
+            cfa: None,
         }
     }
 }

@@ -17,6 +17,7 @@
 
 use rigd_core::geometry::{add, cross, dot, norm, normalize, scale, sub};
 
+use super::colour::{filtered, NEUTRAL};
 use super::effects::{Effect, EffectPlan};
 use super::march::{March, Marcher};
 use super::render::{LaserSheet, Shot};
@@ -93,12 +94,15 @@ pub(crate) struct Incidence {
     cos: f64,
 }
 
-/// What a surface point is: on the sample or not, its normal and albedo.
+/// What a surface point is: on the sample or not, its normal, albedo and
+/// (in a colour frame) tint.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct Surface {
     on_sample: bool,
     pub normal: [f64; 3],
     albedo: f64,
+    /// The tint over the albedo (luminance 1); read only in colour frames.
+    tint: [f64; 3],
 }
 
 /// What may hide the lamp from a lit point in this frame.
@@ -131,6 +135,8 @@ pub(crate) struct Frame<'a> {
     specular: Option<&'a Specular>,
     subsurface: bool,
     interreflection: bool,
+    /// Whether the camera records colour, so surfaces need their tint.
+    pub(crate) colour: bool,
     /// Offsets of the subsurface blur's outer taps from the centre.
     blur_offsets: [[f64; 2]; BLUR_TAPS],
     /// The gather directions in the local frame: along the tangent, the
@@ -186,6 +192,7 @@ impl<'a> Frame<'a> {
                 .filter(|_| plan.has(Effect::Specular)),
             subsurface: plan.has(Effect::Subsurface),
             interreflection: plan.has(Effect::Interreflection),
+            colour: shot.cfa.is_some(),
             blur_offsets,
             gather,
         }
@@ -475,8 +482,9 @@ impl<'a> Frame<'a> {
         sum / GATHER.len() as f64
     }
 
-    /// Outgoing radiance at surface point `p` towards `to_eye`.
-    pub(crate) fn shade(&self, p: [f64; 3], to_eye: [f64; 3]) -> f64 {
+    /// Outgoing radiance at surface point `p` towards `to_eye`, grey or
+    /// through `filter` (see [`Frame::shade_from`]).
+    pub(crate) fn shade(&self, p: [f64; 3], to_eye: [f64; 3], filter: Option<&[f64; 3]>) -> f64 {
         let surface = self.surface(p);
         let lit = self.lamp.map(|lamp| {
             let inc = lamp.incidence(p, surface.normal);
@@ -484,7 +492,7 @@ impl<'a> Frame<'a> {
             self.resolve(&mut shadow);
             (inc, direct(&inc, shadow[0].visibility()))
         });
-        self.shade_from(p, to_eye, &surface, lit.as_ref())
+        self.shade_from(p, to_eye, &surface, lit.as_ref(), filter)
     }
 
     /// What the surface is at point `p`.
@@ -497,22 +505,38 @@ impl<'a> Frame<'a> {
                 on_sample: true,
                 normal,
                 albedo,
+                tint: if self.colour {
+                    self.scene.tint(x, y)
+                } else {
+                    NEUTRAL
+                },
             }
         } else {
+            let albedo = match self.plate {
+                Some(_) => PLATE_ALBEDO,
+                None => self.scene.holder.albedo(x, y),
+            };
+            let tint = match self.plate {
+                None if self.colour && albedo > 0.0 => {
+                    self.scene.holder.reflectance(x, y).map(|v| v / albedo)
+                }
+                _ => NEUTRAL,
+            };
             Surface {
                 on_sample: false,
                 normal: [0.0, 0.0, 1.0],
-                albedo: match self.plate {
-                    Some(_) => PLATE_ALBEDO,
-                    None => self.scene.holder.albedo(x, y),
-                },
+                albedo,
+                tint,
             }
         }
     }
 
     /// Outgoing radiance at `p` towards `to_eye`, given what the surface is
     /// there and, when a lamp is on, the lamp as seen from there and the
-    /// direct irradiance it gives.
+    /// direct irradiance it gives: grey, or through `filter`, what a
+    /// channel records of unit linear-sRGB red, green and blue (a colour
+    /// camera's photosite: a row of the scene's colour response; a
+    /// channel of linear sRGB itself: a unit vector).
     #[inline]
     pub(crate) fn shade_from(
         &self,
@@ -520,12 +544,20 @@ impl<'a> Frame<'a> {
         to_eye: [f64; 3],
         surface: &Surface,
         lit: Option<&(Incidence, f64)>,
+        filter: Option<&[f64; 3]>,
     ) -> f64 {
         let &Surface {
             on_sample,
             normal: n,
             albedo,
+            tint,
         } = surface;
+        // A photosite records the albedo through its filter, and white
+        // light (the highlight) at its channel's efficiency.
+        let (albedo, white) = match filter {
+            None => (albedo, None),
+            Some(f) => (albedo * filtered(f, tint), Some(filtered(f, NEUTRAL))),
+        };
         let mut radiance = 0.0;
         if let Some(&(inc, e)) = lit {
             let diffuse_e = if on_sample && self.subsurface {
@@ -536,7 +568,8 @@ impl<'a> Frame<'a> {
             radiance += albedo * diffuse_e;
             if on_sample && e > 0.0 {
                 if let Some(spec) = self.specular {
-                    radiance += e * ward(spec, n, inc.dir, to_eye);
+                    let highlight = e * ward(spec, n, inc.dir, to_eye);
+                    radiance += white.map_or(highlight, |w| w * highlight);
                 }
             }
             if on_sample && self.interreflection {

@@ -53,6 +53,34 @@ pub struct SampleSpec {
     /// Non-planar macro shape (a folded cloth).
     #[serde(default, rename = "macro")]
     pub macro_shape: Option<MacroSpec>,
+    /// The sample's colour; absent: neutral (grey).
+    #[serde(default)]
+    pub colour: Option<ColourSpec>,
+}
+
+/// The sample's colour, chosen by `kind`. Its diffuse reflectance in linear
+/// sRGB is the `albedo` pattern times a tint: each `rgb` given here scaled
+/// to luminance 1 (Rec. 709 weights), so a monochrome sensor sees the
+/// `albedo` pattern unchanged and a colour sensor sees its hue.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(tag = "kind", rename_all = "kebab-case", deny_unknown_fields)]
+pub enum ColourSpec {
+    /// One dye over the whole sample.
+    Dye {
+        /// The dye's colour, linear sRGB; only its chromaticity counts.
+        rgb: [f64; 3],
+    },
+    /// Bands of yarn of alternating colours (a striped two-colour knit).
+    Stripes {
+        /// The yarns' colours in turn, linear sRGB.
+        rgb: Vec<[f64; 3]>,
+        /// Width of one band, mm.
+        width_mm: f64,
+        /// Direction across the bands, degrees from +x (90: horizontal
+        /// bands, stacked along y).
+        #[serde(default)]
+        direction_deg: f64,
+    },
 }
 
 fn default_resolution() -> usize {
@@ -240,4 +268,19 @@ pub struct SensorSpec {
     /// Seed of the noise; a frame's own seed is mixed in.
     #[serde(default)]
     pub seed: u64,
+    /// A colour camera's raw response: row c is what its red, green or blue
+    /// photosites record of unit linear-sRGB red, green and blue light.
+    /// The rows' sums are the channels' quantum efficiencies relative to
+    /// green's; the off-diagonal terms are the overlap of the filters'
+    /// passbands, which the colour correction undoes. Absent:
+    /// [`DEFAULT_COLOUR_RESPONSE`].
+    #[serde(default)]
+    pub colour_response: Option<[[f64; 3]; 3]>,
 }
+
+/// A colour camera's raw response when a scene gives none: green most
+/// sensitive, red and blue about two thirds of it, the passbands
+/// overlapping as a CMOS sensor's dyes do (white balance gains of about
+/// 1.6 red and 1.45 blue).
+pub const DEFAULT_COLOUR_RESPONSE: [[f64; 3]; 3] =
+    [[0.50, 0.12, 0.02], [0.10, 0.80, 0.10], [0.02, 0.12, 0.55]];

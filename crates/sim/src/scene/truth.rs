@@ -30,6 +30,33 @@ impl Scene {
         view: [f64; 3],
         effects: EffectSwitches,
     ) -> f64 {
+        self.true_btf_through(x, y, light, view, effects, None)
+    }
+
+    /// [`Scene::true_btf`] in one channel of linear sRGB (0 red, 1 green,
+    /// 2 blue): what a perfect colour camera, colour-corrected, records.
+    /// The grey BTF is its luminance.
+    pub fn true_btf_channel(
+        &self,
+        x: f64,
+        y: f64,
+        light: [f64; 3],
+        view: [f64; 3],
+        channel: usize,
+    ) -> f64 {
+        let filter = &super::colour::SRGB_CHANNELS[channel.min(2)];
+        self.true_btf_through(x, y, light, view, Default::default(), Some(filter))
+    }
+
+    fn true_btf_through(
+        &self,
+        x: f64,
+        y: f64,
+        light: [f64; 3],
+        view: [f64; 3],
+        effects: EffectSwitches,
+        filter: Option<&[f64; 3]>,
+    ) -> f64 {
         let v = normalize(view);
         let mut fx = effects;
         fx.forbid.insert(Effect::Noise);
@@ -40,7 +67,8 @@ impl Scene {
             effects: fx,
             ..Shot::default()
         };
-        let frame = Frame::new(self, &shot);
+        let mut frame = Frame::new(self, &shot);
+        frame.colour = filter.is_some();
         if v[2] <= 1e-9 {
             return 0.0;
         }
@@ -50,7 +78,7 @@ impl Scene {
             scale(v, (self.reference_height() + 1e-6) / v[2]),
         );
         match frame.intersect(above, scale(v, -1.0)) {
-            Some(p) => frame.shade(p, v),
+            Some(p) => frame.shade(p, v, filter),
             None => 0.0,
         }
     }

@@ -1,0 +1,291 @@
+//! Colour calibration from reference patches of known reflectance: white
+//! balance from the white patch, then a 3×3 colour correction matrix fitted
+//! by least squares over all patches, and the CIE 1976 colour difference
+//! ΔE*ab of every patch, in the fit and held out of it.
+//!
+//! Conventions: reflectances and corrected values are linear sRGB (D65
+//! white); raw values are a camera's demosaiced channel means with the
+//! black level off, in any common scale (the fit absorbs the exposure).
+//! Lab is computed against the reflectance of a perfect white diffuser, so
+//! `L* = 100` is a reflectance of 1.
+//!
+//! The conversions are the three standard formulas of IEC 61966-2-1 (the
+//! sRGB → XYZ matrix) and CIE 15 (XYZ → L*a*b*, ΔE*ab), written out here
+//! rather than pulled in with a colour-science crate.
+
+use faer::Mat;
+
+/// Why patches could not calibrate colour.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ColourError {
+    /// Fewer patches than a 3×3 matrix needs, or no white patch.
+    #[error("{0}")]
+    TooFewPatches(String),
+    /// A raw value that is not finite and positive.
+    #[error("patch `{name}` reads {raw:?}: every channel must be finite and above 0")]
+    BadReading {
+        /// The patch.
+        name: String,
+        /// What was read.
+        raw: [f64; 3],
+    },
+    /// The patches' colours do not span three dimensions (all grey, say).
+    #[error("the patches' raw colours are nearly coplanar (singular values {0:?}); the colour correction is not determined")]
+    Degenerate([f64; 3]),
+}
+
+/// One reference patch as a frame saw it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PatchReading {
+    /// The patch's name (`white`, `red`, …).
+    pub name: String,
+    /// Its known reflectance, linear sRGB.
+    pub reference: [f64; 3],
+    /// The camera's raw channel means over it.
+    pub raw: [f64; 3],
+}
+
+/// A camera's colour calibration: `corrected = matrix · (white_balance ⊙
+/// raw)`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ColourCalibration {
+    /// Per-channel gains that make the white patch neutral, green 1.
+    pub white_balance: [f64; 3],
+    /// Row-major 3×3 colour correction from balanced raw to linear sRGB.
+    pub matrix: [[f64; 3]; 3],
+}
+
+impl ColourCalibration {
+    /// Balanced and corrected: raw camera values to linear sRGB.
+    pub fn apply(&self, raw: [f64; 3]) -> [f64; 3] {
+        let b = [0, 1, 2].map(|c| raw[c] * self.white_balance[c]);
+        self.matrix
+            .map(|row| row[0] * b[0] + row[1] * b[1] + row[2] * b[2])
+    }
+}
+
+/// Smallest ratio of the balanced patches' least to largest singular
+/// value accepted: below it the matrix would amplify noise without bound.
+pub const MIN_SPREAD: f64 = 1e-3;
+
+/// White balance from the patch named `white`, then the least-squares
+/// colour correction over all `patches` (at least 4, so that the 9
+/// unknowns are over-determined).
+pub fn calibrate(patches: &[PatchReading]) -> Result<ColourCalibration, ColourError> {
+    for p in patches {
+        if !p.raw.iter().all(|v| v.is_finite() && *v > 0.0) {
+            return Err(ColourError::BadReading {
+                name: p.name.clone(),
+                raw: p.raw,
+            });
+        }
+    }
+    let Some(white) = patches.iter().find(|p| p.name == "white") else {
+        return Err(ColourError::TooFewPatches(
+            "no patch named `white` to balance on".into(),
+        ));
+    };
+    if patches.len() < 4 {
+        return Err(ColourError::TooFewPatches(format!(
+            "{} patches; a 3x3 colour correction needs at least 4",
+            patches.len()
+        )));
+    }
+    let white_balance = [
+        white.raw[1] / white.raw[0],
+        1.0,
+        white.raw[1] / white.raw[2],
+    ];
+    let balanced = |raw: [f64; 3]| [0, 1, 2].map(|c| raw[c] * white_balance[c]);
+    // matrix · b_p ≈ reference_p for every patch: B Mᵀ ≈ R, one least-
+    // squares problem per output channel sharing B's pseudo-inverse.
+    let b = Mat::<f64>::from_fn(patches.len(), 3, |i, j| balanced(patches[i].raw)[j]);
+    let svd = b
+        .thin_svd()
+        .map_err(|_| ColourError::Degenerate([0.0; 3]))?;
+    let s = svd.S().column_vector();
+    let values = [s[0], s[1], s[2]];
+    // NaN fails the comparison and is refused with the rest.
+    if values[2].partial_cmp(&(MIN_SPREAD * values[0])) != Some(std::cmp::Ordering::Greater) {
+        return Err(ColourError::Degenerate(values));
+    }
+    let pinv = svd.pseudoinverse();
+    let mut matrix = [[0.0; 3]; 3];
+    for (out, row) in matrix.iter_mut().enumerate() {
+        for (k, m) in row.iter_mut().enumerate() {
+            *m = (0..patches.len())
+                .map(|i| pinv[(k, i)] * patches[i].reference[out])
+                .sum();
+        }
+    }
+    Ok(ColourCalibration {
+        white_balance,
+        matrix,
+    })
+}
+
+/// ΔE*ab of every patch corrected by a calibration fitted without it
+/// (leave-one-out): how well the correction does on a colour it was not
+/// fitted to. The white patch is never left out (it sets the balance);
+/// its entry is its in-fit ΔE. `None` where the remaining patches do not
+/// determine a matrix.
+pub fn held_out_delta_e(patches: &[PatchReading]) -> Vec<Option<f64>> {
+    (0..patches.len())
+        .map(|k| {
+            if patches[k].name == "white" {
+                let cal = calibrate(patches).ok()?;
+                return Some(delta_e(cal.apply(patches[k].raw), patches[k].reference));
+            }
+            let rest: Vec<PatchReading> = patches
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| *i != k)
+                .map(|(_, p)| p.clone())
+                .collect();
+            let cal = calibrate(&rest).ok()?;
+            Some(delta_e(cal.apply(patches[k].raw), patches[k].reference))
+        })
+        .collect()
+}
+
+/// Linear sRGB (D65) to CIE XYZ, IEC 61966-2-1.
+pub fn srgb_to_xyz(rgb: [f64; 3]) -> [f64; 3] {
+    const M: [[f64; 3]; 3] = [
+        [0.4124, 0.3576, 0.1805],
+        [0.2126, 0.7152, 0.0722],
+        [0.0193, 0.1192, 0.9505],
+    ];
+    M.map(|row| row[0] * rgb[0] + row[1] * rgb[1] + row[2] * rgb[2])
+}
+
+/// CIE 1976 L*a*b* of linear sRGB, white = a perfect diffuser (sRGB 1, 1, 1).
+pub fn srgb_to_lab(rgb: [f64; 3]) -> [f64; 3] {
+    let white = srgb_to_xyz([1.0; 3]);
+    let xyz = srgb_to_xyz(rgb);
+    let f = |t: f64| {
+        const D: f64 = 6.0 / 29.0;
+        if t > D * D * D {
+            t.cbrt()
+        } else {
+            t / (3.0 * D * D) + 4.0 / 29.0
+        }
+    };
+    let [fx, fy, fz] = [0, 1, 2].map(|c| f(xyz[c] / white[c]));
+    [116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)]
+}
+
+/// CIE 1976 colour difference ΔE*ab between two linear sRGB colours.
+pub fn delta_e(a: [f64; 3], b: [f64; 3]) -> f64 {
+    let (la, lb) = (srgb_to_lab(a), srgb_to_lab(b));
+    ((la[0] - lb[0]).powi(2) + (la[1] - lb[1]).powi(2) + (la[2] - lb[2]).powi(2)).sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// ColorChecker-like reflectances, linear sRGB.
+    const PATCHES: [(&str, [f64; 3]); 6] = [
+        ("white", [0.896, 0.896, 0.888]),
+        ("red", [0.429, 0.037, 0.045]),
+        ("green", [0.061, 0.296, 0.067]),
+        ("grey", [0.195, 0.195, 0.191]),
+        ("blue", [0.040, 0.047, 0.305]),
+        ("yellow", [0.799, 0.571, 0.014]),
+    ];
+
+    fn seen_through(response: [[f64; 3]; 3], exposure: f64) -> Vec<PatchReading> {
+        PATCHES
+            .iter()
+            .map(|(name, r)| PatchReading {
+                name: name.to_string(),
+                reference: *r,
+                raw: response.map(|row| exposure * (row[0] * r[0] + row[1] * r[1] + row[2] * r[2])),
+            })
+            .collect()
+    }
+
+    #[test]
+    fn lab_matches_published_values() {
+        // sRGB red, green, blue and white (CIE 15 / IEC 61966-2-1, D65).
+        let cases = [
+            ([1.0, 0.0, 0.0], [53.24, 80.09, 67.20]),
+            ([0.0, 1.0, 0.0], [87.73, -86.18, 83.18]),
+            ([0.0, 0.0, 1.0], [32.30, 79.19, -107.86]),
+            ([1.0, 1.0, 1.0], [100.0, 0.0, 0.0]),
+            // Mid grey 0.18: L* 49.5.
+            ([0.18, 0.18, 0.18], [49.50, 0.0, 0.0]),
+        ];
+        for (rgb, want) in cases {
+            let lab = srgb_to_lab(rgb);
+            for c in 0..3 {
+                assert!(
+                    (lab[c] - want[c]).abs() < 0.05,
+                    "{rgb:?}: {lab:?} vs {want:?}"
+                );
+            }
+        }
+        // Black: the linear segment, no cube root of 0 trouble.
+        assert_eq!(srgb_to_lab([0.0; 3]), [0.0, 0.0, 0.0]);
+        assert_eq!(delta_e([0.3, 0.2, 0.1], [0.3, 0.2, 0.1]), 0.0);
+    }
+
+    #[test]
+    fn a_linear_camera_is_corrected_exactly_in_and_out_of_the_fit() {
+        let response = [[0.50, 0.12, 0.02], [0.10, 0.80, 0.10], [0.02, 0.12, 0.55]];
+        let readings = seen_through(response, 0.37);
+        let cal = calibrate(&readings).expect("calibrates");
+        assert!((cal.white_balance[0] - readings[0].raw[1] / readings[0].raw[0]).abs() < 1e-12);
+        for p in &readings {
+            assert!(delta_e(cal.apply(p.raw), p.reference) < 1e-6, "{}", p.name);
+        }
+        for e in held_out_delta_e(&readings) {
+            assert!(e.expect("determined") < 1e-6);
+        }
+        // White balance alone leaves the overlap of the passbands: the red
+        // patch is visibly off.
+        let wb_only = ColourCalibration {
+            matrix: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+            ..cal
+        };
+        let red = &readings[1];
+        let white_scale = readings[0].reference[1] / readings[0].raw[1];
+        let balanced = wb_only.apply(red.raw).map(|v| v * white_scale);
+        assert!(delta_e(balanced, red.reference) > 5.0);
+    }
+
+    #[test]
+    fn grey_patches_alone_do_not_determine_a_matrix() {
+        let greys: Vec<PatchReading> = [0.9, 0.6, 0.3, 0.1]
+            .iter()
+            .enumerate()
+            .map(|(i, v)| PatchReading {
+                name: if i == 0 {
+                    "white".into()
+                } else {
+                    format!("grey{i}")
+                },
+                reference: [*v; 3],
+                raw: [0.5 * v, *v, 0.6 * v],
+            })
+            .collect();
+        assert!(matches!(calibrate(&greys), Err(ColourError::Degenerate(_))));
+    }
+
+    #[test]
+    fn bad_readings_and_missing_white_are_named() {
+        let mut readings = seen_through([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], 1.0);
+        readings[4].raw[2] = 0.0;
+        assert!(
+            matches!(calibrate(&readings), Err(ColourError::BadReading { name, .. }) if name == "blue")
+        );
+        readings[4].raw[2] = f64::NAN;
+        assert!(calibrate(&readings).is_err());
+        readings.remove(4);
+        readings.remove(0);
+        assert!(matches!(
+            calibrate(&readings),
+            Err(ColourError::TooFewPatches(_))
+        ));
+    }
+}

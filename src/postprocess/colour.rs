@@ -1,0 +1,374 @@
+//! `rigd process colour`: a colour camera's white balance and 3×3 colour
+//! correction, measured on the holder's reference patches
+//! ([`rigd_core::holder::COLOUR_PATCHES`]) in the run's most frontal frame,
+//! and each patch's colour difference ΔE*ab after correction, in the fit
+//! and held out of it. Kept in `RUN/processed/colour.json`.
+
+use std::path::{Path, PathBuf};
+
+use rigd_core::geometry::Direction;
+use rigd_core::holder::PlacedPatch;
+use rigd_process::colour::{self as cc, ColourCalibration, PatchReading};
+use serde::{Deserialize, Serialize};
+
+use super::frames::{ColourPlanes, RunFrames};
+use super::ProcessError;
+
+/// The calibration's file in `RUN/processed/`.
+pub const COLOUR_FILE: &str = "colour.json";
+
+/// Frames tried, most frontal first, before the step gives up.
+const MAX_CANDIDATES: usize = 12;
+
+/// Sample points across a patch, per side.
+const POINTS_PER_SIDE: usize = 9;
+
+/// Fraction of a patch's side that is read: its edges blur into the plate
+/// through the demosaic and the lens.
+const INNER_FRACTION: f64 = 0.6;
+
+/// A patch whose brightest channel reads above this fraction of full scale
+/// may be clipped.
+const SATURATION: f64 = 0.95;
+
+/// The neutral plate beside a patch, left and right of it, is read from
+/// this far from the patch's centre to this far, in half sides: clear of
+/// the patch's blurred edge and of its neighbours.
+const PLATE_BESIDE: [f64; 2] = [1.6, 2.1];
+
+/// What `rigd process colour` measured and keeps.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ColourReport {
+    /// The frame the patches were read in (its image index).
+    pub frame: usize,
+    /// The camera that took it.
+    pub camera: String,
+    /// The frame's achieved light direction.
+    pub light: Direction,
+    /// The frame's achieved view direction.
+    pub view: Direction,
+    /// White balance and colour correction: `corrected = matrix ·
+    /// (white_balance ⊙ raw)`, raw the camera's linear values.
+    pub calibration: ColourCalibration,
+    /// The same white balance and correction scaled so that the white
+    /// patch's green keeps its raw value: what `rigd process rectify`
+    /// applies to every frame, so RGB textures keep the grey pipeline's
+    /// scale (fraction of full scale) instead of this frame's exposure.
+    pub texture_calibration: ColourCalibration,
+    /// Every patch: what it is, what the camera read and how close the
+    /// correction brings it.
+    pub patches: Vec<PatchReport>,
+}
+
+/// One reference patch in the report.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PatchReport {
+    /// `white`, `red`, …
+    pub name: String,
+    /// Its known reflectance, linear sRGB.
+    pub reference: [f64; 3],
+    /// The camera's mean linear values over it (fraction of full scale),
+    /// evened out for the light the patch gets against the others (as the
+    /// neutral plate beside each patch measures it).
+    pub raw: [f64; 3],
+    /// `raw` through the calibration, linear sRGB.
+    pub corrected: [f64; 3],
+    /// ΔE*ab of `corrected` against `reference`.
+    pub delta_e: f64,
+    /// ΔE*ab when the matrix is fitted without this patch; the white
+    /// patch, which sets the balance, is never left out.
+    pub delta_e_held_out: Option<f64>,
+    /// ΔE*ab after white balance alone (scaled so white's green is right):
+    /// what the matrix adds.
+    pub delta_e_white_balance_only: f64,
+}
+
+impl ColourReport {
+    /// The report as `rigd process colour` prints it.
+    pub fn table(&self) -> String {
+        use std::fmt::Write;
+        let [r, g, b] = self.calibration.white_balance;
+        let mut out = format!(
+            "frame {} of `{}` (light θ {:.1}° φ {:.1}°, view θ {:.1}° φ {:.1}°)\n\
+             white balance: R ×{r:.3}, G ×{g:.3}, B ×{b:.3}\ncolour correction:\n",
+            self.frame,
+            self.camera,
+            self.light.theta_deg,
+            self.light.phi_deg,
+            self.view.theta_deg,
+            self.view.phi_deg,
+        );
+        for row in &self.calibration.matrix {
+            let _ = writeln!(out, "  {:>8.4} {:>8.4} {:>8.4}", row[0], row[1], row[2]);
+        }
+        let _ = writeln!(
+            out,
+            "patch    reference (linear sRGB)  corrected                ΔE*ab  held out  WB only"
+        );
+        let rgb = |v: [f64; 3]| format!("{:.3} {:.3} {:.3}", v[0], v[1], v[2]);
+        for p in &self.patches {
+            let held = p
+                .delta_e_held_out
+                .map_or("-".to_string(), |e| format!("{e:.2}"));
+            let _ = writeln!(
+                out,
+                "{:<8} {:<24} {:<24} {:>5.2} {:>9} {:>8.2}",
+                p.name,
+                rgb(p.reference),
+                rgb(p.corrected),
+                p.delta_e,
+                held,
+                p.delta_e_white_balance_only
+            );
+        }
+        out
+    }
+
+    /// Reads a run's `processed/colour.json`.
+    pub fn read(run: &Path) -> Result<ColourReport, ProcessError> {
+        let path = colour_file(run);
+        let bytes = std::fs::read(&path).map_err(|e| ProcessError::Frame {
+            path: path.clone(),
+            message: format!("{e} (run `rigd process colour` first)"),
+        })?;
+        serde_json::from_slice(&bytes).map_err(|e| ProcessError::Frame {
+            path,
+            message: e.to_string(),
+        })
+    }
+}
+
+/// The colour calibration `rigd process rectify` applies to a run's frames,
+/// for its camera: the run's `processed/colour.json`. When there is none,
+/// the run's camera records colour and its holder carries the reference
+/// patches, and `calibrate` is set, it is measured now
+/// ([`calibrate_run`]) and written. `None` means grey textures: a
+/// monochrome camera, or a colour camera with no calibration (no patches
+/// to measure one on, or one that failed: logged). An error if the file
+/// cannot be read, or the run has frames of another camera, which it does
+/// not calibrate.
+pub fn texture_colour(
+    run: &RunFrames,
+    calibrate: bool,
+) -> Result<Option<ColourCalibration>, ProcessError> {
+    let report = if colour_file(&run.root).exists() {
+        ColourReport::read(&run.root)?
+    } else {
+        let Some(first) = run.entries.first() else {
+            return Ok(None);
+        };
+        if !calibrate || run.colour_planes(first)?.is_none() {
+            return Ok(None);
+        }
+        match calibrate_run(run) {
+            Ok(report) => report,
+            Err(e) => {
+                tracing::warn!(
+                    "{}: camera `{}` records colour, but no colour calibration: {e}; its \
+                     textures are grey",
+                    run.root.display(),
+                    first.camera
+                );
+                return Ok(None);
+            }
+        }
+    };
+    if let Some(other) = run.entries.iter().find(|e| e.camera != report.camera) {
+        return Err(ProcessError::Invalid(format!(
+            "{} calibrates camera `{}` only, and the run also has frames of `{}`: RGB \
+             textures from several cameras are not supported yet (remove the file for grey \
+             textures)",
+            colour_file(&run.root).display(),
+            report.camera,
+            other.camera
+        )));
+    }
+    Ok(Some(report.texture_calibration))
+}
+
+/// Where a run's colour calibration is kept.
+pub fn colour_file(run: &Path) -> PathBuf {
+    crate::store::processed::processed_dir(run).join(COLOUR_FILE)
+}
+
+/// Measures the patches in the run's most frontal usable frame, calibrates
+/// and writes `RUN/processed/colour.json`.
+pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
+    let (holder, _) = super::rectify::holder_of(&run.meta)?;
+    if holder.patches.is_empty() {
+        return Err(ProcessError::Invalid(format!(
+            "the run's holder carries no colour reference patches{}",
+            if run.meta.simulated {
+                let scene = match run.meta.profile.sim.scene.as_deref() {
+                    Some(name) => format!("scene `{name}`"),
+                    None => "the default scene".into(),
+                };
+                format!(" ({scene}: set `[holder] colour_patches = true`)")
+            } else {
+                String::new()
+            }
+        )));
+    }
+    let mut order: Vec<&crate::store::FrameEntry> = run.entries.iter().collect();
+    order.sort_by(|a, b| {
+        let tilt =
+            |e: &crate::store::FrameEntry| e.achieved_light.theta_deg + e.achieved_view.theta_deg;
+        tilt(a).total_cmp(&tilt(b))
+    });
+    let mut refused = Vec::new();
+    for entry in order.into_iter().take(MAX_CANDIDATES) {
+        let Some(planes) = run.colour_planes(entry)? else {
+            return Err(ProcessError::Invalid(format!(
+                "camera `{}` is monochrome (its profile gives no `intrinsics.cfa` and its \
+                 frames carry no colour): there is no colour to calibrate",
+                entry.camera
+            )));
+        };
+        match read_patches(run, entry, &planes, &holder.patches) {
+            Ok(readings) => {
+                let report = report(entry, &readings)?;
+                let mut json = serde_json::to_vec_pretty(&report)
+                    .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+                json.push(b'\n');
+                let path = colour_file(&run.root);
+                if let Some(dir) = path.parent() {
+                    std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
+                        path: dir.to_path_buf(),
+                        message: e.to_string(),
+                    })?;
+                }
+                crate::store::write_atomic(&path, &json)?;
+                return Ok(report);
+            }
+            Err(why) => refused.push(format!("frame {}: {why}", entry.index)),
+        }
+    }
+    Err(ProcessError::Invalid(format!(
+        "no frame shows the colour patches usably: {}",
+        if refused.is_empty() {
+            "the run has no frames".to_string()
+        } else {
+            refused.join("; ")
+        }
+    )))
+}
+
+/// The patches' mean raw colours in one frame, registered by its markers,
+/// each evened out for the light it gets: a lamp to one side and the
+/// lens's vignetting light the row of patches unevenly (by 10 % on the
+/// VirTex rig's 45° lamps), and the neutral plate beside each patch
+/// measures its share. `Err` says why the frame cannot be used.
+fn read_patches(
+    run: &RunFrames,
+    entry: &crate::store::FrameEntry,
+    planes: &ColourPlanes,
+    patches: &[PlacedPatch],
+) -> Result<Vec<PatchReading>, String> {
+    let grey = run.image(entry).map_err(|e| e.to_string())?;
+    let h = super::rectify::register_by_markers(run, entry, &grey)?;
+    let n = POINTS_PER_SIDE;
+    // Points evenly over [-1, 1] (`n` of them), scaled by the caller.
+    let spread = |k: usize| 2.0 * (k as f64 + 0.5) / n as f64 - 1.0;
+    let mean_at = |points: &mut dyn Iterator<Item = [f64; 2]>, name: &str, what: &str| {
+        let (mut sum, mut count) = ([0.0; 3], 0usize);
+        for q in points {
+            let rgb = rigd_process::rectify::project(&h, q)
+                .and_then(|px| planes.sample(px[0], px[1]))
+                .filter(|v| v.iter().all(|c| c.is_finite()))
+                .ok_or_else(|| format!("{what} of patch `{name}` is not inside the frame"))?;
+            for c in 0..3 {
+                sum[c] += rgb[c];
+            }
+            count += 1;
+        }
+        Ok::<_, String>(sum.map(|s| s / count.max(1) as f64))
+    };
+    let mut readings = Vec::with_capacity(patches.len());
+    let mut light = Vec::with_capacity(patches.len());
+    for p in patches {
+        let name = p.patch.name;
+        let [cx, cy] = p.centre;
+        let inner = p.half * INNER_FRACTION;
+        let raw = mean_at(
+            &mut (0..n * n).map(|k| [cx + inner * spread(k % n), cy + inner * spread(k / n)]),
+            name,
+            "the middle",
+        )?;
+        if raw.iter().any(|v| *v > SATURATION) {
+            return Err(format!("patch `{name}` is saturated ({raw:.3?})"));
+        }
+        let [near, far] = PLATE_BESIDE.map(|f| f * p.half);
+        let beside = mean_at(
+            &mut (0..2 * n * n).map(|k| {
+                let (side, k) = (if k < n * n { -1.0 } else { 1.0 }, k % (n * n));
+                let along = near + (far - near) * (spread(k % n) + 1.0) / 2.0;
+                [cx + side * along, cy + inner * spread(k / n)]
+            }),
+            name,
+            "the plate beside",
+        )?;
+        let plate: f64 = beside.iter().sum();
+        if plate.is_nan() || plate <= 0.0 {
+            return Err(format!("the plate beside patch `{name}` is black"));
+        }
+        readings.push(PatchReading {
+            name: name.to_string(),
+            reference: p.patch.rgb,
+            raw,
+        });
+        light.push(plate);
+    }
+    let mean_light = light.iter().sum::<f64>() / light.len().max(1) as f64;
+    for (r, l) in readings.iter_mut().zip(&light) {
+        r.raw = r.raw.map(|v| v * mean_light / l);
+    }
+    Ok(readings)
+}
+
+/// The calibration from one frame's readings, and every patch's ΔE.
+fn report(
+    entry: &crate::store::FrameEntry,
+    readings: &[PatchReading],
+) -> Result<ColourReport, ProcessError> {
+    let calibration = cc::calibrate(readings).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let held_out = cc::held_out_delta_e(readings);
+    // White balance alone, scaled so the white patch's green is right.
+    let white = readings.iter().find(|p| p.name == "white");
+    let scale = white.map_or(1.0, |w| w.reference[1] / w.raw[1]);
+    let patches = readings
+        .iter()
+        .zip(held_out)
+        .map(|(p, held)| {
+            let corrected = calibration.apply(p.raw);
+            let balanced = [0, 1, 2].map(|c| p.raw[c] * calibration.white_balance[c] * scale);
+            PatchReport {
+                name: p.name.clone(),
+                reference: p.reference,
+                raw: p.raw,
+                corrected,
+                delta_e: cc::delta_e(corrected, p.reference),
+                delta_e_held_out: held,
+                delta_e_white_balance_only: cc::delta_e(balanced, p.reference),
+            }
+        })
+        .collect();
+    let white_green = white.map_or(1.0, |w| calibration.apply(w.raw)[1] / w.raw[1]);
+    if !white_green.is_finite() || white_green <= 0.0 {
+        return Err(ProcessError::Invalid(format!(
+            "the colour correction maps the white patch's green to {white_green}"
+        )));
+    }
+    let texture_calibration = ColourCalibration {
+        matrix: calibration.matrix.map(|row| row.map(|m| m / white_green)),
+        ..calibration
+    };
+    Ok(ColourReport {
+        frame: entry.index,
+        camera: entry.camera.clone(),
+        light: entry.achieved_light,
+        view: entry.achieved_view,
+        calibration,
+        texture_calibration,
+        patches,
+    })
+}
