@@ -11,6 +11,8 @@ use std::io::Cursor;
 
 use rigd_core::Cfa;
 
+use super::tiff_walk;
+
 /// What kind of file a camera delivered.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum FileFormat {
@@ -235,37 +237,34 @@ fn raw_format(hint: rawler::decoders::FormatHint) -> FileFormat {
 /// The most samples a raw file may claim per byte it holds: no raw codec
 /// packs a sample into less than half a bit (lossless JPEG reaches about
 /// 2:1 on 12- to 14-bit data).
-const MAX_SAMPLES_PER_BYTE: usize = 16;
+const MAX_SAMPLES_PER_BYTE: u64 = 16;
 
-/// Refuses a TIFF-based raw file (DNG, NEF, CR2, ARW, …) whose directories
-/// claim an image bigger than its bytes could hold. rawler allocates the
-/// claimed size before it reads a sample (one flipped bit asked for 26 GB
-/// in the property test), and a failed allocation aborts the process,
-/// which no `catch_unwind` stops.
-fn check_claimed_size(bytes: &[u8]) -> Result<(), CameraFileError> {
-    use rawler::formats::tiff::reader::TiffReader;
-    use rawler::formats::tiff::GenericTiffReader;
-    use rawler::tags::TiffCommonTag;
-    if !is_tiff(bytes) {
-        return Ok(());
-    }
-    // A TIFF structure rawler cannot read is refused by its decoder anyway.
-    let Ok(tiff) = GenericTiffReader::new_with_buffer(bytes, 0, 0, Some(16)) else {
-        return Ok(());
-    };
-    let limit = bytes.len().saturating_mul(MAX_SAMPLES_PER_BYTE);
-    for ifd in tiff.find_ifds_with_tag(TiffCommonTag::ImageWidth) {
-        let value = |tag| ifd.get_entry(tag).map_or(0, |e| e.value.force_usize(0));
-        let (w, h) = (
-            value(TiffCommonTag::ImageWidth),
-            value(TiffCommonTag::ImageLength),
-        );
-        let samples = value(TiffCommonTag::SamplesPerPixel).max(1);
-        if w.saturating_mul(h).saturating_mul(samples) > limit {
+/// Refuses a file rawler must not read, before it reads a byte: whatever
+/// rawler allocates from a file's own claims (an IFD entry's count, an
+/// ISO-BMFF table, an image size) happens before it checks the claim
+/// against the file, and a failed allocation aborts the process, which no
+/// `catch_unwind` stops (one flipped bit asked for 26 GB in the property
+/// test). [`tiff_walk::walk`] reads the structures rawler will read, the
+/// way it reads them, and refuses any claim the file cannot back; this
+/// then refuses an image bigger than the file's bytes could hold.
+fn check_before_rawler(bytes: &[u8]) -> Result<(), CameraFileError> {
+    let images = tiff_walk::walk(bytes).map_err(|why| corrupt("raw", why))?;
+    let limit = (bytes.len() as u64).saturating_mul(MAX_SAMPLES_PER_BYTE);
+    for image in images {
+        let (w, h, samples) = (image.width, image.height, image.samples);
+        // A zero side does not make the rest free: rawler sizes its white
+        // levels by the samples a pixel alone.
+        let claimed = w.max(1).saturating_mul(h.max(1)).saturating_mul(samples);
+        if claimed > limit {
+            let of = if samples > 1 {
+                format!(" of {samples} samples a pixel")
+            } else {
+                String::new()
+            };
             return Err(corrupt(
                 "raw",
                 format!(
-                    "it claims a {w}x{h} image, more than its {} bytes can hold",
+                    "it claims a {w}x{h} image{of}, more than its {} bytes can hold",
                     bytes.len()
                 ),
             ));
@@ -277,7 +276,7 @@ fn check_claimed_size(bytes: &[u8]) -> Result<(), CameraFileError> {
 fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
     use rawler::decoders::RawDecodeParams;
     use rawler::rawimage::{RawImageData, RawPhotometricInterpretation};
-    check_claimed_size(bytes)?;
+    check_before_rawler(bytes)?;
     let source = rawler::rawsource::RawSource::new_from_slice(bytes);
     // No raw decoder knows these bytes: they are no raw file.
     let decoder =
@@ -449,6 +448,84 @@ mod tests {
         let lin = img.linear();
         assert_eq!(lin[0], 1.0);
         assert!((lin[4] - 0.2158).abs() < 1e-3, "{}", lin[4]);
+    }
+
+    /// The simulated camera's DNG (IFD0 only, little-endian).
+    #[cfg(feature = "sim")]
+    fn sim_dng() -> Vec<u8> {
+        use rigd_sim::firmware::dng::{encode, to_raw, DngCamera};
+        let camera = DngCamera {
+            make: "rigd",
+            model: "unit",
+            cfa: Some(Cfa::Rggb),
+            bit_depth: 12,
+        };
+        let values: Vec<u16> = (0..48u16).map(|i| i * 87).collect();
+        encode(&camera, 8, 6, &to_raw(&values, 12), 0.1).expect("dng")
+    }
+
+    /// Sets the count of IFD0's entry `tag` in a little-endian TIFF.
+    #[cfg(feature = "sim")]
+    fn set_count(bytes: &mut [u8], tag: u16, count: u32) {
+        let le16 = |b: &[u8], at: usize| u16::from_le_bytes([b[at], b[at + 1]]);
+        let ifd = u32::from_le_bytes([bytes[4], bytes[5], bytes[6], bytes[7]]) as usize;
+        let entry = (0..usize::from(le16(bytes, ifd)))
+            .map(|i| ifd + 2 + 12 * i)
+            .find(|&at| le16(bytes, at) == tag)
+            .expect("the tag");
+        bytes[entry + 4..entry + 8].copy_from_slice(&count.to_le_bytes());
+    }
+
+    #[cfg(feature = "sim")]
+    #[test]
+    fn a_dng_whose_entry_claims_four_billion_values_is_refused_before_rawler() {
+        let good = sim_dng();
+        let img = decode(&good).expect("the simulated DNG");
+        assert_eq!((img.format, img.width, img.height), (FileFormat::Dng, 8, 6));
+        // StripOffsets, ColorMatrix1 (rationals: 34 GB), UniqueCameraModel.
+        for tag in [0x0111, 0xC621, 0xC614] {
+            let mut bad = good.clone();
+            set_count(&mut bad, tag, 0xFFFF_FFFF);
+            match decode(&bad) {
+                Err(CameraFileError::Corrupt { format, message }) => {
+                    assert_eq!(format, "raw");
+                    assert!(
+                        message.contains("claims 4294967295 values")
+                            && message.contains(&format!("the file has only {} bytes", bad.len())),
+                        "{message}"
+                    );
+                }
+                other => panic!("{tag:#x}: {other:?}"),
+            }
+        }
+    }
+
+    #[cfg(feature = "sim")]
+    #[test]
+    fn a_dng_claiming_a_bigger_image_than_its_bytes_is_refused() {
+        let mut bad = sim_dng();
+        // ImageWidth is a LONG with its value in the entry.
+        let ifd = u32::from_le_bytes([bad[4], bad[5], bad[6], bad[7]]) as usize;
+        let entry = (0..40)
+            .map(|i| ifd + 2 + 12 * i)
+            .find(|&at| bad[at..at + 2] == [0x00, 0x01])
+            .expect("ImageWidth");
+        bad[entry + 8..entry + 12].copy_from_slice(&1_000_000u32.to_le_bytes());
+        let e = decode(&bad).expect_err("a huge image");
+        assert!(e.to_string().contains("claims a 1000000x6 image"), "{e}");
+        // No width does not make 65535 samples a pixel free.
+        bad[entry + 8..entry + 12].copy_from_slice(&0u32.to_le_bytes());
+        let spp = (0..40)
+            .map(|i| ifd + 2 + 12 * i)
+            .find(|&at| bad[at..at + 2] == [0x15, 0x01])
+            .expect("SamplesPerPixel");
+        bad[spp + 8..spp + 10].copy_from_slice(&u16::MAX.to_le_bytes());
+        let e = decode(&bad).expect_err("a huge pixel");
+        assert!(
+            e.to_string()
+                .contains("claims a 0x6 image of 65535 samples a pixel"),
+            "{e}"
+        );
     }
 
     #[test]

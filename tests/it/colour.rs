@@ -21,28 +21,7 @@ const RED_HELD_OUT: f64 = 2.0;
 /// The VirTex rig (one camera overhead, three lamps) on `scene`, its
 /// camera behind `cfa` (monochrome if `None`), 12 bits.
 fn virtex(dir: &Path, scene: &str, cfa: Option<&str>) -> PathBuf {
-    let profile = dir.join(format!("virtex-{scene}-{}.toml", cfa.unwrap_or("mono")));
-    edit(
-        &repo_file("rig-profiles/virtex-photometric-stereo.toml"),
-        &profile,
-        |t| {
-            let camera = device(t, "camera");
-            let intrinsics = camera
-                .get_mut("intrinsics")
-                .and_then(|i| i.as_table_mut())
-                .expect("intrinsics");
-            intrinsics.insert("bit_depth".into(), 12.into());
-            if let Some(cfa) = cfa {
-                intrinsics.insert("cfa".into(), cfa.into());
-            }
-            let sim = t
-                .get_mut("sim")
-                .and_then(|s| s.as_table_mut())
-                .expect("[sim]");
-            sim.insert("scene".into(), scene.into());
-        },
-    );
-    profile
+    crate::camera_files::virtex_on(dir, Some(scene), cfa, 12)
 }
 
 fn capture(profile: &Path, out: &Path) {
