@@ -389,3 +389,32 @@ fn joint_rgb_pca_against_per_channel_and_opponent_colour_on_the_true_btf() {
     }
     eprintln!("RMS over texels and lights, fraction of full scale:\n{table}");
 }
+
+#[test]
+fn rgb_normtextures_store_as_float_and_half_npy_and_compress() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let run = dir.path().join("run");
+    capture(&virtex(dir.path(), "corduroy", Some("RGGB")), &run);
+    let arg = run.to_str().expect("utf8");
+    // No `rigd process colour` first: rectify measures the calibration.
+    for (bits, encoding) in [("float", "npy-f32"), ("half", "npy-f16")] {
+        run_ok(&[
+            "process", "rectify", "--size", "128", "--final", "32", "--bits", bits, arg,
+        ]);
+        assert!(run.join("processed/colour.json").is_file());
+        let index: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(run.join("processed/normtextures/index.json")).expect("index"),
+        )
+        .expect("json");
+        assert_eq!(index["channels"], 3, "{bits}");
+        assert_eq!(index["encoding"], encoding);
+        let file = index["frames"][0]["file"].as_str().expect("a texture");
+        let texture = rigd_process::npy::read_f32(&run.join("processed/normtextures").join(file))
+            .expect("npy");
+        assert_eq!(texture.shape, vec![32, 32, 3], "{bits}");
+        // Linear values, red above blue on the rust-dyed sample.
+        let mean = |c: usize| texture.data.iter().skip(c).step_by(3).sum::<f32>() / 1024.0;
+        assert!(mean(0) > 1.5 * mean(2), "{bits}: {} {}", mean(0), mean(2));
+        run_ok(&["process", "btf", "--components", "2", arg]);
+    }
+}
