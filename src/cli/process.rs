@@ -44,7 +44,8 @@ pub enum ProcessCmd {
     Rectify(RectifyArgs),
     /// White balance and a 3×3 colour correction of a colour camera, from
     /// the reference patches on the holder (white, red, green, grey, blue,
-    /// yellow) in the run's most frontal frame, registered by its markers.
+    /// yellow) in up to 8 of the run's most frontal frames, registered by
+    /// their markers, averaged.
     /// Prints and keeps in RUN/processed/colour.json the gains, the matrix
     /// and each patch's colour difference ΔE*ab (CIE 1976) after
     /// correction, with the matrix fitted with and without that patch.

@@ -1,8 +1,8 @@
 //! `rigd process colour`: a colour camera's white balance and 3×3 colour
 //! correction, measured on the holder's reference patches
-//! ([`rigd_core::holder::COLOUR_PATCHES`]) in the run's most frontal frame,
-//! and each patch's colour difference ΔE*ab after correction, in the fit
-//! and held out of it. Kept in `RUN/processed/colour.json`.
+//! ([`rigd_core::holder::COLOUR_PATCHES`]) in the run's most frontal
+//! frames, and each patch's colour difference ΔE*ab after correction, in
+//! the fit and held out of it. Kept in `RUN/processed/colour.json`.
 
 use std::path::{Path, PathBuf};
 
@@ -18,7 +18,11 @@ use super::ProcessError;
 pub const COLOUR_FILE: &str = "colour.json";
 
 /// Frames tried, most frontal first, before the step gives up.
-const MAX_CANDIDATES: usize = 12;
+const MAX_CANDIDATES: usize = 24;
+
+/// Usable frames whose readings are averaged: each sees the patches at
+/// another phase of the filter array and with its own noise.
+const FRAMES_AVERAGED: usize = 8;
 
 /// Sample points across a patch, per side.
 const POINTS_PER_SIDE: usize = 9;
@@ -39,13 +43,14 @@ const PLATE_BESIDE: [f64; 2] = [1.6, 2.1];
 /// What `rigd process colour` measured and keeps.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct ColourReport {
-    /// The frame the patches were read in (its image index).
-    pub frame: usize,
-    /// The camera that took it.
+    /// The frames the patches were read in (image indices), most frontal
+    /// first; their readings are averaged.
+    pub frames: Vec<usize>,
+    /// The camera that took them.
     pub camera: String,
-    /// The frame's achieved light direction.
+    /// The most frontal frame's achieved light direction.
     pub light: Direction,
-    /// The frame's achieved view direction.
+    /// The most frontal frame's achieved view direction.
     pub view: Direction,
     /// White balance and colour correction: `corrected = matrix ·
     /// (white_balance ⊙ raw)`, raw the camera's linear values.
@@ -67,9 +72,11 @@ pub struct PatchReport {
     pub name: String,
     /// Its known reflectance, linear sRGB.
     pub reference: [f64; 3],
-    /// The camera's mean linear values over it (fraction of full scale),
-    /// evened out for the light the patch gets against the others (as the
-    /// neutral plate beside each patch measures it).
+    /// The camera's mean linear values over it, evened out for the light
+    /// the patch gets against the others (as the neutral plate beside each
+    /// patch measures it), averaged over the frames with each frame scaled
+    /// to the most frontal one's white: fraction of full scale in that
+    /// frame.
     pub raw: [f64; 3],
     /// `raw` through the calibration, linear sRGB.
     pub corrected: [f64; 3],
@@ -89,10 +96,12 @@ impl ColourReport {
         use std::fmt::Write;
         let [r, g, b] = self.calibration.white_balance;
         let mut out = format!(
-            "frame {} of `{}` (light θ {:.1}° φ {:.1}°, view θ {:.1}° φ {:.1}°)\n\
-             white balance: R ×{r:.3}, G ×{g:.3}, B ×{b:.3}\ncolour correction:\n",
-            self.frame,
+            "{} frames of `{}` averaged, the most frontal {} (light θ {:.1}° φ {:.1}°, view θ \
+             {:.1}° φ {:.1}°)\nwhite balance: R ×{r:.3}, G ×{g:.3}, B ×{b:.3}\n\
+             colour correction:\n",
+            self.frames.len(),
             self.camera,
+            self.frames.first().copied().unwrap_or_default(),
             self.light.theta_deg,
             self.light.phi_deg,
             self.view.theta_deg,
@@ -191,8 +200,9 @@ pub fn colour_file(run: &Path) -> PathBuf {
     crate::store::processed::processed_dir(run).join(COLOUR_FILE)
 }
 
-/// Measures the patches in the run's most frontal usable frame, calibrates
-/// and writes `RUN/processed/colour.json`.
+/// Measures the patches in the run's most frontal usable frames (up to
+/// [`FRAMES_AVERAGED`]), calibrates on their mean and writes
+/// `RUN/processed/colour.json`.
 pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     let (holder, _) = super::rectify::holder_of(&run.meta)?;
     if holder.patches.is_empty() {
@@ -216,7 +226,11 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
         tilt(a).total_cmp(&tilt(b))
     });
     let mut refused = Vec::new();
+    let mut used: Vec<(&crate::store::FrameEntry, Vec<PatchReading>)> = Vec::new();
     for entry in order.into_iter().take(MAX_CANDIDATES) {
+        if used.len() == FRAMES_AVERAGED {
+            break;
+        }
         let Some(planes) = run.colour_planes(entry)? else {
             return Err(ProcessError::Invalid(format!(
                 "camera `{}` is monochrome (its profile gives no `intrinsics.cfa` and its \
@@ -225,32 +239,66 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
             )));
         };
         match read_patches(run, entry, &planes, &holder.patches) {
-            Ok(readings) => {
-                let report = report(entry, &readings)?;
-                let mut json = serde_json::to_vec_pretty(&report)
-                    .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-                json.push(b'\n');
-                let path = colour_file(&run.root);
-                if let Some(dir) = path.parent() {
-                    std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
-                        path: dir.to_path_buf(),
-                        message: e.to_string(),
-                    })?;
-                }
-                crate::store::write_atomic(&path, &json)?;
-                return Ok(report);
-            }
+            Ok(readings) => used.push((entry, readings)),
             Err(why) => refused.push(format!("frame {}: {why}", entry.index)),
         }
     }
-    Err(ProcessError::Invalid(format!(
-        "no frame shows the colour patches usably: {}",
-        if refused.is_empty() {
-            "the run has no frames".to_string()
-        } else {
-            refused.join("; ")
+    let Some((first, _)) = used.first() else {
+        return Err(ProcessError::Invalid(format!(
+            "no frame shows the colour patches usably: {}",
+            if refused.is_empty() {
+                "the run has no frames".to_string()
+            } else {
+                refused.join("; ")
+            }
+        )));
+    };
+    let frames: Vec<usize> = used.iter().map(|(e, _)| e.index).collect();
+    let readings = average(used.iter().map(|(_, r)| r.as_slice()).collect());
+    let report = report(first, frames, &readings)?;
+    let mut json =
+        serde_json::to_vec_pretty(&report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    json.push(b'\n');
+    let path = colour_file(&run.root);
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
+            path: dir.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    }
+    crate::store::write_atomic(&path, &json)?;
+    Ok(report)
+}
+
+/// The frames' readings, patch by patch, each frame scaled so its white
+/// patch's green is the first frame's (the frames' exposures differ), then
+/// averaged.
+fn average(frames: Vec<&[PatchReading]>) -> Vec<PatchReading> {
+    let white_green = |r: &[PatchReading]| {
+        r.iter()
+            .find(|p| p.name == "white")
+            .map_or(1.0, |p| p.raw[1])
+    };
+    let Some(first) = frames.first() else {
+        return Vec::new();
+    };
+    let target = white_green(first);
+    let mut out: Vec<PatchReading> = first
+        .iter()
+        .map(|p| PatchReading {
+            raw: [0.0; 3],
+            ..p.clone()
+        })
+        .collect();
+    for readings in &frames {
+        let scale = target / white_green(readings);
+        for (o, p) in out.iter_mut().zip(readings.iter()) {
+            for c in 0..3 {
+                o.raw[c] += scale * p.raw[c] / frames.len() as f64;
+            }
         }
-    )))
+    }
+    out
 }
 
 /// The patches' mean raw colours in one frame, registered by its markers,
@@ -328,6 +376,7 @@ fn read_patches(
 /// The calibration from one frame's readings, and every patch's ΔE.
 fn report(
     entry: &crate::store::FrameEntry,
+    frames: Vec<usize>,
     readings: &[PatchReading],
 ) -> Result<ColourReport, ProcessError> {
     let calibration = cc::calibrate(readings).map_err(|e| ProcessError::Invalid(e.to_string()))?;
@@ -363,7 +412,7 @@ fn report(
         ..calibration
     };
     Ok(ColourReport {
-        frame: entry.index,
+        frames,
         camera: entry.camera.clone(),
         light: entry.achieved_light,
         view: entry.achieved_view,

@@ -11,8 +11,8 @@ use crate::bring_up::{device, edit};
 use crate::common::{repo_file, rigd, run_ok};
 
 /// ΔE*ab the red patch must come within after colour correction, fitted
-/// with all patches (measured 0.3 on the seed below) and held out of the
-/// fit (measured 0.6). A ΔE of 2 is about the smallest difference an
+/// with all patches (measured 0.20) and held out of the fit (measured
+/// 0.53). A ΔE of 2 is about the smallest difference an
 /// observer sees side by side.
 const RED_IN_FIT: f64 = 1.0;
 /// See [`RED_IN_FIT`].
