@@ -312,7 +312,9 @@ fn read_patches(
     planes: &ColourPlanes,
     patches: &[PlacedPatch],
 ) -> Result<Vec<PatchReading>, String> {
-    let grey = run.image(entry).map_err(|e| e.to_string())?;
+    // The grey `RunFrames::image` reads, from the planes already decoded.
+    let mut grey = rigd_process::image_io::Image::new(planes.width, planes.height, 1);
+    grey.data = rigd_process::demosaic::luminance(&planes.rgb);
     let h = super::rectify::register_by_markers(run, entry, &grey)?;
     let n = POINTS_PER_SIDE;
     // Points evenly over [-1, 1] (`n` of them), scaled by the caller.

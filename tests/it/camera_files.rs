@@ -95,13 +95,18 @@ pub(crate) fn virtex_on(
 }
 
 fn capture(profile: &Path, out: &Path) {
+    capture_at(profile, out, "96x64");
+}
+
+/// A simulated run of `profile` at frame size `size` (`WxH`) into `out`.
+pub(crate) fn capture_at(profile: &Path, out: &Path, size: &str) {
     run_ok(&[
         "run",
         "--sim",
         "--profile",
         profile.to_str().expect("utf8"),
         "--frame-size",
-        "96x64",
+        size,
         "--progress",
         "none",
         "--out",

@@ -25,18 +25,7 @@ fn virtex(dir: &Path, scene: &str, cfa: Option<&str>) -> PathBuf {
 }
 
 fn capture(profile: &Path, out: &Path) {
-    run_ok(&[
-        "run",
-        "--sim",
-        "--profile",
-        profile.to_str().expect("utf8"),
-        "--frame-size",
-        "320x240",
-        "--progress",
-        "none",
-        "--out",
-        out.to_str().expect("utf8"),
-    ]);
+    crate::camera_files::capture_at(profile, out, "320x240");
 }
 
 #[test]

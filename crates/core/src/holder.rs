@@ -223,10 +223,15 @@ impl Holder {
     /// Reflectance of the plate at (x, y) in linear sRGB: a patch's, else
     /// the neutral plate's or marker's; 0 off the plate.
     pub fn reflectance(&self, x: f64, y: f64) -> [f64; 3] {
-        match self.patches.iter().find(|p| p.contains(x, y)) {
+        match self.patch_at(x, y) {
             Some(p) => p.patch.rgb,
             None => [self.albedo(x, y); 3],
         }
+    }
+
+    /// The colour patch at (x, y), if one is there.
+    pub fn patch_at(&self, x: f64, y: f64) -> Option<&PlacedPatch> {
+        self.patches.iter().find(|p| p.contains(x, y))
     }
 
     /// Reflectance of the plate at (x, y) as a monochrome sensor sees it
@@ -236,7 +241,7 @@ impl Holder {
         if ax > self.half || ay > self.half {
             return 0.0;
         }
-        if let Some(p) = self.patches.iter().find(|p| p.contains(x, y)) {
+        if let Some(p) = self.patch_at(x, y) {
             return luminance(p.patch.rgb);
         }
         let [ox, oy] = self.line_offset;

@@ -516,12 +516,12 @@ impl<'a> Frame<'a> {
                 Some(_) => PLATE_ALBEDO,
                 None => self.scene.holder.albedo(x, y),
             };
-            let tint = match self.plate {
-                None if self.colour && albedo > 0.0 => {
-                    self.scene.holder.reflectance(x, y).map(|v| v / albedo)
-                }
-                _ => NEUTRAL,
+            // Only a colour patch tints the plate; `albedo` is its luminance.
+            let patch = match self.plate {
+                None if self.colour && albedo > 0.0 => self.scene.holder.patch_at(x, y),
+                _ => None,
             };
+            let tint = patch.map_or(NEUTRAL, |p| p.patch.rgb.map(|v| v / albedo));
             Surface {
                 on_sample: false,
                 normal: [0.0, 0.0, 1.0],
