@@ -99,6 +99,8 @@ pub struct Prepared {
     pub estimate_s: f64,
     /// Frames found damaged or missing on resume, to be retaken.
     pub retake: Vec<usize>,
+    /// What the run was asked for, as its `run.json` holds it.
+    pub meta: RunMeta,
 }
 
 /// Resolves a plan for a profile and solves every pose.
@@ -416,6 +418,7 @@ fn assemble(
     let root = dir.root().to_path_buf();
     let t_offset_s = recovery.physical_s;
     let retake = recovery.retake.clone();
+    let run_meta = meta.clone();
     let (engine, handle) = Engine::new(profile, schedule, meta, rig, clock, dir, recovery, policy);
     Prepared {
         engine,
@@ -427,6 +430,7 @@ fn assemble(
         t_offset_s,
         estimate_s,
         retake,
+        meta: run_meta,
     }
 }
 

@@ -166,13 +166,31 @@ pub struct EngineHandle {
     pub events: broadcast::Sender<RunEvent>,
     /// The rig's stop button (works while a device call is in flight).
     pub estop: EStop,
+    /// The runtime the engine runs on when it is not the caller's (a
+    /// simulated rig in paced virtual time): the stop is timed there, on
+    /// the run's own clock.
+    pub runtime: Option<tokio::runtime::Handle>,
 }
 
 impl EngineHandle {
     /// Stops every device at once, then has the run pause until the
     /// operator resumes it (which re-homes the rig first).
     pub async fn emergency_stop(&self) -> StopReport {
-        let report = self.estop.trigger().await;
+        let report = match &self.runtime {
+            Some(rt) => {
+                let estop = self.estop.clone();
+                match rt.spawn(async move { estop.trigger().await }).await {
+                    Ok(report) => report,
+                    // The run's runtime is gone: its engine has ended and
+                    // its devices with it.
+                    Err(_) => StopReport {
+                        latency_s: 0.0,
+                        devices: Vec::new(),
+                    },
+                }
+            }
+            None => self.estop.trigger().await,
+        };
         // Calls in flight fail and pause the run; between steps nothing
         // fails, so the engine is told as well. A finished engine has
         // nothing left to pause.
@@ -229,7 +247,15 @@ pub struct Engine {
     /// A state change the run directory could not record (disk full): the
     /// run pauses with this reason before it goes on.
     storage_fault: Option<String>,
+    /// The latest state record the run directory could not take: written
+    /// again until it is, so `state.json` never goes on saying what the
+    /// run no longer is.
+    unrecorded: Option<StateRecord>,
 }
+
+/// Physical seconds between two attempts at writing a state record the
+/// run directory refused, while the run waits paused.
+const STATE_RETRY_S: f64 = 5.0;
 
 /// A trigger exposed but not yet transferred.
 #[derive(Debug, Clone)]
@@ -307,6 +333,7 @@ impl Engine {
             finished_at_s: None,
             plate_known: !laser_plan,
             storage_fault: None,
+            unrecorded: None,
         };
         (
             engine,
@@ -314,6 +341,7 @@ impl Engine {
                 commands: cmd_tx,
                 events: ev_tx,
                 estop,
+                runtime: None,
             },
         )
     }
@@ -349,13 +377,12 @@ impl Engine {
             physical_s: self.t(),
             updated_at: now_rfc3339(),
         };
-        let written = lock_store(&self.store).write_state(&record);
-        if let Err(e) = written {
+        self.unrecorded = Some(record);
+        if let Err(why) = self.record_state() {
             // The state lives on in memory and in the events; the file is
-            // stale until the disk takes it. Going on would capture into a
-            // directory that cannot record it, so anything but a pause
-            // pauses first.
-            let why = storage_fault_reason(&self.meta_root(), &e);
+            // stale until the disk takes it (tried again while paused).
+            // Going on would capture into a directory that cannot record
+            // it, so anything but a pause pauses first.
             tracing::error!("cannot record state {to}: {why}");
             if to != RunState::Paused && !to.ends_session() {
                 self.storage_fault.get_or_insert(why);
@@ -367,6 +394,22 @@ impl Engine {
         }
         self.emit(EventKind::State { from, to, reason });
         Ok(())
+    }
+
+    /// Writes the state record the run directory has not taken yet, if
+    /// any; the reason it still refuses it.
+    fn record_state(&mut self) -> Result<(), String> {
+        let Some(record) = &self.unrecorded else {
+            return Ok(());
+        };
+        let written = lock_store(&self.store).write_state(record);
+        match written {
+            Ok(()) => {
+                self.unrecorded = None;
+                Ok(())
+            }
+            Err(e) => Err(storage_fault_reason(&self.meta_root(), &e)),
+        }
     }
 
     /// The run directory.
@@ -397,6 +440,10 @@ impl Engine {
     /// Runs until the run completes, is aborted, or pauses under
     /// [`PausePolicy::Return`] (or is detached).
     pub async fn run(mut self) -> Result<Outcome, EngineError> {
+        // Physical time counts from here: whatever the clock ran while the
+        // rig was connected and the run handed to its driver (a daemon
+        // answering the request that made it) is no capture time.
+        self.t_offset -= self.clock.now_s();
         let mut queue = self.todo();
         self.go(RunState::Preparing, None)?;
         match self.prepare(queue.front().copied()).await {
@@ -908,7 +955,24 @@ impl Engine {
             return Ok(false);
         }
         loop {
-            match self.commands.recv().await {
+            let command = if self.unrecorded.is_some() {
+                // The pause itself is not on disk yet: try again now and
+                // then, so an operator who frees space sees the truth there
+                // without resuming first.
+                let retry = self.clock.sleep_s(STATE_RETRY_S);
+                tokio::select! {
+                    c = self.commands.recv() => c,
+                    _ = retry => {
+                        if self.record_state().is_ok() {
+                            tracing::info!("recorded the run's state at last");
+                        }
+                        continue;
+                    }
+                }
+            } else {
+                self.commands.recv().await
+            };
+            match command {
                 Some(Command::Resume) => return Ok(true),
                 Some(Command::Abort) => {
                     self.abort().await?;

@@ -218,6 +218,12 @@ pub struct Device {
     /// rigd takes the machine position as it is. Default `true`.
     #[serde(default)]
     pub homing: Option<bool>,
+    /// Arm: how long its homing cycle (the controller's `HOME`) takes, in
+    /// seconds. Every run starts by homing, so the estimate counts it, and
+    /// the simulated controller takes exactly this long. Default
+    /// [`DEFAULT_ARM_HOMING_S`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub homing_s: Option<f64>,
     /// Axis: write the controller settings the profile implies at connect
     /// (GRBL `$22`, `$20`, `$110`, `$120`, `$130`, `$100`), then read them
     /// back. Without it, a controller whose settings differ is refused
@@ -965,7 +971,24 @@ impl Profile {
     }
 }
 
+/// How long an arm's homing cycle takes when its profile does not say.
+pub const DEFAULT_ARM_HOMING_S: f64 = 12.0;
+
+/// The longest homing cycle a profile may state, seconds.
+const MAX_HOMING_S: f64 = 3600.0;
+
 impl Device {
+    /// How long homing this device takes, seconds: an arm's `homing_s`;
+    /// 0 for every other kind (an axis's GRBL homing cycle lasts as long as
+    /// its travel back from where it stands, and a simulated controller
+    /// powers up at its home).
+    pub fn homing_time_s(&self) -> f64 {
+        match self.kind {
+            DeviceKind::Arm => self.homing_s.unwrap_or(DEFAULT_ARM_HOMING_S),
+            _ => 0.0,
+        }
+    }
+
     fn validate(&self, key: &str) -> Result<(), (String, String)> {
         let missing = |what: &str, expect: &str| {
             Err((
@@ -984,6 +1007,12 @@ impl Device {
                     format!("`{what}` is for axes, not {}", self.kind.with_article()),
                 ));
             }
+        }
+        if self.homing_s.is_some() && self.kind != DeviceKind::Arm {
+            return Err((
+                format!("{key}.homing_s"),
+                format!("`homing_s` is for arms, not {}", self.kind.with_article()),
+            ));
         }
         match self.kind {
             DeviceKind::Axis => {
@@ -1036,6 +1065,14 @@ impl Device {
                 let Some(joints) = &self.joints else {
                     return missing("joints", "a list of {name, limits, motion}");
                 };
+                if let Some(h) = self.homing_s {
+                    if !(h.is_finite() && (0.0..=MAX_HOMING_S).contains(&h)) {
+                        return Err((
+                            format!("{key}.homing_s"),
+                            format!("expected 0 to {MAX_HOMING_S} seconds, got {h}"),
+                        ));
+                    }
+                }
                 for (i, j) in joints.iter().enumerate() {
                     check_limits(&format!("{key}.joints[{i}].limits"), j.limits)?;
                     check_motion(&format!("{key}.joints[{i}].motion"), j.motion)?;

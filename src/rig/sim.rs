@@ -36,8 +36,6 @@ const PIPE_BUFFER: usize = 64 * 1024;
 /// Width (FWHM) and peak of the simulated laser strip.
 const SIM_LASER_WIDTH_M: f64 = 1.0e-3;
 const SIM_LASER_POWER: f64 = 12.0;
-/// Duration of the simulated arm's homing cycle.
-const ARM_HOME_S: f64 = 12.0;
 
 /// What a test or the command line may set on the simulated rig.
 #[derive(Debug, Clone, Default)]
@@ -336,7 +334,7 @@ pub(crate) fn firmware(
                     params: AclParams {
                         name: name.clone(),
                         joints,
-                        home_s: ARM_HOME_S,
+                        home_s: dev.homing_time_s(),
                         power_up_counts: vec![0; n],
                         start_homed: false,
                         world: Some(shared.clone()),

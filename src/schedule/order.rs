@@ -182,7 +182,7 @@ impl Costs {
             .iter()
             .map(|a| lamps.iter().map(|b| timing.lamp_change_s(a, b)).collect())
             .collect();
-        let warm_up = lamps.iter().map(|l| timing.lamp_change_s("", l)).collect();
+        let warm_up = lamps.iter().map(|l| timing.prepare_s(l)).collect();
         let mut groups: Vec<Vec<Direction>> = Vec::new();
         let group = schedule
             .triggers

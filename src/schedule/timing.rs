@@ -129,6 +129,23 @@ impl<'a> Timing<'a> {
         self.exposure_override_s.unwrap_or(nominal)
     }
 
+    /// Preparing a run (or a resume) whose first trigger needs lamp
+    /// `first_lamp`: homing every arm and axis together, then every lamp
+    /// and laser switched off in turn (a known state after a crash), then
+    /// the first lamp switched on and warmed up (the engine's `prepare`).
+    pub fn prepare_s(&self, first_lamp: &str) -> f64 {
+        let devices = self.profile.devices.values();
+        let homing = devices
+            .clone()
+            .map(|d| d.homing_time_s())
+            .fold(0.0, f64::max);
+        let lights_off: f64 = devices
+            .filter(|d| matches!(d.kind, DeviceKind::Lamp | DeviceKind::Laser))
+            .map(|d| d.switch_s.unwrap_or(0.0))
+            .sum();
+        homing + lights_off + self.lamp_change_s("", first_lamp)
+    }
+
     /// Exposure plus readout of the slowest camera of a trigger.
     pub fn expose_s(&self, cameras: &[&str]) -> f64 {
         cameras
@@ -166,11 +183,12 @@ impl<'a> Timing<'a> {
             .iter()
             .filter(|t| !skip(t.index))
             .peekable();
-        // Preparing: the first lamp is switched on and warmed up before anything moves.
+        // Preparing: homing, then the first lamp switched on and warmed up,
+        // before anything moves.
         let mut total = match remaining.peek() {
             Some(first) => {
                 pos.lamp = first.setpoints.lamp.clone();
-                self.lamp_change_s("", &pos.lamp)
+                self.prepare_s(&pos.lamp)
             }
             None => 0.0,
         };

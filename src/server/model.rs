@@ -175,6 +175,24 @@ pub struct RunView {
     /// has one: its state, steps and progress.
     #[serde(default)]
     pub processing: Option<crate::server::processing::ProcessJob>,
+    /// How fast a simulated run's physical time goes against the wall
+    /// clock, asked and achieved; null on hardware and for runs no engine
+    /// drives.
+    #[serde(default)]
+    pub pace: Option<PaceView>,
+}
+
+/// The pace of a simulated run: its physical time runs at most
+/// `asked_speed` times the wall clock, and slower when the host cannot keep
+/// up. The physical time itself is the rig model's either way.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct PaceView {
+    /// Physical seconds per wall second asked for (`--sim-speed`).
+    pub asked_speed: f64,
+    /// Physical seconds per wall second over the last two seconds.
+    pub achieved_speed: f64,
+    /// The host falls behind the asked speed (achieved below 95 % of it).
+    pub behind: bool,
 }
 
 /// `GET /api/v1/runs`.

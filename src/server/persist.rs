@@ -11,8 +11,8 @@ use serde::{Deserialize, Serialize};
 use super::model::{QueueItem, RunView};
 use crate::model::run_state::RunState;
 use crate::store::{
-    mark_interrupted, read_state, write_atomic, FrameEntry, RunMeta, StoreError, JOURNAL_FILE,
-    MANIFEST_FILE, RUN_FILE,
+    mark_interrupted, read_state, write_atomic, FrameEntry, RunMeta, StateRecord, StoreError,
+    JOURNAL_FILE, MANIFEST_FILE, RUN_FILE,
 };
 
 /// The queue's file in the data directory.
@@ -184,9 +184,29 @@ pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, Run
     let manifest: Option<ManifestHead> = std::fs::read(root.join(MANIFEST_FILE))
         .ok()
         .and_then(|b| serde_json::from_slice(&b).ok());
-    let run_state = state.as_ref().map_or(RunState::Idle, |s| s.state);
+    let view = view_of(
+        id,
+        &meta,
+        state.as_ref(),
+        done.len(),
+        manifest.map(|m| (m.physical_duration_s, m.finished_at)),
+    );
+    Ok((view, meta))
+}
+
+/// The view of run `id` from its metadata, its state record, how many
+/// images it has journaled, and for an ended run the physical time and
+/// end time its manifest gives.
+pub fn view_of(
+    id: &str,
+    meta: &RunMeta,
+    state: Option<&StateRecord>,
+    steps_done: usize,
+    ended: Option<(f64, String)>,
+) -> RunView {
+    let run_state = state.map_or(RunState::Idle, |s| s.state);
     let resumable = run_state.is_resumable();
-    let view = RunView {
+    RunView {
         id: id.to_string(),
         sample: meta.sample.clone(),
         plan: meta.plan.name.clone(),
@@ -194,32 +214,31 @@ pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, Run
         operator: meta.operator.clone(),
         notes: meta.notes.clone(),
         state: run_state,
-        reason: state.as_ref().and_then(|s| s.reason.clone()),
+        reason: state.and_then(|s| s.reason.clone()),
         last_error: state
-            .as_ref()
             .filter(|s| matches!(s.state, RunState::Failed | RunState::Paused))
             .and_then(|s| s.reason.clone())
             .filter(|r| is_error_reason(r)),
         active: false,
         resumable,
-        steps_done: done.len(),
-        steps_total: images_in_plan(&meta),
-        physical_s: manifest
+        steps_done,
+        steps_total: images_in_plan(meta),
+        physical_s: ended
             .as_ref()
-            .map(|m| m.physical_duration_s)
-            .or(state.as_ref().map(|s| s.physical_s))
+            .map(|(physical_s, _)| *physical_s)
+            .or(state.map(|s| s.physical_s))
             .unwrap_or(0.0),
         eta_physical_s: None,
         eta_wall_s: None,
         exposure_s: meta.exposure_s,
         frame_size: meta.frame_size,
         started_at: meta.started_at.clone(),
-        updated_at: state.as_ref().map(|s| s.updated_at.clone()),
-        finished_at: manifest.map(|m| m.finished_at),
+        updated_at: state.map(|s| s.updated_at.clone()),
+        finished_at: ended.map(|(_, finished_at)| finished_at),
         processed: None,
         processing: None,
-    };
-    Ok((view, meta))
+        pace: None,
+    }
 }
 
 /// Images in a run's plan: one per pair, or for a laser plan every frame of

@@ -10,7 +10,7 @@ use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
 
 use super::events::EventHub;
-use super::model::{PlanSpec, QueueItem, RunRequest, RunView};
+use super::model::{PaceView, PlanSpec, QueueItem, RunRequest, RunView};
 use super::persist::{self, RUNS_DIR};
 use super::plan_cache::PlanCache;
 use super::ServerConfig;
@@ -22,6 +22,7 @@ use crate::model::run_state::RunState;
 use crate::plan::{self, BUILTIN_PLANS};
 use crate::rig::SimHandle;
 use crate::schedule::Schedule;
+use rigd_core::pace::{Pace, PacedRuntime};
 use rigd_core::Clock;
 
 /// The run an engine drives.
@@ -36,6 +37,9 @@ pub struct Active {
     pub state: RunState,
     /// Physical time at which the run should end (t_offset + estimate).
     pub end_estimate_s: f64,
+    /// The asked and achieved speed of a simulated run's paced virtual
+    /// time (None on hardware).
+    pub pace: Option<Arc<Pace>>,
 }
 
 /// The daemon's mutable state, under one lock ([`Daemon::inner`]).
@@ -416,12 +420,8 @@ impl Daemon {
             order: Some(plan.order),
         };
         let profile = self.profile.clone();
-        let clock = self.clock();
         let faults = self.config.sim_faults.clone();
-        // Solving poses and creating the directory block; the rig's
-        // firmware tasks are spawned onto this runtime from there.
-        let rt = tokio::runtime::Handle::current();
-        let prepared = tokio::task::spawn_blocking(move || {
+        let solved = tokio::task::spawn_blocking(move || {
             let mut solved = launch::solve_given_plan(&profile, plan)?;
             if prefer_slots {
                 let (chosen, choice) = launch::prefer_slots(&profile, solved);
@@ -430,32 +430,97 @@ impl Daemon {
                     tracing::info!("{choice}");
                 }
             }
-            rt.block_on(launch::prepare_new_solved(
-                new,
-                solved,
-                faults,
-                clock,
-                PausePolicy::Wait,
-            ))
+            Ok::<_, RunError>(solved)
         })
         .await
-        .map_err(|e| SupervisorError::internal(format!("preparing the run failed: {e}")))?
+        .map_err(|e| SupervisorError::internal(format!("solving the plan failed: {e}")))?
         .map_err(run_error)?;
-        let (view, meta) = persist::load_run(&root, &id, false)
-            .map_err(|e| SupervisorError::internal(e.to_string()))?;
+        let home = self.engine_home()?;
+        let prepared = home
+            .run(move |clock| {
+                launch::prepare_new_solved(new, solved, faults, clock, PausePolicy::Wait)
+            })
+            .await
+            .map_err(|e| SupervisorError::internal(format!("preparing the run failed: {e}")))?
+            .map_err(run_error)?;
+        // The run exists on disk from here on: whatever follows, the daemon
+        // knows it (from what was prepared, not from a second read of its
+        // files), never leaving a folder it answers 404 for.
+        let view = persist::view_of(&id, &prepared.meta, None, prepared.frames_done, None);
         if let Some(options) = &req.process {
             // Checked in `validate`; queued before the engine starts, so
             // the job is on disk before the first frame.
-            let options = self.process_after_capture(&req, &meta.plan, options.clone())?;
-            self.queue_after_capture(&id, options)?;
+            let queued = self
+                .process_after_capture(&req, &prepared.meta.plan, options.clone())
+                .and_then(|options| self.queue_after_capture(&id, options));
+            if let Err(e) = queued {
+                self.abandon(view, prepared, &e);
+                return Err(e);
+            }
         }
-        let view = self.install(view, prepared, "run_created");
+        let view = self.install(view, prepared, home, "run_created");
         Ok(view)
     }
 
+    /// A run prepared but never started (its processing could not be
+    /// queued): its engine and rig go, and it is recorded aborted with the
+    /// reason, so it is listed and says why.
+    fn abandon(&self, mut view: RunView, prepared: Prepared, why: &SupervisorError) {
+        let root = prepared.root.clone();
+        drop(prepared);
+        let reason = format!("never started: {why}");
+        match crate::store::transition_state(
+            &root,
+            None,
+            RunState::Aborted,
+            Some(reason.clone()),
+            0.0,
+        ) {
+            Ok(record) => view.updated_at = Some(record.updated_at),
+            Err(e) => {
+                tracing::error!(run = %view.id, "cannot record that the run never started: {e}")
+            }
+        }
+        view.state = RunState::Aborted;
+        view.reason = Some(reason);
+        view.resumable = false;
+        self.inner().runs.insert(view.id.clone(), view.clone());
+        self.hub.publish(
+            Some(&view.id),
+            "run_ended",
+            serde_json::to_value(&view).unwrap_or_default(),
+        );
+    }
+
+    /// Where a new engine runs: a simulated rig in virtual time paced to the
+    /// daemon's speed, on a runtime of its own, so that neither the host's
+    /// load nor the simulator's own work counts as rig time; hardware on the
+    /// wall clock, on the daemon's runtime.
+    fn engine_home(&self) -> Result<EngineHome, SupervisorError> {
+        if !self.config.sim {
+            return Ok(EngineHome::Wall);
+        }
+        PacedRuntime::start(self.config.sim_speed)
+            .map(EngineHome::Paced)
+            .map_err(|e| SupervisorError::internal(e.to_string()))
+    }
+
     /// Makes a prepared engine the active run and spawns its supervisor.
-    fn install(self: &Arc<Self>, mut view: RunView, p: Prepared, kind: &str) -> RunView {
+    fn install(
+        self: &Arc<Self>,
+        mut view: RunView,
+        mut p: Prepared,
+        home: EngineHome,
+        kind: &str,
+    ) -> RunView {
         let rx = p.handle.events.subscribe();
+        let pace = match &home {
+            EngineHome::Paced(rt) => {
+                p.handle.runtime = Some(rt.handle().clone());
+                Some(rt.pace())
+            }
+            EngineHome::Wall => None,
+        };
         view.state = RunState::Preparing;
         view.reason = None;
         view.active = true;
@@ -474,6 +539,7 @@ impl Daemon {
                 sim: p.sim.clone(),
                 state: RunState::Preparing,
                 end_estimate_s: p.t_offset_s + p.estimate_s,
+                pace,
             });
             inner.last_sim = p.sim;
             inner.runs.insert(id.clone(), view.clone());
@@ -484,7 +550,8 @@ impl Daemon {
             serde_json::to_value(&view).unwrap_or_default(),
         );
         let daemon = self.clone();
-        let task = tokio::spawn(supervise(daemon, id, p.engine, rx));
+        let run = home.spawn(p.engine.run());
+        let task = tokio::spawn(supervise(daemon, id, run, rx, home));
         *lock(&self.supervisor) = Some(task);
         // Prepared while the daemon began shutting down: leave it resumable.
         let inner = self.inner();
@@ -506,6 +573,16 @@ impl Daemon {
                 .as_ref()
                 .filter(|a| a.id == id)
                 .map(|a| a.end_estimate_s);
+            let pace = inner
+                .active
+                .as_ref()
+                .filter(|a| a.id == id)
+                .and_then(|a| a.pace.as_ref())
+                .map(|p| PaceView {
+                    asked_speed: p.asked(),
+                    achieved_speed: p.achieved(),
+                    behind: p.is_behind(),
+                });
             if let EventKind::State { to, .. } = &ev.kind {
                 if let Some(a) = inner.active.as_mut().filter(|a| a.id == id) {
                     a.state = *to;
@@ -538,8 +615,11 @@ impl Daemon {
                 if let Some(end) = end_estimate {
                     let left = (end - ev.t_s).max(0.0);
                     v.eta_physical_s = Some(left);
+                    // At the speed the host achieves, not the one asked.
+                    let speed = pace.as_ref().map_or(speed, |p| p.achieved_speed.max(1e-9));
                     v.eta_wall_s = Some(left / speed);
                 }
+                v.pace = pace;
             }
         }
         self.hub.publish(
@@ -826,30 +906,25 @@ impl Daemon {
         }
         self.manual.release().await;
         let root = self.runs_dir.join(id);
-        let clock = self.clock();
-        let r = root.clone();
-        // Resuming re-checks every frame's checksum: blocking work.
-        let rt = tokio::runtime::Handle::current();
-        let prepared = tokio::task::spawn_blocking(move || {
-            rt.block_on(launch::prepare_resume(
-                &r,
-                Vec::new(),
-                clock,
-                PausePolicy::Wait,
-            ))
-        })
-        .await
-        .map_err(|e| SupervisorError::internal(format!("resuming failed: {e}")))?
-        .map_err(|e| match e {
-            RunError::Store(crate::store::StoreError::Finished(..)) => {
-                SupervisorError::conflict(e.to_string())
-            }
-            other => run_error(other),
-        })?;
+        let home = self.engine_home()?;
+        // Resuming re-checks every frame's checksum: blocking work, on the
+        // engine's runtime.
+        let prepared = home
+            .run(move |clock| async move {
+                launch::prepare_resume(&root, Vec::new(), clock, PausePolicy::Wait).await
+            })
+            .await
+            .map_err(|e| SupervisorError::internal(format!("resuming failed: {e}")))?
+            .map_err(|e| match e {
+                RunError::Store(crate::store::StoreError::Finished(..)) => {
+                    SupervisorError::conflict(e.to_string())
+                }
+                other => run_error(other),
+            })?;
         let view = self
             .view(id)
             .ok_or_else(|| SupervisorError::not_found("no such run"))?;
-        Ok(self.install(view, prepared, "run_resumed"))
+        Ok(self.install(view, prepared, home, "run_resumed"))
     }
 
     /// Emergency stop of the active run's rig.
@@ -945,13 +1020,59 @@ fn short(id: &str) -> String {
     id.chars().take(64).collect()
 }
 
+/// Where a run's engine runs ([`Daemon::engine_home`]).
+enum EngineHome {
+    /// On the daemon's runtime, on the wall clock (hardware).
+    Wall,
+    /// On a runtime of its own in virtual time paced to the wall clock
+    /// (the simulated rig); it lives as long as the engine.
+    Paced(PacedRuntime),
+}
+
+impl EngineHome {
+    /// Runs `make(clock)` to its end where the engine will run, with a
+    /// clock made there.
+    async fn run<F, Fut, T>(&self, make: F) -> Result<T, tokio::task::JoinError>
+    where
+        F: FnOnce(Clock) -> Fut + Send + 'static,
+        Fut: std::future::Future<Output = T> + Send + 'static,
+        T: Send + 'static,
+    {
+        match self {
+            EngineHome::Paced(rt) => {
+                rt.handle()
+                    .spawn(async move { make(Clock::virtual_time()).await })
+                    .await
+            }
+            EngineHome::Wall => {
+                // Connecting and checking a run's frames block; the rig's
+                // tasks are spawned onto this runtime from there.
+                let rt = tokio::runtime::Handle::current();
+                tokio::task::spawn_blocking(move || rt.block_on(make(Clock::real()))).await
+            }
+        }
+    }
+
+    /// Spawns the engine's run where it lives.
+    fn spawn<Fut>(&self, fut: Fut) -> JoinHandle<Fut::Output>
+    where
+        Fut: std::future::Future + Send + 'static,
+        Fut::Output: Send + 'static,
+    {
+        match self {
+            EngineHome::Paced(rt) => rt.handle().spawn(fut),
+            EngineHome::Wall => tokio::spawn(fut),
+        }
+    }
+}
+
 async fn supervise(
     daemon: Arc<Daemon>,
     id: String,
-    engine: crate::engine::Engine,
+    mut run: JoinHandle<Result<Outcome, EngineError>>,
     mut rx: broadcast::Receiver<RunEvent>,
+    home: EngineHome,
 ) {
-    let mut run = tokio::spawn(engine.run());
     let result = loop {
         tokio::select! {
             ev = rx.recv() => match ev {
@@ -971,5 +1092,8 @@ async fn supervise(
     if let Ok(Err(e)) = &result {
         tracing::error!(run = %id, "engine error: {e}");
     }
+    // The engine has ended: its paced runtime (and the simulated firmware
+    // on it) goes now.
+    drop(home);
     daemon.on_run_ended(&id, result);
 }

@@ -47,6 +47,12 @@ pub const STATE_FILE: &str = "state.json";
 pub const MANIFEST_FILE: &str = "manifest.json";
 /// Folder of the frames, `NNNNNN.png` (or the camera file's own extension) by image index.
 pub const FRAMES_DIR: &str = "frames";
+/// A small file of nothing a run keeps so that its state can still be
+/// recorded on a full disk: a state write that fails for want of space
+/// frees it and tries again, and the next session makes it anew.
+pub const RESERVE_FILE: &str = ".reserve";
+/// Bytes the reserve holds: a state record many times over.
+const RESERVE_BYTES: usize = 64 * 1024;
 
 /// Why a run directory could not be created, opened, read or written.
 #[derive(Debug, thiserror::Error)]
@@ -355,6 +361,7 @@ impl RunDir {
         })?;
         write_atomic(&root.join(RUN_FILE), &json)?;
         let journal = open_journal(root)?;
+        make_reserve(root);
         Ok(RunDir {
             root: root.to_path_buf(),
             journal,
@@ -408,6 +415,7 @@ impl RunDir {
             recovery.physical_s = recovery.physical_s.max(s.physical_s);
         }
         let journal = open_journal(root)?;
+        make_reserve(root);
         Ok((
             RunDir {
                 root: root.to_path_buf(),
@@ -479,13 +487,20 @@ impl RunDir {
         self.journal.sync_data().map_err(io(&path, "fsync"))
     }
 
-    /// Replaces `state.json` with `record`, atomically.
+    /// Replaces `state.json` with `record`, atomically. On a full disk the
+    /// run's reserve ([`RESERVE_FILE`]) is given up for it.
     pub fn write_state(&self, record: &StateRecord) -> Result<(), StoreError> {
+        let path = self.root.join(STATE_FILE);
         let json = serde_json::to_vec_pretty(record).map_err(|e| StoreError::Corrupt {
-            path: self.root.join(STATE_FILE),
+            path: path.clone(),
             why: e.to_string(),
         })?;
-        write_atomic(&self.root.join(STATE_FILE), &json)
+        match write_atomic(&path, &json) {
+            Err(e) if e.is_out_of_space() && release_reserve(&self.root) => {
+                write_atomic(&path, &json)
+            }
+            r => r,
+        }
     }
 
     /// Writes `manifest.json`, atomically.
@@ -496,6 +511,44 @@ impl RunDir {
         })?;
         write_atomic(&self.root.join(MANIFEST_FILE), &json)
     }
+}
+
+impl StoreError {
+    /// Whether the error is the filesystem having no room left (or the
+    /// writer's quota spent).
+    pub fn is_out_of_space(&self) -> bool {
+        matches!(
+            self,
+            StoreError::Io { error, .. }
+                if matches!(error.raw_os_error(), Some(libc::ENOSPC | libc::EDQUOT))
+        )
+    }
+}
+
+/// Makes the run's reserve if it is missing. Best effort: a disk too full
+/// for it now is one the run is about to report anyway.
+fn make_reserve(root: &Path) {
+    let path = root.join(RESERVE_FILE);
+    if path.exists() {
+        return;
+    }
+    if let Err(e) = fs::write(&path, vec![0u8; RESERVE_BYTES]) {
+        tracing::warn!(
+            "cannot keep {} in reserve at {}: {e}",
+            human_bytes(RESERVE_BYTES as u64),
+            path.display()
+        );
+        let _ = fs::remove_file(&path);
+    }
+}
+
+/// Frees the run's reserve; whether there was one to free.
+fn release_reserve(root: &Path) -> bool {
+    let freed = fs::remove_file(root.join(RESERVE_FILE)).is_ok();
+    if freed {
+        tracing::warn!("the disk is full: gave up the run's reserve to record its state");
+    }
+    freed
 }
 
 fn open_journal(root: &Path) -> Result<File, StoreError> {

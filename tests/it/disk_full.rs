@@ -63,6 +63,25 @@ fn plan_file(dir: &Path, n: usize) -> PathBuf {
     path
 }
 
+/// `state.json` of a run that paused on the full disk says so.
+fn assert_recorded_pause(run: &Path) {
+    let record = rigd::store::read_state(run)
+        .expect("state.json readable")
+        .expect("state.json present");
+    assert_eq!(
+        record.state,
+        rigd::model::run_state::RunState::Paused,
+        "{record:?}"
+    );
+    assert!(
+        record
+            .reason
+            .as_deref()
+            .is_some_and(|r| r.contains("No space left on device")),
+        "{record:?}"
+    );
+}
+
 #[test]
 fn the_command_line_pauses_when_the_disk_fills_and_resume_completes() {
     let scratch = tempfile::tempdir().expect("tempdir");
@@ -85,6 +104,9 @@ fn the_command_line_pauses_when_the_disk_fills_and_resume_completes() {
         "{stderr}"
     );
     assert!(!stderr.contains("panicked"), "{stderr}");
+    // The record on disk says what the run is: paused, and why (the run's
+    // reserve made room for it).
+    assert_recorded_pause(&run);
     // Whatever is journaled is intact.
     let journal = run.join(rigd::store::JOURNAL_FILE);
     let (entries, _) = rigd::store::read_journal(&journal).expect("journal");
@@ -133,6 +155,7 @@ async fn the_daemon_pauses_a_run_on_a_full_disk_and_keeps_serving() {
         .await;
     let reason = paused["reason"].as_str().unwrap_or_default();
     assert!(reason.contains("free on the filesystem"), "{reason}");
+    assert_recorded_pause(&data.join("runs").join(&id));
     // The daemon still answers, and says why the run waits.
     let (status, health) = srv.get("/api/v1/health").await;
     assert_eq!(status, 200, "{health}");

@@ -15,6 +15,7 @@ mod bring_up;
 mod btf_accuracy;
 mod camera_files;
 mod cli;
+mod clock;
 mod colour;
 mod crash_resume;
 mod disk_full;

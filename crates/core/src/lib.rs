@@ -4,7 +4,8 @@
 //! vector and rotation helpers around them ([`geometry`]), and the physical
 //! things both the simulator and the processing model: the camera
 //! ([`camera`]) and the sample holder with its markers ([`holder`]); and
-//! the pixel formats of raw frames ([`pixel_format`]).
+//! the pixel formats of raw frames ([`pixel_format`]); and virtual time
+//! paced to the wall clock for sped-up demos ([`pace`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
@@ -16,6 +17,7 @@ pub mod clock;
 pub mod geometry;
 pub mod holder;
 pub mod motion;
+pub mod pace;
 pub mod pixel_format;
 
 pub use clock::{Clock, DeadlineElapsed};

@@ -531,21 +531,17 @@ where
         self.read_joints().await
     }
 
-    /// Polls `STATUS` until the controller reports no motion, on the poll
-    /// interval's grid from the `MOVE`, skipping the polls that
-    /// [`super::quiet_polls`] says fall inside the modelled move.
+    /// Polls `STATUS` until the controller reports no motion, when
+    /// [`super::Polls`] says for a move modelled to take `modelled`.
     async fn wait_still(&mut self, modelled: Duration) -> Result<(), AclError> {
-        let interval = self.cfg.poll_interval;
-        let mut skip = super::quiet_polls(modelled, interval);
+        let start = self.clock.now();
+        let mut polls = super::Polls::new(self.cfg.poll_interval, modelled);
         loop {
-            self.clock.sleep(interval).await;
+            let elapsed = self.clock.now().saturating_sub(start);
+            self.clock.sleep(polls.next_wait(elapsed)).await;
             let s = self.status().await?;
             if !s.moving {
                 return Ok(());
-            }
-            if skip > 0 {
-                self.clock.sleep(interval.saturating_mul(skip)).await;
-                skip = 0;
             }
         }
     }

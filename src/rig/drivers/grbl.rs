@@ -981,14 +981,14 @@ where
         Self::x_of(&s)
     }
 
-    /// Polls `?` until the controller reports Idle, on the poll interval's
-    /// grid from the command, skipping the polls that
-    /// [`super::quiet_polls`] says fall inside the `modelled` move.
+    /// Polls `?` until the controller reports Idle, when
+    /// [`super::Polls`] says for a move modelled to take `modelled`.
     async fn wait_idle(&mut self, modelled: Duration) -> Result<Status, GrblError> {
-        let interval = self.cfg.poll_interval;
-        let mut skip = super::quiet_polls(modelled, interval);
+        let start = self.clock.now();
+        let mut polls = super::Polls::new(self.cfg.poll_interval, modelled);
         loop {
-            self.clock.sleep(interval).await;
+            let elapsed = self.clock.now().saturating_sub(start);
+            self.clock.sleep(polls.next_wait(elapsed)).await;
             let s = self.status_exchange().await?;
             match s.state {
                 MachineState::Idle => return Ok(s),
@@ -996,10 +996,6 @@ where
                 // deadline bounds a hold that is never released).
                 MachineState::Run | MachineState::Jog | MachineState::Hold(_) => {}
                 other => return Err(GrblError::State(other, "Run or Idle")),
-            }
-            if skip > 0 {
-                self.clock.sleep(interval.saturating_mul(skip)).await;
-                skip = 0;
             }
         }
     }

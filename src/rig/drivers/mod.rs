@@ -11,6 +11,8 @@ pub mod modbus;
 pub mod ptp;
 pub mod usb;
 
+use std::time::Duration;
+
 use tokio::io::{AsyncWrite, AsyncWriteExt};
 use tokio::sync::Mutex;
 
@@ -36,52 +38,100 @@ pub(crate) fn stop_failed(device: &str, e: std::io::Error) -> DeviceError {
     )
 }
 
-/// How many status polls a motion wait skips after its first one.
+/// The shortest wait between two polls: a zero interval never spins.
+const MIN_POLL_WAIT: Duration = Duration::from_millis(1);
+
+/// When a driver asks a device whether an operation it models (a move, a
+/// lamp's warm-up) has ended.
 ///
-/// The drivers poll on a grid, every `interval` from the motion command,
-/// and a move is done at the first grid point the controller says so. The
-/// first poll always happens (a refused or faulted start shows at once);
-/// the polls after it up to the last grid point before 90 % of the
-/// `modelled` move time are skipped, since the axis cannot have stopped by
-/// then unless it faulted. The move is seen to end at the same grid point
-/// as with every poll made, whenever it takes at least 90 % of its modelled
-/// time; a fault in mid-move is seen at that grid point at the latest (the
-/// emergency stop never waits for a poll). This is what makes a simulated
-/// capture's status traffic cheap, and it spares a real serial line
-/// (GRBL's documentation asks for no more than 5 polls a second).
-pub(crate) fn quiet_polls(modelled: std::time::Duration, interval: std::time::Duration) -> u32 {
-    if interval.is_zero() {
-        return 0;
+/// The first poll comes after one interval, or at the modelled end if that
+/// is sooner, so a refused or faulted start shows at once; the next comes
+/// at the modelled end, so an operation that takes
+/// its modelled time is seen to end when it ends, and a run's physical
+/// time is the timing model's, not the model's rounded up to a poll grid;
+/// after that, every interval. A fault in mid-move is seen at the modelled
+/// end at the latest (the emergency stop never waits for a poll). Two
+/// polls per move keep a simulated capture's status traffic cheap and
+/// spare a real serial line (GRBL's documentation asks for no more than
+/// 5 polls a second).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Polls {
+    interval: Duration,
+    end: Duration,
+    polled: bool,
+}
+
+impl Polls {
+    /// Polls for an operation modelled to take `modelled`, at least every
+    /// `interval` once it is overdue.
+    pub(crate) fn new(interval: Duration, modelled: Duration) -> Polls {
+        Polls {
+            interval,
+            end: modelled,
+            polled: false,
+        }
     }
-    let sure_moving = 0.9 * modelled.as_secs_f64() / interval.as_secs_f64();
-    if !sure_moving.is_finite() {
-        return 0;
+
+    /// How long to wait before the next poll, `elapsed` after the
+    /// operation started.
+    pub(crate) fn next_wait(&mut self, elapsed: Duration) -> Duration {
+        let to_end = self.end.saturating_sub(elapsed);
+        let first = !std::mem::replace(&mut self.polled, true);
+        if first {
+            self.interval.min(to_end).max(MIN_POLL_WAIT)
+        } else if to_end > Duration::ZERO {
+            to_end
+        } else {
+            self.interval.max(MIN_POLL_WAIT)
+        }
     }
-    // The next poll after skipping k is grid point k + 2; it should be the
-    // last one at or before 90 % of the modelled time.
-    let last_quiet_point = sure_moving.floor().min(f64::from(u32::MAX));
-    (last_quiet_point as u32).saturating_sub(2)
 }
 
 #[cfg(test)]
 mod tests {
-    use super::quiet_polls;
+    use super::{Polls, MIN_POLL_WAIT};
     use std::time::Duration;
 
-    #[test]
-    fn quiet_polls_keep_the_grid_and_stop_short_of_the_modelled_end() {
-        let p = Duration::from_millis(100);
-        // Short moves, no modelled time, a zero interval: every poll made.
-        assert_eq!(quiet_polls(Duration::ZERO, p), 0);
-        assert_eq!(quiet_polls(Duration::from_millis(250), p), 0);
-        assert_eq!(quiet_polls(Duration::from_secs(5), Duration::ZERO), 0);
-        // 3 s: 90 % is 2.7 s, the last grid point before it is 27, so the
-        // polls at 2 … 26 are skipped and the next is at 2.7 s.
-        assert_eq!(quiet_polls(Duration::from_secs(3), p), 25);
-        // A huge modelled time saturates instead of overflowing.
-        assert_eq!(
-            quiet_polls(Duration::from_secs(u64::MAX / 4), p),
-            u32::MAX - 2
+    /// The instants a wait polls at while the device says "still busy".
+    fn poll_times(interval_ms: u64, modelled_ms: u64, n: usize) -> Vec<Duration> {
+        let mut p = Polls::new(
+            Duration::from_millis(interval_ms),
+            Duration::from_millis(modelled_ms),
         );
+        let mut t = Duration::ZERO;
+        (0..n)
+            .map(|_| {
+                t += p.next_wait(t);
+                t
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_wait_polls_once_early_then_at_the_modelled_end_then_every_interval() {
+        let ms = Duration::from_millis;
+        // 3 s move, 100 ms polls: a start fault shows at 0.1 s, the end is
+        // seen at 3 s, then every 0.1 s.
+        assert_eq!(
+            poll_times(100, 3000, 4),
+            vec![ms(100), ms(3000), ms(3100), ms(3200)]
+        );
+        // A move shorter than the interval is polled at its end at once.
+        assert_eq!(poll_times(200, 50, 2), vec![ms(50), ms(250)]);
+        // Nothing modelled (a sweep, an unknown move): every interval.
+        assert_eq!(
+            poll_times(200, 0, 3),
+            vec![
+                MIN_POLL_WAIT,
+                MIN_POLL_WAIT + ms(200),
+                MIN_POLL_WAIT + ms(400)
+            ]
+        );
+        // A zero interval never spins with zero waits.
+        assert!(poll_times(0, 0, 3).iter().all(|t| *t > Duration::ZERO));
+        // A huge modelled time saturates instead of overflowing.
+        let mut p = Polls::new(ms(100), Duration::MAX);
+        assert_eq!(p.next_wait(Duration::ZERO), ms(100));
+        assert_eq!(p.next_wait(ms(100)), Duration::MAX - ms(100));
     }
 }

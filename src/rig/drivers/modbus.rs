@@ -306,6 +306,9 @@ impl ModbusLamp {
         // Slack: a few polls and one request beyond the nominal warm-up.
         let limit = cfg.warm_up + cfg.request_timeout + 4 * cfg.poll_interval;
         let start = self.coil.clock.now();
+        // The warm-up runs from the coil's closing: asked at once, then when
+        // it should be over, then every interval.
+        let mut polls = super::Polls::new(cfg.poll_interval, cfg.warm_up);
         loop {
             let regs = self
                 .coil
@@ -334,7 +337,8 @@ impl ModbusLamp {
             if self.coil.clock.has_passed(start, limit) {
                 return Err(ModbusError::NotReady(limit));
             }
-            self.coil.clock.sleep(cfg.poll_interval).await;
+            let since_on = self.coil.clock.now().saturating_sub(on_since);
+            self.coil.clock.sleep(polls.next_wait(since_on)).await;
         }
     }
 

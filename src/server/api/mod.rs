@@ -47,7 +47,7 @@ pub type AppState = Arc<Daemon>;
     ),
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
-        RunRequest, PlanSpec, InlinePlan, PairDto, RunView, RunList, CommandAck, RunSteps, RunStep,
+        RunRequest, PlanSpec, InlinePlan, PairDto, RunView, PaceView, RunList, CommandAck, RunSteps, RunStep,
         QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent,
         crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,
         manual::JogRequest, manual::PoseRequest, manual::SwitchRequest, manual::FrameRequest,

@@ -671,7 +671,12 @@ function renderRun() {
     eta = ` · ETA ${fmtDuration(run.eta_physical_s)} physical`;
     if (run.eta_wall_s != null) eta += ` (≈ ${fmtDuration(run.eta_wall_s)} wall)`;
   }
-  $("progress-text").textContent = `${done} / ${total} frames (${pct} %)${eta} · ${fmtDuration(run.physical_s)} captured`;
+  // Physical time is the rig model's; the host only sets how fast it goes.
+  let pace = "";
+  if (run.active && run.pace && run.pace.behind) {
+    pace = ` · host behind: ${Math.round(run.pace.achieved_speed)}× of ${Math.round(run.pace.asked_speed)}× asked`;
+  }
+  $("progress-text").textContent = `${done} / ${total} frames (${pct} %)${eta} · ${fmtDuration(run.physical_s)} captured${pace}`;
   const reason = $("run-reason");
   reason.hidden = !run.reason;
   reason.textContent = run.reason ? `Reason: ${run.reason}` : "";

@@ -124,7 +124,7 @@ impl Motion {
             .collect()
     }
     fn done(&self, now_s: f64) -> bool {
-        now_s >= self.start_s + self.duration_s
+        now_s + super::END_TOLERANCE_S >= self.start_s + self.duration_s
     }
 }
 

@@ -335,7 +335,7 @@ impl Machine {
     fn active(&mut self) -> Option<Segment> {
         let now = self.now();
         while let Some(s) = self.segments.front().copied() {
-            if now >= s.end_s() {
+            if now + super::END_TOLERANCE_S >= s.end_s() {
                 self.pos = s.to;
                 self.segments.pop_front();
             } else {

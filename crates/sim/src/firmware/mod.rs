@@ -4,6 +4,14 @@
 
 pub mod acl;
 pub mod dng;
+
+/// How close to an operation's end (a move, a warm-up) an instant counts
+/// as past it, seconds. Virtual time runs in whole milliseconds while the
+/// ends are sums of floats, so a poll made exactly at the modelled end
+/// could otherwise read a hair before it and wait a whole poll interval
+/// more; a microsecond is far below anything a device or a poll resolves.
+pub const END_TOLERANCE_S: f64 = 1e-6;
+
 pub mod grbl;
 pub mod modbus;
 pub mod ptp;

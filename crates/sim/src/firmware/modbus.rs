@@ -183,7 +183,7 @@ impl ModbusModule {
         let mut hours = Vec::with_capacity(st.lamps.len());
         for (k, (l, spec)) in st.lamps.iter().zip(&self.shared.cfg.lamps).enumerate() {
             let bit = 1u16.checked_shl(k as u32).unwrap_or(0);
-            if l.on && now >= l.on_at_s + spec.warm_up_s {
+            if l.on && now + super::END_TOLERANCE_S >= l.on_at_s + spec.warm_up_s {
                 ready |= bit;
             }
             if l.fault {
