@@ -860,10 +860,7 @@ fn write_view(
 }
 
 fn io_error(path: &Path, e: std::io::Error) -> ProcessError {
-    ProcessError::Frame {
-        path: PathBuf::from(path),
-        message: e.to_string(),
-    }
+    ProcessError::io(path, "write", e)
 }
 
 #[cfg(test)]
