@@ -705,6 +705,7 @@ impl Profile {
 
     /// Parses and validates profile text; `file` names it in errors.
     pub fn parse(text: &str, file: &str) -> Result<Profile, ProfileError> {
+        let text = rigd_core::text::strip_bom(text);
         let de = toml::Deserializer::new(text);
         let mut profile: Profile = serde_path_to_error::deserialize(de).map_err(|e| {
             let key = e.path().to_string();

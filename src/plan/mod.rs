@@ -285,10 +285,11 @@ pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
         why,
     };
     let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
+    let text = rigd_core::text::strip_bom(&text);
     let parsed: PlanFile = if file.ends_with(".toml") {
-        toml::from_str(&text).map_err(|e| err(e.message().to_string()))?
+        toml::from_str(text).map_err(|e| err(e.message().to_string()))?
     } else {
-        serde_json::from_str(&text).map_err(|e| err(e.to_string()))?
+        serde_json::from_str(text).map_err(|e| err(e.to_string()))?
     };
     let stem = path
         .file_stem()
