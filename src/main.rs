@@ -103,7 +103,7 @@ fn main() -> ExitCode {
     match result {
         Ok(code) => code,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", exit::describe(&e));
             ExitCode::from(exit::exit_code_of(&e))
         }
     }

@@ -46,6 +46,27 @@ pub fn bad_input(message: impl Into<String>) -> anyhow::Error {
     anyhow::Error::new(BadInput(message.into()))
 }
 
+/// An error as one line: each message of its chain of causes, joined by
+/// `: `, leaving out a cause whose message its caller's already holds.
+/// Many library errors say their cause in their own message and also keep
+/// it as their source, so the exit code can be classed by it; printed
+/// with both, the line would say the same thing twice.
+pub fn describe(error: &anyhow::Error) -> String {
+    let mut line = String::new();
+    for cause in error.chain() {
+        let message = cause.to_string();
+        let message = message.trim();
+        if message.is_empty() || line.contains(message) {
+            continue;
+        }
+        if !line.is_empty() {
+            line.push_str(": ");
+        }
+        line.push_str(message);
+    }
+    line
+}
+
 /// The exit code an error ends the process with: the deepest cause in the
 /// chain that rigd can class decides (the root cause is the most specific:
 /// a processing error caused by a full disk is a failure); an error rigd
@@ -191,6 +212,24 @@ mod tests {
         let no_run = StoreError::NoRun("/tmp/nothing".into());
         let wrapped = anyhow::Error::new(no_run).context("cannot resume /tmp/nothing");
         assert_eq!(exit_code_of(&wrapped), EXIT_BAD_INPUT);
+    }
+
+    #[test]
+    fn a_cause_already_in_its_callers_message_is_said_once() {
+        let io = std::io::Error::from(IoKind::NotFound);
+        let said = io.to_string();
+        #[derive(Debug, thiserror::Error)]
+        #[error("cannot read x.toml: {source}")]
+        struct Read {
+            source: std::io::Error,
+        }
+        let e = anyhow::Error::new(Read { source: io }).context("loading the profile");
+        assert_eq!(
+            describe(&e),
+            format!("loading the profile: cannot read x.toml: {said}")
+        );
+        let e = anyhow::anyhow!("inner").context("outer");
+        assert_eq!(describe(&e), "outer: inner");
     }
 
     #[test]

@@ -27,8 +27,8 @@ pub enum PlanCmd {
         /// Print JSON instead of a table.
         #[arg(long)]
         json: bool,
-        /// Exposure time for every camera, seconds, up to 3600 (default:
-        /// the profile's).
+        /// Exposure time for every camera, seconds, up to 3600 and within
+        /// each camera's `timing.exposure_range_s` (default: the profile's).
         #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
         exposure: Option<f64>,
         /// Trigger order: optimised (the shortest physical time under the
@@ -56,6 +56,11 @@ pub fn run(cmd: PlanCmd) -> Result<ExitCode> {
 
 fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Order) -> Result<()> {
     let profile = rigd::plan::load_profile(profile)?;
+    if let Some(e) = exposure {
+        profile
+            .check_exposure_override(e)
+            .map_err(|why| super::exit::bad_input(format!("--exposure {why}")))?;
+    }
     let solver = rigd::kinematics::Solver::new(&profile)?;
     let offer = rigd::schedule::rig_offer(&profile, &solver);
     let mut resolved = rigd::plan::resolve(plan, &offer)?;

@@ -240,7 +240,7 @@ pub struct PsArgs {
     #[arg(long)]
     pub robust: bool,
     /// Refuse light sets whose matrix has a larger condition number.
-    #[arg(long, default_value_t = rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION)]
     pub max_condition: f64,
     /// Output folder (created) [default: RUN/processed/ps for a run; the
     /// viewer looks there].
@@ -258,7 +258,7 @@ pub struct RectifyArgs {
     #[arg(long, default_value_t = 1024)]
     pub size: usize,
     /// Fraction of the normtexture kept around its centre.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0)]
     pub roi: f64,
     /// Side of the stored textures.
     #[arg(long = "final", default_value_t = 256)]
@@ -302,24 +302,28 @@ fn held_out_pair(
     rigd_core::geometry::Direction,
     rigd_core::geometry::Direction,
 )> {
+    use rigd::model::text::check_direction;
+    use rigd::plan::PLAN_THETA_DEG;
     use rigd_core::geometry::Direction;
     let v: Vec<f64> = s
         .split(',')
         .map(|p| p.trim().parse::<f64>())
         .collect::<Result<_, _>>()
         .map_err(|_| bad_input(format!("--held-out {s}: expected θl,φl,θv,φv in degrees")))?;
-    match v[..] {
-        [tl, pl, tv, pv]
-            if v.iter().all(|x| x.is_finite())
-                && (0.0..90.0).contains(&tl)
-                && (0.0..90.0).contains(&tv) =>
-        {
-            Ok((Direction::new(tl, pl), Direction::new(tv, pv)))
-        }
-        _ => Err(bad_input(format!(
-            "--held-out {s}: expected θl,φl,θv,φv in degrees, θ in [0, 90)"
-        ))),
-    }
+    let [tl, pl, tv, pv] = v[..] else {
+        return Err(bad_input(format!(
+            "--held-out {s}: expected θl,φl,θv,φv in degrees"
+        )));
+    };
+    // The directions a plan could have measured, φ normalised as a plan's.
+    let check = |what: &str, d: Direction| {
+        check_direction(d, PLAN_THETA_DEG)
+            .map_err(|why| bad_input(format!("--held-out {s}: the {what}'s {why}")))
+    };
+    Ok((
+        check("light", Direction::new(tl, pl))?,
+        check("view", Direction::new(tv, pv))?,
+    ))
 }
 
 #[derive(Args)]
@@ -346,14 +350,14 @@ pub struct MdfArgs {
     pub sources: Option<usize>,
     /// Grey level (0–1) each pixel's brightest frame must exceed to be
     /// triangulated; darker pixels are occluded (−1).
-    #[arg(long, default_value_t = 0.15)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.15)]
     pub threshold: f64,
     /// Grey level (0–1) of the strip in the reference region, after the
     /// filter (the holder is dark, so the strip is dim there).
-    #[arg(long, default_value_t = 0.02)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.02)]
     pub line_threshold: f64,
     /// Gaussian filter before the strip search, pixels.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0)]
     pub sigma: f64,
     #[command(flatten)]
     pub exec: ExecutorArgs,
@@ -378,7 +382,7 @@ pub struct MdfTextureArgs {
     pub size: usize,
     /// Side of the sample square one texture tile covers, mm [default: the
     /// BTF run's sample times the --roi it was rectified with].
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub tile_mm: Option<f64>,
 }
 
@@ -409,17 +413,17 @@ pub struct RelightArgs {
     #[arg(long, default_value = "512x512", value_parser = rigd::model::text::parse_frame_size)]
     pub size: [u32; 2],
     /// Multiplies the BTF's values before display.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 1.0)]
     pub exposure: f64,
     /// Eq. 6's offset α in degrees (Sattler et al. used 15 for a coarse mesh).
-    #[arg(long, default_value_t = 0.0)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = 0.0)]
     pub shadow_alpha: f64,
     /// btf, or plain: one frontal texture with Lambert's cosine (the
     /// comparison of Sattler et al. figures 13–14).
     #[arg(long, value_enum, default_value_t = ShadingArg::Btf)]
     pub shading: ShadingArg,
     /// Material tiles per world unit (the flat sample is 2 units across).
-    #[arg(long, default_value_t = rigd::postprocess::viewer::DEFAULT_DENSITY)]
+    #[arg(long, allow_negative_numbers = true, default_value_t = rigd::postprocess::viewer::DEFAULT_DENSITY)]
     pub density: f64,
     /// Mesostructure silhouettes (Wang et al., §4): every interval of the
     /// pixel's ray through the mesh tested against the MDF.
@@ -456,10 +460,16 @@ fn parse_orbit(s: &str) -> Result<rigd_process::directions::Direction, String> {
 }
 
 fn photometric_stereo(args: PsArgs) -> Result<()> {
+    use rigd::postprocess::pipeline::{ProcessOptions, PsOptions, Step};
     use rigd_process::photometric_stereo as ps;
+    PsOptions {
+        robust: args.robust,
+        max_condition: args.max_condition,
+    }
+    .check()
+    .map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
     if args.exec.is_slurm() {
-        use rigd::postprocess::pipeline::{ProcessOptions, PsOptions, Step};
         let (Some(run), None) = (&args.run, &args.out) else {
             return Err(bad_input(
                 "--executor slurm works on a run directory, into RUN/processed/ps (no --images, no --out)",
@@ -562,25 +572,23 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
 }
 
 fn rectify(args: RectifyArgs) -> Result<()> {
-    use rigd::postprocess::rectify::TextureBits;
-    let bits = TextureBits::parse(&args.bits).map_err(|e| bad_input(format!("--{e}")))?;
+    use rigd::postprocess::pipeline::{ProcessOptions, RectifyOptions, Step};
+    let options = RectifyOptions {
+        size: args.size,
+        final_size: args.final_size,
+        roi: args.roi,
+        bits: args.bits.clone(),
+        blend: args.blend,
+    };
+    // The daemon's check of the same options, so both refuse alike.
+    let cfg = options.config().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
     if args.exec.is_slurm() {
-        use rigd::postprocess::pipeline::{ProcessOptions, RectifyOptions, Step};
         let opts = ProcessOptions {
             steps: vec![Step::Rectify],
-            rectify: RectifyOptions {
-                size: args.size,
-                final_size: args.final_size,
-                roi: args.roi,
-                bits: args.bits.clone(),
-                blend: args.blend,
-            },
+            rectify: options,
             ..Default::default()
         };
-        opts.rectify
-            .config()
-            .map_err(|e| bad_input(format!("--{e}")))?;
         let started = Instant::now();
         let summary = on_slurm(&args.exec, &args.run, Step::Rectify, &opts)?;
         println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
@@ -590,13 +598,6 @@ fn rectify(args: RectifyArgs) -> Result<()> {
         }
         return Ok(());
     }
-    let cfg = rigd::postprocess::rectify::RectifyConfig {
-        size: args.size,
-        roi: args.roi,
-        final_size: args.final_size,
-        blend: args.blend,
-        bits,
-    };
     let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
     let started = Instant::now();
     let index = rigd::postprocess::rectify::rectify_run(&run, &cfg, &progress_line("registering"))?;
@@ -618,9 +619,11 @@ fn rectify(args: RectifyArgs) -> Result<()> {
 }
 
 fn btf(args: BtfArgs) -> Result<()> {
-    if args.components == 0 {
-        return Err(bad_input("--components 0: expected at least 1"));
-    }
+    use rigd::postprocess::pipeline::{BtfOptions, ProcessOptions, Step};
+    let options = BtfOptions {
+        components: args.components,
+    };
+    options.check().map_err(|e| bad_input(format!("--{e}")))?;
     let held_out = args
         .held_out
         .iter()
@@ -633,12 +636,9 @@ fn btf(args: BtfArgs) -> Result<()> {
     }
     args.exec.config()?;
     if args.exec.is_slurm() {
-        use rigd::postprocess::pipeline::{BtfOptions, ProcessOptions, Step};
         let opts = ProcessOptions {
             steps: vec![Step::Btf],
-            btf: BtfOptions {
-                components: args.components,
-            },
+            btf: options,
             ..Default::default()
         };
         let started = Instant::now();
@@ -720,18 +720,14 @@ fn print_truth_error(
 }
 
 fn fit(args: FitArgs) -> Result<()> {
-    if !(1..=8).contains(&args.lobes) {
-        return Err(bad_input(format!(
-            "--lobes {}: expected 1 ..= 8",
-            args.lobes
-        )));
-    }
+    use rigd::postprocess::pipeline::{FitOptions, ProcessOptions, Step};
+    let options = FitOptions { lobes: args.lobes };
+    options.check().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
     if args.exec.is_slurm() {
-        use rigd::postprocess::pipeline::{FitOptions, ProcessOptions, Step};
         let opts = ProcessOptions {
             steps: vec![Step::Fit],
-            fit: FitOptions { lobes: args.lobes },
+            fit: options,
             ..Default::default()
         };
         let started = Instant::now();
@@ -755,24 +751,20 @@ fn fit(args: FitArgs) -> Result<()> {
 }
 
 fn mdf(args: MdfArgs) -> Result<()> {
-    if !(args.sigma.is_finite() && (0.0..=20.0).contains(&args.sigma)) {
-        return Err(bad_input(format!(
-            "--sigma {}: expected 0 ..= 20 pixels",
-            args.sigma
-        )));
-    }
+    use rigd::postprocess::pipeline::{MdfOptions, ProcessOptions, Step};
+    let options = MdfOptions {
+        planes: args.planes,
+        sources: args.sources,
+        threshold: args.threshold,
+        line_threshold: args.line_threshold,
+        sigma: args.sigma,
+    };
+    options.check().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
     if args.exec.is_slurm() {
-        use rigd::postprocess::pipeline::{MdfOptions, ProcessOptions, Step};
         let opts = ProcessOptions {
             steps: vec![Step::Mdf],
-            mdf: MdfOptions {
-                planes: args.planes,
-                sources: args.sources,
-                threshold: args.threshold,
-                line_threshold: args.line_threshold,
-                sigma: args.sigma,
-            },
+            mdf: options,
             ..Default::default()
         };
         let started = Instant::now();
@@ -781,13 +773,7 @@ fn mdf(args: MdfArgs) -> Result<()> {
         return Ok(());
     }
     let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
-    let cfg = rigd::postprocess::mdf::MdfConfig {
-        sigma_px: args.sigma,
-        threshold: args.threshold,
-        line_threshold: args.line_threshold,
-        planes: args.planes,
-        sources: args.sources,
-    };
+    let cfg = options.config();
     let report = rigd::postprocess::mdf::mdf_run(&run, &cfg, &progress_line("sweeps analysed"))?;
     for why in &report.skipped {
         eprintln!("warning: left out: {why}");

@@ -11,6 +11,7 @@ use rigd::engine::launch::{self, NewRun};
 use rigd::engine::{Outcome, PausePolicy};
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
+use rigd::model::text::sanitize;
 use rigd::plan::Order;
 use rigd::postprocess::pipeline::{
     background_pool, check_frame_size, run_step, stream_during_capture, CaptureProgress,
@@ -36,7 +37,8 @@ pub struct RunArgs {
     /// h1, h2, grid12x8, lamps, or a plan file [default: the profile's default plan]
     #[arg(long)]
     pub plan: Option<String>,
-    /// Sample name, recorded in the dataset.
+    /// Sample name, recorded in the dataset: 1 to 128 characters, no
+    /// control characters.
     #[arg(long, default_value = "sample")]
     pub sample: String,
     /// Run directory to create (must not exist or be empty)
@@ -58,8 +60,8 @@ pub struct RunArgs {
     /// Free-text notes, recorded in the dataset.
     #[arg(long)]
     pub notes: Option<String>,
-    /// Exposure time for every camera, seconds, up to 3600 (default: the
-    /// profile's).
+    /// Exposure time for every camera, seconds, up to 3600 and within each
+    /// camera's `timing.exposure_range_s` (default: the profile's).
     #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
     pub exposure: Option<f64>,
     /// Trigger order: optimised (the shortest physical time under the
@@ -184,10 +186,12 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     let stamp = humantime::format_rfc3339_seconds(std::time::SystemTime::now())
                         .to_string()
                         .replace(':', "");
+                    // Names only: a sample or plan name never becomes a
+                    // path of its own (`..`, `/`).
                     PathBuf::from("runs").join(format!(
                         "{}-{}-{}",
-                        args.sample,
-                        plan_stem(&plan),
+                        sanitize(&args.sample, 40),
+                        sanitize(&plan_stem(&plan), 24),
                         stamp
                     ))
                 });

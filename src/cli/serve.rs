@@ -60,7 +60,8 @@ struct DaemonFile {
 fn read_config(path: &std::path::Path) -> Result<DaemonFile> {
     let text = std::fs::read_to_string(path)
         .with_context(|| format!("cannot read the configuration {}", path.display()))?;
-    toml::from_str(&text).map_err(|e| super::exit::bad_input(format!("{}: {e}", path.display())))
+    toml::from_str(rigd_core::text::strip_bom(&text))
+        .map_err(|e| super::exit::bad_input(format!("{}: {e}", path.display())))
 }
 
 /// Runs `rigd serve` until a signal stops it.

@@ -15,7 +15,7 @@ use crate::plan::Order;
 use crate::plan::{self, Plan, PlanError};
 use crate::rig::hal::{DeviceError, Rig};
 use crate::rig::{self, FaultRule, SimHandle};
-use crate::schedule::timing::{check_exposure_s, Timing};
+use crate::schedule::timing::Timing;
 use crate::schedule::{self, Schedule};
 use crate::store::{now_rfc3339, Recovery, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
 
@@ -121,11 +121,12 @@ pub fn solve_plan(
 
 fn check_request(req: &NewRun) -> Result<(), RunError> {
     if let Some(e) = req.exposure_s {
-        check_exposure_s(e).map_err(|why| RunError::Invalid(format!("exposure {why}")))?;
+        req.profile
+            .check_exposure_override(e)
+            .map_err(|why| RunError::Invalid(format!("exposure {why}")))?;
     }
-    if req.sample.trim().is_empty() {
-        return Err(RunError::Invalid("the sample name is empty".into()));
-    }
+    crate::model::text::check_name(&req.sample)
+        .map_err(|why| RunError::Invalid(format!("the sample name {why}")))?;
     Ok(())
 }
 

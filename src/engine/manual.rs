@@ -330,7 +330,9 @@ impl ManualRig {
             return Err(Self::wrong_kind(&name, kind, "a camera"));
         }
         if let Some(e) = exposure_s {
-            crate::schedule::timing::check_exposure_s(e).map_err(ManualError::BadInput)?;
+            self.profile
+                .check_camera_exposure(&name, e)
+                .map_err(ManualError::BadInput)?;
         }
         let exposure = exposure_s.or_else(|| {
             self.profile

@@ -404,12 +404,44 @@ pub struct Intrinsics {
     pub cfa: Option<rigd_core::Cfa>,
 }
 
+/// The longest exposure rigd accepts, seconds, on any camera.
+pub const MAX_EXPOSURE_S: f64 = 3600.0;
+
+/// The one rule for an exposure time someone asks for: a finite number of
+/// seconds, more than 0 and at most [`MAX_EXPOSURE_S`]. The error says
+/// what was expected; callers prefix the option's name.
+pub fn check_exposure_s(exposure_s: f64) -> Result<f64, String> {
+    if exposure_s.is_finite() && exposure_s > 0.0 && exposure_s <= MAX_EXPOSURE_S {
+        Ok(exposure_s)
+    } else {
+        Err(format!(
+            "{}: expected a positive number of seconds up to {MAX_EXPOSURE_S}",
+            crate::model::text::short_number(exposure_s)
+        ))
+    }
+}
+
+/// The largest sensor side a camera may have, pixels.
+pub const MAX_SENSOR_SIDE: u32 = 65_535;
+/// The most pixels a camera's sensor may have: 2²⁸, 512 MiB a frame at
+/// 16 bits, twice the largest sensors sold.
+pub const MAX_SENSOR_PIXELS: u64 = 1 << 28;
+/// The fastest serial line a profile may name, baud.
+pub const MAX_BAUD: u32 = 12_000_000;
+
 /// What one frame costs the camera, in seconds.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CameraTiming {
-    /// Exposure time, in seconds (positive); `--exposure` overrides it.
+    /// Exposure time, in seconds (positive, within `exposure_range_s`);
+    /// `--exposure` overrides it.
     pub exposure_s: f64,
+    /// The shortest and longest exposure the camera can set, seconds
+    /// (its data sheet); absent: anything above 0 up to
+    /// [`MAX_EXPOSURE_S`]. `exposure_s` and every run's `--exposure` must
+    /// lie within it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exposure_range_s: Option<[f64; 2]>,
     /// Sensor readout after the exposure, in seconds; the rig does not move
     /// meanwhile.
     pub readout_s: f64,
@@ -679,8 +711,9 @@ impl Profile {
 
     /// Parses and validates profile text; `file` names it in errors.
     pub fn parse(text: &str, file: &str) -> Result<Profile, ProfileError> {
+        let text = rigd_core::text::strip_bom(text);
         let de = toml::Deserializer::new(text);
-        let profile: Profile = serde_path_to_error::deserialize(de).map_err(|e| {
+        let mut profile: Profile = serde_path_to_error::deserialize(de).map_err(|e| {
             let key = e.path().to_string();
             let inner = e.into_inner();
             let location = inner
@@ -702,6 +735,12 @@ impl Profile {
             key,
             message,
         })?;
+        // One azimuth for every later step, as a plan's directions have.
+        for dev in profile.devices.values_mut() {
+            if let Some(d) = &mut dev.direction {
+                d.phi_deg = crate::model::text::normalise_phi(d.phi_deg).unwrap_or(d.phi_deg);
+            }
+        }
         Ok(profile)
     }
 
@@ -716,6 +755,39 @@ impl Profile {
             RigGeometry::Gonioreflectometer { camera, .. } => vec![camera.clone()],
             RigGeometry::TurntableArcs { cameras, .. } => cameras.clone(),
             RigGeometry::FixedLamps { camera, .. } => vec![camera.clone()],
+        }
+    }
+
+    /// Whether every camera of the rig can expose for `exposure_s`
+    /// seconds (a run's `--exposure`, the API's `exposure_s`); the error
+    /// names the first camera that cannot and its range.
+    pub fn check_exposure_override(&self, exposure_s: f64) -> Result<(), String> {
+        check_exposure_s(exposure_s)?;
+        for name in self.camera_names() {
+            self.check_camera_exposure(&name, exposure_s)?;
+        }
+        Ok(())
+    }
+
+    /// Whether camera `name` can expose for `exposure_s` seconds: within
+    /// [`check_exposure_s`] and its `timing.exposure_range_s`.
+    pub fn check_camera_exposure(&self, name: &str, exposure_s: f64) -> Result<(), String> {
+        check_exposure_s(exposure_s)?;
+        let Some([low, high]) = self
+            .devices
+            .get(name)
+            .and_then(|d| d.timing)
+            .and_then(|t| t.exposure_range_s)
+        else {
+            return Ok(());
+        };
+        if (low..=high).contains(&exposure_s) {
+            Ok(())
+        } else {
+            Err(format!(
+                "{} s: camera `{name}` exposes {low} … {high} s (devices.{name}.timing.exposure_range_s)",
+                crate::model::text::short_number(exposure_s)
+            ))
         }
     }
 
@@ -763,7 +835,10 @@ impl Profile {
     }
 
     fn validate(&self) -> Result<(), (String, String)> {
+        crate::model::text::check_name(&self.name)
+            .map_err(|why| ("name".to_string(), format!("the rig's name {why}")))?;
         for (name, dev) in &self.devices {
+            check_device_name(name)?;
             dev.validate(&format!("devices.{name}"))?;
         }
         // Without the simulator the [sim] section is kept as written: it is
@@ -841,6 +916,8 @@ impl Profile {
                 if cameras.is_empty() {
                     return Err(("rig.cameras".into(), "expected at least one camera".into()));
                 }
+                listed_once("rig.lamps", lamps)?;
+                listed_once("rig.cameras", cameras)?;
                 for (i, l) in lamps.iter().enumerate() {
                     want(&format!("rig.lamps[{i}]"), l, DeviceKind::Lamp)?;
                     if self.devices[l].elevation_deg.is_none() {
@@ -873,6 +950,7 @@ impl Profile {
                 if lamps.is_empty() {
                     return Err(("rig.lamps".into(), "expected at least one lamp".into()));
                 }
+                listed_once("rig.lamps", lamps)?;
                 for (i, l) in lamps.iter().enumerate() {
                     want(&format!("rig.lamps[{i}]"), l, DeviceKind::Lamp)?;
                     self.need_direction(l)?;
@@ -933,6 +1011,7 @@ impl Profile {
     /// module's status registers: the module has them or it has not.
     fn validate_modules(&self) -> Result<(), (String, String)> {
         let mut seen: BTreeMap<String, (&str, bool)> = BTreeMap::new();
+        let mut coils: BTreeMap<(String, u16), &str> = BTreeMap::new();
         for (name, dev) in &self.devices {
             if !matches!(dev.kind, DeviceKind::Lamp | DeviceKind::Laser) {
                 continue;
@@ -940,6 +1019,17 @@ impl Profile {
             let Some(module) = dev.transport.modbus_module() else {
                 continue;
             };
+            // Two devices on one relay would switch together: the light
+            // of one image would be both.
+            let coil = dev.coil.unwrap_or(0);
+            if let Some(other) = coils.insert((module.clone(), coil), name) {
+                return Err((
+                    format!("devices.{name}.coil"),
+                    format!(
+                        "coil {coil} of {module} is also `{other}`'s (a missing `coil` is 0); each lamp and laser needs its own relay"
+                    ),
+                ));
+            }
             let has = dev.transport.status_registers();
             match seen.get(&module) {
                 Some(&(other, other_has)) if other_has != has => {
@@ -996,6 +1086,7 @@ impl Device {
                 format!("{} needs `{what}` ({expect})", self.kind.with_article()),
             ))
         };
+        check_transport(&format!("{key}.transport"), &self.transport)?;
         for (set, what) in [
             (self.homing.is_some(), "homing"),
             (self.configure.is_some(), "configure"),
@@ -1074,6 +1165,18 @@ impl Device {
                     }
                 }
                 for (i, j) in joints.iter().enumerate() {
+                    if let Err(why) = crate::model::text::check_name(&j.name) {
+                        return Err((format!("{key}.joints[{i}].name"), format!("the name {why}")));
+                    }
+                    if let Some(first) = joints[..i].iter().position(|o| o.name == j.name) {
+                        return Err((
+                            format!("{key}.joints[{i}].name"),
+                            format!(
+                                "`{}` is also joints[{first}]'s name; each joint needs its own",
+                                j.name
+                            ),
+                        ));
+                    }
                     check_limits(&format!("{key}.joints[{i}].limits"), j.limits)?;
                     check_motion(&format!("{key}.joints[{i}].motion"), j.motion)?;
                     if !(j.counts_per_deg.is_finite() && j.counts_per_deg > 0.0) {
@@ -1107,19 +1210,53 @@ impl Device {
                         format!("expected 8 to 16 bits, got {}", intr.bit_depth),
                     ));
                 }
-                if intr.resolution[0] == 0 || intr.resolution[1] == 0 || intr.focal_px <= 0.0 {
+                let [w, h] = intr.resolution;
+                let side = 1..=MAX_SENSOR_SIDE;
+                if !(side.contains(&w) && side.contains(&h))
+                    || u64::from(w) * u64::from(h) > MAX_SENSOR_PIXELS
+                {
                     return Err((
-                        format!("{key}.intrinsics"),
-                        "expected a non-zero resolution and a positive focal_px".into(),
+                        format!("{key}.intrinsics.resolution"),
+                        format!(
+                            "{w}×{h}: expected [width, height] each 1 … {MAX_SENSOR_SIDE} pixels and at most {MAX_SENSOR_PIXELS} pixels in all"
+                        ),
+                    ));
+                }
+                if !(intr.focal_px.is_finite() && intr.focal_px > 0.0) {
+                    return Err((
+                        format!("{key}.intrinsics.focal_px"),
+                        format!(
+                            "expected a positive focal length in pixels, got {}",
+                            intr.focal_px
+                        ),
                     ));
                 }
                 let Some(t) = self.timing else {
                     return missing("timing", "{exposure_s, readout_s, transfer_s}");
                 };
-                if t.exposure_s.is_nan() || t.exposure_s <= 0.0 {
+                if let Some([low, high]) = t.exposure_range_s {
+                    let usable = low.is_finite() && low > 0.0 && low < high;
+                    if !(usable && high <= MAX_EXPOSURE_S) {
+                        return Err((
+                            format!("{key}.timing.exposure_range_s"),
+                            format!(
+                                "expected [shortest, longest] seconds with 0 < shortest < longest ≤ {MAX_EXPOSURE_S}, got [{}, {}]",
+                                crate::model::text::short_number(low),
+                                crate::model::text::short_number(high)
+                            ),
+                        ));
+                    }
+                }
+                check_exposure_s(t.exposure_s)
+                    .map_err(|why| (format!("{key}.timing.exposure_s"), why))?;
+                let [low, high] = self.exposure_range_s();
+                if !(low..=high).contains(&t.exposure_s) {
                     return Err((
                         format!("{key}.timing.exposure_s"),
-                        format!("expected a positive exposure, got {}", t.exposure_s),
+                        format!(
+                            "{} s lies outside the camera's exposure_range_s [{low}, {high}]",
+                            t.exposure_s
+                        ),
                     ));
                 }
                 non_negative(&format!("{key}.timing.readout_s"), Some(t.readout_s))?;
@@ -1135,6 +1272,8 @@ impl Device {
                     format!("expected 0 to 90 degrees, got {}", d.theta_deg),
                 ));
             }
+            crate::model::text::normalise_phi(d.phi_deg)
+                .map_err(|why| (format!("{key}.direction.phi_deg"), why))?;
         }
         Ok(())
     }
@@ -1217,6 +1356,16 @@ impl Device {
         Ok(())
     }
 
+    /// The exposures this camera can set, `[shortest, longest]` seconds:
+    /// its profile's `timing.exposure_range_s`, else anything up to
+    /// [`MAX_EXPOSURE_S`] (the shortest then is the smallest positive
+    /// number, since 0 itself is refused).
+    pub fn exposure_range_s(&self) -> [f64; 2] {
+        self.timing
+            .and_then(|t| t.exposure_range_s)
+            .unwrap_or([f64::MIN_POSITIVE, MAX_EXPOSURE_S])
+    }
+
     /// The motion model of an axis; validation guarantees it for axes.
     pub fn motion_or_default(&self) -> Motion {
         self.motion.unwrap_or(Motion {
@@ -1225,6 +1374,74 @@ impl Device {
             settle_s: 0.0,
         })
     }
+}
+
+/// A device's name is part of file names (a laser run's MDF per camera)
+/// and of every message about it: letters, digits, `-` and `_` only.
+fn check_device_name(name: &str) -> Result<(), (String, String)> {
+    let usable = (1..=64).contains(&name.chars().count())
+        && name
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+    if usable {
+        Ok(())
+    } else {
+        Err((
+            format!("devices.{}", name.escape_debug()),
+            "a device's name has 1 to 64 letters, digits, `-` or `_`".into(),
+        ))
+    }
+}
+
+/// Each name appears once in a list of the rig's devices (`rig.lamps`,
+/// `rig.cameras`): a lamp listed twice would be planned twice.
+fn listed_once(key: &str, names: &[String]) -> Result<(), (String, String)> {
+    for (i, name) in names.iter().enumerate() {
+        if let Some(first) = names[..i].iter().position(|n| n == name) {
+            return Err((
+                format!("{key}[{i}]"),
+                format!("`{name}` is listed twice (also {key}[{first}])"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A transport that can be reached at all: a line speed above 0 on a
+/// serial line, a port and host on TCP.
+fn check_transport(key: &str, transport: &Transport) -> Result<(), (String, String)> {
+    match transport {
+        Transport::Serial { port, baud } | Transport::ModbusRtu { port, baud, .. } => {
+            if port.trim().is_empty() {
+                return Err((
+                    format!("{key}.port"),
+                    "expected the serial device, e.g. /dev/ttyUSB0".into(),
+                ));
+            }
+            if !(1..=MAX_BAUD).contains(baud) {
+                return Err((
+                    format!("{key}.baud"),
+                    format!("{baud}: expected a line speed of 1 … {MAX_BAUD} baud, e.g. 115200"),
+                ));
+            }
+        }
+        Transport::ModbusTcp { host, port, .. } | Transport::PtpTcp { host, port } => {
+            if host.trim().is_empty() {
+                return Err((
+                    format!("{key}.host"),
+                    "expected a host name or IP address".into(),
+                ));
+            }
+            if *port == 0 {
+                return Err((
+                    format!("{key}.port"),
+                    "0: expected a TCP port of 1 … 65535".into(),
+                ));
+            }
+        }
+        Transport::Usb { .. } | Transport::Genicam { .. } => {}
+    }
+    Ok(())
 }
 
 fn check_limits(key: &str, l: Limits) -> Result<(), (String, String)> {

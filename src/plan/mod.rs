@@ -285,10 +285,11 @@ pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
         why,
     };
     let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
+    let text = rigd_core::text::strip_bom(&text);
     let parsed: PlanFile = if file.ends_with(".toml") {
-        toml::from_str(&text).map_err(|e| err(e.message().to_string()))?
+        toml::from_str(text).map_err(|e| err(e.message().to_string()))?
     } else {
-        serde_json::from_str(&text).map_err(|e| err(e.to_string()))?
+        serde_json::from_str(text).map_err(|e| err(e.to_string()))?
     };
     let stem = path
         .file_stem()
@@ -312,15 +313,62 @@ pub fn from_json_value(
     from_parsed(parsed, what, default_name.to_string())
 }
 
+/// The θ a plan may ask for, degrees: from the normal up to, not
+/// including, the horizon, where light and view graze the sample and no
+/// rig's limits reach (the Bonn arm's pitch stops at 89°).
+pub const PLAN_THETA_DEG: std::ops::Range<f64> = 0.0..90.0;
+
+/// A plan's direction checked ([`PLAN_THETA_DEG`], φ finite and sane) and
+/// with φ normalised into [0, 360), so capture, index and export see one
+/// value; `key` names it in the file (`directions[3]`, `pairs[0].light`).
+fn plan_direction(d: Direction, key: &str) -> Result<Direction, String> {
+    crate::model::text::check_direction(d, PLAN_THETA_DEG).map_err(|why| format!("{key}: {why}"))
+}
+
+/// [`plan_direction`] of every direction of a list named `key`.
+fn plan_directions(list: Vec<Direction>, key: &str) -> Result<Vec<Direction>, String> {
+    list.into_iter()
+        .enumerate()
+        .map(|(i, d)| plan_direction(d, &format!("{key}[{i}]")))
+        .collect()
+}
+
 fn from_parsed(parsed: PlanFile, file: &str, default_name: String) -> Result<Plan, PlanError> {
     let err = |why: String| PlanError::File {
         file: file.to_string(),
         why,
     };
+    let too_many = |n: usize| {
+        err(format!(
+            "{n} images is more than the {MAX_PAIRS} a plan may hold"
+        ))
+    };
+    // Counted before pairing: a long list paired with itself must not
+    // allocate its square first.
+    let paired = |l: &[Direction], v: &[Direction]| match l.len().checked_mul(v.len()) {
+        Some(n) if n <= MAX_PAIRS => Ok(btf(l, v)),
+        n => Err(too_many(n.unwrap_or(usize::MAX))),
+    };
     let pairs = match (parsed.directions, parsed.lights, parsed.views, parsed.pairs) {
-        (Some(d), None, None, None) => btf(&d, &d),
-        (None, Some(l), Some(v), None) => btf(&l, &v),
-        (None, None, None, Some(p)) => p,
+        (Some(d), None, None, None) => {
+            let d = plan_directions(d, "directions").map_err(err)?;
+            paired(&d, &d)?
+        }
+        (None, Some(l), Some(v), None) => paired(
+            &plan_directions(l, "lights").map_err(err)?,
+            &plan_directions(v, "views").map_err(err)?,
+        )?,
+        (None, None, None, Some(p)) => p
+            .into_iter()
+            .enumerate()
+            .map(|(i, p)| {
+                Ok(Pair {
+                    light: plan_direction(p.light, &format!("pairs[{i}].light"))?,
+                    view: plan_direction(p.view, &format!("pairs[{i}].view"))?,
+                })
+            })
+            .collect::<Result<Vec<_>, String>>()
+            .map_err(err)?,
         _ => {
             return Err(err(
                 "expected exactly one of: `directions`, `lights` with `views`, or `pairs`".into(),
@@ -331,21 +379,7 @@ fn from_parsed(parsed: PlanFile, file: &str, default_name: String) -> Result<Pla
         return Err(err("the plan has no images".into()));
     }
     if pairs.len() > MAX_PAIRS {
-        return Err(err(format!(
-            "{} images is more than the {MAX_PAIRS} a plan may hold",
-            pairs.len()
-        )));
-    }
-    for (i, p) in pairs.iter().enumerate() {
-        for (what, d) in [("light", p.light), ("view", p.view)] {
-            let valid = d.phi_deg.is_finite() && (0.0..=90.0).contains(&d.theta_deg);
-            if !valid {
-                return Err(err(format!(
-                    "image {i}: {what} direction θ = {}, φ = {} (expected finite angles with 0 ≤ θ ≤ 90)",
-                    d.theta_deg, d.phi_deg
-                )));
-            }
-        }
+        return Err(too_many(pairs.len()));
     }
     let name = parsed.name.unwrap_or(default_name);
     Ok(Plan {
@@ -375,6 +409,50 @@ mod tests {
             .map(|x| x.phi_deg)
             .collect();
         assert!((r68[1] - r68[0] - 18.0).abs() < 1e-12);
+    }
+
+    /// An inline plan (the API's) follows the plan files' rules: φ kept in
+    /// [0, 360), garbage and the horizon refused with the key.
+    #[test]
+    fn inline_plans_have_their_azimuths_normalised_and_checked() {
+        let plan = from_json_value(
+            serde_json::json!({"pairs": [{"light": {"theta_deg": 30, "phi_deg": -30},
+                                           "view": {"theta_deg": 0, "phi_deg": 720}}]}),
+            "inline plan",
+            "custom",
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(plan.pairs[0].light.phi_deg, 330.0);
+        assert_eq!(plan.pairs[0].view.phi_deg, 0.0);
+        for (value, says) in [
+            (
+                serde_json::json!({"directions": [{"theta_deg": 10, "phi_deg": 1e300}]}),
+                "directions[0]: φ = 1e300",
+            ),
+            (
+                serde_json::json!({"lights": [{"theta_deg": 10, "phi_deg": 0}],
+                                   "views": [{"theta_deg": 95, "phi_deg": 0}]}),
+                "views[0]: θ = 95",
+            ),
+        ] {
+            let e = from_json_value(value, "inline plan", "custom")
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default();
+            assert!(e.contains(says), "{e}");
+        }
+    }
+
+    #[test]
+    fn a_long_list_is_refused_before_it_is_paired() {
+        let d: Vec<serde_json::Value> = (0..1001)
+            .map(|i| serde_json::json!({"theta_deg": 10, "phi_deg": i % 360}))
+            .collect();
+        let e = from_json_value(serde_json::json!({ "directions": d }), "inline plan", "x")
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains("1002001 images is more than"), "{e}");
     }
 
     #[test]
@@ -416,6 +494,14 @@ mod tests {
             .map(|e| e.to_string())
             .unwrap_or_default();
         assert!(e.contains("θ = 95"), "{e}");
+        let p = dir.path().join("horizon.json");
+        std::fs::write(&p, r#"{"directions":[{"theta_deg":90,"phi_deg":0}]}"#)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let e = from_file(&p)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains("directions[0]: θ = 90"), "{e}");
         let p = dir.path().join("both.json");
         std::fs::write(&p, r#"{"directions":[],"pairs":[]}"#).unwrap_or_else(|e| panic!("{e}"));
         assert!(from_file(&p).is_err());

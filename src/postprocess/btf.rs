@@ -256,10 +256,7 @@ pub fn compress_slot_ahead(
         .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
     let (meta_path, bin_path) = ahead_paths(run, slot);
     if let Some(dir) = bin_path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
-            path: dir.to_path_buf(),
-            message: e.to_string(),
-        })?;
+        crate::postprocess::create_dir(dir)?;
     }
     crate::store::write_atomic(&bin_path, &pca.to_le_bytes())?;
     let kept = SlotAhead {

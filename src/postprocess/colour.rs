@@ -261,10 +261,7 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     json.push(b'\n');
     let path = colour_file(&run.root);
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
-            path: dir.to_path_buf(),
-            message: e.to_string(),
-        })?;
+        crate::postprocess::create_dir(dir)?;
     }
     crate::store::write_atomic(&path, &json)?;
     Ok(report)

@@ -57,10 +57,7 @@ pub fn import_textures(
         .ok_or_else(|| ProcessError::Invalid(format!("{}: no textures found", path.display())))?;
     let size = first.image.width;
     let dir = normtextures_dir(out);
-    std::fs::create_dir_all(&dir).map_err(|e| ProcessError::Frame {
-        path: dir.clone(),
-        message: e.to_string(),
-    })?;
+    crate::postprocess::create_dir(&dir)?;
     let (mut lights, mut views, mut frames) = (Vec::new(), Vec::new(), Vec::new());
     for (i, t) in textures.iter().enumerate() {
         if t.image.channels != first.image.channels {

@@ -91,10 +91,7 @@ fn fit_one_slot(
     use rigd_process::reflectance_fit::{fit_ptm_slot, fit_slot, FitOptions};
     let lights: Vec<[f64; 3]> = index.lights.iter().map(|d| d.to_vector()).collect();
     let dir = crate::store::processed::fit_dir(run);
-    std::fs::create_dir_all(&dir).map_err(|e| ProcessError::Frame {
-        path: dir.clone(),
-        message: e.to_string(),
-    })?;
+    crate::postprocess::create_dir(&dir)?;
     let invalid =
         |e: &dyn std::fmt::Display| ProcessError::Invalid(format!("view slot {slot}: {e}"));
     let images = (0..lights.len())
@@ -182,10 +179,7 @@ pub fn fit_slots_part(
             let methods = fit_one_slot(run, &index, slot, lobes)?;
             let path = kept_path(run, slot);
             if let Some(dir) = path.parent() {
-                std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
-                    path: dir.to_path_buf(),
-                    message: e.to_string(),
-                })?;
+                crate::postprocess::create_dir(dir)?;
             }
             let json = serde_json::to_vec(&SlotFitKept { key, methods })
                 .map_err(|e| ProcessError::Invalid(e.to_string()))?;
@@ -211,10 +205,7 @@ pub fn fit_run(
     use rigd_process::reflectance_fit::FitMethod;
     let index = NormtextureIndex::read(run)?;
     let dir = crate::store::processed::fit_dir(run);
-    std::fs::create_dir_all(&dir).map_err(|e| ProcessError::Frame {
-        path: dir.clone(),
-        message: e.to_string(),
-    })?;
+    crate::postprocess::create_dir(&dir)?;
     let methods = [FitMethod::Ptm, FitMethod::Lobes(lobes)];
     let mut rows: Vec<FitRow> = methods
         .iter()

@@ -57,6 +57,28 @@ pub struct MdfConfig {
     pub sources: Option<usize>,
 }
 
+impl MdfConfig {
+    /// The one check of these settings, for `rigd process mdf` and the
+    /// daemon's jobs alike: the error names the option and its range.
+    pub fn check(&self) -> Result<(), String> {
+        if !(self.sigma_px.is_finite() && (0.0..=20.0).contains(&self.sigma_px)) {
+            return Err(format!("sigma {}: expected 0 … 20 pixels", self.sigma_px));
+        }
+        for (name, t) in [
+            ("threshold", self.threshold),
+            ("line-threshold", self.line_threshold),
+        ] {
+            if !(t.is_finite() && t > 0.0 && t < 1.0) {
+                return Err(format!("{name} {t}: expected a grey level between 0 and 1"));
+            }
+        }
+        if self.sources == Some(0) {
+            return Err("sources 0: expected at least 1 source position".into());
+        }
+        Ok(())
+    }
+}
+
 impl Default for MdfConfig {
     fn default() -> MdfConfig {
         MdfConfig {
@@ -330,16 +352,7 @@ fn mdf_views(
     let rig = LaserRig::of(profile).ok_or_else(|| {
         ProcessError::Invalid(format!("profile `{}` has no laser unit", profile.name))
     })?;
-    for (name, t) in [
-        ("threshold", cfg.threshold),
-        ("line threshold", cfg.line_threshold),
-    ] {
-        if !(t.is_finite() && t > 0.0 && t < 1.0) {
-            return Err(ProcessError::Invalid(format!(
-                "{name} {t} (expected between 0 and 1)"
-            )));
-        }
-    }
+    cfg.check().map_err(ProcessError::Invalid)?;
     let sources = pick_sources(plan.sources, cfg.sources)?;
     let turntable = rig.turntable.clone();
     let turn_of = |e: &FrameEntry| e.positions.axes.get(&turntable).copied().unwrap_or(0.0);
@@ -847,10 +860,7 @@ fn write_view(
 }
 
 fn io_error(path: &Path, e: std::io::Error) -> ProcessError {
-    ProcessError::Frame {
-        path: PathBuf::from(path),
-        message: e.to_string(),
-    }
+    ProcessError::io(path, "write", e)
 }
 
 #[cfg(test)]

@@ -44,3 +44,22 @@ pub enum ProcessError {
     #[error(transparent)]
     Scene(#[from] rigd_sim::scene::SceneError),
 }
+
+impl ProcessError {
+    /// A step's write into the run failed in the system: the system's
+    /// error is kept, so a read-only or full disk is classed as the
+    /// failure it is, not as bad input.
+    pub fn io(path: &std::path::Path, op: &'static str, error: std::io::Error) -> ProcessError {
+        ProcessError::Store(crate::store::StoreError::Io {
+            path: path.to_path_buf(),
+            op,
+            error,
+        })
+    }
+}
+
+/// Creates a folder a step writes into (and its parents), as
+/// [`ProcessError::io`] reports a failure.
+pub fn create_dir(dir: &std::path::Path) -> Result<(), ProcessError> {
+    std::fs::create_dir_all(dir).map_err(|e| ProcessError::io(dir, "create directory", e))
+}

@@ -103,30 +103,20 @@ impl Default for RectifyOptions {
 }
 
 impl RectifyOptions {
-    /// The rectification's configuration, or why these options are wrong.
+    /// The rectification's configuration, or why these options are wrong
+    /// ([`RectifyConfig::check`]; the error names the option as the
+    /// command line does, without its `--`).
     pub fn config(&self) -> Result<RectifyConfig, String> {
         let bits = TextureBits::parse(&self.bits)?;
-        for (name, v) in [("size", self.size), ("final", self.final_size)] {
-            if !(8..=8192).contains(&v) {
-                return Err(format!("rectify.{name} {v}: expected 8 … 8192 texels"));
-            }
-        }
-        if !(self.roi > 0.0 && self.roi <= 1.0) {
-            return Err(format!("rectify.roi {}: expected 0 < roi ≤ 1", self.roi));
-        }
-        if self.blend >= self.final_size {
-            return Err(format!(
-                "rectify.blend {}: must be narrower than the {}-texel texture",
-                self.blend, self.final_size
-            ));
-        }
-        Ok(RectifyConfig {
+        let cfg = RectifyConfig {
             size: self.size,
             roi: self.roi,
             final_size: self.final_size,
             blend: self.blend,
             bits,
-        })
+        };
+        cfg.check()?;
+        Ok(cfg)
     }
 }
 
@@ -144,6 +134,17 @@ impl Default for BtfOptions {
     }
 }
 
+impl BtfOptions {
+    /// Why these options are wrong, if they are.
+    pub fn check(&self) -> Result<(), String> {
+        if (1..=256).contains(&self.components) {
+            Ok(())
+        } else {
+            Err(format!("components {}: expected 1 … 256", self.components))
+        }
+    }
+}
+
 /// Options of the `fit` step.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 #[serde(default, deny_unknown_fields)]
@@ -155,6 +156,17 @@ pub struct FitOptions {
 impl Default for FitOptions {
     fn default() -> Self {
         FitOptions { lobes: 2 }
+    }
+}
+
+impl FitOptions {
+    /// Why these options are wrong, if they are.
+    pub fn check(&self) -> Result<(), String> {
+        if (1..=8).contains(&self.lobes) {
+            Ok(())
+        } else {
+            Err(format!("lobes {}: expected 1 … 8", self.lobes))
+        }
     }
 }
 
@@ -189,6 +201,11 @@ impl Default for MdfOptions {
 }
 
 impl MdfOptions {
+    /// Why these options are wrong, if they are ([`MdfConfig::check`]).
+    pub fn check(&self) -> Result<(), String> {
+        self.config().check()
+    }
+
     /// The MDF's settings.
     pub fn config(&self) -> MdfConfig {
         MdfConfig {
@@ -216,6 +233,20 @@ impl Default for PsOptions {
         PsOptions {
             robust: false,
             max_condition: rigd_process::photometric_stereo::DEFAULT_MAX_CONDITION,
+        }
+    }
+}
+
+impl PsOptions {
+    /// Why these options are wrong, if they are.
+    pub fn check(&self) -> Result<(), String> {
+        if self.max_condition.is_finite() && self.max_condition >= 1.0 {
+            Ok(())
+        } else {
+            Err(format!(
+                "max-condition {}: expected a finite number of at least 1",
+                self.max_condition
+            ))
         }
     }
 }
@@ -330,7 +361,7 @@ impl ProcessOptions {
             return Err("a step is named twice".into());
         }
         if self.steps.contains(&Step::Rectify) {
-            self.rectify.config()?;
+            self.rectify.config().map_err(|e| format!("rectify.{e}"))?;
         }
         for step in &self.steps {
             if step.needs_normtextures() && !facts.rectified && !self.steps.contains(&Step::Rectify)
@@ -341,32 +372,15 @@ impl ProcessOptions {
                 ));
             }
         }
-        if !(1..=256).contains(&self.btf.components) {
-            return Err(format!(
-                "btf.components {}: expected 1 … 256",
-                self.btf.components
-            ));
-        }
-        if !(1..=8).contains(&self.fit.lobes) {
-            return Err(format!("fit.lobes {}: expected 1 … 8", self.fit.lobes));
-        }
-        if !(self.mdf.sigma.is_finite() && (0.0..=20.0).contains(&self.mdf.sigma)) {
-            return Err(format!(
-                "mdf.sigma {}: expected 0 … 20 pixels",
-                self.mdf.sigma
-            ));
-        }
+        self.btf.check().map_err(|e| format!("btf.{e}"))?;
+        self.fit.check().map_err(|e| format!("fit.{e}"))?;
+        self.mdf.check().map_err(|e| format!("mdf.{e}"))?;
         if self.steps.contains(&Step::Mdf) && !facts.laser {
             return Err("mdf needs a run of a laser plan".into());
         }
-        if !(self.photometric_stereo.max_condition.is_finite()
-            && self.photometric_stereo.max_condition >= 1.0)
-        {
-            return Err(format!(
-                "photometric_stereo.max_condition {}: expected at least 1",
-                self.photometric_stereo.max_condition
-            ));
-        }
+        self.photometric_stereo
+            .check()
+            .map_err(|e| format!("photometric_stereo.{e}"))?;
         if facts.frames == 0 {
             return Err("the run has no frames".into());
         }
@@ -650,5 +664,48 @@ mod tests {
             ..Default::default()
         };
         assert!(bad.config().is_err());
+    }
+
+    /// The daemon's jobs refuse what `rigd process` refuses, with the same
+    /// words: the option and its range.
+    #[test]
+    fn every_numeric_option_has_its_range() {
+        let facts = RunFacts {
+            laser: true,
+            one_view: false,
+            frames: 9,
+            rectified: false,
+        };
+        let refused = |json: &str| {
+            serde_json::from_str::<ProcessOptions>(json)
+                .expect("parses")
+                .resolve(&facts)
+                .expect_err(json)
+        };
+        for (json, says) in [
+            (
+                r#"{"steps": ["rectify"], "rectify": {"size": 1}}"#,
+                "rectify.size 1",
+            ),
+            (
+                r#"{"steps": ["rectify"], "rectify": {"size": 256, "final": 300}}"#,
+                "rectify.final 300: expected at most the size 256",
+            ),
+            (
+                r#"{"steps": ["rectify"], "rectify": {"final": 0}}"#,
+                "rectify.final 0",
+            ),
+            (r#"{"mdf": {"threshold": 2.0}}"#, "mdf.threshold 2"),
+            (r#"{"mdf": {"sources": 0}}"#, "mdf.sources 0"),
+            (r#"{"btf": {"components": 0}}"#, "btf.components 0"),
+            (r#"{"fit": {"lobes": 9}}"#, "fit.lobes 9"),
+            (
+                r#"{"photometric_stereo": {"max_condition": 0.5}}"#,
+                "photometric_stereo.max-condition 0.5",
+            ),
+        ] {
+            let e = refused(json);
+            assert!(e.contains(says), "{json}: {e}");
+        }
     }
 }

@@ -193,10 +193,7 @@ fn marker_path(root: &Path, step: Step, part: usize) -> PathBuf {
 pub fn mark_done(root: &Path, step: Step, part: usize, summary: &str) -> Result<(), ProcessError> {
     let path = marker_path(root, step, part);
     if let Some(dir) = path.parent() {
-        std::fs::create_dir_all(dir).map_err(|e| ProcessError::Frame {
-            path: dir.to_path_buf(),
-            message: e.to_string(),
-        })?;
+        crate::postprocess::create_dir(dir)?;
     }
     crate::store::write_atomic(&path, summary.as_bytes())?;
     Ok(())
@@ -437,10 +434,7 @@ impl SlurmConfig {
             }
         }
         let io = |path: &Path, e: std::io::Error| {
-            SlurmError::Process(ProcessError::Frame {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            })
+            SlurmError::Process(ProcessError::io(path, "write", e))
         };
         std::fs::create_dir_all(dir.join("done")).map_err(|e| io(&dir, e))?;
         let options_path = dir.join("options.json");

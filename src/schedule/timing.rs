@@ -8,21 +8,7 @@ use crate::kinematics::Setpoints;
 use crate::model::profile::{DeviceKind, Profile};
 use crate::schedule::Schedule;
 
-/// The longest exposure rigd accepts, seconds.
-pub const MAX_EXPOSURE_S: f64 = 3600.0;
-
-/// The one rule for an exposure time someone asks for: a finite number of
-/// seconds, more than 0 and at most [`MAX_EXPOSURE_S`]. The error says
-/// what was expected; callers prefix the option's name.
-pub fn check_exposure_s(exposure_s: f64) -> Result<f64, String> {
-    if exposure_s.is_finite() && exposure_s > 0.0 && exposure_s <= MAX_EXPOSURE_S {
-        Ok(exposure_s)
-    } else {
-        Err(format!(
-            "{exposure_s}: expected a positive number of seconds up to {MAX_EXPOSURE_S}"
-        ))
-    }
-}
+pub use crate::model::profile::{check_exposure_s, MAX_EXPOSURE_S};
 
 /// [`check_exposure_s`] of a command-line value.
 pub fn parse_exposure_s(text: &str) -> Result<f64, String> {

@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use super::model::{QueueItem, RunView};
 use crate::model::run_state::RunState;
+use crate::model::text::sanitize;
 use crate::store::{
     mark_interrupted, read_state, write_atomic, FrameEntry, RunMeta, StateRecord, StoreError,
     JOURNAL_FILE, MANIFEST_FILE, RUN_FILE,
@@ -72,27 +73,6 @@ pub fn save_queue(data: &Path, items: &[QueueItem]) -> Result<(), StoreError> {
         why: e.to_string(),
     })?;
     write_atomic(&data.join(QUEUE_FILE), &json)
-}
-
-/// Keeps letters, digits, `-` and `_`; everything else becomes `_`; at most
-/// `max` characters; never empty.
-pub fn sanitize(s: &str, max: usize) -> String {
-    let out: String = s
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .take(max)
-        .collect();
-    if out.is_empty() {
-        "x".into()
-    } else {
-        out
-    }
 }
 
 /// A run id is only ever made here, and only these characters pass.

@@ -144,7 +144,7 @@ impl SupervisorError {
 }
 
 /// Most characters a sample, operator name or plan name may have.
-const MAX_NAME: usize = 128;
+const MAX_NAME: usize = crate::model::text::MAX_NAME_CHARS;
 const MAX_NOTES: usize = 8192;
 
 fn run_error(e: RunError) -> SupervisorError {
@@ -238,17 +238,8 @@ impl Daemon {
 
     /// Checks a request and resolves its plan (built-in names or inline only).
     pub fn validate(&self, req: &RunRequest) -> Result<plan::Plan, SupervisorError> {
-        let sample = req.sample.trim();
-        if sample.is_empty() || req.sample.chars().count() > MAX_NAME {
-            return Err(SupervisorError::invalid(format!(
-                "`sample` must have 1 to {MAX_NAME} characters"
-            )));
-        }
-        if req.sample.chars().any(char::is_control) {
-            return Err(SupervisorError::invalid(
-                "`sample` holds control characters",
-            ));
-        }
+        crate::model::text::check_name(&req.sample)
+            .map_err(|why| SupervisorError::invalid(format!("`sample` {why}")))?;
         if let Some(op) = &req.operator {
             if op.chars().count() > MAX_NAME || op.chars().any(char::is_control) {
                 return Err(SupervisorError::invalid(format!(
@@ -264,7 +255,8 @@ impl Daemon {
             }
         }
         if let Some(e) = req.exposure_s {
-            crate::schedule::timing::check_exposure_s(e)
+            self.profile
+                .check_exposure_override(e)
                 .map_err(|why| SupervisorError::invalid(format!("`exposure_s` {why}")))?;
         }
         if let Some([w, h]) = req.frame_size {

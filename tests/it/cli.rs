@@ -242,6 +242,41 @@ fn broken_profiles_name_file_key_and_expectation() {
             "sim.holder_offset_mm",
             "within ±10 mm",
         ),
+        (
+            "twin-joints.toml",
+            "name = \"pitch\"",
+            "name = \"roll\"",
+            "devices.arm.joints[1].name",
+            "`roll` is also joints[0]'s name",
+        ),
+        (
+            "no-baud.toml",
+            "baud = 115200",
+            "baud = 0",
+            "devices.rail.transport.baud",
+            "0: expected a line speed",
+        ),
+        (
+            "huge-sensor.toml",
+            "resolution = [3032, 2008]",
+            "resolution = [100000, 100000]",
+            "devices.camera.intrinsics.resolution",
+            "100000×100000",
+        ),
+        (
+            "nul-name.toml",
+            "name = \"bonn-gonioreflectometer\"",
+            "name = \"bonn\\u0000rig\"",
+            "name",
+            "the rig's name holds control characters",
+        ),
+        (
+            "long-exposure.toml",
+            "exposure_s = 0.25",
+            "exposure_s = 5e5",
+            "devices.camera.timing.exposure_s",
+            "up to 3600",
+        ),
     ];
     for (file, from, to, key, what) in cases {
         let path = broken_profile(tmp.path(), file, from, to);
@@ -261,10 +296,60 @@ fn broken_profiles_name_file_key_and_expectation() {
             assert!(e.contains(file), "{e}");
             assert!(e.contains(key), "{e}");
             assert!(e.contains(what), "{e}");
+            assert_eq!(e.matches(what).count(), 1, "said twice: {e}");
         }
     }
     let e = fails_cleanly(&["profile", "check", "no-such-profile"]);
     assert!(e.contains("bonn-gonioreflectometer"), "{e}");
+}
+
+/// Rigs with several lamps: a lamp listed twice, two lamps on one relay
+/// coil. Each command that loads the profile refuses it, once, naming the key.
+#[test]
+fn broken_lamp_wiring_is_refused() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let msra = std::fs::read_to_string(repo_file("rig-profiles/msra-btf-mdf.toml")).expect("read");
+    let cases = [
+        (
+            "twice-listed.toml",
+            "lamps = [\"lamp0\", \"lamp1\",",
+            "lamps = [\"lamp0\", \"lamp0\",",
+            "rig.lamps[1]",
+            "`lamp0` is listed twice (also rig.lamps[0])",
+        ),
+        (
+            "one-coil.toml",
+            "coil = 1\n",
+            "coil = 0\n",
+            "devices.lamp1.coil",
+            "also `lamp0`'s",
+        ),
+    ];
+    for (file, from, to, key, what) in cases {
+        assert!(msra.contains(from), "fixture drifted: {from}");
+        let path = tmp.path().join(file);
+        std::fs::write(&path, msra.replacen(from, to, 1)).expect("write");
+        let path = path.to_str().expect("utf8");
+        for args in [
+            vec!["profile", "check", path],
+            vec!["plan", "show", "grid12x8", "--profile", path],
+            vec![
+                "run",
+                "--sim",
+                "--profile",
+                path,
+                "--out",
+                "/nonexistent/never",
+            ],
+        ] {
+            let e = fails_cleanly(&args);
+            assert!(
+                e.contains(file) && e.contains(key) && e.contains(what),
+                "{e}"
+            );
+            assert_eq!(e.matches(what).count(), 1, "said twice: {e}");
+        }
+    }
 }
 
 #[test]

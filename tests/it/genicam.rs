@@ -318,6 +318,48 @@ async fn lost_packets_make_bad_frames_and_never_a_partial_one() {
     assert!(complete > 0 && bad > 0, "{complete} complete, {bad} bad");
 }
 
+/// The camera's own `ExposureTime` range (the fake camera's: 10 µs to
+/// 10 s) bounds the exposures the driver sets: beyond it the driver refuses,
+/// naming the range, at connect and when a run sets its exposure.
+// The lock orders the tests around one GVCP port; it guards no data.
+#[allow(clippy::await_holding_lock)]
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_exposure_beyond_the_camera_s_range_is_refused() {
+    let _port = one_camera_at_a_time();
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let _camera = fake_camera("RIGD-GV7", 0, &tmp.path().join("camera.log"));
+    let cfg = |exposure_s: f64| GenicamConfig {
+        name: "camera".into(),
+        id: "127.0.0.1".into(),
+        pixel_format: PixelFormat::Mono(8),
+        size: [64, 48],
+        gain_db: None,
+        trigger_source: "Software".into(),
+        exposure_s,
+        readout_s: 0.0,
+        transfer_s: 0.01,
+    };
+    let offers = "it offers 10 to 10000000 µs";
+    match GenicamCamera::connect(cfg(100.0), genicam::opener("127.0.0.1"), Clock::real()).await {
+        Ok(_) => panic!("a 100 s exposure was set on a camera that exposes up to 10 s"),
+        Err(e) => {
+            assert_eq!(e.kind, ErrorKind::OutOfLimits, "{e}");
+            assert!(
+                e.message.contains(offers) && e.message.contains("timing.exposure_s"),
+                "{e}"
+            );
+        }
+    }
+    let (mut cam, _) =
+        GenicamCamera::connect(cfg(0.005), genicam::opener("127.0.0.1"), Clock::real())
+            .await
+            .expect("connect to the fake camera");
+    let e = cam.set_exposure(100.0).await.expect_err("beyond 10 s");
+    assert_eq!(e.kind, ErrorKind::OutOfLimits, "{e}");
+    assert!(e.message.contains(offers), "{e}");
+    cam.set_exposure(2.0).await.expect("within the range");
+}
+
 /// A capture on a camera that loses 1 % of its packets completes: lost
 /// frames are retaken, and every stored frame is whole.
 #[test]

@@ -38,6 +38,7 @@ mod process_run;
 mod ps_accuracy;
 mod ptp_camera;
 mod ptp_transcripts;
+mod refusals;
 mod sim_serve;
 mod slurm;
 mod stability;

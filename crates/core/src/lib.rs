@@ -4,8 +4,9 @@
 //! vector and rotation helpers around them ([`geometry`]), and the physical
 //! things both the simulator and the processing model: the camera
 //! ([`camera`]) and the sample holder with its markers ([`holder`]); and
-//! the pixel formats of raw frames ([`pixel_format`]); and virtual time
-//! paced to the wall clock for sped-up demos ([`pace`]).
+//! the pixel formats of raw frames ([`pixel_format`]); how hand-written
+//! text files are read ([`text`]); and virtual time paced to the wall
+//! clock for sped-up demos ([`pace`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
@@ -19,6 +20,7 @@ pub mod holder;
 pub mod motion;
 pub mod pace;
 pub mod pixel_format;
+pub mod text;
 
 pub use clock::{Clock, DeadlineElapsed};
 pub use geometry::Direction;

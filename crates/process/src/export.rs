@@ -100,6 +100,10 @@ pub enum ExportError {
     },
 }
 
+/// The largest file a UBO2003 zip may hold, bytes: a JPEG of the largest
+/// texture with room to spare.
+pub const MAX_ENTRY_BYTES: u64 = 256 << 20;
+
 fn io_err(path: &Path, e: impl std::fmt::Display) -> ExportError {
     ExportError::Io {
         path: path.to_path_buf(),
@@ -297,8 +301,27 @@ pub fn read(format: Format, path: &Path) -> Result<Vec<Texture>, ExportError> {
                     path: path.to_path_buf(),
                     name: name.clone(),
                 })?;
+                // A deflated entry can claim anything and inflate without
+                // end: read no more than a texture can be.
+                let too_big = || {
+                    io_err(
+                        path,
+                        format!(
+                            "{name}: more than {MAX_ENTRY_BYTES} bytes, larger than any texture"
+                        ),
+                    )
+                };
+                if entry.size() > MAX_ENTRY_BYTES {
+                    return Err(too_big());
+                }
                 let mut bytes = Vec::new();
-                entry.read_to_end(&mut bytes).map_err(|e| io_err(path, e))?;
+                (&mut entry)
+                    .take(MAX_ENTRY_BYTES + 1)
+                    .read_to_end(&mut bytes)
+                    .map_err(|e| io_err(path, format!("{name}: {e}")))?;
+                if bytes.len() as u64 > MAX_ENTRY_BYTES {
+                    return Err(too_big());
+                }
                 let image =
                     decode_jpeg(&bytes).map_err(|m| io_err(path, format!("{name}: {m}")))?;
                 out.push(Texture { light, view, image });

@@ -60,6 +60,42 @@ impl TextureBits {
     }
 }
 
+impl RectifyConfig {
+    /// The one check of these sizes, for `rigd process rectify`, `rigd run
+    /// --process` and the daemon's jobs alike, before any frame is read:
+    /// the error names the option and its range.
+    pub fn check(&self) -> Result<(), String> {
+        for (name, v) in [("size", self.size), ("final", self.final_size)] {
+            if !(MIN_TEXTURE_SIDE..=MAX_TEXTURE_SIDE).contains(&v) {
+                return Err(format!(
+                    "{name} {v}: expected {MIN_TEXTURE_SIDE} … {MAX_TEXTURE_SIDE} texels"
+                ));
+            }
+        }
+        if self.final_size > self.size {
+            return Err(format!(
+                "final {}: expected at most the size {} it is resampled from",
+                self.final_size, self.size
+            ));
+        }
+        if !(self.roi.is_finite() && self.roi > 0.0 && self.roi <= 1.0) {
+            return Err(format!("roi {}: expected 0 < roi ≤ 1", self.roi));
+        }
+        if self.blend >= self.final_size {
+            return Err(format!(
+                "blend {}: an edge blend must be narrower than the {}-texel texture",
+                self.blend, self.final_size
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The smallest side of a normtexture or stored texture, texels.
+pub const MIN_TEXTURE_SIDE: usize = 8;
+/// The largest side of a normtexture or stored texture, texels.
+pub const MAX_TEXTURE_SIDE: usize = 8192;
+
 impl Default for RectifyConfig {
     fn default() -> Self {
         RectifyConfig {

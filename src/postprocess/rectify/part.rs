@@ -35,10 +35,7 @@ pub fn first_pass_range(
     }
     let (holder, layout) = holder_layout(&run.meta)?;
     let out_dir = crate::store::processed::normtextures_dir(&run.root);
-    std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
-        path: out_dir.clone(),
-        message: e.to_string(),
-    })?;
+    crate::postprocess::create_dir(&out_dir)?;
     // Slots depend on every frame before: number them over the whole run.
     let (_, _, slots) = assign_slots(&run.entries);
     let rectifier = Rectifier {

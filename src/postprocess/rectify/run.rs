@@ -33,10 +33,7 @@ pub fn rectify_run(
     check_config(cfg)?;
     let (holder, layout) = holder_layout(&run.meta)?;
     let out_dir = crate::store::processed::normtextures_dir(&run.root);
-    std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
-        path: out_dir.clone(),
-        message: e.to_string(),
-    })?;
+    crate::postprocess::create_dir(&out_dir)?;
     let region = layout.sample_region();
     let rectifier = Rectifier {
         run,
@@ -419,19 +416,7 @@ pub fn rectify_run(
 
 /// Checks the sizes of a rectification before any frame is read.
 pub(super) fn check_config(cfg: &RectifyConfig) -> Result<(), ProcessError> {
-    if cfg.blend >= cfg.final_size {
-        return Err(ProcessError::Invalid(format!(
-            "edge blend of {} texels: must be narrower than the {}-texel texture",
-            cfg.blend, cfg.final_size
-        )));
-    }
-    if cfg.final_size == 0 || cfg.size == 0 || !(cfg.roi > 0.0 && cfg.roi <= 1.0) {
-        return Err(ProcessError::Invalid(format!(
-            "size {}, ROI {}, final size {}: expected positive sizes and 0 < ROI ≤ 1",
-            cfg.size, cfg.roi, cfg.final_size
-        )));
-    }
-    Ok(())
+    cfg.check().map_err(ProcessError::Invalid)
 }
 
 /// The run's holder and the layout of its point markers around the sample.

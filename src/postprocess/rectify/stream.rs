@@ -143,10 +143,7 @@ impl RectifyStream {
         }
         let (lights, views, slots) = assign_slots(&run.entries[..end]);
         let out_dir = crate::store::processed::normtextures_dir(&self.root);
-        std::fs::create_dir_all(&out_dir).map_err(|e| ProcessError::Frame {
-            path: out_dir.clone(),
-            message: e.to_string(),
-        })?;
+        crate::postprocess::create_dir(&out_dir)?;
         let rectifier = Rectifier {
             run: &run,
             cfg: &self.cfg,

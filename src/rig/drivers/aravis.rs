@@ -80,6 +80,31 @@ fn exposure_range(cam: &Camera) -> Option<String> {
         .map(|(lo, hi)| format!("{lo} to {hi} µs"))
 }
 
+/// Refuses an exposure outside the camera's own `ExposureTime` range
+/// before it is asked: a camera may take a value beyond it without a word
+/// (Aravis's fake camera does) and expose for something else.
+fn check_exposure(
+    cam: &Camera,
+    exposure_us: f64,
+    setting: Option<&str>,
+) -> Result<(), SessionError> {
+    let Ok((lo, hi)) = cam.exposure_time_bounds() else {
+        return Ok(());
+    };
+    if (lo..=hi).contains(&exposure_us) {
+        return Ok(());
+    }
+    let fix = setting.map_or(String::new(), |device| {
+        format!("; set `devices.{device}.timing.exposure_s` to what the camera offers")
+    });
+    Err(SessionError::new(
+        ErrorKind::OutOfLimits,
+        format!(
+            "the camera refuses ExposureTime = {exposure_us} µs: it offers {lo} to {hi} µs{fix}"
+        ),
+    ))
+}
+
 impl GenicamOpener for AravisOpener {
     fn describe(&self) -> String {
         format!("GenICam camera `{}` (Aravis)", self.id)
@@ -150,6 +175,7 @@ impl GenicamOpener for AravisOpener {
                 )
             })?;
         }
+        check_exposure(&cam, cfg.exposure_s * 1e6, Some(&cfg.name))?;
         cam.set_exposure_time(cfg.exposure_s * 1e6).map_err(|e| {
             let offers = exposure_range(&cam);
             refused(
@@ -215,6 +241,7 @@ impl GenicamSession for AravisSession {
     }
 
     fn set_exposure_us(&mut self, exposure_us: f64) -> Result<(), SessionError> {
+        check_exposure(&self.cam, exposure_us, None)?;
         self.cam.set_exposure_time(exposure_us).map_err(|e| {
             let offers = exposure_range(&self.cam);
             refused(

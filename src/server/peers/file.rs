@@ -231,6 +231,7 @@ pub fn load(file: &Path) -> Result<Vec<Peer>, PeersError> {
 /// [`load`] on text already read; `file` names it in errors and anchors
 /// relative token files.
 pub fn parse(text: &str, file: &Path) -> Result<Vec<Peer>, PeersError> {
+    let text = rigd_core::text::strip_bom(text);
     let de = toml::Deserializer::new(text);
     let parsed: PeersFile = serde_path_to_error::deserialize(de).map_err(|e| {
         let key = e.path().to_string();

@@ -196,7 +196,7 @@ impl Scene {
         origin: &str,
         base_dir: Option<&Path>,
     ) -> Result<Scene, SceneError> {
-        let spec: SceneSpec = toml::from_str(text)
+        let spec: SceneSpec = toml::from_str(rigd_core::text::strip_bom(text))
             .map_err(|e| invalid(origin, e.to_string().trim().replace('\n', " ")))?;
         Scene::build(spec, origin, base_dir)
     }
