@@ -4,7 +4,9 @@
 //! vector and rotation helpers around them ([`geometry`]), and the physical
 //! things both the simulator and the processing model: the camera
 //! ([`camera`]) and the sample holder with its markers ([`holder`]); and
-//! the pixel formats of raw frames ([`pixel_format`]).
+//! the pixel formats of raw frames ([`pixel_format`]); whole-or-nothing
+//! writes ([`atomic`]) and bounded reads of files named from outside
+//! ([`read`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
@@ -17,6 +19,7 @@ pub mod geometry;
 pub mod holder;
 pub mod motion;
 pub mod pixel_format;
+pub mod read;
 
 pub use clock::{Clock, DeadlineElapsed};
 pub use geometry::Direction;
