@@ -124,7 +124,8 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
             ServerError::Profile(_)
             | ServerError::Speed(_)
             | ServerError::Peers(_)
-            | ServerError::Processing(_) => EXIT_BAD_INPUT,
+            | ServerError::Processing(_)
+            | ServerError::Http(_) => EXIT_BAD_INPUT,
             ServerError::DataDir { .. }
             | ServerError::Token { .. }
             | ServerError::Listen { .. } => EXIT_FAILURE,

@@ -812,8 +812,9 @@ fn mdf(args: MdfArgs) -> Result<()> {
 /// One part of a step, as a Slurm task runs it.
 fn part(args: PartArgs) -> Result<()> {
     use rigd::postprocess::parts;
-    let bytes = std::fs::read(&args.options)
-        .with_context(|| format!("cannot read the options {}", args.options.display()))?;
+    let bytes = rigd_core::read::read_bounded(&args.options, rigd_core::read::TEXT_LIMIT)
+        .map_err(std::io::Error::from)
+        .context("cannot read the options")?;
     let opts: rigd::postprocess::pipeline::ProcessOptions = serde_json::from_slice(&bytes)
         .map_err(|e| bad_input(format!("{}: {e}", args.options.display())))?;
     let sizes = parts::PartSizes {

@@ -45,7 +45,9 @@ pub struct ServeArgs {
     pub peers: Option<PathBuf>,
     /// The daemon's configuration: a TOML file whose [processing] table
     /// says where process jobs run, e.g. executor = "slurm" and a
-    /// [processing.slurm] table with partition, shared_paths, … (docs/scaling.md).
+    /// [processing.slurm] table with partition, shared_paths, … (docs/scaling.md),
+    /// and whose [http] table sets the HTTP server's timeouts and limits
+    /// (docs/api.md, "Security").
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
 }
@@ -55,13 +57,20 @@ pub struct ServeArgs {
 #[serde(default, deny_unknown_fields)]
 struct DaemonFile {
     processing: rigd::postprocess::executor::ProcessingConfig,
+    http: rigd::server::http::HttpLimits,
 }
 
 fn read_config(path: &std::path::Path) -> Result<DaemonFile> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("cannot read the configuration {}", path.display()))?;
-    toml::from_str(rigd_core::text::strip_bom(&text))
-        .map_err(|e| super::exit::bad_input(format!("{}: {e}", path.display())))
+    let text = rigd_core::read::read_text(path, rigd_core::read::TEXT_LIMIT)
+        .map_err(std::io::Error::from)
+        .context("cannot read the configuration")?;
+    toml::from_str(rigd_core::text::strip_bom(&text)).map_err(|e: toml::de::Error| {
+        super::exit::bad_input(format!(
+            "{}: {}",
+            path.display(),
+            e.message().trim().replace('\n', "; ")
+        ))
+    })
 }
 
 /// Runs `rigd serve` until a signal stops it.
@@ -87,6 +96,7 @@ pub fn run(args: ServeArgs) -> Result<ExitCode> {
         sim_faults: Vec::<FaultRule>::new(),
         peers,
         processing: file.processing,
+        http: file.http,
     };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()

@@ -65,8 +65,9 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
         } else {
             from.clone()
         };
-        let bytes =
-            std::fs::read(&path).with_context(|| format!("cannot read {}", path.display()))?;
+        let bytes = rigd_core::read::read_bounded(&path, rigd::tradeoff::REPORT_LIMIT)
+            .map_err(std::io::Error::from)
+            .context("cannot read the report")?;
         let report = rigd::tradeoff::read_report(&bytes)
             .map_err(|e| bad_input(format!("{}: {e}", path.display())))?;
         let Some(goal) = goal else {

@@ -701,10 +701,12 @@ impl Profile {
     /// that path.
     pub fn from_file(path: &Path) -> Result<Profile, ProfileError> {
         let file = path.display().to_string();
-        let text = std::fs::read_to_string(path).map_err(|e| ProfileError {
-            file: file.clone(),
-            key: String::new(),
-            message: format!("cannot read: {e}"),
+        let text = rigd_core::read::read_text(path, rigd_core::read::TEXT_LIMIT).map_err(|e| {
+            ProfileError {
+                file: file.clone(),
+                key: String::new(),
+                message: e.reason.to_string(),
+            }
         })?;
         Profile::parse(&text, &file)
     }

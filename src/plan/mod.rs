@@ -284,7 +284,8 @@ pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
         file: file.clone(),
         why,
     };
-    let text = std::fs::read_to_string(path).map_err(|e| err(format!("cannot read: {e}")))?;
+    let text = rigd_core::read::read_text(path, rigd_core::read::PLAN_LIMIT)
+        .map_err(|e| err(e.reason.to_string()))?;
     let text = rigd_core::text::strip_bom(&text);
     let parsed: PlanFile = if file.ends_with(".toml") {
         toml::from_str(text).map_err(|e| err(e.message().to_string()))?

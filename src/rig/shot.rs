@@ -23,9 +23,20 @@ pub enum RenderError {
     /// laser) or a camera the profile does not have.
     #[error("{0}")]
     Invalid(String),
-    /// The scene could not be loaded.
+    /// The scene could not be loaded, or (asked by a client) is neither
+    /// built in nor configured.
     #[error(transparent)]
     Scene(#[from] rigd_sim::scene::SceneError),
+    /// The profile has no camera of that name.
+    #[error("profile `{profile}` has no camera `{name}` (its cameras: {known})")]
+    UnknownCamera {
+        /// The profile's name.
+        profile: String,
+        /// The camera asked for, shortened to 64 characters.
+        name: String,
+        /// The profile's cameras, comma-separated.
+        known: String,
+    },
     /// Encoding or writing the PNG or its JSON failed.
     #[error("writing {path}: {message}")]
     Write {
@@ -145,12 +156,62 @@ pub struct MarkerPixel {
     pub pixel: Option<[f64; 2]>,
 }
 
-/// Renders one frame.
+/// Renders one frame for the operator: `req.scene` is a built-in scene's
+/// name or a scene file's path.
 pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, RenderError> {
     let scene = Scene::load(req.scene.as_deref().unwrap_or(profile.sim.scene_name()))?;
+    render_scene(profile, scene, req)
+}
+
+/// Renders one frame for a client (the API): `req.scene` must name a
+/// built-in scene or the profile's configured one ([`offered_scene`]).
+pub fn render_offered(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, RenderError> {
+    let scene = offered_scene(profile, req.scene.as_deref())?;
+    render_scene(profile, scene, req)
+}
+
+/// The scene a client asks for by name: a built-in one, or the one the
+/// profile's `[sim] scene` configures (by the name written there); the
+/// profile's when None. Any other name is refused, naming those there
+/// are, and nothing is read.
+pub fn offered_scene(
+    profile: &Profile,
+    name: Option<&str>,
+) -> Result<Arc<Scene>, rigd_sim::scene::SceneError> {
+    let configured = profile.sim.scene_name();
+    Scene::offered(name.unwrap_or(configured), &[configured])
+}
+
+/// The scene names [`offered_scene`] takes: the built-in ones, then the
+/// profile's configured scene when it is not one of them.
+pub fn offered_scene_names(profile: &Profile) -> Vec<String> {
+    let mut names: Vec<String> = Scene::builtin_names()
+        .into_iter()
+        .map(String::from)
+        .collect();
+    let configured = profile.sim.scene_name();
+    if !Scene::is_builtin(configured) {
+        names.push(configured.to_string());
+    }
+    names
+}
+
+fn render_scene(
+    profile: &Profile,
+    scene: Arc<Scene>,
+    req: &RenderRequest,
+) -> Result<RenderOutput, RenderError> {
+    let cameras = profile.camera_names();
     let camera = match &req.camera {
-        Some(c) => c.clone(),
-        None => profile.camera_names().into_iter().next().ok_or_else(|| {
+        Some(c) if cameras.contains(c) => c.clone(),
+        Some(c) => {
+            return Err(RenderError::UnknownCamera {
+                profile: profile.name.clone(),
+                name: c.chars().take(64).collect(),
+                known: cameras.join(", "),
+            })
+        }
+        None => cameras.into_iter().next().ok_or_else(|| {
             RenderError::Invalid(format!("profile `{}` has no camera", profile.name))
         })?,
     };
@@ -328,5 +389,57 @@ pub fn parse_laser(s: &str) -> Result<(f64, f64), String> {
         [x] => Ok((x, 30.0)),
         [x, tilt] => Ok((x, tilt)),
         _ => Err(bad()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A client names scenes; only the built-in ones and the profile's
+    /// configured file are loaded, any other name (a path included) is
+    /// refused without being read, naming those there are.
+    #[test]
+    fn clients_get_built_in_and_configured_scenes_only() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("mine.toml");
+        let text = include_str!("../../crates/sim/scenes/corduroy.toml").replacen(
+            "name = \"corduroy\"",
+            "name = \"mine\"",
+            1,
+        );
+        std::fs::write(&file, text).unwrap();
+        let mut profile = crate::plan::load_profile("bonn-gonioreflectometer").unwrap();
+        let configured = file.display().to_string();
+        profile.sim.scene = Some(configured.clone());
+        assert_eq!(offered_scene(&profile, None).unwrap().name, "mine");
+        assert_eq!(
+            offered_scene(&profile, Some(&configured)).unwrap().name,
+            "mine"
+        );
+        assert_eq!(
+            offered_scene(&profile, Some("leather")).unwrap().name,
+            "leather"
+        );
+        let names = offered_scene_names(&profile);
+        assert_eq!(names.last(), Some(&configured));
+        let other = dir.path().join("other.toml");
+        std::fs::copy(&file, &other).unwrap();
+        for asked in [
+            other.display().to_string(),
+            "/dev/zero".into(),
+            "../mine.toml".into(),
+        ] {
+            let e = offered_scene(&profile, Some(&asked)).unwrap_err();
+            assert!(
+                matches!(e, rigd_sim::scene::SceneError::NotOffered { .. }),
+                "{asked}: {e}"
+            );
+            let text = e.to_string();
+            assert!(
+                text.contains("corduroy") && text.contains(&configured),
+                "{text}"
+            );
+        }
     }
 }

@@ -57,9 +57,11 @@ pub fn usable_secret(text: &str) -> Result<&str, &'static str> {
 /// there (mode 0600) on first start.
 pub fn load_or_create(token_file: Option<&Path>, data_dir: &Path) -> Result<Token, ServerError> {
     let read = |path: &Path| -> Result<Token, ServerError> {
-        let text = std::fs::read_to_string(path).map_err(|e| ServerError::Token {
-            path: path.to_path_buf(),
-            why: e.to_string(),
+        let text = rigd_core::read::read_text(path, rigd_core::read::TEXT_LIMIT).map_err(|e| {
+            ServerError::Token {
+                path: path.to_path_buf(),
+                why: e.reason.to_string(),
+            }
         })?;
         let secret = usable_secret(&text).map_err(|why| ServerError::Token {
             path: path.to_path_buf(),

@@ -13,8 +13,9 @@ use utoipa::ToSchema;
 #[derive(Debug, Clone, Serialize, serde::Deserialize, ToSchema)]
 pub struct ErrorBody {
     /// A short machine-readable code: `bad_request`, `invalid`, `unauthorized`,
-    /// `not_found`, `method_not_allowed`, `conflict`, `payload_too_large`,
-    /// `unsupported_media_type`, `device` (a device failed), `unavailable`,
+    /// `not_found`, `method_not_allowed`, `request_timeout`, `conflict`,
+    /// `payload_too_large`, `unsupported_media_type`, `device` (a device
+    /// failed), `unavailable` (shutting down, or too many connections),
     /// `internal`; from `/peers/{name}/…`, `peer_unreachable` (502) and
     /// `peer_timeout` (504).
     pub error: String,
@@ -72,6 +73,7 @@ impl ApiError {
             401 => "unauthorized",
             404 => "not_found",
             405 => "method_not_allowed",
+            408 => "request_timeout",
             409 => "conflict",
             413 => "payload_too_large",
             415 => "unsupported_media_type",

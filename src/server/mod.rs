@@ -10,11 +10,13 @@
 //! - [`frames`]: frame and preview routes
 //! - [`error`]: `{error, detail}` errors
 //! - [`peers`]: the other rigs' daemons (`--peers FILE`), watched
+//! - [`http`]: the connections, with their timeouts and limits
 
 pub mod api;
 pub mod auth;
 pub mod error;
 pub mod events;
+pub mod http;
 pub mod manual_session;
 pub mod model;
 pub mod peers;
@@ -81,6 +83,9 @@ pub struct ServerConfig {
     /// Where process jobs run: here, or on a Slurm cluster (the
     /// `[processing]` table of `rigd serve --config FILE`).
     pub processing: crate::postprocess::executor::ProcessingConfig,
+    /// Timeouts and limits of the HTTP server (the `[http]` table of
+    /// `rigd serve --config FILE`).
+    pub http: http::HttpLimits,
 }
 
 impl ServerConfig {
@@ -96,6 +101,7 @@ impl ServerConfig {
             sim_faults: Vec::new(),
             peers: Vec::new(),
             processing: Default::default(),
+            http: http::HttpLimits::default(),
         }
     }
 }
@@ -134,6 +140,9 @@ pub enum ServerError {
     /// unknown partition).
     #[error("[processing]: {0}")]
     Processing(crate::postprocess::slurm::SlurmError),
+    /// A value of the `[http]` table is out of range.
+    #[error("[http] {0}")]
+    Http(String),
     /// The listen address cannot be bound.
     #[error("cannot listen on {addr}: {why}")]
     Listen {
@@ -277,6 +286,7 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
     if let Some(name) = peers::file::duplicate_name(&config.peers) {
         return Err(ServerError::Peers(name.to_string()));
     }
+    config.http.check().map_err(ServerError::Http)?;
     let source = config
         .profile
         .clone()
@@ -299,6 +309,10 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
     }
     let token = auth::load_or_create(config.token_file.as_deref(), &config.data_dir)?;
     tracing::info!(path = %token.path.display(), "API token");
+    // Before anything is opened for clients: their connections are then
+    // capped against the limit the run will have.
+    let fd_limit = http::raise_fd_limit();
+    let limits = config.http;
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
         .map_err(|e| ServerError::Listen {
@@ -317,20 +331,8 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
     daemon.peers.set_local_url(format!("http://{addr}"));
     peers::start(&daemon.peers, daemon.shutdown_tx.subscribe());
     let app = router(daemon.clone(), token.clone());
-    let mut stop = daemon.shutdown_tx.subscribe();
-    let server = tokio::spawn(async move {
-        let served = axum::serve(
-            listener,
-            app.into_make_service_with_connect_info::<SocketAddr>(),
-        )
-        .with_graceful_shutdown(async move {
-            let _ = stop.wait_for(|s| *s).await;
-        })
-        .await;
-        if let Err(e) = served {
-            tracing::error!("server: {e}");
-        }
-    });
+    let stop = daemon.shutdown_tx.subscribe();
+    let server = tokio::spawn(http::serve(listener, app, limits, fd_limit, stop));
     // The queue goes on by itself unless a run was cut short: then the
     // operator decides (resume or abort it) first.
     let interrupted = daemon

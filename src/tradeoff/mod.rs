@@ -1043,6 +1043,9 @@ pub fn plan_points(rows: &[Row]) -> Vec<choice::PlanPoint> {
         .collect()
 }
 
+/// Largest `tradeoff.json` read back (a report is a few hundred KiB).
+pub const REPORT_LIMIT: u64 = 64 << 20;
+
 /// The rows of a written report (`tradeoff.json`).
 pub fn read_rows(json: &[u8]) -> Result<Vec<Row>, String> {
     read_report(json).map(|r| r.rows)

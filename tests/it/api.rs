@@ -1065,7 +1065,7 @@ async fn sim_render_returns_a_frame_with_its_effects() {
         assert!(v["detail"].is_string(), "{v}");
     }
     let (status, v) = s.get("/api/v1/sim/render?scene=no-such-scene").await;
-    assert_eq!(status, 422, "{v}");
+    assert_eq!(status, 404, "{v}");
     assert!(
         v["detail"]
             .as_str()

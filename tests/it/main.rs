@@ -9,6 +9,7 @@ mod common;
 mod acl_e2e;
 mod acl_transcripts;
 mod api;
+mod api_abuse;
 mod api_restart;
 mod architecture;
 mod bring_up;

@@ -5,8 +5,9 @@
 //! things both the simulator and the processing model: the camera
 //! ([`camera`]) and the sample holder with its markers ([`holder`]); and
 //! the pixel formats of raw frames ([`pixel_format`]); how hand-written
-//! text files are read ([`text`]); and virtual time paced to the wall
-//! clock for sped-up demos ([`pace`]).
+//! text files are read ([`text`]), bounded reads of files named from
+//! outside ([`read`]) and whole-or-nothing writes ([`atomic`]); and virtual
+//! time paced to the wall clock for sped-up demos ([`pace`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
@@ -20,6 +21,7 @@ pub mod holder;
 pub mod motion;
 pub mod pace;
 pub mod pixel_format;
+pub mod read;
 pub mod text;
 
 pub use clock::{Clock, DeadlineElapsed};

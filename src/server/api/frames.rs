@@ -47,9 +47,9 @@ async fn read_frame(d: &Daemon, id: &str, index: &str) -> Result<StoredFrame, Ap
     }
     // The name comes from the index and a fixed list of extensions only.
     for extension in std::iter::once("png").chain(camera_file::EXTENSIONS) {
-        match tokio::fs::read(root.join(frame_file_with(index, extension))).await {
+        match super::read_served(root.join(frame_file_with(index, extension))).await {
             Ok(bytes) => return Ok(StoredFrame { bytes, extension }),
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) if e.io_kind() == Some(std::io::ErrorKind::NotFound) => {}
             Err(e) => return Err(ApiError::internal(e.to_string())),
         }
     }

@@ -33,7 +33,10 @@ pub type AppState = Arc<Daemon>;
     info(
         title = "rigd API",
         description = "Control daemon for BTF measurement rigs. Mutating routes need \
-`Authorization: Bearer <token>`; reads are open to loopback clients. Errors are JSON `{error, detail}`.",
+`Authorization: Bearer <token>`; reads are open to loopback clients. Errors are JSON `{error, detail}`. \
+Every route may also answer 408 (the body did not arrive in time), 413 (a body over 64 KiB), 431 \
+(a head over 32 KiB) or 503 (every connection busy, too many event streams, shutting down); \
+names in a request are looked up, never used as paths (docs/api.md, \"Security\").",
     ),
     paths(
         daemon::health, rig::rig, rig::check, plans::plans, plans::plan_detail, runs::list_runs,
@@ -122,6 +125,26 @@ impl utoipa::Modify for BearerAuth {
             SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
         );
     }
+}
+
+/// Largest file the daemon serves from a run directory or its data
+/// directory (a frame, a manifest, the trade-off report): far above any
+/// camera's file, far below what would strain the daemon.
+pub const SERVED_FILE_LIMIT: u64 = 512 << 20;
+
+/// Reads a file the daemon serves, off the async threads and bounded
+/// ([`rigd_core::read::read_bounded`]): a device, a FIFO or a huge file
+/// put in the data directory is refused, never streamed into memory.
+async fn read_served(path: std::path::PathBuf) -> Result<Vec<u8>, rigd_core::read::ReadError> {
+    let at = path.clone();
+    tokio::task::spawn_blocking(move || rigd_core::read::read_bounded(&path, SERVED_FILE_LIMIT))
+        .await
+        .unwrap_or_else(|e| {
+            Err(rigd_core::read::ReadError {
+                path: at,
+                reason: rigd_core::read::ReadFailure::Io(std::io::Error::other(e.to_string())),
+            })
+        })
 }
 
 /// 404 for a run id, shortened so a hostile id cannot flood the answer.

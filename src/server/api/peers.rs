@@ -61,7 +61,14 @@ async fn forward(d: AppState, name: String, cmd: PeerCommand) -> Result<Response
         Ok((status, body)) => {
             Ok((status, [(header::CONTENT_TYPE, "application/json")], body).into_response())
         }
-        Err(e @ ForwardError::UnknownPeer(_)) => Err(ApiError::not_found(e.to_string())),
+        Err(e @ ForwardError::UnknownPeer(_)) => {
+            let names: Vec<String> = d.peers.views().into_iter().map(|p| p.name).collect();
+            Err(ApiError::not_found(if names.is_empty() {
+                format!("{e}: this daemon watches no peers")
+            } else {
+                format!("{e} (peers: {})", names.join(", "))
+            }))
+        }
         Err(e @ ForwardError::NoActiveRun(_)) => Err(ApiError::conflict(e.to_string())),
         Err(e @ ForwardError::Timeout { .. }) => Ok(peer_error(
             StatusCode::GATEWAY_TIMEOUT,

@@ -124,13 +124,13 @@ pub async fn run_manifest(
     ApiPath(id): ApiPath<String>,
 ) -> Result<Response, ApiError> {
     let root = d.run_root(&id).ok_or_else(|| not_found_run(&id))?;
-    match tokio::fs::read(root.join(crate::store::MANIFEST_FILE)).await {
+    match super::read_served(root.join(crate::store::MANIFEST_FILE)).await {
         Ok(bytes) => Ok((
             [(axum::http::header::CONTENT_TYPE, "application/json")],
             bytes,
         )
             .into_response()),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(ApiError::not_found(
+        Err(e) if e.io_kind() == Some(std::io::ErrorKind::NotFound) => Err(ApiError::not_found(
             "no manifest yet: it is written when the run completes or is aborted",
         )),
         Err(e) => Err(ApiError::internal(e.to_string())),

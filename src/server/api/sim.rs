@@ -11,7 +11,8 @@ use crate::server::error::{ApiError, ErrorBody};
 #[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct RenderQuery {
-    /// A built-in scene (see /api/v1/sim/scenes); the profile's default if absent.
+    /// A scene's name as `/api/v1/sim/scenes` lists it: a built-in scene or
+    /// the profile's configured one (never a path); the profile's if absent.
     pub scene: Option<String>,
     /// Light θ,φ in degrees, sample frame (default 0,0).
     pub light: Option<String>,
@@ -19,7 +20,7 @@ pub struct RenderQuery {
     pub view: Option<String>,
     /// WIDTHxHEIGHT, at most 2048 each way (default: the profile's sim frame size).
     pub size: Option<String>,
-    /// Which camera of the daemon's profile (default: its first).
+    /// Which camera of the daemon's profile, by name (default: its first).
     pub camera: Option<String>,
     /// Effect switches: `all`, `none`, or `+interreflection,-noise`.
     pub effects: Option<String>,
@@ -42,7 +43,8 @@ pub struct RenderQuery {
 #[utoipa::path(get, path = "/api/v1/sim/render", tag = "sim", params(RenderQuery),
     responses((status = 200, description = "The frame", content_type = "image/png", body = Vec<u8>),
               (status = 400, description = "A parameter is malformed", body = ErrorBody),
-              (status = 422, description = "Unknown scene or camera, or a value out of range", body = ErrorBody)))]
+              (status = 404, description = "No scene or camera of that name (the detail lists them)", body = ErrorBody),
+              (status = 422, description = "A value out of range", body = ErrorBody)))]
 pub async fn sim_render(
     State(d): State<AppState>,
     query: Result<axum::extract::Query<RenderQuery>, axum::extract::rejection::QueryRejection>,
@@ -50,10 +52,10 @@ pub async fn sim_render(
     let axum::extract::Query(q) = query.map_err(|e| ApiError::bad_request(e.body_text()))?;
     let req = render_request(&q).map_err(ApiError::bad_request)?;
     let profile = d.profile.clone();
-    let out = tokio::task::spawn_blocking(move || crate::rig::shot::render(&profile, &req))
+    let out = tokio::task::spawn_blocking(move || crate::rig::shot::render_offered(&profile, &req))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(|e| ApiError::invalid(e.to_string()))?;
+        .map_err(render_error)?;
     let png = out.png().map_err(ApiError::internal)?;
     let headers = [
         (axum::http::header::CONTENT_TYPE, "image/png".to_string()),
@@ -67,6 +69,19 @@ pub async fn sim_render(
         ),
     ];
     Ok((headers, png).into_response())
+}
+
+/// An unknown scene or camera is 404 (the detail names those there are),
+/// a value out of range 422.
+fn render_error(e: crate::rig::shot::RenderError) -> ApiError {
+    use crate::rig::shot::RenderError;
+    use rigd_sim::scene::SceneError;
+    match e {
+        RenderError::Scene(SceneError::NotOffered { .. }) | RenderError::UnknownCamera { .. } => {
+            ApiError::not_found(e.to_string())
+        }
+        other => ApiError::invalid(other.to_string()),
+    }
 }
 
 fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, String> {
@@ -114,10 +129,12 @@ fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, St
     })
 }
 
-/// A built-in scene and the effects it can show.
+/// A scene a client can ask for, and the effects it can show.
 #[derive(Debug, serde::Serialize, utoipa::ToSchema)]
 pub struct SceneView {
-    /// The scene's name, as the `scene` parameter of `/api/v1/sim/render` takes it.
+    /// The scene's name, as the `scene` parameter of `/api/v1/sim/render`
+    /// takes it: a built-in scene's, or the profile's `[sim] scene` as
+    /// written there.
     pub name: String,
     /// What the scene shows, in a line (relief, material).
     pub description: String,
@@ -125,18 +142,20 @@ pub struct SceneView {
     pub effects: Vec<String>,
 }
 
-/// The built-in scenes.
+/// The scenes a client can ask for: the built-in ones, and the profile's
+/// configured one when it is a scene file.
 #[utoipa::path(get, path = "/api/v1/sim/scenes", tag = "sim",
     responses((status = 200, description = "The scenes", body = Vec<SceneView>)))]
-pub async fn sim_scenes() -> Result<Json<Vec<SceneView>>, ApiError> {
-    let views = tokio::task::spawn_blocking(|| {
-        rigd_sim::scene::Scene::builtin_names()
+pub async fn sim_scenes(State(d): State<AppState>) -> Result<Json<Vec<SceneView>>, ApiError> {
+    let profile = d.profile.clone();
+    let views = tokio::task::spawn_blocking(move || {
+        crate::rig::shot::offered_scene_names(&profile)
             .into_iter()
             .map(|name| {
-                let s = rigd_sim::scene::Scene::load(name)
+                let s = crate::rig::shot::offered_scene(&profile, Some(&name))
                     .map_err(|e| ApiError::internal(e.to_string()))?;
                 Ok(SceneView {
-                    name: s.name.clone(),
+                    name,
                     description: s.description.clone(),
                     effects: s
                         .capabilities()

@@ -28,8 +28,8 @@ pub const TRADEOFF_DIR: &str = "tradeoff";
 #[derive(Debug, Clone, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TradeoffRequest {
-    /// Scene of the simulated captures (default: the profile's sim scene,
-    /// else corduroy).
+    /// Scene of the simulated captures, by name as `/api/v1/sim/scenes`
+    /// lists them (default: the profile's sim scene, else corduroy).
     pub scene: Option<String>,
     /// Normtexture side, texels (default 8; 4 … 64 here).
     pub texture: Option<usize>,
@@ -57,9 +57,9 @@ fn report_path(d: &AppState, file: &str) -> std::path::PathBuf {
 }
 
 async fn read_report_file(d: &AppState, file: &str) -> Result<Vec<u8>, ApiError> {
-    match tokio::fs::read(report_path(d, file)).await {
+    match super::read_served(report_path(d, file)).await {
         Ok(bytes) => Ok(bytes),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {
+        Err(e) if e.io_kind() == Some(std::io::ErrorKind::NotFound) => {
             let busy = d.tradeoff_busy.load(Ordering::SeqCst);
             Err(ApiError::not_found(if busy {
                 "the trade-off report is being computed; it appears here when done".to_string()
@@ -174,7 +174,7 @@ pub async fn get_choice(
               (status = 401, description = "Missing or wrong token", body = ErrorBody),
               (status = 409, description = "A run is active, or a computation runs", body = ErrorBody),
               (status = 415, description = "Not `Content-Type: application/json`", body = ErrorBody),
-              (status = 422, description = "Unknown scene or a value out of range", body = ErrorBody)))]
+              (status = 422, description = "Unknown scene (the detail lists them) or a value out of range", body = ErrorBody)))]
 pub async fn start(
     State(d): State<AppState>,
     ApiJson(req): ApiJson<TradeoffRequest>,
@@ -184,7 +184,9 @@ pub async fn start(
         .clone()
         .or_else(|| d.profile.sim.scene.clone())
         .unwrap_or_else(|| "corduroy".to_string());
-    rigd_sim::scene::Scene::load(&scene).map_err(|e| ApiError::invalid(e.to_string()))?;
+    // A built-in or the configured scene only: a client's name is never a path.
+    crate::rig::shot::offered_scene(&d.profile, Some(&scene))
+        .map_err(|e| ApiError::invalid(e.to_string()))?;
     let texture = req.texture.unwrap_or(8);
     let held_out = req.held_out.unwrap_or(24);
     let render_size = req.render_size.unwrap_or([128, 96]);

@@ -73,12 +73,13 @@ pub enum PeerError {
 /// fault also names the peer and its entry (1 is the first `[[peer]]`).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum PeersError {
-    /// The file cannot be read.
-    #[error("peers file {}: cannot read: {why}", file.display())]
+    /// The file cannot be read: missing, not a regular file, too large.
+    #[error("peers file {}: {why}", file.display())]
     Read {
         /// The peers file.
         file: PathBuf,
-        /// The operating system's error.
+        /// Why: `cannot read:` and the operating system's error, or what
+        /// is wrong with the file.
         why: String,
     },
     /// The file is not TOML of the expected shape (an unknown or missing
@@ -221,9 +222,11 @@ struct PeersFile {
 /// `token_file` is relative to the peers file). Errors name the file, and
 /// the peer where one is at fault.
 pub fn load(file: &Path) -> Result<Vec<Peer>, PeersError> {
-    let text = std::fs::read_to_string(file).map_err(|e| PeersError::Read {
-        file: file.to_path_buf(),
-        why: e.to_string(),
+    let text = rigd_core::read::read_text(file, rigd_core::read::TEXT_LIMIT).map_err(|e| {
+        PeersError::Read {
+            file: file.to_path_buf(),
+            why: e.reason.to_string(),
+        }
     })?;
     parse(&text, file)
 }
@@ -273,12 +276,14 @@ pub fn parse(text: &str, file: &Path) -> Result<Vec<Peer>, PeersError> {
             (Some(t), None) => t.clone(),
             (None, Some(f)) => {
                 let path = dir.join(f);
-                let text = std::fs::read_to_string(&path).map_err(|e| {
-                    at_fault(PeerError::TokenFile {
-                        path: path.clone(),
-                        why: e.to_string(),
-                    })
-                })?;
+                let text = rigd_core::read::read_text(&path, rigd_core::read::TEXT_LIMIT).map_err(
+                    |e| {
+                        at_fault(PeerError::TokenFile {
+                            path: path.clone(),
+                            why: e.reason.to_string(),
+                        })
+                    },
+                )?;
                 crate::server::auth::usable_secret(&text)
                     .map_err(|why| {
                         at_fault(PeerError::TokenFile {

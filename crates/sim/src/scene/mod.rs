@@ -79,13 +79,18 @@ pub enum SceneError {
         /// The built-in scene names, comma-separated.
         known: String,
     },
-    /// A scene file could not be read.
-    #[error("{path}: {source}")]
-    Io {
-        /// The scene file.
-        path: PathBuf,
-        /// The I/O error reading it.
-        source: std::io::Error,
+    /// A scene file could not be read: missing, not a regular file, or
+    /// too large.
+    #[error(transparent)]
+    Io(#[from] rigd_core::read::ReadError),
+    /// A client named a scene that is neither built in nor configured by
+    /// the operator ([`Scene::offered`]); nothing was read.
+    #[error("unknown scene `{name}` (known: {known})")]
+    NotOffered {
+        /// The name asked for, shortened to 64 characters.
+        name: String,
+        /// The scenes that can be asked for, comma-separated.
+        known: String,
     },
 }
 
@@ -174,10 +179,7 @@ impl Scene {
         }
         let path = Path::new(name_or_path);
         if path.extension().is_some_and(|e| e == "toml") || path.exists() {
-            let text = std::fs::read_to_string(path).map_err(|source| SceneError::Io {
-                path: path.to_path_buf(),
-                source,
-            })?;
+            let text = rigd_core::read::read_text(path, rigd_core::read::TEXT_LIMIT)?;
             return Ok(Arc::new(Scene::from_toml(
                 &text,
                 &path.display().to_string(),
@@ -190,14 +192,49 @@ impl Scene {
         })
     }
 
+    /// Whether `name` is a built-in scene's.
+    pub fn is_builtin(name: &str) -> bool {
+        BUILTIN.iter().any(|(n, _)| *n == name)
+    }
+
+    /// A scene a client names (over the API): a built-in one, or one the
+    /// operator configured (`configured`, e.g. the profile's `[sim] scene`,
+    /// matched as it was written). Anything else is refused without being
+    /// read, so a client's name never becomes a path.
+    pub fn offered(name: &str, configured: &[&str]) -> Result<Arc<Scene>, SceneError> {
+        if Scene::is_builtin(name) || configured.contains(&name) {
+            return Scene::load(name);
+        }
+        let mut known: Vec<&str> = Scene::builtin_names();
+        known.extend(configured.iter().filter(|c| !Scene::is_builtin(c)));
+        Err(SceneError::NotOffered {
+            name: name.chars().take(64).collect(),
+            known: known.join(", "),
+        })
+    }
+
     /// Parses, validates and bakes a scene. `base_dir` resolves image paths.
+    /// A syntax error is named by its line and what was expected, never by
+    /// quoting the text (which may not be a scene file at all).
     pub fn from_toml(
         text: &str,
         origin: &str,
         base_dir: Option<&Path>,
     ) -> Result<Scene, SceneError> {
-        let spec: SceneSpec = toml::from_str(rigd_core::text::strip_bom(text))
-            .map_err(|e| invalid(origin, e.to_string().trim().replace('\n', " ")))?;
+        let text = rigd_core::text::strip_bom(text);
+        let spec: SceneSpec = toml::from_str(text).map_err(|e| {
+            let line = e
+                .span()
+                .map(|s| {
+                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
+                    format!(" (line {line})")
+                })
+                .unwrap_or_default();
+            invalid(
+                origin,
+                format!("{}{line}", e.message().trim().replace('\n', "; ")),
+            )
+        })?;
         Scene::build(spec, origin, base_dir)
     }
 
@@ -618,8 +655,10 @@ fn validate(spec: &SceneSpec, origin: &str) -> Result<(), SceneError> {
 
 /// A greyscale PNG as values in [0, 1].
 fn read_grey_png(path: &Path) -> Result<Grid, String> {
-    let file = std::fs::File::open(path).map_err(|e| e.to_string())?;
-    let mut decoder = png::Decoder::new(std::io::BufReader::new(file));
+    // The path is in the message already: only the reason is kept.
+    let bytes = rigd_core::read::read_bounded(path, rigd_core::read::IMAGE_LIMIT)
+        .map_err(|e| e.reason.to_string())?;
+    let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
     decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
     let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
     let mut buf = vec![0; reader.output_buffer_size()];
