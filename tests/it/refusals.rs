@@ -215,12 +215,12 @@ fn exposures_beyond_the_camera_s_range_are_refused() {
 #[test]
 fn processing_options_are_refused_as_the_daemon_refuses_them() {
     let cases: &[(&[&str], &str)] = &[
-        (&["rectify", "--size", "1"], "--size 1: expected 8 … 8192"),
+        (&["rectify", "--size", "1"], "--size 1: expected 4 … 8192"),
         (
             &["rectify", "--size", "256", "--final", "300"],
             "--final 300",
         ),
-        (&["rectify", "--final", "0"], "--final 0: expected 8 … 8192"),
+        (&["rectify", "--final", "0"], "--final 0: expected 4 … 8192"),
         (&["rectify", "--roi", "NaN"], "--roi NaN"),
         (&["rectify", "--roi", "1.5"], "--roi 1.5"),
         (&["rectify", "--bits", "9"], "--bits `9`"),

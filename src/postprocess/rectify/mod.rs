@@ -92,7 +92,7 @@ impl RectifyConfig {
 }
 
 /// The smallest side of a normtexture or stored texture, texels.
-pub const MIN_TEXTURE_SIDE: usize = 8;
+pub const MIN_TEXTURE_SIDE: usize = 4;
 /// The largest side of a normtexture or stored texture, texels.
 pub const MAX_TEXTURE_SIDE: usize = 8192;
 
