@@ -108,6 +108,13 @@ async fn the_daemon_reports_the_rigs_physical_time_at_any_speed_and_load() {
             let (status, run) = srv.post("/api/v1/runs", Some(body)).await;
             assert_eq!(status, 201, "{run}");
             let id = run["id"].as_str().expect("id").to_string();
+            if speed == 200.0 {
+                // While it runs, its view says how fast it goes.
+                srv.wait_run(&id, "its pace", |v| {
+                    v["pace"]["asked_speed"] == speed && v["pace"]["achieved_speed"].is_number()
+                })
+                .await;
+            }
             let ended = srv.wait_ended(&id, "completed").await;
             let daemon = manifest_physical_s(&data.path().join("runs").join(&id));
             assert!(
