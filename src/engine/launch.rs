@@ -378,6 +378,13 @@ pub async fn prepare_resume(
             "cut a torn line off the end of the journal (the previous session died mid-write)"
         );
     }
+    if recovery.set_aside > 0 {
+        tracing::warn!(
+            lines = recovery.set_aside,
+            "moved journal lines it cannot use (an image's older lines, damaged frames' lines, lines that do not parse) to {}; their images are retaken",
+            crate::store::JOURNAL_HISTORY_FILE
+        );
+    }
     if !recovery.retake.is_empty() {
         tracing::warn!(frames = ?recovery.retake, "frames missing or damaged on disk; they will be retaken");
     }

@@ -480,7 +480,11 @@ impl Engine {
             if next.is_none() && pending.is_none() {
                 match self.complete().await? {
                     Flow::Stop => return Ok(self.outcome()),
-                    Flow::Continue => continue,
+                    Flow::Continue => {
+                        // Resumed: whatever the journal lacked is taken now.
+                        queue = self.todo();
+                        continue;
+                    }
                 }
             }
             let sweep_next = next.filter(|&i| self.schedule.triggers[i].sweep.is_some());
@@ -1068,29 +1072,44 @@ impl Engine {
         Ok(())
     }
 
-    /// Ends the run once its plan is through: the manifest, then the final
-    /// state. A manifest the disk cannot take pauses the run instead
-    /// ([`Flow::Continue`] after a resume tries again).
+    /// Ends the run once its plan is through: the journal checked, the
+    /// manifest, then the final state. The journal as read back from disk
+    /// decides: an image it lacks (a line lost behind the writer's back) is
+    /// not taken, and the run pauses naming it, so that a resume takes it
+    /// ([`Flow::Continue`], after which the caller queues what is left). A
+    /// manifest the disk cannot take pauses the run as well.
     async fn complete(&mut self) -> Result<Flow, EngineError> {
-        let missing = self.schedule.images.len() - self.done.len();
+        let total = self.schedule.images.len();
+        let checked = lock_store(&self.store).check_complete(total);
+        let missing = match checked {
+            Ok(missing) => missing,
+            Err(e) => {
+                let why = storage_fault_reason(&self.meta_root(), &e);
+                return self.fault_pause(why).await;
+            }
+        };
+        if !missing.is_empty() {
+            for i in &missing {
+                self.done.remove(i);
+            }
+            let reason = format!(
+                "{} lacks {} of the plan's {total} images ({}): resume to take them",
+                crate::store::JOURNAL_FILE,
+                missing.len(),
+                crate::store::image_list(&missing)
+            );
+            return self.fault_pause(reason).await;
+        }
         // The capture ends with its last frame; switching off is not part of it.
         self.finished_at_s = Some(self.t());
         self.lamps_off().await;
-        let (end, reason) = if missing > 0 {
-            (
-                RunState::Failed,
-                Some(format!("{missing} frames missing at the end of the plan")),
-            )
-        } else {
-            (RunState::Completed, None)
-        };
         // The manifest first: whoever sees the run end can read it.
-        if let Err(e) = self.write_manifest(end, reason.clone()) {
+        if let Err(e) = self.write_manifest(RunState::Completed, None) {
             self.finished_at_s = None;
             let why = storage_fault_reason(&self.meta_root(), &e);
             return self.fault_pause(why).await;
         }
-        self.go(end, reason)?;
+        self.go(RunState::Completed, None)?;
         Ok(Flow::Stop)
     }
 

@@ -68,6 +68,7 @@ pub fn btf_run(
     use rayon::prelude::*;
     use rigd_process::btf::{compress_slot, slot_memory_bytes, BtfWriter, TextureShape};
     use rigd_process::directions::{Direction as PDir, DirectionTable};
+    crate::store::check_run(run)?;
     let index = NormtextureIndex::read(run)?;
     let table = |dirs: &[Direction]| {
         DirectionTable::new(

@@ -18,9 +18,19 @@ pub fn export_run(
     jpeg_quality: u8,
 ) -> Result<usize, ProcessError> {
     use rigd_process::export::{write, Texture};
+    // The textures are only as whole as the run they were made from.
+    crate::store::check_run(run)?;
     let index = NormtextureIndex::read(run)?;
     let mut textures = Vec::with_capacity(index.frames.len());
+    let mut seen = std::collections::BTreeSet::new();
     for f in &index.frames {
+        if !seen.insert(f.index) {
+            return Err(ProcessError::Invalid(format!(
+                "{}: image {} is listed twice (rectified from a journal with a line twice, as an older rigd's resume left it): run `rigd process rectify` again",
+                normtextures_dir(run).join(NORMTEXTURE_INDEX).display(),
+                f.index
+            )));
+        }
         let (Some(&light), Some(&view)) = (
             index.lights.get(f.light_index),
             index.views.get(f.view_slot),

@@ -203,6 +203,7 @@ pub fn fit_run(
     progress: &dyn Fn(usize, usize),
 ) -> Result<Vec<FitRow>, ProcessError> {
     use rigd_process::reflectance_fit::FitMethod;
+    crate::store::check_run(run)?;
     let index = NormtextureIndex::read(run)?;
     let dir = crate::store::processed::fit_dir(run);
     crate::postprocess::create_dir(&dir)?;

@@ -1,6 +1,11 @@
-//! A run's metadata and every frame it wrote, as the processing steps read them.
+//! A run's metadata and every frame it wrote, as the processing steps read
+//! them: the journal through the store's reader (which never writes),
+//! checked against the manifest of an ended run, and each frame checked
+//! against the SHA-256 its journal line recorded before it is decoded.
 
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use rigd_process::demosaic;
 use rigd_process::image_io::Image;
@@ -8,7 +13,9 @@ use rigd_process::image_io::Image;
 use super::ProcessError;
 use crate::rig::camera_file::{self, CameraImage};
 use crate::rig::hal::{decode_png, is_png};
-use crate::store::{read_journal, read_meta, FrameEntry, RunMeta, JOURNAL_FILE};
+use crate::store::{
+    check_manifest, read_journal, read_meta, sha256_hex, FrameEntry, RunMeta, JOURNAL_FILE,
+};
 use rigd_core::Cfa;
 
 /// A run's metadata and every frame it wrote, in capture order.
@@ -17,20 +24,58 @@ pub struct RunFrames {
     pub root: PathBuf,
     /// What the run was asked for (`run.json`).
     pub meta: RunMeta,
-    /// Every journaled frame, sorted by image index.
+    /// Every journaled frame, one per image, sorted by image index.
     pub entries: Vec<FrameEntry>,
+    /// Reads frames checked against their SHA-256.
+    checked: CheckedReads,
+}
+
+/// Reads frames checked against the SHA-256 their journal lines recorded,
+/// and remembers which passed, by image index: the checksum and the file as
+/// it was then. A frame read again (the registration reads some twice) from
+/// the very same file is not hashed again.
+#[derive(Default)]
+struct CheckedReads(Mutex<HashMap<usize, (String, FileStamp)>>);
+
+/// What identifies a file's content without reading it: a file replaced
+/// (renamed over) has another inode, one written in place another change
+/// time, which no one can set back.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct FileStamp {
+    dev: u64,
+    ino: u64,
+    len: u64,
+    ctime: (i64, i64),
+    mtime: (i64, i64),
+}
+
+impl FileStamp {
+    fn of(m: &std::fs::Metadata) -> FileStamp {
+        use std::os::unix::fs::MetadataExt;
+        FileStamp {
+            dev: m.dev(),
+            ino: m.ino(),
+            len: m.len(),
+            ctime: (m.ctime(), m.ctime_nsec()),
+            mtime: (m.mtime(), m.mtime_nsec()),
+        }
+    }
 }
 
 impl RunFrames {
-    /// Reads the run directory's metadata and journal.
+    /// Reads the run directory's metadata and journal (its complete lines,
+    /// one entry per image; a run still being captured is read as far as it
+    /// is). An ended run whose journal and manifest disagree, or whose
+    /// manifest does not parse, is refused naming both.
     pub fn open(root: &Path) -> Result<RunFrames, ProcessError> {
         let meta = read_meta(root)?;
-        let (mut entries, _) = read_journal(&root.join(JOURNAL_FILE))?;
-        entries.sort_by_key(|e| e.index);
+        let (entries, _) = read_journal(&root.join(JOURNAL_FILE))?;
+        check_manifest(root, &entries)?;
         Ok(RunFrames {
             root: root.to_path_buf(),
             meta,
             entries,
+            checked: CheckedReads::default(),
         })
     }
 
@@ -78,13 +123,12 @@ impl RunFrames {
         }
     }
 
-    /// The frame's samples, linear in [0, 1], as the camera recorded them.
+    /// The frame's samples, linear in [0, 1], as the camera recorded them;
+    /// a frame whose bytes do not hash to its journal line's SHA-256 is
+    /// [`ProcessError::Damaged`], whatever it would decode to.
     fn linear(&self, entry: &FrameEntry) -> Result<Linear, ProcessError> {
         let path = self.root.join(&entry.file);
-        let bytes = std::fs::read(&path).map_err(|e| ProcessError::Frame {
-            path: path.clone(),
-            message: e.to_string(),
-        })?;
+        let bytes = self.checked.read(entry, &path)?;
         let frame_err = |message: String| ProcessError::Frame {
             path: path.clone(),
             message,
@@ -96,6 +140,48 @@ impl RunFrames {
         let (w, h, pixels) = decode_png(&bytes).map_err(frame_err)?;
         Ok(png_linear(entry, w, h, &pixels))
     }
+}
+
+impl CheckedReads {
+    /// The frame's bytes, read once, after they hash to the SHA-256 its
+    /// journal line recorded (the hash is of the bytes read for decoding:
+    /// no second read). The stamp is taken from the handle the bytes are
+    /// read through, so it describes the file they came from.
+    fn read(&self, entry: &FrameEntry, path: &Path) -> Result<Vec<u8>, ProcessError> {
+        use std::io::Read;
+        let io_err = |e: std::io::Error| ProcessError::Frame {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        };
+        let mut file = std::fs::File::open(path).map_err(io_err)?;
+        let stamp = FileStamp::of(&file.metadata().map_err(io_err)?);
+        let mut bytes = Vec::with_capacity(usize::try_from(stamp.len).unwrap_or(0));
+        file.read_to_end(&mut bytes).map_err(io_err)?;
+        let seen = lock(&self.0).get(&entry.index).cloned();
+        // Written to while it was read: the stamp says nothing of these bytes.
+        let settled = file.metadata().ok().map(|m| FileStamp::of(&m)) == Some(stamp);
+        if settled && seen == Some((entry.sha256.clone(), stamp)) {
+            return Ok(bytes);
+        }
+        let found = sha256_hex(&bytes);
+        if found != entry.sha256 {
+            return Err(ProcessError::Damaged {
+                path: path.to_path_buf(),
+                index: entry.index,
+                expected: entry.sha256.clone(),
+                found,
+            });
+        }
+        if settled {
+            lock(&self.0).insert(entry.index, (found, stamp));
+        }
+        Ok(bytes)
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    // The map only caches checks: whatever a panicking holder left is sound.
+    m.lock().unwrap_or_else(|p| p.into_inner())
 }
 
 /// A colour frame as red, green and blue planes, linear in [0, 1].
@@ -243,6 +329,40 @@ mod tests {
             e["device"] = serde_json::json!({"frame_id": 1, "timestamp_ns": 2, "pixel_format": f});
         }
         serde_json::from_value(e).expect("a frame entry")
+    }
+
+    #[test]
+    fn a_frame_is_read_only_when_it_hashes_to_its_journal_line() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (a, b) = (dir.path().join("a.png"), dir.path().join("b.png"));
+        std::fs::write(&a, b"frame a").expect("write");
+        std::fs::write(&b, b"frame b").expect("write");
+        let mut ea = entry(None);
+        ea.sha256 = sha256_hex(b"frame a");
+        let mut eb = entry(None);
+        eb.index = 1;
+        eb.sha256 = sha256_hex(b"frame b");
+        let reads = CheckedReads::default();
+        let damaged =
+            |r: Result<Vec<u8>, ProcessError>| matches!(r, Err(ProcessError::Damaged { .. }));
+        assert_eq!(reads.read(&ea, &a).ok().as_deref(), Some(&b"frame a"[..]));
+        assert_eq!(reads.read(&eb, &b).ok().as_deref(), Some(&b"frame b"[..]));
+        // Read again from the same files: not hashed again, the same bytes.
+        assert_eq!(reads.read(&ea, &a).ok().as_deref(), Some(&b"frame a"[..]));
+        // Swapped (renamed over each other): both fail, though checked before.
+        let t = dir.path().join("t");
+        for (from, to) in [(&a, &t), (&b, &a), (&t, &b)] {
+            std::fs::rename(from, to).expect("rename");
+        }
+        assert!(damaged(reads.read(&ea, &a)));
+        assert!(damaged(reads.read(&eb, &b)));
+        // Written in place after it was checked (file times tick in
+        // jiffies, hence the pause): damaged.
+        std::fs::write(&a, b"frame a").expect("write");
+        assert!(reads.read(&ea, &a).is_ok());
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        std::fs::write(&a, b"frame A").expect("write");
+        assert!(damaged(reads.read(&ea, &a)));
     }
 
     #[test]

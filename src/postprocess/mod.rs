@@ -36,6 +36,20 @@ pub enum ProcessError {
         /// What is wrong with it.
         message: String,
     },
+    /// A frame whose bytes are not those its journal line vouches for: its
+    /// SHA-256 differs (bits damaged on disk, or another frame's file). It
+    /// is never used as measured.
+    #[error("{path}: image {index} is damaged: the file's SHA-256 is {found:.16}…, its journal line recorded {expected:.16}…")]
+    Damaged {
+        /// The frame's file.
+        path: PathBuf,
+        /// The image's index in the run.
+        index: usize,
+        /// The SHA-256 the journal recorded, lowercase hex.
+        expected: String,
+        /// The SHA-256 of the file as read, lowercase hex.
+        found: String,
+    },
     /// Options or data the step cannot work with.
     #[error("{0}")]
     Invalid(String),

@@ -552,8 +552,19 @@ pub fn run_step(
                 })
                 .unwrap_or_default();
             let resumed = index.summary.as_ref().map_or(0, |s| s.resumed_frames);
+            let damaged = index
+                .summary
+                .as_ref()
+                .filter(|s| s.frames_damaged > 0)
+                .map(|s| {
+                    format!(
+                        "; {} damaged (failed the SHA-256 check, filled from their slot's nearest lights)",
+                        crate::store::image_list(&s.damaged)
+                    )
+                })
+                .unwrap_or_default();
             Ok(format!(
-                "{} frames into {}² textures ({by_method}){}",
+                "{} frames into {}² textures ({by_method}){damaged}{}",
                 index.frames.len(),
                 index.size,
                 if resumed > 0 {

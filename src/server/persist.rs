@@ -3,7 +3,6 @@
 //! is read back from `runs/*/` at startup.
 
 use std::collections::BTreeSet;
-use std::io::BufRead;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -12,8 +11,8 @@ use super::model::{QueueItem, RunView};
 use crate::model::run_state::RunState;
 use crate::model::text::sanitize;
 use crate::store::{
-    mark_interrupted, read_state, write_atomic, FrameEntry, RunMeta, StateRecord, StoreError,
-    JOURNAL_FILE, MANIFEST_FILE, RUN_FILE,
+    check_manifest, mark_interrupted, read_journal, read_state, write_atomic, FrameEntry, RunMeta,
+    StateRecord, StoreError, JOURNAL_FILE, MANIFEST_FILE, RUN_FILE,
 };
 
 /// The queue's file in the data directory.
@@ -105,28 +104,24 @@ pub fn new_run_id(
     id
 }
 
-/// Frame indices journaled in a run directory (read only: a torn last line
-/// is skipped here and cut off on resume).
+/// Frame indices journaled in a run directory, read through the store's
+/// reader (which never writes; a torn last line is not there yet); empty
+/// when the journal cannot be read.
 pub fn journaled(root: &Path) -> BTreeSet<usize> {
-    let mut done = BTreeSet::new();
-    let Ok(f) = std::fs::File::open(root.join(JOURNAL_FILE)) else {
-        return done;
+    read_journal(&root.join(JOURNAL_FILE))
+        .map(|(entries, _)| entries.iter().map(|e| e.index).collect())
+        .unwrap_or_default()
+}
+
+/// What is wrong with an ended run's record of its frames, for its view:
+/// a journal that cannot be read, or one that disagrees with the manifest
+/// (or a manifest that does not parse or is missing). None for a sound run.
+fn record_problem(root: &Path, journal: &Result<Vec<FrameEntry>, StoreError>) -> Option<String> {
+    let check = match journal {
+        Ok(entries) => check_manifest(root, entries),
+        Err(e) => return Some(e.to_string()),
     };
-    let mut reader = std::io::BufReader::new(f);
-    let mut line = Vec::new();
-    loop {
-        line.clear();
-        match reader.read_until(b'\n', &mut line) {
-            Ok(0) | Err(_) => break,
-            Ok(_) if line.last() == Some(&b'\n') => {
-                if let Ok(e) = serde_json::from_slice::<FrameEntry>(&line) {
-                    done.insert(e.index);
-                }
-            }
-            Ok(_) => break,
-        }
-    }
-    done
+    check.err().map(|e| e.to_string())
 }
 
 /// The parts of `manifest.json` the run list needs.
@@ -153,7 +148,14 @@ pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, Run
         why: e.to_string(),
     })?;
     let mut state = read_state(root)?;
-    let done = journaled(root);
+    // A run directory being created has no journal yet: no frames.
+    let journal_path = root.join(JOURNAL_FILE);
+    let journal = match journal_path.exists() {
+        true => read_journal(&journal_path).map(|(entries, _)| entries),
+        false => Ok(Vec::new()),
+    };
+    let problem = record_problem(root, &journal);
+    let done: BTreeSet<usize> = journal.iter().flatten().map(|e| e.index).collect();
     let stale = state
         .as_ref()
         .is_none_or(|s| s.state.is_active() || s.state == RunState::Idle);
@@ -170,19 +172,22 @@ pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, Run
         state.as_ref(),
         done.len(),
         manifest.map(|m| (m.physical_duration_s, m.finished_at)),
+        problem,
     );
     Ok((view, meta))
 }
 
 /// The view of run `id` from its metadata, its state record, how many
-/// images it has journaled, and for an ended run the physical time and
-/// end time its manifest gives.
+/// images it has journaled, for an ended run the physical time and end
+/// time its manifest gives, and what is wrong with its record of the
+/// frames, if anything.
 pub fn view_of(
     id: &str,
     meta: &RunMeta,
     state: Option<&StateRecord>,
     steps_done: usize,
     ended: Option<(f64, String)>,
+    problem: Option<String>,
 ) -> RunView {
     let run_state = state.map_or(RunState::Idle, |s| s.state);
     let resumable = run_state.is_resumable();
@@ -195,10 +200,13 @@ pub fn view_of(
         notes: meta.notes.clone(),
         state: run_state,
         reason: state.and_then(|s| s.reason.clone()),
-        last_error: state
-            .filter(|s| matches!(s.state, RunState::Failed | RunState::Paused))
-            .and_then(|s| s.reason.clone())
-            .filter(|r| is_error_reason(r)),
+        // A damaged record of the frames outweighs the last fault.
+        last_error: problem.or_else(|| {
+            state
+                .filter(|s| matches!(s.state, RunState::Failed | RunState::Paused))
+                .and_then(|s| s.reason.clone())
+                .filter(|r| is_error_reason(r))
+        }),
         active: false,
         resumable,
         steps_done,

@@ -36,6 +36,7 @@ use crate::model::run_state::RunState;
 use crate::postprocess::frames::RunFrames;
 use crate::postprocess::pipeline::{self, ProcessOptions, RunFacts, Step};
 use crate::postprocess::slurm::SlurmError;
+use crate::store::StoreError;
 
 /// The job's file in `RUN/processed/`.
 pub const JOB_FILE: &str = "job.json";
@@ -360,8 +361,13 @@ impl Daemon {
                 view.state
             )));
         }
-        let frames =
-            RunFrames::open(&root).map_err(|e| SupervisorError::internal(e.to_string()))?;
+        let frames = RunFrames::open(&root).map_err(|e| match e {
+            // The run's record cannot be used as it is: the request is refused.
+            crate::postprocess::ProcessError::Store(StoreError::Corrupt { .. }) => {
+                SupervisorError::invalid(e.to_string())
+            }
+            e => SupervisorError::internal(e.to_string()),
+        })?;
         let options = options
             .resolve(&RunFacts::of_run(&frames))
             .map_err(SupervisorError::invalid)?;

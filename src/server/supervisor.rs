@@ -438,7 +438,7 @@ impl Daemon {
         // The run exists on disk from here on: whatever follows, the daemon
         // knows it (from what was prepared, not from a second read of its
         // files), never leaving a folder it answers 404 for.
-        let view = persist::view_of(&id, &prepared.meta, None, prepared.frames_done, None);
+        let view = persist::view_of(&id, &prepared.meta, None, prepared.frames_done, None, None);
         if let Some(options) = &req.process {
             // Checked in `validate`; queued before the engine starts, so
             // the job is on disk before the first frame.

@@ -3,6 +3,7 @@
 //! ```text
 //! RUN/run.json          what was asked: profile snapshot, plan, sample, operator, versions, start
 //! RUN/journal.ndjson    one line per image written, appended and fsynced: the source of truth
+//! RUN/journal.retaken.ndjson  lines a resume took out of the journal (history, not entries)
 //! RUN/state.json        the run's last known state (replaced atomically)
 //! RUN/frames/NNNNNN.png the frames, 16-bit grey PNG (8-bit for 8-bit cameras), raw sensor values;
 //!                       a camera that delivers files (PTP: DNG, raw, JPEG) has its file kept as
@@ -14,14 +15,28 @@
 //! place; only then is its journal line appended and fsynced. A run killed at
 //! any instant therefore has, for every journal line, a complete frame file
 //! whose sha256 is in that line; a frame without a line (or whose checksum
-//! does not match, after a power loss) is retaken on resume. A torn last
-//! journal line is cut off.
+//! does not match, after a power loss) is retaken on resume.
+//!
+//! One writer, readers that only read:
+//! - The capture's [`RunDir`] is the journal's one writer. Only it repairs
+//!   the journal, and only when it opens the run to write
+//!   ([`RunDir::open`]): a torn last line is cut off, and the lines it
+//!   cannot use (an image's older lines, lines of frames it will retake, a
+//!   line that does not parse) move to [`JOURNAL_HISTORY_FILE`], so the
+//!   journal keeps exactly one line per image.
+//! - A reader ([`read_journal`]) takes the complete lines, one entry per
+//!   image (the last), and never writes: a line still being appended is
+//!   not yet there for it.
+//! - A run completes only when the journal on disk holds every planned
+//!   image ([`RunDir::check_complete`]).
+//! - A reader of an ended run checks the journal against the manifest
+//!   ([`check_manifest`]) and refuses a run where they disagree.
 
 pub mod processed;
 
 use std::collections::BTreeMap;
 use std::fs::{self, File, OpenOptions};
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -41,6 +56,9 @@ pub const RUN_FILE: &str = "run.json";
 /// File name of the journal: one [`FrameEntry`] per line, appended and
 /// fsynced as frames are taken.
 pub const JOURNAL_FILE: &str = "journal.ndjson";
+/// File name of the journal's history: lines a resume took out of the
+/// journal (images it retakes, lines it could not use).
+pub const JOURNAL_HISTORY_FILE: &str = "journal.retaken.ndjson";
 /// File name of the run's last known state ([`StateRecord`]).
 pub const STATE_FILE: &str = "state.json";
 /// File name of the [`Manifest`], written when the run ends.
@@ -249,7 +267,8 @@ pub struct Manifest {
     pub plan: String,
     /// Name of the measured sample.
     pub sample: String,
-    /// The state the run ended in: completed, failed (frames missing) or aborted.
+    /// The state the run ended in: completed or aborted (`failed` in runs
+    /// an older rigd ended with frames missing).
     pub state: RunState,
     /// Why it ended so; null for a completed run.
     #[serde(default)]
@@ -284,6 +303,9 @@ pub struct Recovery {
     pub retake: Vec<usize>,
     /// Bytes of a torn last journal line that were cut off.
     pub torn_bytes: u64,
+    /// Journal lines moved to [`JOURNAL_HISTORY_FILE`]: an image's older
+    /// lines, the lines of frames to retake, lines that did not parse.
+    pub set_aside: usize,
     /// The state the run's new session starts from: paused, failed, or
     /// interrupted (also for a run found preparing or running, which
     /// nobody drives any more).
@@ -295,6 +317,9 @@ pub struct Recovery {
 pub struct RunDir {
     root: PathBuf,
     journal: File,
+    /// Bytes of complete lines in the journal; an append that fails
+    /// partway is cut back to it, so the next line starts on a line.
+    journal_len: u64,
 }
 
 /// Current time as RFC 3339 (UTC, seconds).
@@ -360,16 +385,20 @@ impl RunDir {
             why: e.to_string(),
         })?;
         write_atomic(&root.join(RUN_FILE), &json)?;
-        let journal = open_journal(root)?;
+        let (journal, journal_len) = open_journal(root)?;
         make_reserve(root);
         Ok(RunDir {
             root: root.to_path_buf(),
             journal,
+            journal_len,
         })
     }
 
-    /// Opens an existing run to resume it: reads its metadata, repairs a
-    /// torn journal tail, and checks every journaled frame.
+    /// Opens an existing run to resume it: reads its metadata, checks every
+    /// journaled frame against its checksum, and repairs the journal (the
+    /// one place it is repaired): afterwards it holds exactly one line per
+    /// image with a valid frame, and no torn tail. The lines taken out go
+    /// to [`JOURNAL_HISTORY_FILE`].
     pub fn open(root: &Path) -> Result<(RunDir, RunMeta, Recovery), StoreError> {
         let shown = root.display().to_string();
         let meta = read_meta(root)?;
@@ -388,42 +417,60 @@ impl RunDir {
         };
         let journal_path = root.join(JOURNAL_FILE);
         if journal_path.exists() {
-            let (entries, torn) = read_journal(&journal_path)?;
-            recovery.torn_bytes = torn;
-            for e in entries {
-                recovery.physical_s = recovery.physical_s.max(e.t_s);
+            let scan = JournalScan::read(&journal_path)?;
+            recovery.torn_bytes = scan.torn_bytes();
+            for line in &scan.lines {
+                recovery.physical_s = recovery.physical_s.max(line.entry.t_s);
+            }
+            let mut keep = scan.last_of_each();
+            // Verify every frame the journal vouches for.
+            keep.retain(|&index, &mut k| {
+                let e = &scan.lines[k].entry;
+                let ok = fs::read(root.join(&e.file))
+                    .map(|b| sha256_hex(&b) == e.sha256)
+                    .unwrap_or(false);
+                if !ok {
+                    recovery.retake.push(index);
+                }
+                ok
+            });
+            recovery.set_aside = scan.rewrite(&journal_path, &keep)?;
+            for k in keep.into_values() {
+                let e = scan.lines[k].entry.clone();
                 recovery.done.insert(e.index, e);
             }
         }
-        // Verify every frame the journal vouches for.
-        let mut bad = Vec::new();
-        for (index, e) in &recovery.done {
-            let ok = fs::read(root.join(&e.file))
-                .map(|b| sha256_hex(&b) == e.sha256)
-                .unwrap_or(false);
-            if !ok {
-                bad.push(*index);
-            }
-        }
-        for i in &bad {
-            recovery.done.remove(i);
-        }
-        recovery.retake = bad;
         remove_temporaries(&root.join(FRAMES_DIR))?;
         remove_temporaries(root)?;
         if let Some(s) = state {
             recovery.physical_s = recovery.physical_s.max(s.physical_s);
         }
-        let journal = open_journal(root)?;
+        let (journal, journal_len) = open_journal(root)?;
         make_reserve(root);
         Ok((
             RunDir {
                 root: root.to_path_buf(),
                 journal,
+                journal_len,
             },
             meta,
             recovery,
         ))
+    }
+
+    /// Checks, before the run is marked completed, that the journal on
+    /// disk (read back, not what the writer remembers) holds each of the
+    /// plan's `images` exactly once; returns the images it lacks, in
+    /// order. An image with more than one line, or a line that does not
+    /// parse, has its extra lines moved to the history, as a resume would.
+    pub fn check_complete(&mut self, images: usize) -> Result<Vec<usize>, StoreError> {
+        let path = self.root.join(JOURNAL_FILE);
+        let scan = JournalScan::read(&path)?;
+        let keep = scan.last_of_each();
+        if scan.rewrite(&path, &keep)? > 0 {
+            (self.journal, self.journal_len) = open_journal(&self.root)?;
+        }
+        Ok((0..images).filter(|i| !keep.contains_key(i)).collect())
     }
 
     /// The run directory's path.
@@ -457,11 +504,16 @@ impl RunDir {
         let tmp = root
             .join(FRAMES_DIR)
             .join(format!(".{:06}.{ext}.tmp", entry.index));
-        {
-            let mut f = File::create(&tmp).map_err(io(&tmp, "create"))?;
-            f.write_all(bytes).map_err(io(&tmp, "write"))?;
+        let written = File::create(&tmp)
+            .map_err(io(&tmp, "create"))
+            .and_then(|mut f| f.write_all(bytes).map_err(io(&tmp, "write")))
+            .and_then(|()| fs::rename(&tmp, &path).map_err(io(&path, "rename")));
+        if let Err(e) = written {
+            // A full disk leaves nothing half-written behind; the error is
+            // what matters, so a failing removal is not reported.
+            let _ = fs::remove_file(&tmp);
+            return Err(e);
         }
-        fs::rename(&tmp, &path).map_err(io(&path, "rename"))?;
         entry.file = rel;
         entry.sha256 = sha256_hex(bytes);
         entry.width = frame.width;
@@ -483,8 +535,24 @@ impl RunDir {
             })?;
             buf.push(b'\n');
         }
-        self.journal.write_all(&buf).map_err(io(&path, "append"))?;
-        self.journal.sync_data().map_err(io(&path, "fsync"))
+        let appended = self
+            .journal
+            .write_all(&buf)
+            .map_err(io(&path, "append"))
+            .and_then(|()| self.journal.sync_data().map_err(io(&path, "fsync")));
+        match appended {
+            Ok(()) => {
+                self.journal_len += buf.len() as u64;
+                Ok(())
+            }
+            Err(e) => {
+                // Part of the lines may be in the file: cut them off, so the
+                // next append starts a line instead of finishing a torn one.
+                // Should that fail too, the next open cuts the torn tail.
+                let _ = self.journal.set_len(self.journal_len);
+                Err(e)
+            }
+        }
     }
 
     /// Replaces `state.json` with `record`, atomically. On a full disk the
@@ -551,13 +619,16 @@ fn release_reserve(root: &Path) -> bool {
     freed
 }
 
-fn open_journal(root: &Path) -> Result<File, StoreError> {
+/// Opens the journal to append (the writer's handle), with its length.
+fn open_journal(root: &Path) -> Result<(File, u64), StoreError> {
     let path = root.join(JOURNAL_FILE);
-    OpenOptions::new()
+    let file = OpenOptions::new()
         .create(true)
         .append(true)
         .open(&path)
-        .map_err(io(&path, "open"))
+        .map_err(io(&path, "open"))?;
+    let len = file.metadata().map_err(io(&path, "stat"))?.len();
+    Ok((file, len))
 }
 
 /// Reads a run's metadata (`run.json`).
@@ -686,51 +757,262 @@ pub fn read_state(root: &Path) -> Result<Option<StateRecord>, StoreError> {
         })
 }
 
-/// Reads the journal; a torn last line (a crash mid-append) is cut off the
-/// file and its length returned. A damaged line elsewhere is an error.
+/// Reads a journal as a reader may, while its writer appends: the complete
+/// lines, one entry per image (its last line; an older rigd's resume left a
+/// retaken image's lines twice), sorted by image index, and the length of
+/// a torn last line (a line still being appended, or one a crash cut),
+/// which is left where it is: a reader never writes. A line that does not
+/// parse before the last is an error naming it.
 pub fn read_journal(path: &Path) -> Result<(Vec<FrameEntry>, u64), StoreError> {
-    let file = File::open(path).map_err(io(path, "open"))?;
-    let len = file.metadata().map_err(io(path, "stat"))?.len();
-    let mut reader = BufReader::new(file);
-    let mut entries = Vec::new();
-    let mut good_end: u64 = 0;
-    let mut line = Vec::new();
-    let mut lineno = 0;
-    loop {
-        line.clear();
-        let n = reader
-            .read_until(b'\n', &mut line)
-            .map_err(io(path, "read"))?;
-        if n == 0 {
-            break;
-        }
-        lineno += 1;
-        let complete = line.last() == Some(&b'\n');
-        match serde_json::from_slice::<FrameEntry>(&line) {
-            Ok(e) if complete => {
-                entries.push(e);
-                good_end += n as u64;
-            }
-            _ if good_end + n as u64 >= len => break, // torn tail
-            Err(e) => {
-                return Err(StoreError::Corrupt {
-                    path: path.to_path_buf(),
-                    why: format!("line {lineno}: {e}"),
-                })
-            }
-            Ok(_) => break,
-        }
+    let scan = JournalScan::read(path)?;
+    if let Some(bad) = scan.damaged.first() {
+        return Err(StoreError::Corrupt {
+            path: path.to_path_buf(),
+            why: format!("line {}: {}", bad.lineno, bad.why),
+        });
     }
-    let torn = len - good_end;
-    if torn > 0 {
-        let f = OpenOptions::new()
-            .write(true)
-            .open(path)
-            .map_err(io(path, "open"))?;
-        f.set_len(good_end).map_err(io(path, "truncate"))?;
-        f.sync_all().map_err(io(path, "fsync"))?;
-    }
+    let torn = scan.torn_bytes();
+    let entries = scan
+        .last_of_each()
+        .into_values()
+        .map(|k| scan.lines[k].entry.clone())
+        .collect();
     Ok((entries, torn))
+}
+
+/// One complete journal line that parses.
+struct JournalLine {
+    entry: FrameEntry,
+    /// Its bytes in the journal, newline included.
+    span: std::ops::Range<usize>,
+}
+
+/// A complete journal line that does not parse.
+struct DamagedLine {
+    /// Line number, from 1.
+    lineno: usize,
+    /// Its bytes in the journal, newline included.
+    span: std::ops::Range<usize>,
+    /// The parser's words.
+    why: String,
+}
+
+/// A journal as its bytes stand, split into lines: the one way rigd reads
+/// a journal, for its readers and its writer alike.
+struct JournalScan {
+    bytes: Vec<u8>,
+    lines: Vec<JournalLine>,
+    damaged: Vec<DamagedLine>,
+    /// Where the complete lines end; what follows is a torn line.
+    complete_end: usize,
+}
+
+impl JournalScan {
+    /// Reads the journal at `path` (one read of what is there now).
+    fn read(path: &Path) -> Result<JournalScan, StoreError> {
+        let bytes = fs::read(path).map_err(io(path, "read"))?;
+        let (mut lines, mut damaged) = (Vec::new(), Vec::new());
+        let mut start = 0;
+        let mut lineno = 0;
+        while let Some(nl) = bytes[start..].iter().position(|&b| b == b'\n') {
+            let span = start..start + nl + 1;
+            let next = span.end;
+            lineno += 1;
+            match serde_json::from_slice::<FrameEntry>(&bytes[span.clone()]) {
+                Ok(entry) => lines.push(JournalLine { entry, span }),
+                Err(e) => damaged.push(DamagedLine {
+                    lineno,
+                    span: span.clone(),
+                    why: e.to_string(),
+                }),
+            }
+            start = next;
+        }
+        Ok(JournalScan {
+            bytes,
+            lines,
+            damaged,
+            complete_end: start,
+        })
+    }
+
+    /// Bytes after the last complete line.
+    fn torn_bytes(&self) -> u64 {
+        (self.bytes.len() - self.complete_end) as u64
+    }
+
+    /// Each image's last line: image index → position in `lines`.
+    fn last_of_each(&self) -> BTreeMap<usize, usize> {
+        self.lines
+            .iter()
+            .enumerate()
+            .map(|(k, l)| (l.entry.index, k))
+            .collect()
+    }
+
+    /// The writer's repair: rewrites the journal at `path` with only the
+    /// lines `keep` names (in the order they stand), after appending the
+    /// complete lines it leaves out to the history file; a torn tail is
+    /// dropped. Nothing is written when there is nothing to leave out.
+    /// Returns how many lines went to the history.
+    fn rewrite(&self, path: &Path, keep: &BTreeMap<usize, usize>) -> Result<usize, StoreError> {
+        let kept: std::collections::BTreeSet<usize> = keep.values().copied().collect();
+        let mut spans: Vec<(std::ops::Range<usize>, bool)> = self
+            .lines
+            .iter()
+            .enumerate()
+            .map(|(k, l)| (l.span.clone(), kept.contains(&k)))
+            .chain(self.damaged.iter().map(|d| (d.span.clone(), false)))
+            .collect();
+        spans.sort_by_key(|(span, _)| span.start);
+        let set_aside: Vec<u8> = spans
+            .iter()
+            .filter(|(_, keep)| !keep)
+            .flat_map(|(span, _)| self.bytes[span.clone()].iter().copied())
+            .collect();
+        let moved = spans.iter().filter(|(_, keep)| !keep).count();
+        if moved == 0 && self.torn_bytes() == 0 {
+            return Ok(0);
+        }
+        if moved > 0 {
+            // History first: a crash before the journal is replaced leaves
+            // a line in both, never in neither.
+            let history = path.with_file_name(JOURNAL_HISTORY_FILE);
+            let mut f = OpenOptions::new()
+                .create(true)
+                .append(true)
+                .open(&history)
+                .map_err(io(&history, "open"))?;
+            f.write_all(&set_aside).map_err(io(&history, "append"))?;
+            f.sync_data().map_err(io(&history, "fsync"))?;
+        }
+        let journal: Vec<u8> = spans
+            .iter()
+            .filter(|(_, keep)| *keep)
+            .flat_map(|(span, _)| self.bytes[span.clone()].iter().copied())
+            .collect();
+        write_atomic(path, &journal)?;
+        Ok(moved)
+    }
+}
+
+/// Reads the run's manifest, if it has one; one that does not parse is an
+/// error naming it.
+pub fn read_manifest(root: &Path) -> Result<Option<Manifest>, StoreError> {
+    let path = root.join(MANIFEST_FILE);
+    let bytes = match fs::read(&path) {
+        Ok(b) => b,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(io(&path, "read")(e)),
+    };
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|e| StoreError::Corrupt {
+            path,
+            why: format!("not a manifest ({e})"),
+        })
+}
+
+/// Checks that an ended run's journal, as read (`entries`, one per image),
+/// and its manifest agree: the same images with the same checksums, and a
+/// manifest that parses. A completed run must have one; a run aborted
+/// while no engine drove it has none, and a run that has not ended
+/// (`state.json` neither completed nor aborted) has none to agree with
+/// yet: those pass. An error names both files and both counts.
+pub fn check_manifest(root: &Path, entries: &[FrameEntry]) -> Result<(), StoreError> {
+    let Some(ended) = read_state(root)?
+        .map(|s| s.state)
+        .filter(|s| s.is_terminal())
+    else {
+        return Ok(());
+    };
+    let manifest_path = root.join(MANIFEST_FILE);
+    let journal_path = root.join(JOURNAL_FILE);
+    let manifest = match read_manifest(root)? {
+        Some(m) => m,
+        None if ended != RunState::Completed => return Ok(()),
+        None => return Err(StoreError::Corrupt {
+            path: manifest_path,
+            why: format!(
+                "missing, though {STATE_FILE} says the run completed; the run's record of its frames is incomplete"
+            ),
+        }),
+    };
+    let listed: BTreeMap<usize, &str> = manifest
+        .frames
+        .iter()
+        .map(|f| (f.index, f.sha256.as_str()))
+        .collect();
+    let journaled: BTreeMap<usize, &str> = entries
+        .iter()
+        .map(|e| (e.index, e.sha256.as_str()))
+        .collect();
+    if listed == journaled
+        && manifest.frames.len() == listed.len()
+        && manifest.frames_written == listed.len()
+    {
+        return Ok(());
+    }
+    let only = |a: &BTreeMap<usize, &str>, b: &BTreeMap<usize, &str>| -> Vec<usize> {
+        a.keys().filter(|i| !b.contains_key(i)).copied().collect()
+    };
+    let differ: Vec<usize> = listed
+        .iter()
+        .filter(|(i, sha)| journaled.get(i).is_some_and(|j| j != *sha))
+        .map(|(i, _)| *i)
+        .collect();
+    let mut details = Vec::new();
+    for (what, list) in [
+        ("only in the manifest", only(&listed, &journaled)),
+        ("only in the journal", only(&journaled, &listed)),
+        ("with other checksums in each", differ),
+    ] {
+        if !list.is_empty() {
+            details.push(format!("{} {what}", image_list(&list)));
+        }
+    }
+    if manifest.frames_written != manifest.frames.len() {
+        details.push(format!(
+            "the manifest says {} frames written but lists {}",
+            manifest.frames_written,
+            manifest.frames.len()
+        ));
+    }
+    Err(StoreError::Corrupt {
+        path: journal_path,
+        why: format!(
+            "holds {} images, and {} lists {}: the journal and the manifest disagree ({}); the run cannot be processed as it is",
+            journaled.len(),
+            manifest_path.display(),
+            manifest.frames.len(),
+            details.join("; ")
+        ),
+    })
+}
+
+/// [`check_manifest`] for the run at `root`, its journal read here: what a
+/// step that reads the run's textures rather than its frames checks first.
+/// A folder without `run.json` (textures imported from another format) is
+/// no run, and passes.
+pub fn check_run(root: &Path) -> Result<(), StoreError> {
+    if !root.join(RUN_FILE).exists() {
+        return Ok(());
+    }
+    let (entries, _) = read_journal(&root.join(JOURNAL_FILE))?;
+    check_manifest(root, &entries)
+}
+
+/// Image indices for a message: `image 3`, `images 3, 5, 8`, the first 10
+/// and a count of the rest.
+pub fn image_list(indices: &[usize]) -> String {
+    const SHOWN: usize = 10;
+    let shown: Vec<String> = indices.iter().take(SHOWN).map(usize::to_string).collect();
+    let more = indices.len().saturating_sub(SHOWN);
+    match indices.len() {
+        1 => format!("image {}", shown[0]),
+        _ if more > 0 => format!("images {} and {more} more", shown.join(", ")),
+        _ => format!("images {}", shown.join(", ")),
+    }
 }
 
 /// Removes what a crash left half-written in `dir`: frames (`.NNNNNN.EXT.tmp`)
@@ -796,22 +1078,260 @@ mod tests {
         }
     }
 
-    #[test]
-    fn torn_journal_tail_is_cut_and_reported() {
-        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
-        let path = dir.path().join(JOURNAL_FILE);
-        let mut text = String::new();
-        for i in 0..3 {
-            text.push_str(&serde_json::to_string(&entry(i)).unwrap_or_default());
-            text.push('\n');
+    /// A run directory with `n` images journaled, each with a frame file
+    /// whose checksum its line holds; returns the lines.
+    fn run_with(root: &Path, n: usize) -> Vec<String> {
+        let profile = Profile::load("bonn-gonioreflectometer").unwrap_or_else(|e| panic!("{e}"));
+        let d = [Direction::new(30.0, 0.0), Direction::new(45.0, 90.0)];
+        let meta = RunMeta {
+            format: RUN_FORMAT.into(),
+            software_version: "test".into(),
+            profile,
+            profile_source: "test".into(),
+            plan: Plan {
+                name: "t".into(),
+                pairs: crate::plan::btf(&d, &d),
+                laser: None,
+                order: Default::default(),
+            },
+            sample: "s".into(),
+            operator: None,
+            notes: None,
+            exposure_s: None,
+            frame_size: None,
+            simulated: true,
+            sim_scene: None,
+            started_at: now_rfc3339(),
+        };
+        drop(RunDir::create(root, &meta).unwrap_or_else(|e| panic!("{e}")));
+        let mut lines = Vec::new();
+        for i in 0..n {
+            let bytes = format!("frame {i}");
+            let mut e = entry(i);
+            e.file = frame_file(i);
+            e.sha256 = sha256_hex(bytes.as_bytes());
+            fs::write(root.join(&e.file), bytes).unwrap_or_else(|e| panic!("{e}"));
+            lines.push(serde_json::to_string(&e).unwrap_or_default() + "\n");
         }
-        let good = text.len() as u64;
+        fs::write(root.join(JOURNAL_FILE), lines.concat()).unwrap_or_else(|e| panic!("{e}"));
+        let paused = StateRecord {
+            state: RunState::Paused,
+            reason: None,
+            physical_s: 0.0,
+            updated_at: now_rfc3339(),
+        };
+        fs::write(
+            root.join(STATE_FILE),
+            serde_json::to_vec(&paused).unwrap_or_default(),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        lines
+    }
+
+    fn journal_text(root: &Path) -> String {
+        fs::read_to_string(root.join(JOURNAL_FILE)).unwrap_or_default()
+    }
+
+    #[test]
+    fn a_reader_never_changes_the_journal() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let root = dir.path().join("run");
+        let mut text = run_with(&root, 3).concat();
+        // A line mid-append, as a reader beside the writer may see it.
         text.push_str("{\"index\":3,\"trig");
+        let path = root.join(JOURNAL_FILE);
         fs::write(&path, &text).unwrap_or_else(|e| panic!("{e}"));
+        let before = fs::metadata(&path).unwrap_or_else(|e| panic!("{e}"));
+        std::thread::sleep(std::time::Duration::from_millis(20));
         let (entries, torn) = read_journal(&path).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(entries.len(), 3);
-        assert_eq!(torn, text.len() as u64 - good);
-        assert_eq!(fs::metadata(&path).map(|m| m.len()).unwrap_or(0), good);
+        assert_eq!(torn, "{\"index\":3,\"trig".len() as u64);
+        let after = fs::metadata(&path).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(after.len(), before.len());
+        assert_eq!(after.modified().ok(), before.modified().ok());
+        assert_eq!(fs::read_to_string(&path).unwrap_or_default(), text);
+    }
+
+    #[test]
+    fn a_reader_takes_one_entry_per_image_the_last() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let root = dir.path().join("run");
+        let mut lines = run_with(&root, 3);
+        // An older rigd's resume left the retaken image's line twice.
+        let mut retaken = entry(1);
+        retaken.file = frame_file(1);
+        retaken.sha256 = "retaken".into();
+        lines.push(serde_json::to_string(&retaken).unwrap_or_default() + "\n");
+        fs::write(root.join(JOURNAL_FILE), lines.concat()).unwrap_or_else(|e| panic!("{e}"));
+        let (entries, _) = read_journal(&root.join(JOURNAL_FILE)).unwrap_or_else(|e| panic!("{e}"));
+        let got: Vec<(usize, &str)> = entries
+            .iter()
+            .map(|e| (e.index, e.sha256.as_str()))
+            .collect();
+        assert_eq!(got.len(), 3, "{got:?}");
+        assert_eq!(got[1], (1, "retaken"));
+    }
+
+    #[test]
+    fn opening_to_write_repairs_a_torn_tail() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let root = dir.path().join("run");
+        let lines = run_with(&root, 3);
+        let torn = "{\"index\":3,\"trig";
+        fs::write(root.join(JOURNAL_FILE), lines.concat() + torn).unwrap_or_else(|e| panic!("{e}"));
+        let (mut run, _, recovery) = RunDir::open(&root).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(recovery.torn_bytes, torn.len() as u64);
+        assert_eq!(recovery.done.len(), 3);
+        assert_eq!(journal_text(&root), lines.concat());
+        // The next line follows the repaired tail.
+        let mut next = entry(3);
+        next.file = frame_file(3);
+        run.append_journal(&[next])
+            .unwrap_or_else(|e| panic!("{e}"));
+        let (entries, torn) =
+            read_journal(&root.join(JOURNAL_FILE)).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((entries.len(), torn), (4, 0));
+    }
+
+    #[test]
+    fn resume_leaves_one_line_per_image_and_keeps_the_rest_as_history() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let root = dir.path().join("run");
+        let mut lines = run_with(&root, 4);
+        // Image 1's line twice (an older rigd's resume), image 2's frame
+        // deleted, a line in the middle that does not parse.
+        lines.push(lines[1].clone());
+        fs::remove_file(root.join(frame_file(2))).unwrap_or_else(|e| panic!("{e}"));
+        lines.insert(3, "{\"index\": 9, \"cut\n".into());
+        fs::write(root.join(JOURNAL_FILE), lines.concat()).unwrap_or_else(|e| panic!("{e}"));
+        let (_, _, recovery) = RunDir::open(&root).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(recovery.retake, [2]);
+        assert_eq!(recovery.done.keys().copied().collect::<Vec<_>>(), [0, 1, 3]);
+        // The journal holds one line per valid image, each image's last
+        // where it stood ...
+        let text = journal_text(&root);
+        let kept: Vec<usize> = text
+            .lines()
+            .map(|l| {
+                serde_json::from_str::<FrameEntry>(l)
+                    .map(|e| e.index)
+                    .unwrap_or(99)
+            })
+            .collect();
+        assert_eq!(kept, [0, 3, 1]);
+        // ... and the lines set aside are history, not entries.
+        let history = fs::read_to_string(root.join(JOURNAL_HISTORY_FILE)).unwrap_or_default();
+        assert_eq!(history.lines().count(), 3, "{history}");
+        assert!(history.contains("\"cut"), "{history}");
+        // Opened again, there is nothing left to repair.
+        let (_, _, again) = RunDir::open(&root).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!((again.set_aside, again.torn_bytes), (0, 0));
+        assert_eq!(journal_text(&root), text);
+    }
+
+    #[test]
+    fn completion_is_checked_against_the_journal_on_disk() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let root = dir.path().join("run");
+        let lines = run_with(&root, 4);
+        let (mut run, _, _) = RunDir::open(&root).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            run.check_complete(4).unwrap_or_default(),
+            Vec::<usize>::new()
+        );
+        assert_eq!(run.check_complete(6).unwrap_or_default(), [4, 5]);
+        // A line gone behind the writer's back (as a reader that cut what
+        // it took for a torn tail once did), and another image twice.
+        let changed = [&lines[0], &lines[2], &lines[3], &lines[2]].map(|l| l.as_str());
+        fs::write(root.join(JOURNAL_FILE), changed.concat()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(run.check_complete(4).unwrap_or_default(), [1]);
+        assert_eq!(
+            journal_text(&root),
+            [&lines[0], &lines[3], &lines[2]]
+                .map(|l| l.as_str())
+                .concat(),
+            "one line per image"
+        );
+        // The writer's handle follows the rewritten journal.
+        let mut again = entry(1);
+        again.file = frame_file(1);
+        run.append_journal(&[again])
+            .unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(
+            run.check_complete(4).unwrap_or_default(),
+            Vec::<usize>::new()
+        );
+    }
+
+    #[test]
+    fn an_ended_run_whose_journal_and_manifest_disagree_is_refused() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("{e}"));
+        let root = dir.path().join("run");
+        run_with(&root, 4);
+        let (entries, _) = read_journal(&root.join(JOURNAL_FILE)).unwrap_or_else(|e| panic!("{e}"));
+        // A run that has not ended has no manifest to agree with.
+        assert!(check_manifest(&root, &entries[..2]).is_ok());
+        let completed = StateRecord {
+            state: RunState::Completed,
+            reason: None,
+            physical_s: 0.0,
+            updated_at: now_rfc3339(),
+        };
+        let state = serde_json::to_vec(&completed).unwrap_or_default();
+        fs::write(root.join(STATE_FILE), state).unwrap_or_else(|e| panic!("{e}"));
+        let err = |entries: &[FrameEntry]| {
+            check_manifest(&root, entries)
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default()
+        };
+        assert!(
+            err(&entries).contains("manifest.json: missing"),
+            "{}",
+            err(&entries)
+        );
+        fs::write(root.join(MANIFEST_FILE), "").unwrap_or_else(|e| panic!("{e}"));
+        assert!(
+            err(&entries).contains("manifest.json: not a manifest"),
+            "{}",
+            err(&entries)
+        );
+        let manifest = Manifest {
+            format: RUN_FORMAT.into(),
+            software_version: "test".into(),
+            profile: "p".into(),
+            plan: "t".into(),
+            sample: "s".into(),
+            state: RunState::Completed,
+            reason: None,
+            steps_total: 4,
+            triggers_total: 4,
+            frames_written: 4,
+            physical_duration_s: 1.0,
+            started_at: now_rfc3339(),
+            finished_at: now_rfc3339(),
+            infeasible: Vec::new(),
+            frames: entries.clone(),
+        };
+        fs::write(
+            root.join(MANIFEST_FILE),
+            serde_json::to_vec(&manifest).unwrap_or_default(),
+        )
+        .unwrap_or_else(|e| panic!("{e}"));
+        assert!(check_manifest(&root, &entries).is_ok());
+        let cut = err(&entries[..3]);
+        assert!(
+            cut.contains("journal.ndjson: holds 3 images") && cut.contains("manifest.json lists 4"),
+            "{cut}"
+        );
+        assert!(cut.contains("image 3 only in the manifest"), "{cut}");
+        let mut other = entries.clone();
+        other[1].sha256 = "other".into();
+        assert!(
+            err(&other).contains("image 1 with other checksums"),
+            "{}",
+            err(&other)
+        );
     }
 
     #[test]

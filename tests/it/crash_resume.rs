@@ -170,16 +170,20 @@ fn damage_left_by_a_crash_is_repaired_on_resume() {
     assert!(out.status.success(), "{stderr}");
     assert!(stderr.contains("retaking 2 frames"), "{stderr}");
     assert!(!dir.join("frames/.009999.png.tmp").exists());
-    // The retaken frames were journaled again, so two indices appear twice
-    // in the journal; the manifest has each image exactly once.
-    let m = {
-        let bytes = std::fs::read(dir.join("manifest.json")).expect("manifest");
-        serde_json::from_slice::<rigd::store::Manifest>(&bytes).expect("parse")
-    };
-    assert_eq!(m.frames.len(), 6561);
-    let (journal, torn) = read_journal(&dir.join(JOURNAL_FILE)).expect("journal");
-    assert_eq!(torn, 0);
-    assert_eq!(journal.len(), 6561 + 2);
+    // The retaken frames replaced their lines: every image has one line,
+    // and the two lines they replaced are kept apart as history.
+    let m = assert_complete_run(&dir, 6561);
+    let history =
+        std::fs::read_to_string(dir.join("journal.retaken.ndjson")).expect("the journal's history");
+    let replaced: Vec<usize> = history
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<rigd::store::FrameEntry>(l)
+                .expect("a history line")
+                .index
+        })
+        .collect();
+    assert_eq!(replaced, [entries[10].index, entries[20].index]);
     for f in &m.frames {
         let data = std::fs::read(dir.join(&f.file)).expect("frame");
         assert_eq!(rigd::store::sha256_hex(&data), f.sha256);

@@ -57,6 +57,20 @@ impl Drop for SmallDisk {
     }
 }
 
+/// A write the full disk refused leaves no temporary file behind: not a
+/// frame's (`frames/.NNNNNN.EXT.tmp`), not a record's.
+fn assert_no_temporaries(run: &Path) {
+    for dir in [run.to_path_buf(), run.join("frames")] {
+        let left: Vec<String> = std::fs::read_dir(&dir)
+            .expect("read the run")
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| n.contains(".tmp"))
+            .collect();
+        assert!(left.is_empty(), "{}: {left:?}", dir.display());
+    }
+}
+
 fn plan_file(dir: &Path, n: usize) -> PathBuf {
     let path = dir.join("plan.json");
     std::fs::write(&path, small_plan(n).to_string()).expect("write plan");
@@ -105,8 +119,9 @@ fn the_command_line_pauses_when_the_disk_fills_and_resume_completes() {
     );
     assert!(!stderr.contains("panicked"), "{stderr}");
     // The record on disk says what the run is: paused, and why (the run's
-    // reserve made room for it).
+    // reserve made room for it); nothing half-written is left.
     assert_recorded_pause(&run);
+    assert_no_temporaries(&run);
     // Whatever is journaled is intact.
     let journal = run.join(rigd::store::JOURNAL_FILE);
     let (entries, _) = rigd::store::read_journal(&journal).expect("journal");
@@ -156,6 +171,7 @@ async fn the_daemon_pauses_a_run_on_a_full_disk_and_keeps_serving() {
     let reason = paused["reason"].as_str().unwrap_or_default();
     assert!(reason.contains("free on the filesystem"), "{reason}");
     assert_recorded_pause(&data.join("runs").join(&id));
+    assert_no_temporaries(&data.join("runs").join(&id));
     // The daemon still answers, and says why the run waits.
     let (status, health) = srv.get("/api/v1/health").await;
     assert_eq!(status, 200, "{health}");

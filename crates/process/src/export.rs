@@ -67,7 +67,7 @@ pub enum ExportError {
         message: String,
     },
     /// Two textures' directions round to the same file name in whole degrees.
-    #[error("directions {first} and {second} both round to the name `{name}`")]
+    #[error("two textures would both be written as `{name}` (the format names a texture by its directions in whole degrees): {first}, and {second}")]
     NameClash {
         /// The shared file name.
         name: String,
@@ -151,6 +151,14 @@ fn parse_name(stem: &str) -> Option<(Direction, Direction)> {
     ))
 }
 
+/// A texture's light and view in words, to a thousandth of a degree.
+fn directions(t: &Texture) -> String {
+    format!(
+        "light θ {:.3}° φ {:.3}°, view θ {:.3}° φ {:.3}°",
+        t.light.theta_deg, t.light.phi_deg, t.view.theta_deg, t.view.phi_deg
+    )
+}
+
 fn check_names<'a>(
     textures: &'a [Texture],
     name: impl Fn(&Texture) -> String,
@@ -161,8 +169,8 @@ fn check_names<'a>(
         if let Some(first) = seen.get(&n) {
             return Err(ExportError::NameClash {
                 name: n,
-                first: format!("light {:?} view {:?}", first.light, first.view),
-                second: format!("light {:?} view {:?}", t.light, t.view),
+                first: directions(first),
+                second: directions(t),
             });
         }
         let img = &t.image;
@@ -387,5 +395,26 @@ mod tests {
             Some(17.0)
         );
         assert!(parse_name("tl17_pl345").is_none());
+    }
+
+    #[test]
+    fn a_name_clash_says_what_collides_in_words() {
+        let t = |theta: f64| Texture {
+            light: Direction::new(theta, 0.0),
+            view: Direction::new(20.0, 90.0),
+            image: Image::new(2, 2, 1),
+        };
+        let clash = check_names(&[t(30.0), t(29.999999999999996)], |t| {
+            utia_name(t.light, t.view)
+        })
+        .err()
+        .map(|e| e.to_string())
+        .unwrap_or_default();
+        assert!(!clash.contains("Direction"), "{clash}");
+        assert!(
+            clash.contains("tl030_pl000_tv020_pv090.png")
+                && clash.contains("light θ 30.000° φ 0.000°, view θ 20.000° φ 90.000°"),
+            "{clash}"
+        );
     }
 }

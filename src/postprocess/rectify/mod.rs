@@ -154,6 +154,12 @@ pub struct FrameRegistration {
     /// The frames an `interpolated` texture was filled from, by image index.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub interpolated_from: Vec<usize>,
+    /// The frame failed its SHA-256 check: its file is not what was
+    /// measured (damaged on disk, or another frame's file). It is never
+    /// registered; its texture, if any, is filled from its slot's nearest
+    /// lights (`interpolated`), and `problem` says what was found.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub damaged: bool,
 }
 
 /// How a frame's texture came to be (`index.json` `method`).
@@ -170,8 +176,9 @@ pub enum RegistrationMethod {
     /// view slot by the sample's own texture (phase correlation).
     #[serde(rename = "pose+texture")]
     PoseTexture,
-    /// The frame is unusable (lost, black, saturated): its texture is the
-    /// mean of its view slot's nearest lights, weighted by inverse angle.
+    /// The frame is unusable (lost, damaged, black, saturated): its texture
+    /// is the mean of its view slot's nearest lights, weighted by inverse
+    /// angle.
     #[serde(rename = "interpolated")]
     Interpolated,
 }
@@ -207,6 +214,7 @@ impl FrameRegistration {
             error_px: None,
             problem: None,
             interpolated_from: Vec::new(),
+            damaged: false,
         }
     }
 }
@@ -255,6 +263,13 @@ pub struct RegistrationSummary {
     pub frames_by_method: std::collections::BTreeMap<String, usize>,
     /// Frames without a texture (their whole view slot was unusable).
     pub frames_without_texture: usize,
+    /// Frames that failed their SHA-256 check (`damaged` in `frames`),
+    /// none of them registered; they are counted under their method too.
+    #[serde(default)]
+    pub frames_damaged: usize,
+    /// Their image indices.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub damaged: Vec<usize>,
     /// Marker RMS residual over the marker-registered frames, pixels:
     /// median, 95th percentile, worst.
     pub marker_rms_px: Option<[f64; 3]>,
@@ -297,6 +312,15 @@ impl RegistrationSummary {
                 out,
                 "{:<14} {:>6}",
                 "no texture", self.frames_without_texture
+            );
+        }
+        if self.frames_damaged > 0 {
+            let _ = writeln!(
+                out,
+                "{:<14} {:>6}  {} failed the SHA-256 check against the journal: not registered, filled from their slot's nearest lights",
+                "damaged",
+                self.frames_damaged,
+                crate::store::image_list(&self.damaged)
             );
         }
         let px = |v: Option<f64>| v.map_or("not measured".to_string(), |v| format!("{v:.2} px"));

@@ -17,8 +17,9 @@ use super::*;
 ///   measure (`pose`), and shifted onto a marker-registered frame of the
 ///   same view slot by the sample's texture where that finds a clear match
 ///   (`pose+texture`);
-/// - a frame that is lost, black or saturated is filled from its view
-///   slot's nearest lights (`interpolated`).
+/// - a frame that is lost, damaged (its file fails the SHA-256 its journal
+///   line recorded: flagged `damaged`), black or saturated is filled from
+///   its view slot's nearest lights (`interpolated`).
 ///
 /// Each frame records its method and an error estimate. The call fails
 /// only when a whole view slot has no usable frame, naming it and why
@@ -365,9 +366,16 @@ pub fn rectify_run(
         .filter(|f| f.method == Some(RegistrationMethod::Markers))
         .filter_map(|f| f.rms_px)
         .collect();
+    let damaged: Vec<usize> = frames
+        .iter()
+        .filter(|f| f.damaged)
+        .map(|f| f.index)
+        .collect();
     let summary = RegistrationSummary {
         frames_by_method: by_method,
         frames_without_texture: frames.iter().filter(|f| f.file.is_none()).count(),
+        frames_damaged: damaged.len(),
+        damaged,
         marker_rms_px: spread(&marker_rms),
         holder_offset_mm: (!pairs.is_empty()).then(|| offset.map(|v| v * 1e3)),
         uncalibrated_pose_error_px,

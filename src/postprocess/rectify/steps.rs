@@ -306,7 +306,12 @@ impl Rectifier<'_> {
         let images = match self.frame_images(entry) {
             Ok(images) => images,
             Err(e) => {
-                out.rec.problem = Some(format!("lost: {e}"));
+                out.rec.damaged = matches!(e, crate::postprocess::ProcessError::Damaged { .. });
+                out.rec.problem = Some(if out.rec.damaged {
+                    e.to_string()
+                } else {
+                    format!("lost: {e}")
+                });
                 out.unusable = true;
                 return out;
             }
