@@ -8,7 +8,7 @@
 //! rectification). Three whole compressions are timed; the figure is the
 //! fastest, with the peak resident memory the compression added.
 //!
-//! The reference is the floor the issue names: one slot's PCA through the
+//! The reference is the floor the command is measured against: one slot's PCA through the
 //! Gram matrix in f32 with faer (Gram, eigen-decomposition, 16
 //! eigen-textures) on textures already in memory, on one thread (faer's own
 //! threads made it vary fourfold with the other core busy), times 81. The
@@ -113,7 +113,7 @@ fn make_run(run: &Path) -> Vec<Vec<f32>> {
     textures
 }
 
-/// The issue's reference: one slot's PCA through an f32 Gram matrix with
+/// The reference: one slot's PCA through an f32 Gram matrix with
 /// faer, on textures in memory.
 fn reference_slot(images: &[&[f32]]) -> Duration {
     use faer::Mat;
@@ -152,7 +152,7 @@ fn reference_slot(images: &[&[f32]]) -> Duration {
     start.elapsed()
 }
 
-/// The command as it was before the Gram route (issue 21): slot after slot,
+/// The command as it was before the Gram route: slot after slot,
 /// each by a thin SVD, written as it finishes; same reading and writing.
 fn before_gram_route(run: &Path) -> Duration {
     use rigd_process::btf::{compress_slot_by, BtfWriter, PcaRoute, TextureShape};

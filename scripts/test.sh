@@ -5,6 +5,20 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# Wall time by phase, printed at the end: where the minutes go.
+phase_name="set-up: system packages, Python venv"
+phase_start=$SECONDS
+phase_times=""
+end_phase() {
+    phase_times+="$(printf '%6d s  %s' $((SECONDS - phase_start)) "$phase_name")"$'\n'
+}
+phase() {
+    end_phase
+    phase_name="$1"
+    phase_start=$SECONDS
+    echo "== $1"
+}
+
 # Debian packages, installed as root or through sudo.
 apt_install() {
     if [ "$(id -u)" -eq 0 ]; then
@@ -74,18 +88,39 @@ if ! command -v cargo >/dev/null; then
     exit 1
 fi
 
-echo "== cargo fmt --check"
+# A build cache outside the clone, where this machine lets us keep one
+# (/var/cache/rigd, as root or when writable): a later clone then builds
+# only its own crates, not the dependencies again. A fresh machine has no
+# cache and builds everything: slower, the same tests. A CARGO_TARGET_DIR
+# the caller sets wins; a cache grown past 40 GiB (every clone path adds
+# its own crates) is emptied first.
+build_cache=/var/cache/rigd/target
+if [ -z "${CARGO_TARGET_DIR:-}" ] && mkdir -p "$build_cache" 2>/dev/null && [ -w "$build_cache" ]; then
+    if [ "$(du -sk "$build_cache" | cut -f1)" -gt $((40 * 1024 * 1024)) ]; then
+        echo "== emptying the build cache $build_cache (over 40 GiB)"
+        rm -rf "$build_cache"
+        mkdir -p "$build_cache"
+    fi
+    export CARGO_TARGET_DIR="$build_cache"
+    echo "== building in $build_cache"
+fi
+
+phase "cargo fmt --check"
 cargo fmt --all -- --check
-echo "== cargo clippy --features genicam"
+phase "cargo clippy --features genicam"
 cargo clippy --workspace --all-targets --locked --features genicam -- -D warnings
 # The hardware path builds without the simulator (no rigd-sim in the build),
 # and without Aravis (no `genicam` feature).
-echo "== cargo clippy --no-default-features (rigd without the simulator or Aravis)"
+phase "cargo clippy --no-default-features (rigd without the simulator or Aravis)"
 cargo clippy -p rigd --no-default-features --lib --bins --locked -- -D warnings
-echo "== cargo test --features genicam"
+phase "cargo test --features genicam --no-run (build the tests)"
+cargo test --workspace --locked --features genicam --no-run
+phase "cargo test --features genicam (run the tests)"
 log="$(mktemp)"
 trap 'rm -f "$log"' EXIT
 cargo test --workspace --locked --features genicam 2>&1 | tee "$log"
 # One closing line for the whole suite (cargo ends with the doc tests' own count).
 awk '/^test result:/ { for (i = 1; i <= NF; i++) { if ($(i+1) ~ /^passed/) p += $i; if ($(i+1) ~ /^failed/) f += $i } }
      END { printf "tests: %d passed, %d failed\n", p, f }' "$log"
+end_phase
+printf '== wall time by phase\n%s%6d s  in all\n' "$phase_times" "$SECONDS"

@@ -20,7 +20,7 @@ use cli::{sim, tradeoff};
     about = "Control daemon for BTF measurement rigs",
     long_about = "Control daemon for BTF (bidirectional texture function) measurement rigs: \
 plans captures over the hemisphere, drives the rig (or its simulation), and writes datasets that lose nothing.",
-    after_help = exit::EXIT_CODES_HELP
+    after_help = exit::exit_codes_help()
 )]
 struct Cli {
     #[command(subcommand)]

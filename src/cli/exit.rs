@@ -1,15 +1,8 @@
 //! Exit codes, so scripts can tell what happened, and how an error is
 //! classed: the caller's input was wrong (2: fix the input), or something
 //! failed while doing what was asked (1: the disk, a device, the system).
-//!
-//! | code | meaning |
-//! |---|---|
-//! | 0 | done |
-//! | 1 | failure: I/O, a device, the disk, an internal error |
-//! | 2 | bad input: arguments, profile, plan, run directory or data unusable |
-//! | 3 | the run paused (a fault); resume it with `rigd run --resume DIR` |
-//! | 4 | the run was aborted or failed |
-//! | 130 | interrupted (Ctrl-C, SIGTERM); the run is resumable |
+//! [`EXIT_CODES`] is the one place the codes are described; `--help` prints
+//! it, and a test holds the README's table to it.
 
 use std::io::ErrorKind as IoKind;
 
@@ -26,15 +19,44 @@ pub const EXIT_FAILURE: u8 = 1;
 pub const EXIT_BAD_INPUT: u8 = 2;
 /// The run paused on a fault and can be resumed.
 pub const EXIT_PAUSED: u8 = 3;
-/// The run was aborted or ended with frames missing.
+/// The run was aborted or failed.
 pub const EXIT_ENDED_BADLY: u8 = 4;
 /// A signal stopped the run; it can be resumed.
 pub const EXIT_INTERRUPTED: u8 = 130;
 
-/// The help text's summary of the codes.
-pub const EXIT_CODES_HELP: &str = "Exit codes: 0 done, 1 failure (I/O, a device, the disk), \
-2 bad input, 3 run paused (resume it with `rigd run --resume DIR`), 4 run aborted or failed, \
-130 interrupted (resumable).";
+/// Every exit code and what it means, for the help text and the README.
+pub const EXIT_CODES: &[(u8, &str)] = &[
+    (0, "done (a run: completed)"),
+    (
+        EXIT_FAILURE,
+        "failure while doing what was asked: I/O, a device that cannot be reached, the disk, \
+         an internal error",
+    ),
+    (
+        EXIT_BAD_INPUT,
+        "bad input: arguments, a profile, a plan, a run directory or data that cannot be used \
+         (one line on stderr; nothing was done)",
+    ),
+    (
+        EXIT_PAUSED,
+        "`rigd run`: paused by a fault, a full disk included (the reason is printed; fix it \
+         and `--resume`)",
+    ),
+    (EXIT_ENDED_BADLY, "`rigd run`: aborted, or failed"),
+    (
+        EXIT_INTERRUPTED,
+        "`rigd run`: interrupted by SIGINT/SIGTERM (resumable)",
+    ),
+];
+
+/// The codes as the help text lists them, one per line.
+pub fn exit_codes_help() -> String {
+    let mut out = String::from("Exit codes:");
+    for (code, meaning) in EXIT_CODES {
+        out.push_str(&format!("\n  {code:<4} {meaning}"));
+    }
+    out
+}
 
 /// An error in what the caller gave: arguments, files, data.
 #[derive(Debug, thiserror::Error)]
@@ -199,6 +221,29 @@ fn io_class(e: &std::io::Error) -> u8 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The codes as the README's Markdown table.
+    fn exit_codes_table() -> String {
+        let mut out = String::from("| code | meaning |\n|---|---|\n");
+        for (code, meaning) in EXIT_CODES {
+            out.push_str(&format!("| {code} | {meaning} |\n"));
+        }
+        out
+    }
+
+    #[test]
+    fn the_readme_lists_the_exit_codes_as_the_code_does() {
+        let readme = include_str!("../../README.md");
+        let table = exit_codes_table();
+        assert!(
+            readme.contains(&table),
+            "README.md's exit code table differs from cli::exit::EXIT_CODES; it should read:\n{table}"
+        );
+        let help = exit_codes_help();
+        for (code, _) in EXIT_CODES {
+            assert!(help.contains(&format!("\n  {code} ")));
+        }
+    }
 
     #[test]
     fn a_full_disk_is_a_failure_and_a_bad_path_is_bad_input() {

@@ -60,7 +60,7 @@ pub fn progress_line(what: &'static str) -> impl Fn(usize, usize) + Sync {
             return;
         }
         let pct = done as u64 * 100 / (total as u64).max(1);
-        let mut last = logged.lock().unwrap_or_else(|p| p.into_inner());
+        let mut last = rigd_core::sync::lock(&logged);
         if pct / 5 != last.0 / 5 || last.1.elapsed() > Duration::from_secs(30) || done == total {
             if (pct, done == total) == (last.0, true) {
                 return;

@@ -346,11 +346,6 @@ impl Engine {
         )
     }
 
-    /// Replaces the retry policy (by default 3 attempts, 1 s back-off).
-    pub fn set_retry_policy(&mut self, retry: RetryPolicy) {
-        self.retry = retry;
-    }
-
     /// Physical seconds since the run started, over all sessions.
     fn t(&self) -> f64 {
         self.t_offset + self.clock.now_s()
@@ -1166,7 +1161,7 @@ impl Engine {
 fn lock_store(store: &Mutex<RunDir>) -> std::sync::MutexGuard<'_, RunDir> {
     // A panic inside a write leaves at worst a torn journal tail, which the
     // reader repairs; the directory handle itself stays valid.
-    store.lock().unwrap_or_else(|p| p.into_inner())
+    rigd_core::sync::lock(store)
 }
 
 /// Runs a device call under a physical deadline.

@@ -692,11 +692,6 @@ impl Profile {
         })
     }
 
-    /// The embedded default profile.
-    pub fn embedded_default() -> Result<Profile, ProfileError> {
-        Profile::load(DEFAULT_PROFILE)
-    }
-
     /// Reads, parses and validates the profile file at `path`; errors name
     /// that path.
     pub fn from_file(path: &Path) -> Result<Profile, ProfileError> {

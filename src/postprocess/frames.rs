@@ -16,6 +16,7 @@ use crate::rig::hal::{decode_png, is_png};
 use crate::store::{
     check_manifest, read_journal, read_meta, sha256_hex, FrameEntry, RunMeta, JOURNAL_FILE,
 };
+use rigd_core::sync::lock;
 use rigd_core::Cfa;
 
 /// A run's metadata and every frame it wrote, in capture order.
@@ -179,11 +180,6 @@ impl CheckedReads {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    // The map only caches checks: whatever a panicking holder left is sound.
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 /// A colour frame as red, green and blue planes, linear in [0, 1].
 pub struct ColourPlanes {
     /// Width, pixels.
@@ -271,13 +267,6 @@ impl Linear {
             }
         })
     }
-}
-
-/// A camera file's image as linear grey in [0, 1]: black level off, scaled
-/// by the white level, sRGB decoded; a Bayer mosaic demosaiced and RGB
-/// weighted as `rigd_process::demosaic::luminance` weights it.
-pub fn camera_file_grey(img: &CameraImage) -> Result<Image, demosaic::TooSmall> {
-    camera_file_linear(img).grey()
 }
 
 /// A camera file's samples, linear in [0, 1].

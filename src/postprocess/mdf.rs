@@ -22,6 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::kinematics::camera::camera_geometry;
 use crate::plan::laser::{LaserPlan, LaserRig};
+use crate::postprocess::accuracy::DepthError;
 use crate::postprocess::frames::RunFrames;
 use crate::postprocess::ProcessError;
 use crate::schedule::laser::{LaserRole, LaserStep};
@@ -132,25 +133,7 @@ pub struct ViewSummary {
     /// they all measure.
     #[cfg(feature = "sim")]
     #[serde(skip)]
-    pub truth_pixels: Option<super::truth::PixelErrors>,
-}
-
-/// Depth error against the scene's true MDF, millimetres.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize)]
-pub struct DepthError {
-    /// Sample pixels with a measurement, over which the error is taken.
-    pub pixels: usize,
-    /// Share of the sample's pixels with a measurement.
-    pub coverage: f64,
-    /// Mean absolute error of the displacement, mm.
-    pub mean_mm: f64,
-    /// Median absolute error, mm.
-    pub median_mm: f64,
-    /// 95th percentile of the absolute error, mm.
-    pub p95_mm: f64,
-    /// Standard error of `mean_mm` over 16 × 16-pixel tiles
-    /// (`truth::tile_spread`); NaN with fewer than two tiles.
-    pub spread_mm: f64,
+    pub truth_pixels: Option<super::accuracy::PixelErrors>,
 }
 
 /// `processed/mdf/report.json`.

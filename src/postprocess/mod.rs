@@ -3,8 +3,8 @@
 //! needs from the run (frames, directions, the holder), runs it, and
 //! writes into `RUN/processed/` ([`crate::store::processed`]).
 
+pub mod accuracy;
 pub mod btf;
-pub mod colour;
 pub mod dataset;
 pub mod executor;
 pub mod fit;
@@ -19,6 +19,10 @@ pub mod slurm;
 #[cfg(feature = "sim")]
 pub mod truth;
 pub mod viewer;
+
+/// The colour calibration is rectification's: re-exported where the
+/// commands look for it.
+pub use rectify::colour;
 
 use std::path::PathBuf;
 

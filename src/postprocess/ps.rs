@@ -15,7 +15,7 @@ use crate::store::FrameEntry;
 ///
 /// A colour camera's frames are white-balanced and colour-corrected by the
 /// run's colour calibration (measured now on the holder's patches if there
-/// is none yet; [`super::colour::texture_colour`]): photometric stereo
+/// is none yet; [`super::rectify::colour::texture_colour`]): photometric stereo
 /// then solves the normals on their luminance and gives RGB albedo, as
 /// Spence et al. do. Without a calibration the frames are read as grey.
 pub fn ps_dataset_from_run(run: &RunFrames) -> Result<PsDataset, ProcessError> {
@@ -34,7 +34,7 @@ pub fn ps_dataset_from_run(run: &RunFrames) -> Result<PsDataset, ProcessError> {
             )));
         }
     }
-    let colour = super::colour::texture_colour(run, true)?;
+    let colour = super::rectify::colour::texture_colour(run, true)?;
     let mut images = Vec::with_capacity(entries.len());
     for e in &entries {
         let rgb = match &colour {

@@ -9,9 +9,9 @@ use async_trait::async_trait;
 
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::model::profile::{DeviceKind, Profile, Transport};
-use crate::rig::drivers::genicam;
+use crate::rig::drivers::genicam::{GenicamConfig, GenicamOpener, GenicamSession, SessionError};
 use crate::rig::drivers::usb::{NusbPipe, UsbError};
-use crate::rig::hal::{DeviceError, Rig};
+use crate::rig::hal::{DeviceError, ErrorKind, Rig};
 use rigd_core::Clock;
 
 /// A serial port (a USB-serial adapter, an RS-485 dongle, a pty).
@@ -153,7 +153,7 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                     host: host.clone(),
                     port: *port,
                 })),
-                (Transport::Genicam { id }, _) => Link::Genicam(genicam::opener(id)),
+                (Transport::Genicam { id }, _) => Link::Genicam(genicam_opener(id)),
                 (Transport::Serial { port, baud }, _) => Link::Line(Arc::new(SerialOpener {
                     port: port.clone(),
                     baud: *baud,
@@ -191,4 +191,37 @@ pub async fn connect(profile: &Profile, clock: &Clock) -> Result<Rig, DeviceErro
         rig.fixture = Some(Box::new(super::plate::OperatorPlate::default()));
     }
     Ok(rig)
+}
+
+/// Stands in for Aravis in a rigd built without the `genicam` feature:
+/// every open says how to get a build that has it.
+pub struct NoGenicam {
+    /// The camera's id, for messages.
+    pub id: String,
+}
+
+impl GenicamOpener for NoGenicam {
+    fn describe(&self) -> String {
+        format!("GenICam camera `{}`", self.id)
+    }
+
+    fn open(&self, _cfg: &GenicamConfig) -> Result<Box<dyn GenicamSession>, SessionError> {
+        Err(SessionError::new(
+            ErrorKind::NotReady,
+            "this rigd was built without GenICam support: install Debian's libaravis-dev (Aravis 0.8) and build with `cargo build --release --features genicam`",
+        ))
+    }
+}
+
+/// The opener of a camera on `transport = { type = "genicam", id }`: Aravis
+/// when built in, else [`NoGenicam`].
+pub fn genicam_opener(id: &str) -> Arc<dyn GenicamOpener> {
+    #[cfg(feature = "genicam")]
+    {
+        Arc::new(crate::rig::drivers::aravis::AravisOpener { id: id.to_string() })
+    }
+    #[cfg(not(feature = "genicam"))]
+    {
+        Arc::new(NoGenicam { id: id.to_string() })
+    }
 }

@@ -688,7 +688,7 @@ mod tests {
         }
     }
 
-    /// Issue 7's acceptance: on h1 and h2 (Bonn) and grid12x8 (MSRA) the
+    /// On h1 and h2 (Bonn) and grid12x8 (MSRA) the
     /// optimised order is shorter than the nested loops, and within 10 % of
     /// the spanning-tree lower bound (measured: 1.066, 1.069, 1.008).
     #[test]

@@ -9,6 +9,53 @@ use serde::de::DeserializeOwned;
 use serde::Serialize;
 use utoipa::ToSchema;
 
+/// Why the supervisor refused or failed a request; the HTTP layer maps each
+/// kind to its status ([`ApiError`]).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum SupervisorError {
+    /// No such run or queue item.
+    #[error("{0}")]
+    NotFound(String),
+    /// The request is malformed or does not fit the rig.
+    #[error("{0}")]
+    Invalid(String),
+    /// The request conflicts with the rig's or the run's state.
+    #[error("{0}")]
+    Conflict(String),
+    /// The daemon cannot take it now (shutting down, the engine busy).
+    #[error("{0}")]
+    Unavailable(String),
+    /// Something failed inside the daemon (a run directory, the disk).
+    #[error("{0}")]
+    Internal(String),
+    /// A device failed or did not answer (manual control, rig check).
+    #[error("{0}")]
+    Device(String),
+}
+
+impl SupervisorError {
+    /// [`SupervisorError::NotFound`].
+    pub fn not_found(detail: impl Into<String>) -> Self {
+        SupervisorError::NotFound(detail.into())
+    }
+    /// [`SupervisorError::Invalid`].
+    pub fn invalid(detail: impl Into<String>) -> Self {
+        SupervisorError::Invalid(detail.into())
+    }
+    /// [`SupervisorError::Conflict`].
+    pub fn conflict(detail: impl Into<String>) -> Self {
+        SupervisorError::Conflict(detail.into())
+    }
+    /// [`SupervisorError::Unavailable`].
+    pub fn unavailable(detail: impl Into<String>) -> Self {
+        SupervisorError::Unavailable(detail.into())
+    }
+    /// [`SupervisorError::Internal`].
+    pub fn internal(detail: impl Into<String>) -> Self {
+        SupervisorError::Internal(detail.into())
+    }
+}
+
 /// The body of every error answer.
 #[derive(Debug, Clone, Serialize, serde::Deserialize, ToSchema)]
 pub struct ErrorBody {
@@ -86,9 +133,9 @@ impl ApiError {
     }
 }
 
-impl From<crate::server::supervisor::SupervisorError> for ApiError {
-    fn from(e: crate::server::supervisor::SupervisorError) -> ApiError {
-        use crate::server::supervisor::SupervisorError as S;
+impl From<SupervisorError> for ApiError {
+    fn from(e: SupervisorError) -> ApiError {
+        use SupervisorError as S;
         match e {
             S::NotFound(d) => ApiError::not_found(d),
             S::Invalid(d) => ApiError::invalid(d),

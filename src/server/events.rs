@@ -67,7 +67,7 @@ impl EventHub {
     }
 
     fn ring(&self) -> std::sync::MutexGuard<'_, Ring> {
-        self.ring.lock().unwrap_or_else(|p| p.into_inner())
+        rigd_core::sync::lock(&self.ring)
     }
 
     /// Numbers, keeps and sends one event.
@@ -108,11 +108,6 @@ impl EventHub {
             None => Vec::new(),
         };
         (replay, rx)
-    }
-
-    /// The last id handed out (0 before any).
-    pub fn last_id(&self) -> u64 {
-        self.ring().next_id - 1
     }
 }
 

@@ -200,7 +200,7 @@ impl Shared {
 
     fn conns(&self) -> MutexGuard<'_, BTreeMap<u64, Arc<Slot>>> {
         // A poisoned map is still a map of connections.
-        self.conns.lock().unwrap_or_else(|p| p.into_inner())
+        rigd_core::sync::lock(&self.conns)
     }
 
     /// Closes the idle connection quiet longest; false when none is idle.

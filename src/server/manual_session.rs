@@ -5,11 +5,16 @@
 //! action never drive the rig at once, and are refused with 409 while a
 //! run is active; the daemon's emergency stop covers them.
 
+use std::future::Future;
 use std::sync::{Arc, Mutex};
 
-use super::supervisor::{lock, Daemon, SupervisorError};
+use super::error::SupervisorError;
 use crate::engine::estop::{EStop, StopReport};
 use crate::engine::manual::{ManualError, ManualRig};
+use crate::model::profile::Profile;
+use crate::rig::{FaultRule, SimHandle};
+use rigd_core::sync::lock;
+use rigd_core::Clock;
 
 /// The manual-control rig and what it last saw.
 #[derive(Default)]
@@ -46,6 +51,80 @@ impl ManualSession {
     pub fn keep_frame(&self, png: Vec<u8>) {
         *lock(&self.frame) = Some(png);
     }
+
+    /// Runs one manual action on the manual rig, connecting it first
+    /// (`connect`) if there is none. The caller has checked that no run
+    /// is active and holds the run start gate.
+    pub async fn act<T, F, C, Connecting>(
+        &self,
+        connect: C,
+        action: F,
+    ) -> Result<T, SupervisorError>
+    where
+        C: FnOnce() -> Connecting,
+        Connecting: Future<Output = Result<ManualRig, SupervisorError>>,
+        F: for<'a> FnOnce(
+            &'a mut ManualRig,
+        ) -> std::pin::Pin<
+            Box<dyn Future<Output = Result<T, ManualError>> + Send + 'a>,
+        >,
+    {
+        let mut slot = self.rig.lock().await;
+        if slot.is_none() {
+            let rig = connect().await?;
+            *lock(&self.estop) = Some(rig.estop());
+            *slot = Some(rig);
+        }
+        let Some(rig) = slot.as_mut() else {
+            return Err(SupervisorError::internal("manual rig missing"));
+        };
+        Ok(action(rig).await?)
+    }
+}
+
+/// Connects the rig for manual control: the simulated one when `sim` holds
+/// its fault rules (with its handle, so the rig card shows the manual
+/// rig's positions and lamps), else the hardware.
+pub async fn connect_rig(
+    profile: &Profile,
+    sim: Option<Vec<FaultRule>>,
+    clock: Clock,
+) -> Result<(ManualRig, Option<SimHandle>), SupervisorError> {
+    let solver = Arc::new(
+        crate::kinematics::Solver::new(profile)
+            .map_err(|e| SupervisorError::internal(e.to_string()))?,
+    );
+    let device = |e: crate::rig::hal::DeviceError| SupervisorError::Device(e.to_string());
+    let (rig, handle) = match sim {
+        Some(faults) => {
+            #[cfg(feature = "sim")]
+            {
+                let opts = crate::rig::sim::SimOptions {
+                    frame_size: None,
+                    faults,
+                };
+                let (rig, handle) = crate::rig::sim::connect(profile, solver.clone(), opts, &clock)
+                    .await
+                    .map_err(device)?;
+                (rig, Some(handle))
+            }
+            #[cfg(not(feature = "sim"))]
+            {
+                let _ = faults;
+                return Err(SupervisorError::unavailable(
+                    "this rigd was built without the simulator",
+                ));
+            }
+        }
+        None => (
+            crate::rig::hardware::connect(profile, &clock)
+                .await
+                .map_err(device)?,
+            None,
+        ),
+    };
+    tracing::info!("manual control connected the rig");
+    Ok((ManualRig::new(rig, profile.clone(), solver, clock), handle))
 }
 
 impl From<ManualError> for SupervisorError {
@@ -54,77 +133,5 @@ impl From<ManualError> for SupervisorError {
             ManualError::BadInput(m) => SupervisorError::invalid(m),
             ManualError::Device(d) => SupervisorError::Device(d.to_string()),
         }
-    }
-}
-
-impl Daemon {
-    /// Runs one manual action on the manual rig, connecting it first if
-    /// needed. 409 while a run is active.
-    pub async fn manual<T, F>(self: &Arc<Self>, action: F) -> Result<T, SupervisorError>
-    where
-        F: for<'a> FnOnce(
-            &'a mut ManualRig,
-        ) -> std::pin::Pin<
-            Box<dyn std::future::Future<Output = Result<T, ManualError>> + Send + 'a>,
-        >,
-    {
-        let _gate = self.start_gate.lock().await;
-        {
-            let inner = self.inner();
-            if inner.shutting_down {
-                return Err(SupervisorError::unavailable("the daemon is shutting down"));
-            }
-            if let Some(a) = &inner.active {
-                return Err(SupervisorError::conflict(format!(
-                    "run {} is active ({}): manual control waits until it has ended",
-                    a.id, a.state
-                )));
-            }
-        }
-        let mut slot = self.manual.rig.lock().await;
-        if slot.is_none() {
-            let rig = self.connect_manual_rig().await?;
-            *lock(&self.manual.estop) = Some(rig.estop());
-            *slot = Some(rig);
-        }
-        let Some(rig) = slot.as_mut() else {
-            return Err(SupervisorError::internal("manual rig missing"));
-        };
-        Ok(action(rig).await?)
-    }
-
-    async fn connect_manual_rig(&self) -> Result<ManualRig, SupervisorError> {
-        let clock = self.clock();
-        let solver = Arc::new(
-            crate::kinematics::Solver::new(&self.profile)
-                .map_err(|e| SupervisorError::internal(e.to_string()))?,
-        );
-        let device = |e: crate::rig::hal::DeviceError| SupervisorError::Device(e.to_string());
-        let rig = if self.config.sim {
-            #[cfg(feature = "sim")]
-            {
-                let opts = crate::rig::sim::SimOptions {
-                    frame_size: None,
-                    faults: self.config.sim_faults.clone(),
-                };
-                let (rig, sim) =
-                    crate::rig::sim::connect(&self.profile, solver.clone(), opts, &clock)
-                        .await
-                        .map_err(device)?;
-                // The rig card shows the manual rig's positions and lamps.
-                self.inner().last_sim = Some(sim);
-                rig
-            }
-            #[cfg(not(feature = "sim"))]
-            return Err(SupervisorError::unavailable(
-                "this rigd was built without the simulator",
-            ));
-        } else {
-            crate::rig::hardware::connect(&self.profile, &clock)
-                .await
-                .map_err(device)?
-        };
-        tracing::info!("manual control connected the rig");
-        Ok(ManualRig::new(rig, self.profile.clone(), solver, clock))
     }
 }

@@ -2,14 +2,18 @@
 //! OpenAPI spec and Swagger UI, the event stream, and a supervisor that
 //! drives one run at a time on the rig and starts queued runs.
 //!
-//! - [`state`]: the daemon's state and run supervisor
+//! - [`supervisor`]: the daemon's state: runs, the queue, the engine of the
+//!   active run
+//! - [`jobs`]: process jobs and the worker that runs them
+//! - [`manual_session`]: manual control's rig, held between actions
+//! - [`peers`]: the other rigs' daemons (`--peers FILE`), watched
+//! - [`plan_cache`]: built-in plans, solved once in the background
+//! - [`persist`]: the queue file and the run history on disk
 //! - [`api`]: the handlers and the OpenAPI description
+//! - [`wire`]: the API's JSON types
 //! - [`auth`]: the bearer token
 //! - [`events`]: Server-Sent Events with replay
-//! - [`persist`]: the queue file and the run history on disk
-//! - [`frames`]: frame and preview routes
-//! - [`error`]: `{error, detail}` errors
-//! - [`peers`]: the other rigs' daemons (`--peers FILE`), watched
+//! - [`error`]: `{error, detail}` errors, and the services' refusals
 //! - [`http`]: the connections, with their timeouts and limits
 
 pub mod api;
@@ -17,13 +21,13 @@ pub mod auth;
 pub mod error;
 pub mod events;
 pub mod http;
+pub mod jobs;
 pub mod manual_session;
-pub mod model;
 pub mod peers;
 pub mod persist;
 pub mod plan_cache;
-pub mod processing;
 pub mod supervisor;
+pub mod wire;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -324,7 +328,7 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         why: e.to_string(),
     })?;
     let daemon = supervisor::Daemon::new(config, profile, profile_source)?;
-    processing::start_worker(&daemon).map_err(|why| ServerError::DataDir {
+    jobs::start_worker(daemon.clone()).map_err(|why| ServerError::DataDir {
         path: daemon.data_dir.clone(),
         why: format!("cannot start the processing worker: {why}"),
     })?;

@@ -27,7 +27,7 @@ use utoipa::ToSchema;
 pub use file::{load, Peer, PeerError, PeersError};
 
 use crate::model::run_state::RunState;
-use crate::server::supervisor::lock;
+use rigd_core::sync::lock;
 
 /// How often each peer is asked for its state.
 pub const POLL_EVERY: Duration = Duration::from_secs(1);

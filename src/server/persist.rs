@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::model::{QueueItem, RunView};
+use super::wire::{QueueItem, RunView};
 use crate::model::run_state::RunState;
 use crate::model::text::sanitize;
 use crate::store::{
@@ -277,7 +277,7 @@ pub fn scan_runs(runs_dir: &Path) -> Vec<(RunView, PathBuf)> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::server::model::{PlanSpec, RunRequest};
+    use crate::server::wire::{PlanSpec, RunRequest};
 
     #[test]
     fn ids_are_filesystem_safe() {

@@ -9,10 +9,11 @@ use std::time::Duration;
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
 
+use super::error::SupervisorError;
 use super::events::EventHub;
-use super::model::{PaceView, PlanSpec, QueueItem, RunRequest, RunView};
 use super::persist::{self, RUNS_DIR};
 use super::plan_cache::PlanCache;
+use super::wire::{PaceView, PlanSpec, QueueItem, RunRequest, RunView};
 use super::ServerConfig;
 use crate::engine::command::{check_command, Command};
 use crate::engine::launch::{self, NewRun, Prepared, RunError};
@@ -23,6 +24,7 @@ use crate::plan::{self, BUILTIN_PLANS};
 use crate::rig::SimHandle;
 use crate::schedule::Schedule;
 use rigd_core::pace::{Pace, PacedRuntime};
+use rigd_core::sync::lock;
 use rigd_core::Clock;
 
 /// The run an engine drives.
@@ -87,60 +89,9 @@ pub struct Daemon {
     /// A trade-off report is being computed (`POST /api/v1/tradeoff`).
     pub tradeoff_busy: std::sync::atomic::AtomicBool,
     /// The process jobs (`POST /api/v1/runs/{id}/process`) and their worker.
-    pub processing: super::processing::Jobs,
+    pub processing: super::jobs::Jobs,
     /// The other rigs' daemons (`--peers FILE`) and what each last answered.
     pub peers: Arc<super::peers::Peers>,
-}
-
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|p| p.into_inner())
-}
-
-/// Why the supervisor refused or failed a request; the HTTP layer maps each
-/// kind to its status ([`super::error::ApiError`]).
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum SupervisorError {
-    /// No such run or queue item.
-    #[error("{0}")]
-    NotFound(String),
-    /// The request is malformed or does not fit the rig.
-    #[error("{0}")]
-    Invalid(String),
-    /// The request conflicts with the rig's or the run's state.
-    #[error("{0}")]
-    Conflict(String),
-    /// The daemon cannot take it now (shutting down, the engine busy).
-    #[error("{0}")]
-    Unavailable(String),
-    /// Something failed inside the daemon (a run directory, the disk).
-    #[error("{0}")]
-    Internal(String),
-    /// A device failed or did not answer (manual control, rig check).
-    #[error("{0}")]
-    Device(String),
-}
-
-impl SupervisorError {
-    /// [`SupervisorError::NotFound`].
-    pub fn not_found(detail: impl Into<String>) -> Self {
-        SupervisorError::NotFound(detail.into())
-    }
-    /// [`SupervisorError::Invalid`].
-    pub fn invalid(detail: impl Into<String>) -> Self {
-        SupervisorError::Invalid(detail.into())
-    }
-    /// [`SupervisorError::Conflict`].
-    pub fn conflict(detail: impl Into<String>) -> Self {
-        SupervisorError::Conflict(detail.into())
-    }
-    /// [`SupervisorError::Unavailable`].
-    pub fn unavailable(detail: impl Into<String>) -> Self {
-        SupervisorError::Unavailable(detail.into())
-    }
-    /// [`SupervisorError::Internal`].
-    pub fn internal(detail: impl Into<String>) -> Self {
-        SupervisorError::Internal(detail.into())
-    }
 }
 
 /// Most characters a sample, operator name or plan name may have.
@@ -174,7 +125,7 @@ impl Daemon {
             inner.runs.insert(view.id.clone(), view);
         }
         inner.queue = persist::load_queue(&data_dir);
-        let processing = super::processing::Jobs::load(&runs_dir, inner.runs.keys());
+        let processing = super::jobs::Jobs::load(&runs_dir, inner.runs.keys());
         let (shutdown_tx, _) = watch::channel(false);
         let plans = PlanCache::new(profile.clone());
         let peers = Arc::new(super::peers::Peers::new(&config.peers));
@@ -444,7 +395,14 @@ impl Daemon {
             // the job is on disk before the first frame.
             let queued = self
                 .process_after_capture(&req, &prepared.meta.plan, options.clone())
-                .and_then(|options| self.queue_after_capture(&id, options));
+                .and_then(|options| {
+                    super::jobs::queue_after_capture(
+                        &**self,
+                        &self.runs_dir.join(&id),
+                        &id,
+                        options,
+                    )
+                });
             if let Err(e) = queued {
                 self.abandon(view, prepared, &e);
                 return Err(e);
@@ -682,25 +640,6 @@ impl Daemon {
         if !shutting_down {
             self.pump_queue();
         }
-    }
-
-    /// Whether run `id` is the active run (capturing, paused or preparing).
-    pub(crate) fn capturing(&self, id: &str) -> bool {
-        self.inner().runs.get(id).is_some_and(|v| v.active)
-    }
-
-    /// Whether run `id`'s process job may run now: the run has ended, and
-    /// a job queued with the run (`after_capture`) waits for its capture
-    /// to complete or be aborted (a failed run may still be resumed).
-    pub(crate) fn ready_to_process(&self, id: &str, after_capture: bool) -> bool {
-        self.inner().runs.get(id).is_some_and(|v| {
-            !v.active
-                && match v.state {
-                    RunState::Completed | RunState::Aborted => true,
-                    RunState::Failed => !after_capture,
-                    _ => false,
-                }
-        })
     }
 
     /// Starts the next queued run if the rig is free.
@@ -1088,4 +1027,84 @@ async fn supervise(
     // on it) goes now.
     drop(home);
     daemon.on_run_ended(&id, result);
+}
+
+impl Daemon {
+    /// Runs one manual action on the manual rig, connecting it first if
+    /// needed. 409 while a run is active.
+    pub async fn manual<T, F>(self: &Arc<Self>, action: F) -> Result<T, SupervisorError>
+    where
+        F: for<'a> FnOnce(
+            &'a mut crate::engine::manual::ManualRig,
+        ) -> std::pin::Pin<
+            Box<
+                dyn std::future::Future<Output = Result<T, crate::engine::manual::ManualError>>
+                    + Send
+                    + 'a,
+            >,
+        >,
+    {
+        let _gate = self.start_gate.lock().await;
+        {
+            let inner = self.inner();
+            if inner.shutting_down {
+                return Err(SupervisorError::unavailable("the daemon is shutting down"));
+            }
+            if let Some(a) = &inner.active {
+                return Err(SupervisorError::conflict(format!(
+                    "run {} is active ({}): manual control waits until it has ended",
+                    a.id, a.state
+                )));
+            }
+        }
+        let connect = || async {
+            let sim = self.config.sim.then(|| self.config.sim_faults.clone());
+            let (rig, handle) =
+                super::manual_session::connect_rig(&self.profile, sim, self.clock()).await?;
+            if handle.is_some() {
+                self.inner().last_sim = handle;
+            }
+            Ok(rig)
+        };
+        self.manual.act(connect, action).await
+    }
+}
+
+impl super::jobs::JobHost for Daemon {
+    fn jobs(&self) -> &super::jobs::Jobs {
+        &self.processing
+    }
+
+    fn hub(&self) -> &EventHub {
+        &self.hub
+    }
+
+    fn executor(&self) -> &crate::postprocess::executor::ProcessingConfig {
+        &self.config.processing
+    }
+
+    fn run_root(&self, id: &str) -> Option<PathBuf> {
+        Daemon::run_root(self, id)
+    }
+
+    fn view(&self, id: &str) -> Option<RunView> {
+        Daemon::view(self, id)
+    }
+
+    fn capturing(&self, id: &str) -> bool {
+        self.inner().runs.get(id).is_some_and(|v| v.active)
+    }
+
+    fn ready_to_process(&self, id: &str, after_capture: bool) -> bool {
+        // A failed run may still be resumed: a job asked for with its
+        // capture waits for it to complete or be aborted.
+        self.inner().runs.get(id).is_some_and(|v| {
+            !v.active
+                && match v.state {
+                    RunState::Completed | RunState::Aborted => true,
+                    RunState::Failed => !after_capture,
+                    _ => false,
+                }
+        })
+    }
 }

@@ -501,19 +501,9 @@ impl RunDir {
                 &encoded
             }
         };
-        let tmp = root
-            .join(FRAMES_DIR)
-            .join(format!(".{:06}.{ext}.tmp", entry.index));
-        let written = File::create(&tmp)
-            .map_err(io(&tmp, "create"))
-            .and_then(|mut f| f.write_all(bytes).map_err(io(&tmp, "write")))
-            .and_then(|()| fs::rename(&tmp, &path).map_err(io(&path, "rename")));
-        if let Err(e) = written {
-            // A full disk leaves nothing half-written behind; the error is
-            // what matters, so a failing removal is not reported.
-            let _ = fs::remove_file(&tmp);
-            return Err(e);
-        }
+        // Not synced here: the journal line, which is, carries the frame's
+        // SHA-256, so a frame a crash lost or cut is known and taken again.
+        rigd_core::atomic::write_unsynced(&path, bytes)?;
         entry.file = rel;
         entry.sha256 = sha256_hex(bytes);
         entry.width = frame.width;
@@ -1015,8 +1005,9 @@ pub fn image_list(indices: &[usize]) -> String {
     }
 }
 
-/// Removes what a crash left half-written in `dir`: frames (`.NNNNNN.EXT.tmp`)
-/// and records (`.state.json.tmp.PID.N`, from `rigd_core::atomic`).
+/// Removes what a crash left half-written in `dir`: the temporaries of
+/// `rigd_core::atomic` (`.NAME.tmp.PID.N`), frames and records alike, and
+/// frames' temporaries of older versions (`.NNNNNN.EXT.tmp`).
 fn remove_temporaries(dir: &Path) -> Result<(), StoreError> {
     for entry in fs::read_dir(dir).map_err(io(dir, "read directory"))? {
         let entry = entry.map_err(io(dir, "read directory"))?;

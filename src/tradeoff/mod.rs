@@ -12,7 +12,7 @@
 //!   pairs show up as error). The BTF is compressed with C components and
 //!   reconstructed at held-out (light, view) pairs (eq. 3 and 5 of Sattler et al.).
 //!   The camera, registration and rectification are left out of this family:
-//!   `tests/process_run.rs` and `tests/btf_accuracy.rs` measure them
+//!   `tests/it/process_run.rs` and `tests/it/btf_accuracy.rs` measure them
 //!   (registration residual 0.02–0.09 px).
 //! - **pca**: C = 2, 4, 8, 16, 32 on H2: error, compressed size, compute time.
 //! - **fidelity**: the renderer with every effect the scene can show, then
@@ -695,7 +695,7 @@ const COMMON_MIN: (usize, f64) = (50, 0.01);
 /// sample) the rows have no error, and `detail` says so. `text` writes an
 /// error in the family's unit.
 fn rows_on_common_pixels(
-    subsets: Vec<(Row, crate::postprocess::truth::PixelErrors)>,
+    subsets: Vec<(Row, crate::postprocess::accuracy::PixelErrors)>,
     text: &dyn Fn(f64) -> String,
 ) -> Vec<Row> {
     let len = subsets
@@ -1098,7 +1098,7 @@ mod tests {
 
     #[test]
     fn settings_are_compared_on_the_pixels_all_of_them_measure() {
-        use crate::postprocess::truth::{PixelError, PixelErrors};
+        use crate::postprocess::accuracy::{PixelError, PixelErrors};
         // 200 sample pixels in four blocks of 50, and an off-sample one.
         let img = |blocks: [Option<f64>; 4]| PixelErrors {
             width: 20,
@@ -1138,7 +1138,7 @@ mod tests {
 
     #[test]
     fn settings_that_share_too_few_pixels_have_no_error_and_say_why() {
-        use crate::postprocess::truth::{PixelError, PixelErrors};
+        use crate::postprocess::accuracy::{PixelError, PixelErrors};
         // 400 sample pixels; the subsets share 3 of them.
         let img = |measured: usize| PixelErrors {
             width: 20,

@@ -307,7 +307,7 @@ fn a_bayer_camera_gives_rgb_normtextures_and_an_rgb_btf_near_the_true_one() {
     }
 }
 
-/// The BTF's colour in the PCA (issue 16): Sattler et al. compress each
+/// The BTF's colour in the PCA: Sattler et al. compress each
 /// view slot's RGB normtextures as vectors in R^(3·h·w), one joint PCA.
 /// Measured here on the scene's true RGB BTF against a PCA per channel
 /// (three times the per-light weights, the same eigen-texture storage) and

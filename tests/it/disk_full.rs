@@ -58,7 +58,7 @@ impl Drop for SmallDisk {
 }
 
 /// A write the full disk refused leaves no temporary file behind: not a
-/// frame's (`frames/.NNNNNN.EXT.tmp`), not a record's.
+/// frame's (`frames/.NNNNNN.EXT.tmp.PID.N`), not a record's.
 fn assert_no_temporaries(run: &Path) {
     for dir in [run.to_path_buf(), run.join("frames")] {
         let left: Vec<String> = std::fs::read_dir(&dir)

@@ -17,8 +17,9 @@ use std::sync::{Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use common::{assert_complete_run, repo_file, rigd, serve_sim};
-use rigd::rig::drivers::genicam::{self, GenicamCamera, GenicamConfig};
+use rigd::rig::drivers::genicam::{GenicamCamera, GenicamConfig};
 use rigd::rig::hal::{Camera, ErrorKind};
+use rigd::rig::hardware::genicam_opener;
 use rigd_core::{Clock, PixelFormat};
 
 /// The fake camera's program, from Debian's aravis-tools.
@@ -288,7 +289,7 @@ async fn lost_packets_make_bad_frames_and_never_a_partial_one() {
         readout_s: 0.0,
         transfer_s: 0.01,
     };
-    let (mut cam, id) = GenicamCamera::connect(cfg, genicam::opener("127.0.0.1"), Clock::real())
+    let (mut cam, id) = GenicamCamera::connect(cfg, genicam_opener("127.0.0.1"), Clock::real())
         .await
         .expect("connect to the fake camera");
     assert_eq!((id.vendor.as_str(), id.model.as_str()), ("Aravis", "Fake"));
@@ -340,7 +341,7 @@ async fn an_exposure_beyond_the_camera_s_range_is_refused() {
         transfer_s: 0.01,
     };
     let offers = "it offers 10 to 10000000 µs";
-    match GenicamCamera::connect(cfg(100.0), genicam::opener("127.0.0.1"), Clock::real()).await {
+    match GenicamCamera::connect(cfg(100.0), genicam_opener("127.0.0.1"), Clock::real()).await {
         Ok(_) => panic!("a 100 s exposure was set on a camera that exposes up to 10 s"),
         Err(e) => {
             assert_eq!(e.kind, ErrorKind::OutOfLimits, "{e}");
@@ -351,7 +352,7 @@ async fn an_exposure_beyond_the_camera_s_range_is_refused() {
         }
     }
     let (mut cam, _) =
-        GenicamCamera::connect(cfg(0.005), genicam::opener("127.0.0.1"), Clock::real())
+        GenicamCamera::connect(cfg(0.005), genicam_opener("127.0.0.1"), Clock::real())
             .await
             .expect("connect to the fake camera");
     let e = cam.set_exposure(100.0).await.expect_err("beyond 10 s");

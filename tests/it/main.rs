@@ -1,6 +1,6 @@
 //! rigd's integration tests, in one binary: linking all of rigd once instead of
 //! once per test file is most of what a build of the suite costs on two cores.
-//! Each module is one former test file; `common` holds their shared helpers.
+//! Each module is one area of behaviour; `common` holds their shared helpers.
 //! The dashboard's browser test is its own binary (`tests/browser.rs`).
 
 #[path = "../common/mod.rs"]

@@ -495,7 +495,7 @@ fn index_of(run: &Path) -> serde_json::Value {
         .unwrap()
 }
 
-/// Issue 17: frames without markers register from the pose, a black frame
+/// Frames without markers register from the pose, a black frame
 /// is filled from its neighbours, every substitute is flagged, and the BTF
 /// builds with an error against the truth close to a clean run's.
 #[test]

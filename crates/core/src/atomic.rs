@@ -32,6 +32,22 @@ pub fn write_with(
     path: &Path,
     fill: impl FnOnce(&mut BufWriter<&File>) -> std::io::Result<()>,
 ) -> Result<(), WriteError> {
+    write_through_temporary(path, true, fill)
+}
+
+/// Writes `bytes` to `path` whole or not at all, like [`write`], but
+/// without the fsync: for a file that another synced record vouches for
+/// (a frame, whose journal line carries its SHA-256) or that can be made
+/// again (a cache). A crash may lose it; it never leaves half of it.
+pub fn write_unsynced(path: &Path, bytes: &[u8]) -> Result<(), WriteError> {
+    write_through_temporary(path, false, |out| out.write_all(bytes))
+}
+
+fn write_through_temporary(
+    path: &Path,
+    sync: bool,
+    fill: impl FnOnce(&mut BufWriter<&File>) -> std::io::Result<()>,
+) -> Result<(), WriteError> {
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let dir = parent_dir(path);
     let fail = |path: &Path, op: &'static str| {
@@ -55,7 +71,9 @@ pub fn write_with(
         fill(&mut out).map_err(fail(&tmp, "write"))?;
         out.flush().map_err(fail(&tmp, "write"))?;
         drop(out);
-        file.sync_all().map_err(fail(&tmp, "fsync"))?;
+        if sync {
+            file.sync_all().map_err(fail(&tmp, "fsync"))?;
+        }
         std::fs::rename(&tmp, path).map_err(fail(path, "rename"))
     })();
     if result.is_err() {
@@ -110,6 +128,9 @@ mod tests {
         // A failing fill leaves neither the target nor a temporary file.
         let failed = dir.path().join("z.bin");
         assert!(write_with(&failed, |_| Err(std::io::Error::other("boom"))).is_err());
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        write_unsynced(&path, b"hi").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"hi");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
     }
 }

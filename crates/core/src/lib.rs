@@ -22,6 +22,7 @@ pub mod motion;
 pub mod pace;
 pub mod pixel_format;
 pub mod read;
+pub mod sync;
 pub mod text;
 
 pub use clock::{Clock, DeadlineElapsed};

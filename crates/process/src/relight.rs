@@ -1,6 +1,6 @@
 //! The reference relighting: a compressed BTF relit on a [`Mesh`] on the CPU,
 //! exactly as the browser viewer (`/viewer/{run}`) does it on the GPU, so it
-//! is the ground truth of the viewer's test (issue 8).
+//! is the ground truth of the viewer's browser test.
 //!
 //! # The image, step by step (the viewer's shader does the same)
 //!

@@ -1,5 +1,5 @@
 //! A processed run in the form the browser viewer uploads to WebGL2 without
-//! conversion (issue 8): one binary blob plus a JSON manifest saying where
+//! conversion: one binary blob plus a JSON manifest saying where
 //! each part lies.
 //!
 //! # BTF (`kind: "btf"`)

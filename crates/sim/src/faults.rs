@@ -183,15 +183,10 @@ impl FaultInjector {
             .retain(|(r, fired)| !(r.device == device && *fired));
     }
 
-    /// Clears every device.
-    pub fn clear_all(&self) {
-        self.lock().rules.retain(|(_, fired)| !*fired);
-    }
-
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {
         // A panic while holding this lock cannot leave the counters invalid,
         // so a poisoned lock is still safe to use.
-        self.state.lock().unwrap_or_else(|p| p.into_inner())
+        rigd_core::sync::lock(&self.state)
     }
 }
 

@@ -32,7 +32,7 @@ impl SharedWorld {
 
     fn lock(&self) -> MutexGuard<'_, World> {
         // Plain numbers: a panic elsewhere cannot leave them inconsistent.
-        self.0.lock().unwrap_or_else(|p| p.into_inner())
+        rigd_core::sync::lock(&self.0)
     }
 
     /// A copy of the world as it is now.
@@ -61,10 +61,5 @@ impl SharedWorld {
     /// turntable, or takes it away (`None`).
     pub fn set_plate(&self, height_mm: Option<f64>) {
         self.lock().plate_mm = height_mm;
-    }
-
-    /// Records whether the relay of the lamp (or laser) `name` is on.
-    pub fn set_lamp(&self, name: &str, on: bool) {
-        self.lock().lamps_on.insert(name.to_string(), on);
     }
 }

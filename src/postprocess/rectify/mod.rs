@@ -474,6 +474,7 @@ pub(crate) fn register_by_markers(
     Ok(rectifier.markers(image, &camera, entry)?.homography)
 }
 
+pub mod colour;
 mod part;
 mod resume;
 mod run;

@@ -44,7 +44,7 @@ pub fn first_pass_range(
         holder,
         layout,
         out_dir: out_dir.clone(),
-        colour: crate::postprocess::colour::texture_colour(run, true)?,
+        colour: super::colour::texture_colour(run, true)?,
     };
     let store = FirstPassStore::new(&out_dir, cfg, rectifier.colour.as_ref());
     let total = positions.len();

@@ -120,10 +120,9 @@ impl FirstPassStore {
             return;
         };
         let path = self.path(entry);
-        let tmp = path.with_extension("json.tmp");
-        let written = std::fs::create_dir_all(&self.dir)
-            .and_then(|()| std::fs::write(&tmp, json))
-            .and_then(|()| std::fs::rename(&tmp, &path));
+        let written = std::fs::create_dir_all(&self.dir).and_then(|()| {
+            rigd_core::atomic::write_unsynced(&path, &json).map_err(std::io::Error::from)
+        });
         if let Err(e) = written {
             tracing::debug!("{}: {e}", path.display());
         }

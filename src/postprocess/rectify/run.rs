@@ -42,7 +42,7 @@ pub fn rectify_run(
         holder,
         layout,
         out_dir: out_dir.clone(),
-        colour: crate::postprocess::colour::texture_colour(run, true)?,
+        colour: super::colour::texture_colour(run, true)?,
     };
     let (lights, views, slots) = assign_slots(&run.entries);
     let done = std::sync::atomic::AtomicUsize::new(0);

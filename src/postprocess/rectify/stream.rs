@@ -150,7 +150,7 @@ impl RectifyStream {
             holder: self.holder.clone(),
             layout: self.layout.clone(),
             out_dir: out_dir.clone(),
-            colour: crate::postprocess::colour::texture_colour(&run, false)?,
+            colour: super::colour::texture_colour(&run, false)?,
         };
         self.channels = rectifier.channels();
         let store = FirstPassStore::new(&out_dir, &self.cfg, rectifier.colour.as_ref());

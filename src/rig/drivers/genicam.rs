@@ -4,8 +4,8 @@
 //! cameras together).
 //!
 //! The driver speaks to a [`GenicamSession`]: the few blocking calls it
-//! needs of an open camera. [`crate::rig::drivers::aravis`] implements it
-//! with Aravis (cargo feature `genicam`); the tests here implement it with a
+//! needs of an open camera. `rig::drivers::aravis` implements it with
+//! Aravis (cargo feature `genicam`, chosen in `rig::hardware`); the tests here implement it with a
 //! scripted camera. Every blocking call runs on tokio's blocking pool,
 //! one at a time per camera, under the engine's deadlines.
 //!
@@ -219,7 +219,7 @@ impl GenicamCamera {
         let joined = tokio::task::spawn_blocking(move || {
             // A poisoned lock only means an earlier call panicked; the
             // state is still a session or none.
-            let mut guard = state.lock().unwrap_or_else(|e| e.into_inner());
+            let mut guard = rigd_core::sync::lock(&state);
             let st = &mut *guard;
             if st.session.is_none() {
                 let mut session = opener.open(&cfg)?;
@@ -351,39 +351,6 @@ fn frame_of(cfg: &GenicamConfig, b: StreamBuffer) -> Result<Frame, SessionError>
         }),
         original: None,
     })
-}
-
-/// Stands in for Aravis in a rigd built without the `genicam` feature:
-/// every open says how to get a build that has it.
-pub struct NoGenicam {
-    /// The camera's id, for messages.
-    pub id: String,
-}
-
-impl GenicamOpener for NoGenicam {
-    fn describe(&self) -> String {
-        format!("GenICam camera `{}`", self.id)
-    }
-
-    fn open(&self, _cfg: &GenicamConfig) -> Result<Box<dyn GenicamSession>, SessionError> {
-        Err(SessionError::new(
-            ErrorKind::NotReady,
-            "this rigd was built without GenICam support: install Debian's libaravis-dev (Aravis 0.8) and build with `cargo build --release --features genicam`",
-        ))
-    }
-}
-
-/// The opener of a camera on `transport = { type = "genicam", id }`: Aravis
-/// when built in, else [`NoGenicam`].
-pub fn opener(id: &str) -> Arc<dyn GenicamOpener> {
-    #[cfg(feature = "genicam")]
-    {
-        Arc::new(crate::rig::drivers::aravis::AravisOpener { id: id.to_string() })
-    }
-    #[cfg(not(feature = "genicam"))]
-    {
-        Arc::new(NoGenicam { id: id.to_string() })
-    }
 }
 
 #[cfg(test)]
@@ -578,7 +545,7 @@ mod tests {
     async fn a_build_without_aravis_says_how_to_get_one() {
         let e = GenicamCamera::connect(
             cfg(PixelFormat::Mono(8)),
-            Arc::new(NoGenicam { id: "x".into() }),
+            Arc::new(crate::rig::hardware::NoGenicam { id: "x".into() }),
             Clock::real(),
         )
         .await

@@ -9,7 +9,7 @@ use axum::Json;
 use super::AppState;
 use crate::server::error::{ApiError, ErrorBody};
 use crate::server::events::{self, DaemonEvent};
-use crate::server::model::*;
+use crate::server::wire::*;
 
 /// Liveness and what this daemon drives (never needs a token).
 #[utoipa::path(get, path = "/api/v1/health", tag = "daemon",

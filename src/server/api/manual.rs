@@ -14,7 +14,7 @@ use crate::engine::manual::{Jog, PoseReached};
 use crate::rig::hal::encode_png;
 use crate::server::api::frames::{make_preview, PREVIEW_MAX};
 use crate::server::error::{ApiError, ApiJson, ErrorBody};
-use crate::server::model::Dir;
+use crate::server::wire::Dir;
 
 /// One device, by its name in the profile.
 #[derive(Debug, Deserialize, ToSchema)]

@@ -22,8 +22,8 @@ use utoipa::OpenApi;
 
 use super::error::{ApiError, ErrorBody};
 use super::events::DaemonEvent;
-use super::model::*;
 use super::supervisor::Daemon;
+use super::wire::*;
 
 /// What every handler gets: the daemon.
 pub type AppState = Arc<Daemon>;
@@ -55,8 +55,8 @@ names in a request are looked up, never used as paths (docs/api.md, \"Security\"
         crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,
         manual::JogRequest, manual::PoseRequest, manual::SwitchRequest, manual::FrameRequest,
         manual::Reached, manual::Switched, manual::TestFrame, crate::engine::manual::PoseReached,
-        crate::server::processing::ProcessJob, crate::server::processing::StepStatus,
-        crate::server::processing::JobState, crate::postprocess::pipeline::ProcessOptions,
+        crate::server::wire::ProcessJob, crate::server::wire::StepStatus,
+        crate::server::wire::JobState, crate::postprocess::pipeline::ProcessOptions,
         crate::postprocess::pipeline::Step, crate::postprocess::pipeline::RectifyOptions,
         crate::postprocess::pipeline::BtfOptions, crate::postprocess::pipeline::FitOptions,
         crate::postprocess::pipeline::MdfOptions, crate::postprocess::pipeline::PsOptions,

@@ -8,10 +8,10 @@ use axum::Json;
 
 use super::AppState;
 use crate::server::error::{ApiError, ApiPath, ErrorBody};
-use crate::server::model::CommandAck;
 use crate::server::peers::{
     distinct_faults, ForwardError, PeerCommand, PeerList, PeerRun, RigSummary, LOCAL_NAME,
 };
+use crate::server::wire::CommandAck;
 
 /// This rig first (`local`, name `this rig`), then every peer of the peers
 /// file as of its last poll (once a second): reachable or not with the

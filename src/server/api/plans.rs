@@ -11,8 +11,8 @@ use crate::plan::BUILTIN_PLANS;
 use crate::schedule::timing::Timing;
 use crate::schedule::Schedule;
 use crate::server::error::{ApiError, ApiPath, ErrorBody};
-use crate::server::model::*;
 use crate::server::supervisor::Daemon;
+use crate::server::wire::*;
 
 fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
     let est = Timing::new(&d.profile, None).estimate_s(schedule, |_| false);

@@ -1,5 +1,5 @@
 //! `/runs/{id}/process`: processing a finished run in the daemon
-//! ([`crate::server::processing`]).
+//! ([`crate::server::jobs`]).
 
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -9,7 +9,8 @@ use super::not_found_run;
 use super::AppState;
 use crate::postprocess::pipeline::ProcessOptions;
 use crate::server::error::{ApiError, ApiJson, ApiPath, ErrorBody};
-use crate::server::processing::{Cancelled, ProcessJob, Submitted};
+use crate::server::jobs::{self, Cancelled, Submitted};
+use crate::server::wire::ProcessJob;
 
 /// Processes a finished run in the background, one job at a time beside
 /// the capture: the steps (`rectify`, `btf`, `fit`, `mdf`,
@@ -37,7 +38,7 @@ pub async fn submit(
 ) -> Result<(StatusCode, Json<ProcessJob>), ApiError> {
     // Reading the run's journal and options touches the disk.
     let daemon = d.clone();
-    let submitted = tokio::task::spawn_blocking(move || daemon.submit_processing(&id, options))
+    let submitted = tokio::task::spawn_blocking(move || jobs::submit(&*daemon, &id, options))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))??;
     Ok(match submitted {
@@ -83,7 +84,7 @@ pub async fn cancel(
 ) -> Result<Json<ProcessJob>, ApiError> {
     // Dropping a queued job rewrites its file.
     let daemon = d.clone();
-    let cancelled = tokio::task::spawn_blocking(move || daemon.cancel_processing(&id))
+    let cancelled = tokio::task::spawn_blocking(move || jobs::cancel(&*daemon, &id))
         .await
         .map_err(|e| ApiError::internal(e.to_string()))??;
     Ok(Json(match cancelled {

@@ -6,7 +6,7 @@ use axum::Json;
 
 use super::AppState;
 use crate::server::error::{ApiError, ApiJson, ApiPath, ErrorBody};
-use crate::server::model::*;
+use crate::server::wire::*;
 
 /// The queue, in order.
 #[utoipa::path(get, path = "/api/v1/queue", tag = "queue",

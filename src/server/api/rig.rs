@@ -8,7 +8,7 @@ use crate::model::profile::DeviceKind;
 use crate::model::run_state::RunState;
 use crate::rig::check::RigCheck;
 use crate::server::error::{ApiError, ErrorBody};
-use crate::server::model::*;
+use crate::server::wire::*;
 
 /// The rig: every device with its live state, lamp states and camera settings.
 #[utoipa::path(get, path = "/api/v1/rig", tag = "rig",

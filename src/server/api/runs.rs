@@ -11,8 +11,8 @@ use super::not_found_run;
 use super::AppState;
 use crate::engine::command::Command;
 use crate::server::error::{ApiError, ApiJson, ApiPath, ErrorBody};
-use crate::server::model::*;
 use crate::server::supervisor::Daemon;
+use crate::server::wire::*;
 
 /// Every run in the data directory, newest first.
 #[utoipa::path(get, path = "/api/v1/runs", tag = "runs",

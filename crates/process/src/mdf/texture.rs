@@ -164,9 +164,7 @@ impl MdfTexture {
         let json = serde_json::to_vec_pretty(&self.header)
             .map_err(|e| invalid(format!("MDF texture header: {e}")))?;
         let path = dir.join(MDF_TEXTURE_HEADER);
-        let tmp = dir.join(format!("{MDF_TEXTURE_HEADER}.tmp"));
-        std::fs::write(&tmp, json)
-            .and_then(|()| std::fs::rename(&tmp, &path))
+        rigd_core::atomic::write(&path, &json)
             .map_err(|e| invalid(format!("cannot write {}: {e}", path.display())))
     }
 

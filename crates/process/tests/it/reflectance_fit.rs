@@ -26,8 +26,8 @@ fn rings(thetas: &[f64]) -> Vec<[f64; 3]> {
     lights
 }
 
-/// The 81 lights of the issue: rings at 0, 15, …, 75° (the repo's plan.rs
-/// calls this sampling H2).
+/// 81 lights in rings at 0, 15, …, 75° (the plan module calls this
+/// sampling H2).
 fn lights_15() -> Vec<[f64; 3]> {
     rings(&[0.0, 15.0, 30.0, 45.0, 60.0, 75.0])
 }

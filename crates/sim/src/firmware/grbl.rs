@@ -70,7 +70,7 @@ impl Eeprom {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, BTreeMap<u16, f64>> {
         // Plain data: a panic elsewhere cannot leave it inconsistent.
-        self.0.lock().unwrap_or_else(|p| p.into_inner())
+        rigd_core::sync::lock(&self.0)
     }
 
     /// Setting `number`'s value, if the build has it.

@@ -156,7 +156,7 @@ impl ModbusModule {
 
     fn lock(&self) -> std::sync::MutexGuard<'_, State> {
         // Plain data: a panic elsewhere cannot leave it inconsistent.
-        self.shared.state.lock().unwrap_or_else(|p| p.into_inner())
+        rigd_core::sync::lock(&self.shared.state)
     }
 
     fn coil_count(&self) -> u16 {

@@ -13,9 +13,9 @@ use rigd_core::geometry::scale;
 use super::coverage::Coverage;
 use super::effects::{Effect, EffectPlan};
 use super::rays::{RayFan, Row};
-use super::render::{camera, Shot, WHITE_LEVEL};
 use super::sensor::max_code;
 use super::shade::{direct, Frame, Incidence, Primary, Shadow, Surface};
+use super::shot::{camera, Shot, WHITE_LEVEL};
 use super::Scene;
 
 /// Rows a render thread takes at a time.

@@ -15,6 +15,7 @@ mod rays;
 mod render;
 mod sensor;
 mod shade;
+mod shot;
 pub mod spec;
 mod surface;
 pub mod truth;
@@ -25,8 +26,9 @@ use std::sync::{Arc, OnceLock};
 
 use colour::{Response, SampleColour};
 pub use effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
-pub use render::{LaserSheet, Rendered, Shot, WHITE_LEVEL};
+pub use render::Rendered;
 pub use rigd_core::holder::{Holder, Marker};
+pub use shot::{LaserSheet, Shot, WHITE_LEVEL};
 pub use spec::SceneSpec;
 use spec::{AlbedoSpec, HeightSpec, MacroSpec, SensorSpec};
 use surface::SurfaceTexels;

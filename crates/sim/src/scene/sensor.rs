@@ -5,7 +5,7 @@
 
 use super::effects::{Effect, EffectPlan};
 use super::noise::Deviate;
-use super::render::Shot;
+use super::shot::Shot;
 use super::spec::SensorSpec;
 
 /// The sensor as one frame sets it up.

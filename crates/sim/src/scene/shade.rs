@@ -20,7 +20,7 @@ use rigd_core::geometry::{add, cross, dot, norm, normalize, scale, sub};
 use super::colour::{filtered, NEUTRAL};
 use super::effects::{Effect, EffectPlan};
 use super::march::{March, Marcher};
-use super::render::{LaserSheet, Shot};
+use super::shot::{LaserSheet, Shot};
 use super::surface::{Sampler, SurfaceTexels};
 use super::visibility::VisibilityMaps;
 use super::{Relief, Scene, Specular};

@@ -12,8 +12,8 @@
 use super::effects::{Effect, EffectSwitches};
 use rigd_core::geometry::{add, normalize, scale};
 
-use super::render::Shot;
 use super::shade::Frame;
+use super::shot::Shot;
 use super::{Marker, Scene};
 
 impl Scene {
@@ -119,7 +119,7 @@ impl Scene {
         let mut s = *shot;
         s.effects.forbid.remove(Effect::Relief);
         let frame = Frame::new(self, &s);
-        let (o, d) = super::render::camera(self, &s).ray(i, j);
+        let (o, d) = super::shot::camera(self, &s).ray(i, j);
         frame.intersect(o, d)
     }
 

@@ -28,15 +28,16 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
-use serde::{Deserialize, Serialize};
-use utoipa::ToSchema;
-
-use super::supervisor::{lock, Daemon, SupervisorError};
+use super::error::SupervisorError;
+use super::events::EventHub;
+use super::wire::{JobState, ProcessJob, RunView, StepStatus};
 use crate::model::run_state::RunState;
+use crate::postprocess::executor::ProcessingConfig;
 use crate::postprocess::frames::RunFrames;
 use crate::postprocess::pipeline::{self, ProcessOptions, RunFacts, Step};
 use crate::postprocess::slurm::SlurmError;
 use crate::store::StoreError;
+use rigd_core::sync::lock;
 
 /// The job's file in `RUN/processed/`.
 pub const JOB_FILE: &str = "job.json";
@@ -47,83 +48,6 @@ const EVENT_INTERVAL: Duration = Duration::from_millis(500);
 const IDLE_RECHECK: Duration = pipeline::STREAM_POLL;
 /// How long a stream that failed waits before it tries again.
 const STREAM_RETRY: Duration = Duration::from_secs(30);
-
-/// Where a job or one of its steps is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum JobState {
-    /// Waiting for its turn (a step: not started).
-    Queued,
-    /// Running now.
-    Running,
-    /// Finished.
-    Done,
-    /// Stopped by an error (`error` says which).
-    Failed,
-}
-
-/// One step of a job.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
-pub struct StepStatus {
-    /// The step.
-    pub step: Step,
-    /// Where it is.
-    pub state: JobState,
-    /// Units done: frames (rectify), view slots (btf, fit), sweeps (mdf),
-    /// rows (photometric-stereo).
-    pub done: usize,
-    /// Units in all; 0 until the step reports.
-    pub total: usize,
-    /// Wall seconds the step has run (this attempt).
-    pub elapsed_s: f64,
-    /// Estimated wall seconds left in this step, while it runs.
-    pub eta_s: Option<f64>,
-    /// What the step wrote, when done.
-    pub summary: Option<String>,
-    /// The executor's latest word while the step runs on Slurm: the job
-    /// and its array, a task submitted again. `done` and `total` count
-    /// the array's tasks until they are all done, then the join's units.
-    #[serde(default)]
-    pub detail: Option<String>,
-}
-
-/// A run's process job, as `RUN/processed/job.json` keeps it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
-pub struct ProcessJob {
-    /// The run.
-    pub run: String,
-    /// The steps and options, defaults filled in.
-    pub options: ProcessOptions,
-    /// Where the job is.
-    pub state: JobState,
-    /// Its steps, in running order.
-    pub steps: Vec<StepStatus>,
-    /// Why it failed.
-    pub error: Option<String>,
-    /// When it was asked for, RFC 3339 UTC.
-    pub created_at: String,
-    /// When it last changed state, RFC 3339 UTC.
-    pub updated_at: String,
-    /// How often a daemon start took it up again after it was cut short.
-    pub resumed: u32,
-    /// Asked for with the run (`process` in `POST /runs`): it waits for
-    /// the capture to complete or be aborted.
-    #[serde(default)]
-    pub after_capture: bool,
-    /// Frames from the start of the capture whose registration (the
-    /// `rectify` step's first pass) was done while the capture ran; the
-    /// step takes them as they are.
-    #[serde(default)]
-    pub streamed: usize,
-    /// View slots compressed while the capture ran (the `btf` step's work
-    /// for each slot whose lights were all in); the step takes them.
-    #[serde(default)]
-    pub slots_ahead: usize,
-    /// The operator asked to cancel it while it ran: a step on Slurm stops
-    /// at once (`scancel`), a local step at its end.
-    #[serde(default)]
-    pub cancelling: bool,
-}
 
 impl ProcessJob {
     fn new(run: &str, options: ProcessOptions) -> ProcessJob {
@@ -328,6 +252,27 @@ enum Work {
     Stream(String),
 }
 
+/// What the jobs need of the daemon around them: the run history, the
+/// event hub and where steps run. The supervisor provides it.
+pub trait JobHost: Send + Sync + 'static {
+    /// The process jobs.
+    fn jobs(&self) -> &Jobs;
+    /// Where events go out.
+    fn hub(&self) -> &EventHub;
+    /// Where the steps run: here, or on Slurm.
+    fn executor(&self) -> &ProcessingConfig;
+    /// A known run's folder.
+    fn run_root(&self, id: &str) -> Option<PathBuf>;
+    /// A known run as the API shows it.
+    fn view(&self, id: &str) -> Option<RunView>;
+    /// Whether run `id` is being captured now.
+    fn capturing(&self, id: &str) -> bool;
+    /// Whether run `id` can be processed now: it has ended, and a job asked
+    /// for with the capture (`after_capture`) only once it completed or was
+    /// aborted.
+    fn ready_to_process(&self, id: &str, after_capture: bool) -> bool;
+}
+
 /// Whether a submission made a new job or found one.
 pub enum Submitted {
     /// A job was queued (new, or a failed one resumed).
@@ -336,18 +281,18 @@ pub enum Submitted {
     Existing(ProcessJob),
 }
 
-impl Daemon {
-    /// Queues `options` for run `id`, or returns the same job if it is
-    /// already queued, running or done.
-    pub fn submit_processing(
-        &self,
-        id: &str,
-        options: ProcessOptions,
-    ) -> Result<Submitted, SupervisorError> {
-        let root = self
+/// Queues `options` for run `id`, or returns the same job if it is already
+/// queued, running or done.
+pub fn submit(
+    host: &dyn JobHost,
+    id: &str,
+    options: ProcessOptions,
+) -> Result<Submitted, SupervisorError> {
+    {
+        let root = host
             .run_root(id)
             .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
-        let view = self
+        let view = host
             .view(id)
             .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
         if view.active
@@ -372,8 +317,7 @@ impl Daemon {
             .resolve(&RunFacts::of_run(&frames))
             .map_err(SupervisorError::invalid)?;
         // A cluster that cannot take the job is said now, not after it queued.
-        self.config
-            .processing
+        host.executor()
             .check(&root)
             .map_err(|e| SupervisorError::invalid(format!("processing on Slurm: {e}")))?;
         if options.steps.contains(&Step::Rectify) {
@@ -381,7 +325,7 @@ impl Daemon {
                 pipeline::check_frame_size(size).map_err(SupervisorError::invalid)?;
             }
         }
-        let mut jobs = lock(&self.processing.jobs);
+        let mut jobs = lock(&host.jobs().jobs);
         let job = match jobs.get(id) {
             Some(j) if j.options == options && j.state != JobState::Failed => {
                 return Ok(Submitted::Existing(j.clone()));
@@ -401,28 +345,26 @@ impl Daemon {
         write_job(&root, &job).map_err(SupervisorError::internal)?;
         jobs.insert(id.to_string(), job.clone());
         drop(jobs);
-        self.hub.publish(Some(id), "process", job.event());
-        self.processing.wake.notify_all();
+        host.hub().publish(Some(id), "process", job.event());
+        host.jobs().wake.notify_all();
         Ok(Submitted::Queued(job))
     }
 }
 
-impl Daemon {
-    /// Queues run `id`'s processing to start when its capture ends (the
-    /// options resolved and checked against its plan).
-    pub(crate) fn queue_after_capture(
-        &self,
-        id: &str,
-        options: ProcessOptions,
-    ) -> Result<(), SupervisorError> {
-        let root = self.runs_dir.join(id);
-        let mut job = ProcessJob::new(id, options);
-        job.after_capture = true;
-        write_job(&root, &job).map_err(SupervisorError::internal)?;
-        lock(&self.processing.jobs).insert(id.to_string(), job.clone());
-        self.hub.publish(Some(id), "process", job.event());
-        Ok(())
-    }
+/// Queues the processing of run `id` (in `root`) to start when its capture
+/// ends (the options resolved and checked against its plan).
+pub fn queue_after_capture(
+    host: &dyn JobHost,
+    root: &Path,
+    id: &str,
+    options: ProcessOptions,
+) -> Result<(), SupervisorError> {
+    let mut job = ProcessJob::new(id, options);
+    job.after_capture = true;
+    write_job(root, &job).map_err(SupervisorError::internal)?;
+    lock(&host.jobs().jobs).insert(id.to_string(), job.clone());
+    host.hub().publish(Some(id), "process", job.event());
+    Ok(())
 }
 
 /// What a cancel request did.
@@ -437,14 +379,14 @@ pub enum Cancelled {
 /// The error of a job the operator cancelled.
 pub const CANCELLED: &str = "cancelled by the operator";
 
-impl Daemon {
-    /// Cancels run `id`'s process job: a queued one is dropped, a running
-    /// one stops (on Slurm its arrays are cancelled with `scancel`).
-    pub fn cancel_processing(&self, id: &str) -> Result<Cancelled, SupervisorError> {
-        let root = self
+/// Cancels run `id`'s process job: a queued one is dropped, a running one
+/// stops (on Slurm its arrays are cancelled with `scancel`).
+pub fn cancel(host: &dyn JobHost, id: &str) -> Result<Cancelled, SupervisorError> {
+    {
+        let root = host
             .run_root(id)
             .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
-        let mut jobs = lock(&self.processing.jobs);
+        let mut jobs = lock(&host.jobs().jobs);
         let job = jobs
             .get_mut(id)
             .ok_or_else(|| SupervisorError::not_found(format!("run `{id}` has no process job")))?;
@@ -458,7 +400,7 @@ impl Daemon {
             }
             JobState::Running => {
                 job.cancelling = true;
-                self.processing.cancel.store(true, Ordering::SeqCst);
+                host.jobs().cancel.store(true, Ordering::SeqCst);
                 Cancelled::Stopping(job.clone())
             }
             JobState::Done | JobState::Failed => {
@@ -476,16 +418,16 @@ impl Daemon {
             Cancelled::Dropped(j) | Cancelled::Stopping(j) => j.event(),
         };
         drop(jobs);
-        self.hub.publish(Some(id), "process", event);
+        host.hub().publish(Some(id), "process", event);
         Ok(outcome)
     }
 }
 
 /// Starts the worker thread that runs the queued jobs one at a time, and
 /// between them registers the frames of a capture whose job waits for it.
-pub fn start_worker(daemon: &Arc<Daemon>) -> Result<(), String> {
+pub fn start_worker(host: Arc<dyn JobHost>) -> Result<(), String> {
     let pool = pipeline::background_pool("rigd-process")?;
-    let d = daemon.clone();
+    let d = host;
     std::thread::Builder::new()
         .name("rigd-process".into())
         .spawn(move || {
@@ -502,12 +444,12 @@ pub fn start_worker(daemon: &Arc<Daemon>) -> Result<(), String> {
                         && streams.due(&job.run)
                         && d.capturing(&job.run)
                 };
-                match d.processing.next_work(&ready, &streamable) {
+                match d.jobs().next_work(&ready, &streamable) {
                     Some(Work::Job(id)) => {
                         streams.runs.remove(&id);
-                        run_job(&d, &pool, &id);
+                        run_job(&*d, &pool, &id);
                     }
-                    Some(Work::Stream(id)) => streams.advance(&d, &pool, &id),
+                    Some(Work::Stream(id)) => streams.advance(&*d, &pool, &id),
                     None => break,
                 }
             }
@@ -530,7 +472,7 @@ impl Streams {
     }
 
     /// Registers the next batch of run `id`'s journaled frames.
-    fn advance(&mut self, d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
+    fn advance(&mut self, d: &dyn JobHost, pool: &rayon::ThreadPool, id: &str) {
         let retry_later = |streams: &mut Streams, e: String| {
             tracing::warn!(
                 "registering {id}'s frames during the capture: {e}; again in {STREAM_RETRY:?}"
@@ -539,7 +481,7 @@ impl Streams {
                 .not_before
                 .insert(id.to_string(), Instant::now() + STREAM_RETRY);
         };
-        let (Some(root), Some(job)) = (d.run_root(id), d.processing.get(id)) else {
+        let (Some(root), Some(job)) = (d.run_root(id), d.jobs().get(id)) else {
             return;
         };
         if !self.runs.contains_key(id) {
@@ -564,12 +506,12 @@ impl Streams {
                         .insert(id.to_string(), Instant::now() + pipeline::STREAM_POLL);
                 } else {
                     self.not_before.remove(id);
-                    if let Some(event) = d.processing.with_job(id, |j| {
+                    if let Some(event) = d.jobs().with_job(id, |j| {
                         j.streamed = p.frames.done;
                         j.slots_ahead = p.slots_ahead;
                         j.event()
                     }) {
-                        d.hub.publish(Some(id), "process", event);
+                        d.hub().publish(Some(id), "process", event);
                     }
                 }
             }
@@ -579,9 +521,9 @@ impl Streams {
     }
 }
 
-fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
+fn run_job(d: &dyn JobHost, pool: &rayon::ThreadPool, id: &str) {
     let Some(root) = d.run_root(id) else {
-        d.processing.update(id, |j| {
+        d.jobs().update(id, |j| {
             j.state = JobState::Failed;
             j.error = Some("the run is gone".into());
         });
@@ -591,10 +533,10 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
         if let Err(e) = write_job(&root, job) {
             tracing::warn!("process job of {id}: {e}");
         }
-        d.hub.publish(Some(id), "process", job.event());
+        d.hub().publish(Some(id), "process", job.event());
     };
-    d.processing.cancel.store(false, Ordering::SeqCst);
-    let Some(job) = d.processing.update(id, |j| {
+    d.jobs().cancel.store(false, Ordering::SeqCst);
+    let Some(job) = d.jobs().update(id, |j| {
         j.state = JobState::Running;
         j.cancelling = false;
         j.updated_at = crate::store::now_rfc3339();
@@ -606,12 +548,12 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
         if status.state == JobState::Done {
             continue;
         }
-        if d.processing.stop.load(Ordering::SeqCst) {
+        if d.jobs().stop.load(Ordering::SeqCst) {
             // Left running on disk: the next start resumes here.
             return;
         }
-        if d.processing.cancel.load(Ordering::SeqCst) {
-            if let Some(j) = d.processing.update(id, |j| {
+        if d.jobs().cancel.load(Ordering::SeqCst) {
+            if let Some(j) = d.jobs().update(id, |j| {
                 j.state = JobState::Failed;
                 j.error = Some(CANCELLED.into());
                 j.cancelling = false;
@@ -622,7 +564,7 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
             return;
         }
         let step = status.step;
-        if let Some(j) = d.processing.update(id, |j| {
+        if let Some(j) = d.jobs().update(id, |j| {
             j.steps[k].state = JobState::Running;
             j.updated_at = crate::store::now_rfc3339();
         }) {
@@ -644,7 +586,7 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
             };
             // Called per frame: the job is only copied into an event when
             // one is due.
-            let event = d.processing.with_job(id, |j| {
+            let event = d.jobs().with_job(id, |j| {
                 let s = &mut j.steps[k];
                 s.done = done;
                 s.total = total;
@@ -653,32 +595,31 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
                 due.then(|| j.event())
             });
             if let Some(event) = event.flatten() {
-                d.hub.publish(Some(id), "process", event);
+                d.hub().publish(Some(id), "process", event);
             }
         };
         let notes = |note: &str| {
             tracing::info!("processing {id}: {note}");
-            if let Some(event) = d.processing.with_job(id, |j| {
+            if let Some(event) = d.jobs().with_job(id, |j| {
                 j.steps[k].detail = Some(note.to_string());
                 j.event()
             }) {
-                d.hub.publish(Some(id), "process", event);
+                d.hub().publish(Some(id), "process", event);
             }
         };
         let options = job.options.clone();
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
             pool.install(|| {
-                d.config
-                    .processing
+                d.executor()
                     .run_step(&root, step, &options, &progress, &notes, &|| {
-                        d.processing.stop.load(Ordering::SeqCst)
-                            || d.processing.cancel.load(Ordering::SeqCst)
+                        d.jobs().stop.load(Ordering::SeqCst)
+                            || d.jobs().cancel.load(Ordering::SeqCst)
                     })
             })
         }));
         let outcome = match result {
             Ok(Ok(summary)) => Ok(summary),
-            Ok(Err(SlurmError::Cancelled { .. })) if d.processing.stop.load(Ordering::SeqCst) => {
+            Ok(Err(SlurmError::Cancelled { .. })) if d.jobs().stop.load(Ordering::SeqCst) => {
                 // The daemon is stopping: the job stays running on disk and
                 // the next start submits what is not done again.
                 return;
@@ -694,7 +635,7 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
         };
         let elapsed = started.elapsed().as_secs_f64();
         let failed = outcome.is_err();
-        if let Some(j) = d.processing.update(id, |j| {
+        if let Some(j) = d.jobs().update(id, |j| {
             let s = &mut j.steps[k];
             s.elapsed_s = elapsed;
             s.eta_s = None;
@@ -720,7 +661,7 @@ fn run_job(d: &Daemon, pool: &rayon::ThreadPool, id: &str) {
             return;
         }
     }
-    if let Some(j) = d.processing.update(id, |j| {
+    if let Some(j) = d.jobs().update(id, |j| {
         j.state = JobState::Done;
         // A cancel that came during the last local step came too late.
         j.cancelling = false;

@@ -11,8 +11,8 @@ use rigd_core::holder::PlacedPatch;
 use rigd_process::colour::{self as cc, ColourCalibration, PatchReading};
 use serde::{Deserialize, Serialize};
 
-use super::frames::{ColourPlanes, RunFrames};
-use super::ProcessError;
+use crate::postprocess::frames::{ColourPlanes, RunFrames};
+use crate::postprocess::ProcessError;
 
 /// The calibration's file in `RUN/processed/`.
 pub const COLOUR_FILE: &str = "colour.json";
@@ -204,7 +204,7 @@ pub fn colour_file(run: &Path) -> PathBuf {
 /// [`FRAMES_AVERAGED`]), calibrates on their mean and writes
 /// `RUN/processed/colour.json`.
 pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
-    let (holder, _) = super::rectify::holder_of(&run.meta)?;
+    let (holder, _) = super::holder_of(&run.meta)?;
     if holder.patches.is_empty() {
         return Err(ProcessError::Invalid(format!(
             "the run's holder carries no colour reference patches{}",
@@ -312,7 +312,7 @@ fn read_patches(
     // The grey `RunFrames::image` reads, from the planes already decoded.
     let mut grey = rigd_process::image_io::Image::new(planes.width, planes.height, 1);
     grey.data = rigd_process::demosaic::luminance(&planes.rgb);
-    let h = super::rectify::register_by_markers(run, entry, &grey)?;
+    let h = super::register_by_markers(run, entry, &grey)?;
     let n = POINTS_PER_SIDE;
     // Points evenly over [-1, 1] (`n` of them), scaled by the caller.
     let spread = |k: usize| 2.0 * (k as f64 + 0.5) / n as f64 - 1.0;
