@@ -61,16 +61,12 @@ struct DaemonFile {
 }
 
 fn read_config(path: &std::path::Path) -> Result<DaemonFile> {
-    let text = rigd_core::read::read_text(path, rigd_core::read::TEXT_LIMIT)
-        .map_err(std::io::Error::from)
-        .context("cannot read the configuration")?;
-    toml::from_str(rigd_core::text::strip_bom(&text)).map_err(|e: toml::de::Error| {
-        super::exit::bad_input(format!(
-            "{}: {}",
-            path.display(),
-            e.message().trim().replace('\n', "; ")
-        ))
-    })
+    rigd_core::config::load(
+        path,
+        rigd_core::read::TEXT_LIMIT,
+        rigd_core::config::Format::Toml,
+    )
+    .map_err(|e| super::exit::bad_input(e.to_string()))
 }
 
 /// Runs `rigd serve` until a signal stops it.

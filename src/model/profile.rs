@@ -33,27 +33,10 @@ pub const EMBEDDED: &[(&str, &str)] = &[
 /// The profile used when none is given: the simulated Bonn gonioreflectometer.
 pub const DEFAULT_PROFILE: &str = "bonn-gonioreflectometer";
 
-/// A profile that could not be loaded: where, which key, and what was expected.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub struct ProfileError {
-    /// The file's path as given, or `<embedded NAME>` for an embedded profile.
-    pub file: String,
-    /// The dotted key the error is about (`devices.rail.limits`); empty when
-    /// it concerns the whole file.
-    pub key: String,
-    /// What is wrong and what was expected, on one line.
-    pub message: String,
-}
-
-impl fmt::Display for ProfileError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        if self.key.is_empty() {
-            write!(f, "{}: {}", self.file, self.message)
-        } else {
-            write!(f, "{}: {}: {}", self.file, self.key, self.message)
-        }
-    }
-}
+/// A profile that could not be loaded: where (the file's path as given,
+/// or `<embedded NAME>` for an embedded profile), which key, and what was
+/// expected; the shape of every configuration file's error.
+pub type ProfileError = rigd_core::config::ConfigError;
 
 /// One rig's description.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -695,38 +678,22 @@ impl Profile {
     /// Reads, parses and validates the profile file at `path`; errors name
     /// that path.
     pub fn from_file(path: &Path) -> Result<Profile, ProfileError> {
-        let file = path.display().to_string();
-        let text = rigd_core::read::read_text(path, rigd_core::read::TEXT_LIMIT).map_err(|e| {
-            ProfileError {
-                file: file.clone(),
-                key: String::new(),
-                message: e.reason.to_string(),
-            }
-        })?;
-        Profile::parse(&text, &file)
+        let profile = rigd_core::config::load(
+            path,
+            rigd_core::read::TEXT_LIMIT,
+            rigd_core::config::Format::Toml,
+        )?;
+        Profile::checked(profile, &path.display().to_string())
     }
 
     /// Parses and validates profile text; `file` names it in errors.
     pub fn parse(text: &str, file: &str) -> Result<Profile, ProfileError> {
-        let text = rigd_core::text::strip_bom(text);
-        let de = toml::Deserializer::new(text);
-        let mut profile: Profile = serde_path_to_error::deserialize(de).map_err(|e| {
-            let key = e.path().to_string();
-            let inner = e.into_inner();
-            let location = inner
-                .span()
-                .map(|s| {
-                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
-                    format!(" (line {line})")
-                })
-                .unwrap_or_default();
-            ProfileError {
-                file: file.to_string(),
-                key: if key == "." { String::new() } else { key },
-                // toml's messages can span lines; an operator's error is one line.
-                message: format!("{}{location}", inner.message().trim().replace('\n', "; ")),
-            }
-        })?;
+        let profile = rigd_core::config::parse(text, file, rigd_core::config::Format::Toml)?;
+        Profile::checked(profile, file)
+    }
+
+    /// A parsed profile, validated and with its azimuths normalised.
+    fn checked(mut profile: Profile, file: &str) -> Result<Profile, ProfileError> {
         profile.validate().map_err(|(key, message)| ProfileError {
             file: file.to_string(),
             key,

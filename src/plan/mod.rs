@@ -284,14 +284,14 @@ pub fn from_file(path: &Path) -> Result<Plan, PlanError> {
         file: file.clone(),
         why,
     };
-    let text = rigd_core::read::read_text(path, rigd_core::read::PLAN_LIMIT)
-        .map_err(|e| err(e.reason.to_string()))?;
-    let text = rigd_core::text::strip_bom(&text);
-    let parsed: PlanFile = if file.ends_with(".toml") {
-        toml::from_str(text).map_err(|e| err(e.message().to_string()))?
+    // A plan is JSON unless its name ends in `.toml`.
+    let format = if file.ends_with(".toml") {
+        rigd_core::config::Format::Toml
     } else {
-        serde_json::from_str(text).map_err(|e| err(e.to_string()))?
+        rigd_core::config::Format::Json
     };
+    let parsed: PlanFile = rigd_core::config::load(path, rigd_core::read::PLAN_LIMIT, format)
+        .map_err(|e| err(e.detail()))?;
     let stem = path
         .file_stem()
         .map(|s| s.to_string_lossy().into_owned())

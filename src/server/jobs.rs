@@ -288,67 +288,65 @@ pub fn submit(
     id: &str,
     options: ProcessOptions,
 ) -> Result<Submitted, SupervisorError> {
+    let root = host
+        .run_root(id)
+        .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
+    let view = host
+        .view(id)
+        .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
+    if view.active
+        || !matches!(
+            view.state,
+            RunState::Completed | RunState::Aborted | RunState::Failed
+        )
     {
-        let root = host
-            .run_root(id)
-            .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
-        let view = host
-            .view(id)
-            .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
-        if view.active
-            || !matches!(
-                view.state,
-                RunState::Completed | RunState::Aborted | RunState::Failed
-            )
-        {
+        return Err(SupervisorError::conflict(format!(
+            "run `{id}` is {}: a run is processed once it has ended (completed, aborted or failed)",
+            view.state
+        )));
+    }
+    let frames = RunFrames::open(&root).map_err(|e| match e {
+        // The run's record cannot be used as it is: the request is refused.
+        crate::postprocess::ProcessError::Store(StoreError::Corrupt { .. }) => {
+            SupervisorError::invalid(e.to_string())
+        }
+        e => SupervisorError::internal(e.to_string()),
+    })?;
+    let options = options
+        .resolve(&RunFacts::of_run(&frames))
+        .map_err(SupervisorError::invalid)?;
+    // A cluster that cannot take the job is said now, not after it queued.
+    host.executor()
+        .check(&root)
+        .map_err(|e| SupervisorError::invalid(format!("processing on Slurm: {e}")))?;
+    if options.steps.contains(&Step::Rectify) {
+        if let Some(size) = view.frame_size {
+            pipeline::check_frame_size(size).map_err(SupervisorError::invalid)?;
+        }
+    }
+    let mut jobs = lock(&host.jobs().jobs);
+    let job = match jobs.get(id) {
+        Some(j) if j.options == options && j.state != JobState::Failed => {
+            return Ok(Submitted::Existing(j.clone()));
+        }
+        Some(j) if j.state == JobState::Running => {
             return Err(SupervisorError::conflict(format!(
-                "run `{id}` is {}: a run is processed once it has ended (completed, aborted or failed)",
-                view.state
+                "run `{id}` is being processed with other options; ask again when it has ended"
             )));
         }
-        let frames = RunFrames::open(&root).map_err(|e| match e {
-            // The run's record cannot be used as it is: the request is refused.
-            crate::postprocess::ProcessError::Store(StoreError::Corrupt { .. }) => {
-                SupervisorError::invalid(e.to_string())
-            }
-            e => SupervisorError::internal(e.to_string()),
-        })?;
-        let options = options
-            .resolve(&RunFacts::of_run(&frames))
-            .map_err(SupervisorError::invalid)?;
-        // A cluster that cannot take the job is said now, not after it queued.
-        host.executor()
-            .check(&root)
-            .map_err(|e| SupervisorError::invalid(format!("processing on Slurm: {e}")))?;
-        if options.steps.contains(&Step::Rectify) {
-            if let Some(size) = view.frame_size {
-                pipeline::check_frame_size(size).map_err(SupervisorError::invalid)?;
-            }
+        Some(j) if j.options == options => {
+            let mut j = j.clone();
+            j.requeue();
+            j
         }
-        let mut jobs = lock(&host.jobs().jobs);
-        let job = match jobs.get(id) {
-            Some(j) if j.options == options && j.state != JobState::Failed => {
-                return Ok(Submitted::Existing(j.clone()));
-            }
-            Some(j) if j.state == JobState::Running => {
-                return Err(SupervisorError::conflict(format!(
-                    "run `{id}` is being processed with other options; ask again when it has ended"
-                )));
-            }
-            Some(j) if j.options == options => {
-                let mut j = j.clone();
-                j.requeue();
-                j
-            }
-            _ => ProcessJob::new(id, options),
-        };
-        write_job(&root, &job).map_err(SupervisorError::internal)?;
-        jobs.insert(id.to_string(), job.clone());
-        drop(jobs);
-        host.hub().publish(Some(id), "process", job.event());
-        host.jobs().wake.notify_all();
-        Ok(Submitted::Queued(job))
-    }
+        _ => ProcessJob::new(id, options),
+    };
+    write_job(&root, &job).map_err(SupervisorError::internal)?;
+    jobs.insert(id.to_string(), job.clone());
+    drop(jobs);
+    host.hub().publish(Some(id), "process", job.event());
+    host.jobs().wake.notify_all();
+    Ok(Submitted::Queued(job))
 }
 
 /// Queues the processing of run `id` (in `root`) to start when its capture
@@ -382,45 +380,43 @@ pub const CANCELLED: &str = "cancelled by the operator";
 /// Cancels run `id`'s process job: a queued one is dropped, a running one
 /// stops (on Slurm its arrays are cancelled with `scancel`).
 pub fn cancel(host: &dyn JobHost, id: &str) -> Result<Cancelled, SupervisorError> {
-    {
-        let root = host
-            .run_root(id)
-            .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
-        let mut jobs = lock(&host.jobs().jobs);
-        let job = jobs
-            .get_mut(id)
-            .ok_or_else(|| SupervisorError::not_found(format!("run `{id}` has no process job")))?;
-        let outcome = match job.state {
-            JobState::Queued => {
-                job.state = JobState::Failed;
-                job.error = Some(CANCELLED.into());
-                job.updated_at = crate::store::now_rfc3339();
-                write_job(&root, job).map_err(SupervisorError::internal)?;
-                Cancelled::Dropped(job.clone())
-            }
-            JobState::Running => {
-                job.cancelling = true;
-                host.jobs().cancel.store(true, Ordering::SeqCst);
-                Cancelled::Stopping(job.clone())
-            }
-            JobState::Done | JobState::Failed => {
-                return Err(SupervisorError::conflict(format!(
-                    "run `{id}`'s process job has ended ({}): nothing to cancel",
-                    if job.state == JobState::Done {
-                        "done"
-                    } else {
-                        "failed"
-                    }
-                )));
-            }
-        };
-        let event = match &outcome {
-            Cancelled::Dropped(j) | Cancelled::Stopping(j) => j.event(),
-        };
-        drop(jobs);
-        host.hub().publish(Some(id), "process", event);
-        Ok(outcome)
-    }
+    let root = host
+        .run_root(id)
+        .ok_or_else(|| SupervisorError::not_found(format!("no run `{id}`")))?;
+    let mut jobs = lock(&host.jobs().jobs);
+    let job = jobs
+        .get_mut(id)
+        .ok_or_else(|| SupervisorError::not_found(format!("run `{id}` has no process job")))?;
+    let outcome = match job.state {
+        JobState::Queued => {
+            job.state = JobState::Failed;
+            job.error = Some(CANCELLED.into());
+            job.updated_at = crate::store::now_rfc3339();
+            write_job(&root, job).map_err(SupervisorError::internal)?;
+            Cancelled::Dropped(job.clone())
+        }
+        JobState::Running => {
+            job.cancelling = true;
+            host.jobs().cancel.store(true, Ordering::SeqCst);
+            Cancelled::Stopping(job.clone())
+        }
+        JobState::Done | JobState::Failed => {
+            return Err(SupervisorError::conflict(format!(
+                "run `{id}`'s process job has ended ({}): nothing to cancel",
+                if job.state == JobState::Done {
+                    "done"
+                } else {
+                    "failed"
+                }
+            )));
+        }
+    };
+    let event = match &outcome {
+        Cancelled::Dropped(j) | Cancelled::Stopping(j) => j.event(),
+    };
+    drop(jobs);
+    host.hub().publish(Some(id), "process", event);
+    Ok(outcome)
 }
 
 /// Starts the worker thread that runs the queued jobs one at a time, and

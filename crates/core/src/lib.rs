@@ -4,10 +4,12 @@
 //! vector and rotation helpers around them ([`geometry`]), and the physical
 //! things both the simulator and the processing model: the camera
 //! ([`camera`]) and the sample holder with its markers ([`holder`]); and
-//! the pixel formats of raw frames ([`pixel_format`]); how hand-written
-//! text files are read ([`text`]), bounded reads of files named from
-//! outside ([`read`]) and whole-or-nothing writes ([`atomic`]); and virtual
-//! time paced to the wall clock for sped-up demos ([`pace`]).
+//! the pixel formats of raw frames ([`pixel_format`]); bounded reads of
+//! files named from outside and of hand-written text ([`read`]), one
+//! loader for configuration files ([`config`]),
+//! whole-or-nothing writes ([`atomic`]) and locks that outlive a panic
+//! ([`sync`]); and virtual time paced to the wall clock for sped-up demos
+//! ([`pace`]).
 //!
 //! The drivers and the run engine depend on this crate, not on `rigd-sim`,
 //! so the hardware path builds without the simulator.
@@ -16,6 +18,7 @@
 pub mod atomic;
 pub mod camera;
 pub mod clock;
+pub mod config;
 pub mod geometry;
 pub mod holder;
 pub mod motion;
@@ -23,7 +26,6 @@ pub mod pace;
 pub mod pixel_format;
 pub mod read;
 pub mod sync;
-pub mod text;
 
 pub use clock::{Clock, DeadlineElapsed};
 pub use geometry::Direction;

@@ -3,7 +3,8 @@
 //! token file) and every file the daemon serves: only a regular file is
 //! read, and only up to a size limit, so a device (`/dev/zero`), a FIFO
 //! or a huge file can neither hang the caller nor fill its memory. The
-//! errors name the file and never quote its content.
+//! errors name the file and never quote its content. Hand-written text is
+//! read past a byte order mark ([`strip_bom`]).
 
 use std::fs::File;
 use std::io::Read;
@@ -151,10 +152,26 @@ fn kind_of(t: &std::fs::FileType) -> &'static str {
     }
 }
 
+/// `text` without a leading UTF-8 byte order mark (U+FEFF). Some editors
+/// (Notepad among them) start every file they save with one, and neither
+/// TOML nor JSON allows it, so each loader of a hand-written file passes
+/// its text through here first.
+pub fn strip_bom(text: &str) -> &str {
+    text.strip_prefix('\u{feff}').unwrap_or(text)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::time::{Duration, Instant};
+
+    #[test]
+    fn only_a_leading_byte_order_mark_goes() {
+        assert_eq!(strip_bom("\u{feff}a = 1"), "a = 1");
+        assert_eq!(strip_bom("a = 1"), "a = 1");
+        assert_eq!(strip_bom("a = \"\u{feff}\""), "a = \"\u{feff}\"");
+        assert_eq!(strip_bom(""), "");
+    }
 
     #[test]
     fn a_regular_file_within_the_limit_is_read() {

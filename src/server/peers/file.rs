@@ -234,27 +234,19 @@ pub fn load(file: &Path) -> Result<Vec<Peer>, PeersError> {
 /// [`load`] on text already read; `file` names it in errors and anchors
 /// relative token files.
 pub fn parse(text: &str, file: &Path) -> Result<Vec<Peer>, PeersError> {
-    let text = rigd_core::text::strip_bom(text);
-    let de = toml::Deserializer::new(text);
-    let parsed: PeersFile = serde_path_to_error::deserialize(de).map_err(|e| {
-        let key = e.path().to_string();
-        let inner = e.into_inner();
-        let line = inner
-            .span()
-            .map(|s| {
-                let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
-                format!(" (line {line})")
-            })
-            .unwrap_or_default();
-        // toml's messages can span lines; an operator's error is one line.
-        let message = inner.message().trim().replace('\n', "; ");
-        let at = key_name(&key, &message);
+    let parsed: PeersFile = rigd_core::config::parse(
+        text,
+        &file.display().to_string(),
+        rigd_core::config::Format::Toml,
+    )
+    .map_err(|e| {
+        let at = key_name(&e.key, &e.message);
         PeersError::Syntax {
             file: file.to_path_buf(),
             why: if at.is_empty() {
-                format!("{message}{line}")
+                e.message
             } else {
-                format!("{at}: {message}{line}")
+                format!("{at}: {}", e.message)
             },
         }
     })?;

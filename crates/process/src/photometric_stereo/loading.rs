@@ -76,7 +76,7 @@ pub fn load_inputs(inputs: &PsInputs) -> Result<PsDataset, PsError> {
 
 pub(super) fn read_text(path: &Path) -> Result<String, PsError> {
     std::fs::read_to_string(path)
-        .map(|text| rigd_core::text::strip_bom(&text).to_owned())
+        .map(|text| rigd_core::read::strip_bom(&text).to_owned())
         .map_err(|source| PsError::Read {
             path: path.to_path_buf(),
             source,

@@ -223,20 +223,9 @@ impl Scene {
         origin: &str,
         base_dir: Option<&Path>,
     ) -> Result<Scene, SceneError> {
-        let text = rigd_core::text::strip_bom(text);
-        let spec: SceneSpec = toml::from_str(text).map_err(|e| {
-            let line = e
-                .span()
-                .map(|s| {
-                    let line = text[..s.start.min(text.len())].matches('\n').count() + 1;
-                    format!(" (line {line})")
-                })
-                .unwrap_or_default();
-            invalid(
-                origin,
-                format!("{}{line}", e.message().trim().replace('\n', "; ")),
-            )
-        })?;
+        let spec: SceneSpec =
+            rigd_core::config::parse(text, origin, rigd_core::config::Format::Toml)
+                .map_err(|e| invalid(origin, e.detail()))?;
         Scene::build(spec, origin, base_dir)
     }
 

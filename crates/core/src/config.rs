@@ -1,0 +1,206 @@
+//! Hand-written configuration files, read one way: profiles, peers files,
+//! plans, the daemon's configuration and scenes. A file is read bounded
+//! ([`crate::read`]), past a byte order mark, and parsed as TOML (or JSON,
+//! for a `.json` file); an error names the file, the key that is wrong
+//! (`devices.rail.limits`, `peer[1].url`) and what was expected, with the
+//! line, on one line, never quoting the file.
+
+use std::fmt;
+use std::path::Path;
+
+use serde::de::DeserializeOwned;
+
+use crate::read::{read_text, strip_bom};
+
+/// A configuration file that cannot be used: where, which key, and what is
+/// wrong or was expected.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub struct ConfigError {
+    /// The file's path as given (or another name for text not from a file).
+    pub file: String,
+    /// The dotted key the error is about (`devices.rail.limits`); empty when
+    /// it concerns the whole file (it cannot be read, a syntax error).
+    pub key: String,
+    /// What is wrong and what was expected, on one line, with the line of
+    /// the file where the parser knows it.
+    pub message: String,
+}
+
+impl ConfigError {
+    /// The key and the message, for an error that names the file its own
+    /// way.
+    pub fn detail(&self) -> String {
+        if self.key.is_empty() {
+            self.message.clone()
+        } else {
+            format!("{}: {}", self.key, self.message)
+        }
+    }
+}
+
+impl fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.file, self.detail())
+    }
+}
+
+/// The two formats a configuration file may be written in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Format {
+    /// TOML, the format of every hand-written file rigd reads.
+    Toml,
+    /// JSON, which plans may also be written in.
+    Json,
+}
+
+impl Format {
+    /// JSON for a `.json` file, TOML otherwise.
+    pub fn of(path: &Path) -> Format {
+        if path
+            .extension()
+            .is_some_and(|x| x.eq_ignore_ascii_case("json"))
+        {
+            Format::Json
+        } else {
+            Format::Toml
+        }
+    }
+}
+
+/// Reads the file at `path` (at most `limit` bytes, a regular file) and
+/// parses it as `T` in `format` ([`Format::of`] the path, where either is
+/// allowed).
+pub fn load<T: DeserializeOwned>(
+    path: &Path,
+    limit: u64,
+    format: Format,
+) -> Result<T, ConfigError> {
+    let file = path.display().to_string();
+    let text = read_text(path, limit).map_err(|e| ConfigError {
+        file: file.clone(),
+        key: String::new(),
+        message: e.reason.to_string(),
+    })?;
+    parse(&text, &file, format)
+}
+
+/// Parses `text` as `T`; `file` names it in errors.
+pub fn parse<T: DeserializeOwned>(
+    text: &str,
+    file: &str,
+    format: Format,
+) -> Result<T, ConfigError> {
+    let text = strip_bom(text);
+    let error = |key: String, message: String| ConfigError {
+        file: file.to_string(),
+        key: if key == "." { String::new() } else { key },
+        // The parsers' messages can span lines; an operator's error is one.
+        message: message.trim().replace('\n', "; "),
+    };
+    match format {
+        Format::Toml => {
+            serde_path_to_error::deserialize(toml::Deserializer::new(text)).map_err(|e| {
+                let key = e.path().to_string();
+                let inner = e.into_inner();
+                let line = inner
+                    .span()
+                    .map(|s| format!(" (line {})", line_of(text, s.start)))
+                    .unwrap_or_default();
+                error(key, format!("{}{line}", inner.message().trim()))
+            })
+        }
+        Format::Json => {
+            let mut de = serde_json::Deserializer::from_str(text);
+            let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+                let key = e.path().to_string();
+                error(key, e.into_inner().to_string())
+            })?;
+            de.end().map_err(|e| error(String::new(), e.to_string()))?;
+            Ok(value)
+        }
+    }
+}
+
+/// The 1-based line of byte `at` in `text`.
+fn line_of(text: &str, at: usize) -> usize {
+    text.as_bytes()[..at.min(text.len())]
+        .iter()
+        .filter(|&&b| b == b'\n')
+        .count()
+        + 1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, serde::Deserialize, PartialEq)]
+    #[serde(deny_unknown_fields)]
+    struct Rig {
+        name: String,
+        #[serde(default)]
+        axes: Vec<Axis>,
+    }
+
+    #[derive(Debug, serde::Deserialize, PartialEq)]
+    #[serde(deny_unknown_fields)]
+    struct Axis {
+        steps: u32,
+    }
+
+    #[test]
+    fn errors_name_the_file_the_key_and_the_line() {
+        let e = parse::<Rig>(
+            "name = \"r\"\n[[axes]]\nsteps = -1\n",
+            "r.toml",
+            Format::Toml,
+        )
+        .expect_err("negative steps");
+        assert_eq!(
+            (e.file.as_str(), e.key.as_str()),
+            ("r.toml", "axes[0].steps")
+        );
+        assert!(e.message.contains("line 3"), "{e}");
+        let e = parse::<Rig>(
+            "{\"name\": \"r\", \"axes\": [{\"step\": 1}]}",
+            "r.json",
+            Format::Json,
+        )
+        .expect_err("unknown key");
+        assert_eq!(e.key, "axes[0].step");
+        assert!(e.message.contains("`step`"), "{e}");
+        assert!(e.to_string().starts_with("r.json: axes[0].step: "), "{e}");
+    }
+
+    #[test]
+    fn a_whole_file_error_has_no_key_and_never_quotes_the_file() {
+        let e =
+            parse::<Rig>("root:x:0:0:secret\n", "/etc/passwd", Format::Toml).expect_err("not TOML");
+        assert_eq!(e.key, "");
+        assert!(!e.to_string().contains("secret"), "{e}");
+        let e = parse::<Rig>("{\"name\": \"r\"} secret", "r.json", Format::Json)
+            .expect_err("trailing text");
+        assert!(!e.to_string().contains("secret"), "{e}");
+    }
+
+    #[test]
+    fn a_byte_order_mark_is_read_past_and_the_extension_picks_the_format() {
+        let rig: Rig = parse("\u{feff}name = \"r\"", "r.toml", Format::Toml).expect("BOM");
+        assert_eq!(rig.name, "r");
+        assert_eq!(Format::of(Path::new("plan.JSON")), Format::Json);
+        assert_eq!(Format::of(Path::new("plan.toml")), Format::Toml);
+        assert_eq!(Format::of(Path::new("plan")), Format::Toml);
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("r.json");
+        std::fs::write(&path, "{\"name\": \"j\"}").expect("write");
+        assert_eq!(
+            load::<Rig>(&path, 1024, Format::of(&path))
+                .expect("load")
+                .name,
+            "j"
+        );
+        let e =
+            load::<Rig>(&dir.path().join("none.toml"), 1024, Format::Toml).expect_err("missing");
+        assert!(e.file.ends_with("none.toml") && e.key.is_empty(), "{e}");
+    }
+}
