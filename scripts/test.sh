@@ -93,7 +93,8 @@ fi
 # only its own crates, not the dependencies again. A fresh machine has no
 # cache and builds everything: slower, the same tests. A CARGO_TARGET_DIR
 # the caller sets wins; a cache grown past 40 GiB (every clone path adds
-# its own crates) is emptied first.
+# its own crates) is emptied first. The tests' scratch folders live in it
+# too (target/tmp), so two runs of this script at once need two caches.
 build_cache=/var/cache/rigd/target
 if [ -z "${CARGO_TARGET_DIR:-}" ] && mkdir -p "$build_cache" 2>/dev/null && [ -w "$build_cache" ]; then
     if [ "$(du -sk "$build_cache" | cut -f1)" -gt $((40 * 1024 * 1024)) ]; then

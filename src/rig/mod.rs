@@ -14,6 +14,7 @@ pub mod drivers;
 pub mod hal;
 pub mod hardware;
 pub mod plate;
+mod relink;
 #[cfg(feature = "sim")]
 pub mod serve;
 #[cfg(feature = "sim")]
@@ -58,8 +59,9 @@ use crate::rig::drivers::modbus::{all_off, ModbusConfig, ModbusLamp, ModbusLaser
 use crate::rig::drivers::ptp::{PtpCamera, PtpConfig};
 use crate::rig::drivers::usb::{UsbError, UsbPipe};
 use crate::rig::hal::{
-    Arm, Axis, Camera, DeviceError, EmergencyStop, ErrorKind, Frame, Lamp, LaserLine, Rig,
+    Arm, Axis, Camera, DeviceError, EmergencyStop, ErrorKind, Lamp, LaserLine, Rig,
 };
+use relink::{lost_link, Line, Linked, OnLine, PtpOnUsb};
 use rigd_core::Clock;
 
 /// A byte stream a line or Modbus driver can run on.
@@ -440,10 +442,14 @@ pub(crate) async fn connect_device(
             let stop = Arc::new(axis.stopper());
             Ok((
                 Connected::Axis(
-                    Box::new(LinkedAxis {
-                        axis,
-                        link: Relink::new(name, opener, clock),
-                    }),
+                    Box::new(Linked::new(OnLine {
+                        driver: axis,
+                        line: Line {
+                            name: name.to_string(),
+                            opener,
+                            clock: clock.clone(),
+                        },
+                    })),
                     stop,
                 ),
                 identity,
@@ -464,10 +470,14 @@ pub(crate) async fn connect_device(
             let stop = Arc::new(arm.stopper());
             Ok((
                 Connected::Arm(
-                    Box::new(LinkedArm {
-                        arm,
-                        link: Relink::new(name, opener, clock),
-                    }),
+                    Box::new(Linked::new(OnLine {
+                        driver: arm,
+                        line: Line {
+                            name: name.to_string(),
+                            opener,
+                            clock: clock.clone(),
+                        },
+                    })),
                     stop,
                 ),
                 identity,
@@ -487,15 +497,14 @@ pub(crate) async fn connect_device(
                 info.manufacturer, info.model, info.device_version, info.serial_number
             ));
             Ok((
-                Connected::Camera(Box::new(LinkedCamera {
-                    name: name.to_string(),
+                Connected::Camera(Box::new(Linked::new(PtpOnUsb {
                     cam,
+                    name: name.to_string(),
                     config,
                     opener,
                     clock: clock.clone(),
-                    lost: false,
                     exposure_s: None,
-                })),
+                }))),
                 identity,
             ))
         }
@@ -598,132 +607,6 @@ fn wrong_transport(name: &str, dev: &Device) -> DeviceError {
     )
 }
 
-/// True when a call failed because the link is gone (so the next call
-/// must re-open it).
-fn lost_link<T>(r: &Result<T, DeviceError>) -> bool {
-    matches!(r, Err(e) if e.kind == ErrorKind::Disconnected)
-}
-
-/// Re-opens a line device's link after it was lost.
-struct Relink {
-    name: String,
-    opener: Arc<dyn Opener>,
-    clock: Clock,
-    lost: bool,
-}
-
-impl Relink {
-    fn new(name: &str, opener: Arc<dyn Opener>, clock: &Clock) -> Relink {
-        Relink {
-            name: name.to_string(),
-            opener,
-            clock: clock.clone(),
-            lost: false,
-        }
-    }
-
-    /// A fresh stream if the link was lost, else None.
-    async fn reopen(&mut self) -> Result<Option<ByteStream>, DeviceError> {
-        if !self.lost {
-            return Ok(None);
-        }
-        let s = open_stream(&self.clock, &self.name, self.opener.as_ref()).await?;
-        tracing::info!(device = %self.name, "link re-opened");
-        Ok(Some(s))
-    }
-
-    fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
-        self.lost |= lost_link(&r);
-        r
-    }
-}
-
-struct LinkedAxis {
-    axis: GrblAxis<ByteStream>,
-    link: Relink,
-}
-
-impl LinkedAxis {
-    async fn ready(&mut self) -> Result<(), DeviceError> {
-        if let Some(s) = self.link.reopen().await? {
-            let r = self.axis.reconnect(s).await;
-            self.link.note(r)?;
-            self.link.lost = false;
-        }
-        Ok(())
-    }
-}
-
-#[async_trait]
-impl Axis for LinkedAxis {
-    async fn home(&mut self) -> Result<f64, DeviceError> {
-        self.ready().await?;
-        let r = self.axis.home().await;
-        self.link.note(r)
-    }
-
-    async fn move_to(&mut self, target: f64) -> Result<f64, DeviceError> {
-        self.ready().await?;
-        let r = self.axis.move_to(target).await;
-        self.link.note(r)
-    }
-
-    async fn position(&mut self) -> Result<f64, DeviceError> {
-        self.ready().await?;
-        let r = self.axis.position().await;
-        self.link.note(r)
-    }
-
-    async fn start_sweep(&mut self, target: f64, velocity: f64) -> Result<(), DeviceError> {
-        self.ready().await?;
-        let r = self.axis.start_sweep(target, velocity).await;
-        self.link.note(r)
-    }
-
-    async fn wait_idle(&mut self) -> Result<f64, DeviceError> {
-        self.ready().await?;
-        let r = self.axis.wait_idle().await;
-        self.link.note(r)
-    }
-}
-
-struct LinkedArm {
-    arm: AclArm<ByteStream>,
-    link: Relink,
-}
-
-impl LinkedArm {
-    async fn ready(&mut self) -> Result<(), DeviceError> {
-        if let Some(s) = self.link.reopen().await? {
-            let r = self.arm.reconnect(s).await;
-            self.link.note(r)?;
-            self.link.lost = false;
-        }
-        Ok(())
-    }
-}
-
-#[async_trait]
-impl Arm for LinkedArm {
-    async fn home(&mut self) -> Result<Vec<f64>, DeviceError> {
-        self.ready().await?;
-        let r = self.arm.home().await;
-        self.link.note(r)
-    }
-
-    async fn move_joints(&mut self, joints: &[f64]) -> Result<Vec<f64>, DeviceError> {
-        self.ready().await?;
-        let r = self.arm.move_joints(joints).await;
-        self.link.note(r)
-    }
-
-    async fn joints(&mut self) -> Result<Vec<f64>, DeviceError> {
-        self.ready().await?;
-        let r = self.arm.joints().await;
-        self.link.note(r)
-    }
-}
-
 /// One Modbus module's connection, shared by its lamps and laser.
 struct Bus {
     name: String,
@@ -803,66 +686,5 @@ impl EmergencyStop for BusStop {
         all_off(&bus.clock, &bus.bus, coils, Duration::from_secs(1))
             .await
             .map_err(|e| e.into_device(&bus.name))
-    }
-}
-
-struct LinkedCamera {
-    name: String,
-    cam: PtpCamera<BoxPipe>,
-    /// The driver's settings, for a reconnect.
-    config: PtpConfig,
-    opener: Arc<dyn PipeOpener>,
-    clock: Clock,
-    lost: bool,
-    /// The exposure last set, re-applied after a reconnect.
-    exposure_s: Option<f64>,
-}
-
-impl LinkedCamera {
-    async fn ready(&mut self) -> Result<(), DeviceError> {
-        if !self.lost {
-            return Ok(());
-        }
-        let pipe = open_pipe(&self.clock, &self.name, self.opener.as_ref()).await?;
-        let mut cam = PtpCamera::new(&self.name, pipe, self.clock.clone(), self.config.clone());
-        cam.connect()
-            .await
-            .map_err(|e| DeviceError::new(&self.name, e.kind(), e.to_string()))?;
-        if let Some(e) = self.exposure_s {
-            cam.set_exposure(e).await?;
-        }
-        self.cam = cam;
-        self.lost = false;
-        tracing::info!(device = %self.name, "camera re-opened");
-        Ok(())
-    }
-
-    fn note<T>(&mut self, r: Result<T, DeviceError>) -> Result<T, DeviceError> {
-        self.lost |= lost_link(&r);
-        r
-    }
-}
-
-#[async_trait]
-impl Camera for LinkedCamera {
-    async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError> {
-        self.ready().await?;
-        let r = self.cam.set_exposure(exposure_s).await;
-        if r.is_ok() {
-            self.exposure_s = Some(exposure_s);
-        }
-        self.note(r)
-    }
-
-    async fn expose(&mut self) -> Result<(), DeviceError> {
-        self.ready().await?;
-        let r = self.cam.expose().await;
-        self.note(r)
-    }
-
-    async fn transfer(&mut self) -> Result<Frame, DeviceError> {
-        // A lost link lost the frame with it: re-opening cannot bring it back.
-        let r = self.cam.transfer().await;
-        self.note(r)
     }
 }

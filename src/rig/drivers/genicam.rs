@@ -5,9 +5,10 @@
 //!
 //! The driver speaks to a [`GenicamSession`]: the few blocking calls it
 //! needs of an open camera. `rig::drivers::aravis` implements it with
-//! Aravis (cargo feature `genicam`, chosen in `rig::hardware`); the tests here implement it with a
-//! scripted camera. Every blocking call runs on tokio's blocking pool,
-//! one at a time per camera, under the engine's deadlines.
+//! Aravis (cargo feature `genicam`, chosen in `rig::hardware`); the tests
+//! here implement it with a scripted camera. Every blocking call runs on
+//! tokio's blocking pool, one at a time per camera, under the engine's
+//! deadlines.
 //!
 //! What the driver adds to the session:
 //! - a stream buffer with lost packets is a [`ErrorKind::BadFrame`], which
