@@ -1344,9 +1344,7 @@ impl Device {
 /// and of every message about it: letters, digits, `-` and `_` only.
 fn check_device_name(name: &str) -> Result<(), (String, String)> {
     let usable = (1..=64).contains(&name.chars().count())
-        && name
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+        && name.chars().all(crate::model::text::is_file_name_char);
     if usable {
         Ok(())
     } else {

@@ -129,6 +129,12 @@ pub fn check_name(name: &str) -> Result<(), String> {
     Ok(())
 }
 
+/// Whether `c` may stand in a name that becomes part of a file name (a run
+/// id, a device's name): an ASCII letter or digit, `-` or `_`.
+pub fn is_file_name_char(c: char) -> bool {
+    c.is_ascii_alphanumeric() || c == '-' || c == '_'
+}
+
 /// A name as one path component: letters, digits, `-` and `_` are kept,
 /// everything else becomes `_`; at most `max` characters; never empty. So
 /// no name can climb out of the folder it is put in (`..`, `/`) or hide
@@ -137,13 +143,7 @@ pub fn check_name(name: &str) -> Result<(), String> {
 pub fn sanitize(s: &str, max: usize) -> String {
     let out: String = s
         .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                c
-            } else {
-                '_'
-            }
-        })
+        .map(|c| if is_file_name_char(c) { c } else { '_' })
         .take(max)
         .collect();
     if out.is_empty() {

@@ -158,10 +158,10 @@ impl CheckedReads {
         let stamp = FileStamp::of(&file.metadata().map_err(io_err)?);
         let mut bytes = Vec::with_capacity(usize::try_from(stamp.len).unwrap_or(0));
         file.read_to_end(&mut bytes).map_err(io_err)?;
-        let seen = lock(&self.0).get(&entry.index).cloned();
         // Written to while it was read: the stamp says nothing of these bytes.
         let settled = file.metadata().ok().map(|m| FileStamp::of(&m)) == Some(stamp);
-        if settled && seen == Some((entry.sha256.clone(), stamp)) {
+        let known = |(sha, seen): &(String, FileStamp)| *sha == entry.sha256 && *seen == stamp;
+        if settled && lock(&self.0).get(&entry.index).is_some_and(known) {
             return Ok(bytes);
         }
         let found = sha256_hex(&bytes);

@@ -79,9 +79,7 @@ pub fn is_valid_id(id: &str) -> bool {
     !id.is_empty()
         && id.len() <= 128
         && !id.starts_with('.')
-        && id
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        && id.chars().all(crate::model::text::is_file_name_char)
 }
 
 /// A new run id: `YYYYMMDDTHHMMSSZ-SAMPLE-PLAN`, with `-N` added when taken.

@@ -89,7 +89,7 @@ pub struct Daemon {
     /// A trade-off report is being computed (`POST /api/v1/tradeoff`).
     pub tradeoff_busy: std::sync::atomic::AtomicBool,
     /// The process jobs (`POST /api/v1/runs/{id}/process`) and their worker.
-    pub processing: super::jobs::Jobs,
+    pub jobs: super::jobs::Jobs,
     /// The other rigs' daemons (`--peers FILE`) and what each last answered.
     pub peers: Arc<super::peers::Peers>,
 }
@@ -125,7 +125,7 @@ impl Daemon {
             inner.runs.insert(view.id.clone(), view);
         }
         inner.queue = persist::load_queue(&data_dir);
-        let processing = super::jobs::Jobs::load(&runs_dir, inner.runs.keys());
+        let jobs = super::jobs::Jobs::load(&runs_dir, inner.runs.keys());
         let (shutdown_tx, _) = watch::channel(false);
         let plans = PlanCache::new(profile.clone());
         let peers = Arc::new(super::peers::Peers::new(&config.peers));
@@ -145,7 +145,7 @@ impl Daemon {
             tradeoff_busy: std::sync::atomic::AtomicBool::new(false),
             schedules: Mutex::new(HashMap::new()),
             plans,
-            processing,
+            jobs,
             peers,
         }))
     }
@@ -636,7 +636,7 @@ impl Daemon {
             "run_ended",
             serde_json::to_value(&view).unwrap_or_default(),
         );
-        self.processing.notify();
+        self.jobs.notify();
         if !shutting_down {
             self.pump_queue();
         }
@@ -918,7 +918,7 @@ impl Daemon {
     /// Stops taking work, detaches the active run (it is left paused and
     /// resumable), waits for its engine to end, then ends the event streams.
     pub async fn shutdown(&self) {
-        self.processing.stop();
+        self.jobs.stop();
         let commands = {
             let mut inner = self.inner();
             inner.shutting_down = true;
@@ -1072,7 +1072,7 @@ impl Daemon {
 
 impl super::jobs::JobHost for Daemon {
     fn jobs(&self) -> &super::jobs::Jobs {
-        &self.processing
+        &self.jobs
     }
 
     fn hub(&self) -> &EventHub {

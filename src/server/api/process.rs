@@ -59,7 +59,7 @@ pub async fn get_job(
     if d.run_root(&id).is_none() {
         return Err(not_found_run(&id));
     }
-    d.processing.get(&id).map(Json).ok_or_else(|| {
+    d.jobs.get(&id).map(Json).ok_or_else(|| {
         ApiError::not_found(format!(
             "run `{id}` has no process job: POST /api/v1/runs/{id}/process"
         ))

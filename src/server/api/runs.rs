@@ -37,7 +37,7 @@ pub(super) fn mark_processed(d: &Daemon, run: &mut RunView) {
         .run_root(&run.id)
         .and_then(|root| crate::postprocess::viewer::processed_kind(&root))
         .map(str::to_string);
-    run.processing = d.processing.get(&run.id);
+    run.processing = d.jobs.get(&run.id);
 }
 
 /// Starts a run now.
