@@ -66,20 +66,26 @@ if ! command -v raw-identify >/dev/null || ! command -v unprocessed_raw >/dev/nu
     apt_install libraw-bin
 fi
 
-# The Modbus tests run tests/support/relay_module.py, a relay module served by
-# pymodbus, from a venv of their own (target/ is not committed). It is made
-# again only when missing, broken, or at another pymodbus version.
-PYMODBUS_VERSION=3.16.1
+# The Python the tests run, from a venv of their own (target/ is not
+# committed), with the exact packages of tests/support/requirements.txt:
+# pymodbus for tests/support/relay_module.py (a relay module),
+# Schemathesis for tests/support/api_contract.py (the API contract), httpx
+# and pytest for the Python client (clients/python). It is made again only
+# when missing, broken, or made from another requirements file.
 venv=target/test-venv
-if ! "$venv/bin/python" -c "import sys, pymodbus; sys.exit(pymodbus.__version__ != '$PYMODBUS_VERSION')" 2>/dev/null; then
-    echo "== creating $venv with pymodbus $PYMODBUS_VERSION (for tests/support/relay_module.py)"
+requirements=tests/support/requirements.txt
+wanted="$(sha256sum "$requirements" | cut -d' ' -f1)"
+if [ "$(cat "$venv/requirements.sha256" 2>/dev/null)" != "$wanted" ] \
+    || ! "$venv/bin/python" -c "import pymodbus, schemathesis, httpx, pytest" 2>/dev/null; then
+    echo "== creating $venv from $requirements"
     # Debian's python3 leaves venv's pip bootstrap (ensurepip) to python3-venv;
     # pyenv's CPython has it built in.
     if ! python3 -c 'import ensurepip, venv' 2>/dev/null; then
         apt_install python3 python3-venv
     fi
     python3 -m venv --clear "$venv"
-    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check "pymodbus==$PYMODBUS_VERSION"
+    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$requirements"
+    echo "$wanted" > "$venv/requirements.sha256"
 fi
 export RIGD_TEST_PYTHON="$PWD/$venv/bin/python"
 

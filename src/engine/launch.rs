@@ -109,14 +109,26 @@ pub fn solve_plan(
     plan_spec: &str,
     order: Option<Order>,
 ) -> Result<(Solver, Plan, Schedule), RunError> {
+    let (solver, plan) = resolve_plan(profile, plan_spec, order)?;
+    let schedule = schedule::build(profile, &solver, &plan);
+    Ok((solver, plan, schedule))
+}
+
+/// The plan a spec names for the rig, not yet solved: everything that can
+/// refuse it (an unknown name, a plan the rig cannot take), without the
+/// seconds of work [`schedule::build`] takes for its trigger order.
+pub fn resolve_plan(
+    profile: &Profile,
+    plan_spec: &str,
+    order: Option<Order>,
+) -> Result<(Solver, Plan), RunError> {
     let solver = Solver::new(profile)?;
     let offer = schedule::rig_offer(profile, &solver);
     let mut plan = plan::resolve(plan_spec, &offer)?;
     if let Some(o) = order {
         plan.order = o;
     }
-    let schedule = schedule::build(profile, &solver, &plan);
-    Ok((solver, plan, schedule))
+    Ok((solver, plan))
 }
 
 fn check_request(req: &NewRun) -> Result<(), RunError> {

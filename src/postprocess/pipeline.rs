@@ -254,6 +254,7 @@ impl PsOptions {
 /// What to do with a run: the steps and each step's options.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, ToSchema)]
 #[serde(default, deny_unknown_fields)]
+#[schema(example = json!({"steps": ["rectify", "btf"], "rectify": {"size": 128, "final": 32}, "btf": {"components": 4}}))]
 pub struct ProcessOptions {
     /// The steps, run in the order rectify, btf, fit, mdf,
     /// photometric-stereo whatever order they are given in. Empty: chosen

@@ -22,8 +22,10 @@ pub const RING_CAPACITY: usize = 4096;
 /// One event of the daemon's stream.
 #[derive(Debug, Clone, Serialize, ToSchema)]
 pub struct DaemonEvent {
-    /// Daemon-wide sequence number (also the SSE `id:`), increasing from 1
-    /// at every daemon start.
+    /// Daemon-wide sequence number (also the SSE `id:`), increasing, and
+    /// across restarts too: a daemon numbers its events from the time it
+    /// started (in microseconds since 1970), so that a client's
+    /// `Last-Event-ID` from before a restart is below every new event.
     pub id: u64,
     /// The run this event is about, if any.
     pub run: Option<String>,
@@ -34,6 +36,21 @@ pub struct DaemonEvent {
     /// The payload.
     #[schema(value_type = Object)]
     pub event: serde_json::Value,
+}
+
+/// One message of `GET /api/v1/events` as the Server-Sent Events stream
+/// frames it (the schema of each event of the stream, as OpenAPI 3.1 reads
+/// `text/event-stream`): its `id:` and a [`DaemonEvent`] as JSON in `data:`.
+#[derive(Debug, Clone, ToSchema)]
+pub struct SseMessage {
+    /// The `id:` field: the DaemonEvent's id, as text; what a reconnect
+    /// sends back in `Last-Event-ID`.
+    pub id: Option<String>,
+    /// The `event:` field: `message`, the default type.
+    pub event: Option<String>,
+    /// The `data:` field: one DaemonEvent as JSON.
+    #[schema(content_media_type = "application/json")]
+    pub data: String,
 }
 
 struct Ring {
@@ -54,12 +71,16 @@ impl Default for EventHub {
 }
 
 impl EventHub {
-    /// An empty hub; the first event published gets id 1.
+    /// An empty hub; the first event published gets the current time in
+    /// microseconds since 1970 as its id (see [`DaemonEvent::id`]).
     pub fn new() -> Self {
         let (tx, _) = broadcast::channel(RING_CAPACITY);
+        let now_us = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(1, |d| d.as_micros() as u64);
         EventHub {
             ring: Mutex::new(Ring {
-                next_id: 1,
+                next_id: now_us.max(1),
                 events: VecDeque::with_capacity(RING_CAPACITY),
             }),
             tx,
@@ -91,13 +112,21 @@ impl EventHub {
         id
     }
 
-    /// Kept events after `after`, and a receiver for everything later.
+    /// Kept events after `after`, a receiver for everything later, and the
+    /// id the receiver's events must exceed to be new to the subscriber.
     pub fn subscribe_after(
         &self,
         after: Option<u64>,
-    ) -> (Vec<Arc<DaemonEvent>>, broadcast::Receiver<Arc<DaemonEvent>>) {
+    ) -> (
+        Vec<Arc<DaemonEvent>>,
+        broadcast::Receiver<Arc<DaemonEvent>>,
+        u64,
+    ) {
         let ring = self.ring();
         let rx = self.tx.subscribe();
+        // An id this daemon has not given yet comes from another daemon
+        // (one whose clock ran ahead): everything kept is new to it.
+        let after = after.map(|last| if last >= ring.next_id { 0 } else { last });
         let replay = match after {
             Some(last) => ring
                 .events
@@ -107,7 +136,12 @@ impl EventHub {
                 .collect(),
             None => Vec::new(),
         };
-        (replay, rx)
+        let seen_to = replay
+            .last()
+            .map(|e: &Arc<DaemonEvent>| e.id)
+            .or(after)
+            .unwrap_or(0);
+        (replay, rx, seen_to)
     }
 }
 
@@ -124,8 +158,7 @@ pub fn sse_stream(
     last_event_id: Option<u64>,
     mut shutdown: watch::Receiver<bool>,
 ) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
-    let (replay, rx) = hub.subscribe_after(last_event_id);
-    let replayed_to = replay.last().map(|e| e.id).or(last_event_id).unwrap_or(0);
+    let (replay, rx, replayed_to) = hub.subscribe_after(last_event_id);
     let replay = stream::iter(replay.into_iter().map(|e| Ok(to_sse(&e))));
     let live = BroadcastStream::new(rx).filter_map(move |r| async move {
         match r {
@@ -146,4 +179,32 @@ pub fn sse_stream(
             .interval(Duration::from_secs(15))
             .text("keep-alive"),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_client_of_an_earlier_daemon_misses_nothing_of_the_next() {
+        let before = EventHub::new();
+        before.publish(None, "estop", serde_json::json!({}));
+        let last_seen = before.publish(None, "estop", serde_json::json!({}));
+        // The daemon restarts: a new hub, numbering from its start.
+        std::thread::sleep(std::time::Duration::from_millis(2));
+        let after = EventHub::new();
+        let first = after.publish(None, "run_created", serde_json::json!({}));
+        assert!(first > last_seen, "{first} after {last_seen}");
+        let (replay, _, seen_to) = after.subscribe_after(Some(last_seen));
+        assert_eq!(replay.iter().map(|e| e.id).collect::<Vec<_>>(), [first]);
+        assert_eq!(seen_to, first);
+        // An id from the future (a daemon whose clock ran ahead): all kept
+        // events are replayed, and live ones are not filtered out.
+        let (replay, _, seen_to) = after.subscribe_after(Some(u64::MAX));
+        assert_eq!(replay.len(), 1);
+        assert_eq!(seen_to, first);
+        let (replay, _, seen_to) = after.subscribe_after(None);
+        assert!(replay.is_empty());
+        assert_eq!(seen_to, 0);
+    }
 }

@@ -250,7 +250,10 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
         .with_state(daemon);
     Router::new()
         .nest("/api/v1", v1)
-        .merge(SwaggerUi::new("/api/docs").url("/api/v1/openapi.json", api::openapi()))
+        .merge(
+            SwaggerUi::new("/api/docs")
+                .external_url_unchecked("/api/v1/openapi.json", api::openapi_json()),
+        )
         .route(
             "/",
             get(|| async { static_file("text/html; charset=utf-8", INDEX_HTML) }),

@@ -127,7 +127,10 @@ impl Daemon {
         inner.queue = persist::load_queue(&data_dir);
         let jobs = super::jobs::Jobs::load(&runs_dir, inner.runs.keys());
         let (shutdown_tx, _) = watch::channel(false);
-        let plans = PlanCache::new(profile.clone());
+        let plans = PlanCache::new(
+            profile.clone(),
+            Some(data_dir.join(super::plan_cache::PLAN_CACHE_DIR)),
+        );
         let peers = Arc::new(super::peers::Peers::new(&config.peers));
         plans.start();
         Ok(Arc::new(Daemon {
@@ -255,8 +258,8 @@ impl Daemon {
                         BUILTIN_PLANS.join(", ")
                     )));
                 }
-                let (_, plan, _) =
-                    launch::solve_plan(&self.profile, name, req.order).map_err(run_error)?;
+                let (_, plan) =
+                    launch::resolve_plan(&self.profile, name, req.order).map_err(run_error)?;
                 Ok(plan)
             }
             PlanSpec::Inline(p) => {
@@ -364,7 +367,18 @@ impl Daemon {
         };
         let profile = self.profile.clone();
         let faults = self.config.sim_faults.clone();
+        // A built-in plan in its own order is solved once, at start-up or
+        // on first use, and kept (the plan cache); any other is solved now.
+        let cached = match (&req.plan, req.order, prefer_slots) {
+            (PlanSpec::Name(name), None, false) => self.plans.get(name).await,
+            _ => None,
+        };
         let solved = tokio::task::spawn_blocking(move || {
+            if let Some(schedule) = cached {
+                let schedule = schedule.map_err(RunError::Invalid)?;
+                let solver = crate::kinematics::Solver::new(&profile)?;
+                return Ok((solver, plan, Schedule::clone(&schedule)));
+            }
             let mut solved = launch::solve_given_plan(&profile, plan)?;
             if prefer_slots {
                 let (chosen, choice) = launch::prefer_slots(&profile, solved);

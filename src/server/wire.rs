@@ -86,8 +86,17 @@ impl PlanSpec {
 /// A run to start (`POST /api/v1/runs`) or to queue (`POST /api/v1/queue`).
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(example = json!({
+    "sample": "felt",
+    "plan": {"name": "mini", "directions": [
+        {"theta_deg": 20.0, "phi_deg": 0.0}, {"theta_deg": 50.0, "phi_deg": 120.0}]},
+    "frame_size": [16, 12],
+    "operator": "ada"
+}))]
 pub struct RunRequest {
-    /// Sample name, recorded in the dataset (1..=128 characters).
+    /// Sample name, recorded in the dataset (1..=128 characters, no
+    /// control characters).
+    #[schema(min_length = 1, max_length = 128)]
     pub sample: String,
     /// The plan to capture: a built-in plan's name or an inline plan.
     pub plan: PlanSpec,

@@ -213,3 +213,42 @@ pub fn tiny_plan(dir: &Path) -> PathBuf {
     .expect("write the plan");
     plan
 }
+
+/// Runs `cmd` in a process group of its own with its output to a file in
+/// `work` (a pipe nobody reads until the end would block it once full),
+/// killing the whole group if it runs past `limit`, so that a hung
+/// service it started fails the test instead of the suite. Returns whether
+/// it succeeded and what it printed.
+pub fn run_bounded(mut cmd: Command, work: &Path, limit: std::time::Duration) -> (bool, String) {
+    use std::os::unix::process::CommandExt;
+    let log_path = work.join("output.log");
+    let log = std::fs::File::create(&log_path).expect("log file");
+    let mut child = cmd
+        .stdin(std::process::Stdio::null())
+        .stdout(log.try_clone().expect("log file"))
+        .stderr(log)
+        .process_group(0)
+        .spawn()
+        .unwrap_or_else(|e| panic!("cannot start {cmd:?}: {e}"));
+    let deadline = std::time::Instant::now() + limit;
+    let status = loop {
+        if let Some(status) = child.try_wait().expect("wait") {
+            break status;
+        }
+        if std::time::Instant::now() > deadline {
+            let _ = Command::new("kill")
+                .args(["-KILL", &format!("-{}", child.id())])
+                .status();
+            let _ = child.wait();
+            panic!(
+                "{cmd:?} still ran after {limit:?}:\n{}",
+                std::fs::read_to_string(&log_path).unwrap_or_default()
+            );
+        }
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    };
+    (
+        status.success(),
+        std::fs::read_to_string(&log_path).unwrap_or_default(),
+    )
+}

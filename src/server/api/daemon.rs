@@ -8,7 +8,7 @@ use axum::Json;
 
 use super::AppState;
 use crate::server::error::{ApiError, ErrorBody};
-use crate::server::events::{self, DaemonEvent};
+use crate::server::events::{self, SseMessage};
 use crate::server::wire::*;
 
 /// Liveness and what this daemon drives (never needs a token).
@@ -28,8 +28,8 @@ pub async fn health(State(d): State<AppState>) -> Json<Health> {
 /// daemon event; `Last-Event-ID` replays the recent ones (up to 4096).
 #[utoipa::path(get, path = "/api/v1/events", tag = "daemon",
     params(("Last-Event-ID" = Option<String>, Header, description = "Replay events after this id")),
-    responses((status = 200, description = "text/event-stream of DaemonEvent JSON; `id:` is DaemonEvent.id",
-               content_type = "text/event-stream", body = DaemonEvent),
+    responses((status = 200, description = "text/event-stream: each message's `data:` is a DaemonEvent as JSON, its `id:` the DaemonEvent's id",
+               content_type = "text/event-stream", body = SseMessage),
               (status = 400, description = "Last-Event-ID is not an integer", body = ErrorBody)))]
 pub async fn events_sse(
     State(d): State<AppState>,

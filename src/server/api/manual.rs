@@ -19,6 +19,7 @@ use crate::server::wire::Dir;
 /// One device, by its name in the profile.
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(example = json!({"device": "rail"}))]
 pub struct DeviceRequest {
     /// The device (an axis or the arm).
     pub device: String,
@@ -27,6 +28,7 @@ pub struct DeviceRequest {
 /// A jog: by a step or to a position (exactly one of them).
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(example = json!({"device": "rail", "by_deg": 5.0}))]
 pub struct JogRequest {
     /// The axis.
     pub device: String,
@@ -41,6 +43,7 @@ pub struct JogRequest {
 /// A (light, view) pair whose pose the rig takes.
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(example = json!({"light": {"theta_deg": 30.0, "phi_deg": 0.0}, "view": {"theta_deg": 20.0, "phi_deg": 180.0}}))]
 pub struct PoseRequest {
     /// The light direction in the sample frame.
     pub light: Dir,
@@ -51,6 +54,7 @@ pub struct PoseRequest {
 /// A lamp or the laser, on or off.
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(example = json!({"device": "hmi", "on": true}))]
 pub struct SwitchRequest {
     /// The lamp or laser.
     pub device: String,

@@ -1,6 +1,7 @@
 //! The `/api/v1` handlers, one module per resource, and their OpenAPI
 //! description.
 
+pub mod contract;
 pub mod daemon;
 pub mod frames;
 pub mod manual;
@@ -51,7 +52,7 @@ names in a request are looked up, never used as paths (docs/api.md, \"Security\"
     components(schemas(
         ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
         RunRequest, PlanSpec, InlinePlan, PairDto, RunView, PaceView, RunList, CommandAck, RunSteps, RunStep,
-        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent,
+        QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent, super::events::SseMessage,
         crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,
         manual::JogRequest, manual::PoseRequest, manual::SwitchRequest, manual::FrameRequest,
         manual::Reached, manual::Switched, manual::TestFrame, crate::engine::manual::PoseReached,
@@ -107,11 +108,17 @@ pub struct SimApiDoc;
 
 /// The OpenAPI description this build serves at `/api/v1/openapi.json`.
 pub fn openapi() -> utoipa::openapi::OpenApi {
-    #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
     let mut doc = ApiDoc::openapi();
     #[cfg(feature = "sim")]
     doc.merge(SimApiDoc::openapi());
+    // After the merge, so that the simulator's routes get it too.
+    utoipa::Modify::modify(&contract::Contract, &mut doc);
     doc
+}
+
+/// [`openapi`] as JSON, as `/api/v1/openapi.json` serves it.
+pub fn openapi_json() -> serde_json::Value {
+    contract::served(&openapi())
 }
 
 struct BearerAuth;

@@ -1,8 +1,7 @@
 //! `/runs`: the run history, new runs, a run's steps and manifest, and the
 //! operator's commands (pause, resume, abort).
 
-use axum::extract::rejection::QueryRejection;
-use axum::extract::{Query, State};
+use axum::extract::State;
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
@@ -10,7 +9,7 @@ use axum::Json;
 use super::not_found_run;
 use super::AppState;
 use crate::engine::command::Command;
-use crate::server::error::{ApiError, ApiJson, ApiPath, ErrorBody};
+use crate::server::error::{ApiError, ApiJson, ApiPath, ApiQuery, ErrorBody};
 use crate::server::supervisor::Daemon;
 use crate::server::wire::*;
 
@@ -195,9 +194,8 @@ pub struct ResumeQuery {
 pub async fn resume_run(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
-    query: Result<Query<ResumeQuery>, QueryRejection>,
+    ApiQuery(q): ApiQuery<ResumeQuery>,
 ) -> Result<Response, ApiError> {
-    let Query(q) = query.map_err(|r| ApiError::bad_request(r.body_text()))?;
     if d.view(&id).is_none() {
         return Err(not_found_run(&id));
     }

@@ -5,7 +5,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 
 use super::AppState;
-use crate::server::error::{ApiError, ErrorBody};
+use crate::server::error::{ApiError, ApiQuery, ErrorBody};
 
 /// What `GET /api/v1/sim/render` takes.
 #[derive(Debug, serde::Deserialize, utoipa::IntoParams)]
@@ -47,9 +47,8 @@ pub struct RenderQuery {
               (status = 422, description = "A value out of range", body = ErrorBody)))]
 pub async fn sim_render(
     State(d): State<AppState>,
-    query: Result<axum::extract::Query<RenderQuery>, axum::extract::rejection::QueryRejection>,
+    ApiQuery(q): ApiQuery<RenderQuery>,
 ) -> Result<Response, ApiError> {
-    let axum::extract::Query(q) = query.map_err(|e| ApiError::bad_request(e.body_text()))?;
     let req = render_request(&q).map_err(ApiError::bad_request)?;
     let profile = d.profile.clone();
     let out = tokio::task::spawn_blocking(move || crate::rig::shot::render_offered(&profile, &req))

@@ -18,7 +18,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::AppState;
-use crate::server::error::{ApiError, ApiJson, ErrorBody};
+use crate::server::error::{ApiError, ApiJson, ApiQuery, ErrorBody};
 use crate::tradeoff::TradeoffConfig;
 
 /// The folder of the data directory the report is kept in.
@@ -27,6 +27,7 @@ pub const TRADEOFF_DIR: &str = "tradeoff";
 /// `POST /api/v1/tradeoff`: what to compute (all optional).
 #[derive(Debug, Clone, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
+#[schema(example = json!({"texture": 8, "held_out": 24, "render_size": [128, 96]}))]
 pub struct TradeoffRequest {
     /// Scene of the simulated captures, by name as `/api/v1/sim/scenes`
     /// lists them (default: the profile's sim scene, else corduroy).
@@ -131,6 +132,7 @@ pub async fn get_figure(
 pub struct ChoiceQuery {
     /// The most accurate measured plan whose physical capture time fits
     /// this budget (`3h`, `90m`, `2h30m`, or seconds).
+    #[param(example = "3h")]
     pub budget: Option<String>,
     /// The fastest measured plan whose held-out error is at most this
     /// (`15%` or `0.15`).
@@ -147,10 +149,9 @@ pub struct ChoiceQuery {
               (status = 422, description = "Neither or both of budget and target, a value that does not parse, or no measured plan that fits (named with the nearest)", body = ErrorBody)))]
 pub async fn get_choice(
     State(d): State<AppState>,
-    query: Result<axum::extract::Query<ChoiceQuery>, axum::extract::rejection::QueryRejection>,
+    ApiQuery(q): ApiQuery<ChoiceQuery>,
 ) -> Result<Json<crate::tradeoff::choice::PlanChoice>, ApiError> {
     use crate::tradeoff::choice::{choose, Goal};
-    let axum::extract::Query(q) = query.map_err(|r| ApiError::bad_request(r.body_text()))?;
     let goal = match (&q.budget, &q.target) {
         (Some(b), None) => Goal::budget(b),
         (None, Some(t)) => Goal::target(t),

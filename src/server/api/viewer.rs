@@ -1,8 +1,7 @@
 //! The BTF viewer's routes: the packed material of a processed run, the
 //! meshes it is drawn on, and the viewer page itself (`/viewer/{run}`).
 
-use axum::extract::rejection::QueryRejection;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Path, State};
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use rigd_process::mesh::MeshKind;
@@ -10,7 +9,7 @@ use serde::Deserialize;
 
 use super::AppState;
 use crate::postprocess::viewer::{self, ViewerError, DEFAULT_DENSITY};
-use crate::server::error::{ApiError, ApiPath};
+use crate::server::error::{ApiError, ApiPath, ApiQuery};
 
 /// The BTF viewer page, served at `/viewer/{run}`.
 pub const VIEWER_HTML: &str = include_str!("../dashboard/viewer.html");
@@ -22,15 +21,19 @@ const MAX_COMPONENTS: usize = 64;
 
 /// Query of `GET /api/v1/runs/{id}/btf` and `GET /api/v1/runs/{id}/btf/data`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct BtfQuery {
     /// Send at most this many PCA components per view slot (default: all stored).
+    #[param(example = 8)]
     pub components: Option<usize>,
 }
 
 /// Query of `GET /api/v1/runs/{id}/btf/mesh/{kind}`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct MeshQuery {
     /// Material tiles per world unit (default 1; the flat sample is 2 units across).
+    #[param(example = 1.0)]
     pub density: Option<f64>,
 }
 
@@ -58,10 +61,9 @@ async fn on_run<T: Send + 'static>(
         .map_err(viewer_error)
 }
 
-/// The components asked for, at most [`MAX_COMPONENTS`]; a malformed query is a 400.
-fn components(q: Result<Query<BtfQuery>, QueryRejection>) -> Result<usize, ApiError> {
-    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
-    Ok(q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS))
+/// The components asked for, at most [`MAX_COMPONENTS`].
+fn components(q: &BtfQuery) -> usize {
+    q.components.unwrap_or(MAX_COMPONENTS).min(MAX_COMPONENTS)
 }
 
 /// The processed run's material for the viewer: the manifest of the blob at
@@ -75,9 +77,9 @@ fn components(q: Result<Query<BtfQuery>, QueryRejection>) -> Result<usize, ApiEr
 pub async fn btf_manifest(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
-    q: Result<Query<BtfQuery>, QueryRejection>,
+    ApiQuery(q): ApiQuery<BtfQuery>,
 ) -> Result<Response, ApiError> {
-    let max = components(q)?;
+    let max = components(&q);
     let manifest = on_run(&d, &id, move |root| viewer::manifest(root, max)).await?;
     let mut body =
         serde_json::to_value(&manifest).map_err(|e| ApiError::internal(e.to_string()))?;
@@ -96,9 +98,9 @@ pub async fn btf_manifest(
 pub async fn btf_data(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
-    q: Result<Query<BtfQuery>, QueryRejection>,
+    ApiQuery(q): ApiQuery<BtfQuery>,
 ) -> Result<Response, ApiError> {
-    let max = components(q)?;
+    let max = components(&q);
     let (_, data) = on_run(&d, &id, move |root| viewer::pack(root, max)).await?;
     Ok(([(header::CONTENT_TYPE, "application/octet-stream")], data).into_response())
 }
@@ -115,9 +117,8 @@ pub async fn btf_data(
 pub async fn btf_mesh(
     State(d): State<AppState>,
     ApiPath((id, kind)): ApiPath<(String, String)>,
-    q: Result<Query<MeshQuery>, QueryRejection>,
+    ApiQuery(q): ApiQuery<MeshQuery>,
 ) -> Result<Response, ApiError> {
-    let Query(q) = q.map_err(|e| ApiError::bad_request(e.body_text()))?;
     let kind: MeshKind = kind
         .parse()
         .map_err(|e: rigd_process::mesh::MeshError| ApiError::not_found(e.to_string()))?;
