@@ -145,7 +145,9 @@ class Schemathesis:
         if max_examples:
             cmd += ["--max-examples", str(max_examples)]
         print(f"== schemathesis: {name}", flush=True)
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=(max_time or 120) + 300)
+        # In the work folder: Schemathesis keeps a cache where it runs.
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=(max_time or 120) + 300,
+                              cwd=self.work)
         cases = re.search(r"(\d+) generated", done.stdout)
         self.passes.append((name, done.returncode, events, cases.group(1) if cases else "?"))
         if done.returncode != 0:
