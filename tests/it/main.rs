@@ -42,6 +42,7 @@ mod ps_accuracy;
 mod ptp_camera;
 mod ptp_transcripts;
 mod refusals;
+mod runs_page;
 mod sim_serve;
 mod slurm;
 mod stability;
