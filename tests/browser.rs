@@ -1992,3 +1992,170 @@ async fn operate_rigs(c: &Client, ctx: &PeersCtx<'_>, procs: &mut Procs) {
     check_png(&png);
     eprintln!("screenshot: {}", path.display());
 }
+
+/// The script that reads the history rows: `[id, sample, state, plan]`.
+const HISTORY_ROWS: &str = "return [...document.querySelectorAll('#history tbody tr')]\
+    .map(tr => [tr.dataset.runId, tr.children[1].textContent, tr.dataset.state, tr.children[2].textContent])";
+const HISTORY_POS: &str = "return document.getElementById('history-pos').textContent";
+
+/// The history card over more runs than a page: one real run's record is
+/// copied under 120 ids before the daemon starts; the dashboard shows 50
+/// at a time, pages older and newer, and searches by sample, state and
+/// plan (each a query of the daemon, never the whole history).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn dashboard_pages_and_searches_a_long_history() {
+    let _one_browser = ONE_BROWSER.lock().await;
+    let out = out_dir();
+    let data = tempfile::tempdir().expect("tempdir");
+    let profile_dir = tempfile::tempdir().expect("tempdir");
+    let mut procs = Procs { children: vec![] };
+    let http = reqwest::Client::new();
+
+    // One small real run, then its record copied.
+    let port = free_port();
+    let base = format!("http://127.0.0.1:{port}");
+    let log = out.join("history-rigd.log");
+    spawn_daemon(&mut procs, data.path(), port, "5000", None, &log);
+    wait_http(&http, &format!("{base}/api/v1/health"), "the daemon", 30).await;
+    let token = std::fs::read_to_string(data.path().join("token")).expect("token file");
+    let token = token.trim().to_string();
+    let r = http
+        .post(format!("{base}/api/v1/runs"))
+        .bearer_auth(&token)
+        .json(&json!({"sample": "seed", "frame_size": [16, 12], "operator": "tester",
+                      "plan": {"name": "mini", "directions": [{"theta_deg": 10.0, "phi_deg": 0.0}]}}))
+        .send()
+        .await
+        .expect("POST /runs");
+    let v: Value = r.json().await.unwrap_or(Value::Null);
+    let seed = v["id"]
+        .as_str()
+        .unwrap_or_else(|| panic!("{v}"))
+        .to_string();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (_, v) = get_json(&http, &format!("{base}/api/v1/runs/{seed}")).await;
+        if v["state"] == "completed" && v["active"] == false {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the seed run never completed: {v}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    procs.stop("rigd");
+    let runs_dir = data.path().join("runs");
+    let copies = common::history::clone_runs(&runs_dir.join(&seed), &runs_dir, 120);
+    std::fs::remove_dir_all(runs_dir.join(&seed)).expect("remove the seed run");
+    let all = common::history::newest_first(&copies);
+    spawn_daemon(&mut procs, data.path(), port, "5000", None, &log);
+    wait_http(&http, &format!("{base}/api/v1/health"), "the daemon", 30).await;
+
+    let client = chromium(&mut procs, &out, profile_dir.path(), "1400,1500").await;
+    let result = AssertUnwindSafe(async {
+        history_card(&client, &base, &token, &all).await;
+    })
+    .catch_unwind()
+    .await;
+    end_session(client, procs, result, &out.join("history-failure.png")).await;
+}
+
+async fn history_card(c: &Client, base: &str, token: &str, all: &[common::history::Cloned]) {
+    c.goto(&format!("{base}/"))
+        .await
+        .expect("open the dashboard");
+    enter_token(c, token).await;
+    let ids = |v: &Value| -> Vec<String> {
+        v.as_array()
+            .map(|rows| {
+                rows.iter()
+                    .map(|r| r[0].as_str().unwrap_or("").to_string())
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let want = |from: usize, to: usize| -> Vec<String> {
+        all[from..to].iter().map(|r| r.id.clone()).collect()
+    };
+    // The first page: the 50 newest.
+    let rows = wait_js(c, "the first page", 30, HISTORY_ROWS, |v| {
+        v.as_array().is_some_and(|a| a.len() == 50)
+    })
+    .await;
+    assert_eq!(ids(&rows), want(0, 50));
+    assert_eq!(js(c, HISTORY_POS).await, json!("1–50 of 120"));
+    assert_eq!(
+        js(c, "return document.getElementById('history-prev').disabled").await,
+        json!(true)
+    );
+    // Older, older (the last 20), newer.
+    click_id(c, "history-next").await;
+    let rows = wait_js(c, "the second page", 10, HISTORY_ROWS, |v| {
+        v[0][0].as_str() == Some(all[50].id.as_str())
+    })
+    .await;
+    assert_eq!(ids(&rows), want(50, 100));
+    assert_eq!(js(c, HISTORY_POS).await, json!("51–100 of 120"));
+    click_id(c, "history-next").await;
+    let rows = wait_js(c, "the last page", 10, HISTORY_ROWS, |v| {
+        v.as_array().is_some_and(|a| a.len() == 20)
+    })
+    .await;
+    assert_eq!(ids(&rows), want(100, 120));
+    assert_eq!(
+        js(c, "return document.getElementById('history-next').disabled").await,
+        json!(true)
+    );
+    click_id(c, "history-prev").await;
+    let rows = wait_js(c, "the second page again", 10, HISTORY_ROWS, |v| {
+        v.as_array().is_some_and(|a| a.len() == 50)
+    })
+    .await;
+    assert_eq!(ids(&rows), want(50, 100));
+
+    // A search by sample, typed, from the first page on.
+    let search = c
+        .find(Locator::Id("history-sample"))
+        .await
+        .expect("#history-sample");
+    search.send_keys("LEATH").await.expect("type a search");
+    let leather: Vec<String> = all
+        .iter()
+        .filter(|r| r.sample == "Leather")
+        .map(|r| r.id.clone())
+        .collect();
+    let rows = wait_js(c, "the search's runs", 10, HISTORY_ROWS, |v| {
+        v.as_array().is_some_and(|a| a.len() == leather.len())
+    })
+    .await;
+    assert_eq!(ids(&rows), leather);
+    assert_eq!(js(c, HISTORY_POS).await, json!(format!("1–24 of 24")));
+    // And by state and plan.
+    js(
+        c,
+        "const s = document.getElementById('history-state'); s.value = 'aborted'; \
+         s.dispatchEvent(new Event('change')); return true",
+    )
+    .await;
+    let plan = c
+        .find(Locator::Id("history-plan"))
+        .await
+        .expect("#history-plan");
+    plan.send_keys("dome").await.expect("type a plan");
+    let both: Vec<String> = all
+        .iter()
+        .filter(|r| r.sample == "Leather" && r.state == "aborted" && r.plan == "dome")
+        .map(|r| r.id.clone())
+        .collect();
+    assert!(!both.is_empty());
+    let rows = wait_js(c, "the filtered runs", 10, HISTORY_ROWS, |v| ids(v) == both).await;
+    for r in rows.as_array().expect("rows") {
+        assert_eq!(
+            (&r[1], &r[2], &r[3]),
+            (&json!("Leather"), &json!("aborted"), &json!("dome"))
+        );
+    }
+    let png = c.screenshot().await.expect("screenshot");
+    std::fs::write(out_dir().join("history.png"), &png).expect("save history.png");
+}

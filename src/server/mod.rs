@@ -20,12 +20,14 @@ pub mod api;
 pub mod auth;
 pub mod error;
 pub mod events;
+pub mod history;
 pub mod http;
 pub mod jobs;
 pub mod manual_session;
 pub mod peers;
 pub mod persist;
 pub mod plan_cache;
+pub mod run_index;
 pub mod supervisor;
 pub mod wire;
 

@@ -1,9 +1,10 @@
 //! What the daemon keeps in its data directory besides the run directories:
 //! the queue (`queue.json`, written atomically), and the run history, which
-//! is read back from `runs/*/` at startup.
+//! is read back from `runs/*/` at startup (through the run index,
+//! `super::run_index`).
 
 use std::collections::BTreeSet;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
@@ -245,31 +246,6 @@ pub fn is_error_reason(reason: &str) -> bool {
     !(reason.starts_with("paused by operator")
         || reason.starts_with("detached")
         || reason.starts_with("aborted by operator"))
-}
-
-/// Every run directory under `DATA/runs/`, with problems logged and skipped.
-pub fn scan_runs(runs_dir: &Path) -> Vec<(RunView, PathBuf)> {
-    let mut out = Vec::new();
-    let Ok(entries) = std::fs::read_dir(runs_dir) else {
-        return out;
-    };
-    for entry in entries.flatten() {
-        let name = entry.file_name().to_string_lossy().into_owned();
-        let path = entry.path();
-        if !is_valid_id(&name) || !path.join(RUN_FILE).is_file() {
-            continue;
-        }
-        match load_run(&path, &name, true) {
-            Ok((view, _)) => {
-                if view.state == RunState::Interrupted {
-                    tracing::warn!(run = %name, "run was active when the daemon stopped: marked interrupted (resumable)");
-                }
-                out.push((view, path));
-            }
-            Err(e) => tracing::warn!("skipping {}: {e}", path.display()),
-        }
-    }
-    out
 }
 
 #[cfg(test)]

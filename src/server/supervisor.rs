@@ -1,7 +1,7 @@
 //! The daemon's state and run supervisor: the run history, the one active
 //! run (its engine handle and simulated rig), and the queue.
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::Duration;
@@ -11,6 +11,7 @@ use tokio::task::JoinHandle;
 
 use super::error::SupervisorError;
 use super::events::EventHub;
+use super::history::RunHistory;
 use super::persist::{self, RUNS_DIR};
 use super::plan_cache::PlanCache;
 use super::wire::{PaceView, PlanSpec, QueueItem, RunRequest, RunView};
@@ -47,8 +48,9 @@ pub struct Active {
 /// The daemon's mutable state, under one lock ([`Daemon::inner`]).
 #[derive(Default)]
 pub struct Inner {
-    /// Every known run by id, the active one included: the run history.
-    pub runs: BTreeMap<String, RunView>,
+    /// Every known run, the active one included: the run history, in the
+    /// list's order.
+    pub runs: RunHistory,
     /// The run an engine drives now; None when the rig is free.
     pub active: Option<Active>,
     /// Queued runs, in the order they will start (kept in `queue.json`).
@@ -92,6 +94,12 @@ pub struct Daemon {
     pub jobs: super::jobs::Jobs,
     /// The other rigs' daemons (`--peers FILE`) and what each last answered.
     pub peers: Arc<super::peers::Peers>,
+    /// The data directory's history id, which run-list cursors carry
+    /// (`DATA/history-id`).
+    pub history_id: String,
+    /// The run index (`DATA/runs-index.json`) as last written; its lock
+    /// also serialises the writes.
+    run_index: Mutex<super::run_index::RunIndex>,
 }
 
 /// Most characters a sample, operator name or plan name may have.
@@ -120,9 +128,22 @@ impl Daemon {
             path: runs_dir.clone(),
             why: e.to_string(),
         })?;
+        let history_id =
+            super::history::history_id(&data_dir).map_err(|e| super::ServerError::DataDir {
+                path: data_dir.join(super::history::HISTORY_ID_FILE),
+                why: e.to_string(),
+            })?;
         let mut inner = Inner::default();
-        for (view, _) in persist::scan_runs(&runs_dir) {
-            inner.runs.insert(view.id.clone(), view);
+        let scan = super::run_index::scan(&data_dir, &runs_dir);
+        for view in scan.views {
+            inner.runs.insert(view);
+        }
+        if scan.stale {
+            // Written now so that the next start finds it even if this
+            // daemon is killed before any run ends.
+            if let Err(e) = scan.index.write(&data_dir) {
+                tracing::warn!("cannot write the run index: {e}");
+            }
         }
         inner.queue = persist::load_queue(&data_dir);
         let jobs = super::jobs::Jobs::load(&runs_dir, inner.runs.keys());
@@ -150,7 +171,41 @@ impl Daemon {
             plans,
             jobs,
             peers,
+            history_id,
+            run_index: Mutex::new(scan.index),
         }))
+    }
+
+    /// Brings the run index up to the run directories and writes it, if
+    /// anything changed. It is written at start-up, when a run ends or is
+    /// aborted without an engine, and at shutdown, not on every engine
+    /// event: a run's record changes on every frame, and only the next
+    /// start-up reads the index, which checks every entry against the
+    /// files anyway (a run changed after the last write is just read).
+    /// Blocking: it stats every run's files.
+    pub fn save_run_index(&self) {
+        let mut index = lock(&self.run_index);
+        let ids: Vec<String> = {
+            let inner = self.inner();
+            let active = inner.active.as_ref().map(|a| a.id.as_str());
+            inner
+                .runs
+                .keys()
+                .filter(|id| Some(id.as_str()) != active)
+                .cloned()
+                .collect()
+        };
+        if index.refresh(&self.runs_dir, ids.iter().map(String::as_str)) {
+            if let Err(e) = index.write(&self.data_dir) {
+                tracing::warn!("cannot write the run index: {e}");
+            }
+        }
+    }
+
+    /// [`Daemon::save_run_index`] on a blocking thread.
+    fn save_run_index_soon(self: &Arc<Self>) {
+        let d = self.clone();
+        tokio::task::spawn_blocking(move || d.save_run_index());
     }
 
     /// Locks the daemon's mutable state (taken over even if a holder panicked).
@@ -448,7 +503,7 @@ impl Daemon {
         view.state = RunState::Aborted;
         view.reason = Some(reason);
         view.resumable = false;
-        self.inner().runs.insert(view.id.clone(), view.clone());
+        self.inner().runs.insert(view.clone());
         self.hub.publish(
             Some(&view.id),
             "run_ended",
@@ -506,7 +561,7 @@ impl Daemon {
                 pace,
             });
             inner.last_sim = p.sim;
-            inner.runs.insert(id.clone(), view.clone());
+            inner.runs.insert(view.clone());
         }
         self.hub.publish(
             Some(&id),
@@ -552,7 +607,7 @@ impl Daemon {
                     a.state = *to;
                 }
             }
-            if let Some(v) = inner.runs.get_mut(id) {
+            inner.runs.update(id, |v| {
                 v.physical_s = ev.t_s;
                 v.updated_at = Some(crate::store::now_rfc3339());
                 match &ev.kind {
@@ -584,7 +639,7 @@ impl Daemon {
                     v.eta_wall_s = Some(left / speed);
                 }
                 v.pace = pace;
-            }
+            });
         }
         self.hub.publish(
             Some(id),
@@ -638,7 +693,7 @@ impl Daemon {
                         v.resumable = true;
                     }
                 }
-                inner.runs.insert(id.to_string(), v.clone());
+                inner.runs.insert(v.clone());
             }
             (inner.shutting_down, view)
         };
@@ -652,6 +707,8 @@ impl Daemon {
         );
         self.jobs.notify();
         if !shutting_down {
+            // At shutdown the index is written once, after the engine.
+            self.save_run_index_soon();
             self.pump_queue();
         }
     }
@@ -807,7 +864,7 @@ impl Daemon {
                 .map_err(|e| SupervisorError::internal(e.to_string()))?;
                 let v = {
                     let mut inner = self.inner();
-                    let v = inner.runs.get_mut(id).map(|v| {
+                    let v = inner.runs.update(id, |v| {
                         v.state = RunState::Aborted;
                         v.reason = record.reason.clone();
                         v.resumable = false;
@@ -816,6 +873,7 @@ impl Daemon {
                     });
                     v.unwrap_or(view)
                 };
+                self.save_run_index_soon();
                 self.hub.publish(
                     Some(id),
                     "run_ended",
@@ -957,6 +1015,9 @@ impl Daemon {
                 tracing::error!("the engine did not stop within 60 s; exiting anyway (the journal is fsynced per frame)");
             }
         }
+        // Blocks this thread a moment (it stats every run's files), once,
+        // with nothing left to serve but the streams about to end.
+        self.save_run_index();
         let _ = self.shutdown_tx.send(true);
     }
 }

@@ -205,13 +205,20 @@ pub struct PaceView {
     pub behind: bool,
 }
 
-/// `GET /api/v1/runs`.
+/// `GET /api/v1/runs`: one page of the run history.
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct RunList {
-    /// Newest first.
+    /// The page's runs, newest first (`started_at` descending, then id
+    /// descending).
     pub runs: Vec<RunView>,
-    /// The active run's id.
+    /// The active run's id (whether or not it is on this page).
     pub active: Option<String>,
+    /// The `cursor` of the next page; null on the last page.
+    #[serde(default)]
+    pub next: Option<String>,
+    /// How many runs match the filters, on every page.
+    #[serde(default)]
+    pub total: usize,
 }
 
 /// Answer to pause/resume/abort.

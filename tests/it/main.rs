@@ -44,6 +44,7 @@ mod ptp_camera;
 mod ptp_transcripts;
 mod python_client;
 mod refusals;
+mod runs_page;
 mod sim_serve;
 mod slurm;
 mod stability;

@@ -9,24 +9,94 @@ use axum::Json;
 use super::not_found_run;
 use super::AppState;
 use crate::engine::command::Command;
+use crate::model::run_state::RunState;
 use crate::server::error::{ApiError, ApiJson, ApiPath, ApiQuery, ErrorBody};
+use crate::server::history::{
+    decode_cursor, encode_cursor, parse_bound, parse_limit, parse_state, Bound, HistoryQuery,
+    QueryError, RunFilter,
+};
 use crate::server::supervisor::Daemon;
 use crate::server::wire::*;
 
-/// Every run in the data directory, newest first.
-#[utoipa::path(get, path = "/api/v1/runs", tag = "runs",
-    responses((status = 200, description = "The run history", body = RunList)))]
-pub async fn list_runs(State(d): State<AppState>) -> Json<RunList> {
-    let (mut runs, active) = {
-        let inner = d.inner();
-        let runs: Vec<RunView> = inner.runs.values().cloned().collect();
-        (runs, inner.active.as_ref().map(|a| a.id.clone()))
+/// The query of `GET /api/v1/runs`: a page size, where to go on, and
+/// filters (each one given must hold; an empty one is no filter).
+#[derive(Debug, Default, serde::Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+pub struct RunsQuery {
+    /// Runs per page, 1 to 1000; 50 if not given.
+    #[param(minimum = 1, maximum = 1000)]
+    pub limit: Option<u64>,
+    /// Where to go on: the `next` of the previous page, as it is (opaque;
+    /// it stays valid across restarts of this daemon, not on another data
+    /// directory). The first page without it.
+    pub cursor: Option<String>,
+    /// Text the sample name contains, case-insensitive.
+    pub sample: Option<String>,
+    /// Runs in this state only.
+    #[param(value_type = Option<RunState>)]
+    pub state: Option<String>,
+    /// Runs of this plan only (its exact name).
+    pub plan: Option<String>,
+    /// Runs captured on this rig profile only (its exact name).
+    pub profile: Option<String>,
+    /// Runs started at or after this RFC 3339 date (`2026-12-01`, from its
+    /// midnight UTC) or date-time (`2026-12-01T08:00:00Z`, `…+01:00`).
+    pub from: Option<String>,
+    /// Runs started at or before this RFC 3339 date (to its end, UTC) or
+    /// date-time.
+    pub to: Option<String>,
+}
+
+/// Reads the query into what the history pages by.
+fn history_query(d: &Daemon, q: RunsQuery) -> Result<HistoryQuery, QueryError> {
+    let given = |s: Option<String>| s.filter(|s| !s.is_empty());
+    let filter = RunFilter {
+        sample: given(q.sample).map(|s| s.to_lowercase()),
+        state: given(q.state).as_deref().map(parse_state).transpose()?,
+        plan: given(q.plan),
+        profile: given(q.profile),
+        from: given(q.from)
+            .map(|s| parse_bound("from", &s, Bound::From))
+            .transpose()?,
+        until: given(q.to)
+            .map(|s| parse_bound("to", &s, Bound::To))
+            .transpose()?,
     };
-    runs.sort_by(|a, b| b.started_at.cmp(&a.started_at).then(b.id.cmp(&a.id)));
+    Ok(HistoryQuery {
+        filter,
+        limit: parse_limit(q.limit)?,
+        after: given(q.cursor)
+            .map(|c| decode_cursor(&d.history_id, &c))
+            .transpose()?,
+    })
+}
+
+/// The run history, one page at a time, newest first, filtered.
+#[utoipa::path(get, path = "/api/v1/runs", tag = "runs", params(RunsQuery),
+    responses((status = 200, description = "One page of the run history and how many runs match", body = RunList),
+              (status = 400, description = "A malformed query: `limit` not 1 to 1000, a malformed cursor or one from another data directory, an unknown `state`, a `from`/`to` that is not an RFC 3339 date or date-time", body = ErrorBody)))]
+pub async fn list_runs(
+    State(d): State<AppState>,
+    ApiQuery(q): ApiQuery<RunsQuery>,
+) -> Result<Json<RunList>, ApiError> {
+    let q = history_query(&d, q).map_err(|e| ApiError::bad_request(e.to_string()))?;
+    let (page, active) = {
+        let inner = d.inner();
+        (
+            inner.runs.page(&q),
+            inner.active.as_ref().map(|a| a.id.clone()),
+        )
+    };
+    let mut runs = page.runs;
     for run in &mut runs {
         mark_processed(&d, run);
     }
-    Json(RunList { runs, active })
+    Ok(Json(RunList {
+        runs,
+        active,
+        next: page.next.map(|p| encode_cursor(&d.history_id, &p)),
+        total: page.total,
+    }))
 }
 
 /// Fills `processed` from what lies on disk now (`rigd process` runs

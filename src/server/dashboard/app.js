@@ -9,7 +9,11 @@ const $ = (id) => document.getElementById(id);
 const state = {
   rig: null,
   plans: [],
-  runs: [],
+  runs: [], // the history page shown
+  shownView: null, // the shown run when it is not on that page
+  // The history's paging and filters (GET /runs?limit&cursor&sample&state&plan):
+  // cursors[i] opens page i (null: the first), `next` the page after this one.
+  hist: { cursors: [null], page: 0, next: null, total: 0, sample: "", state: "", plan: "", seq: 0 },
   activeId: null,
   shownId: null, // the run shown in the "Active run" card
   steps: [], // its steps
@@ -194,10 +198,39 @@ async function loadPlans() {
   }
 }
 
+const HISTORY_PAGE = 50;
+
+/** The query of the history page shown: its cursor and the filters. */
+function historyQuery() {
+  const h = state.hist;
+  const q = new URLSearchParams({ limit: String(HISTORY_PAGE) });
+  const cursor = h.cursors[h.page];
+  if (cursor) q.set("cursor", cursor);
+  for (const k of ["sample", "state", "plan"]) if (h[k]) q.set(k, h[k]);
+  return q.toString();
+}
+
+function historyFiltered() {
+  const h = state.hist;
+  return Boolean(h.sample || h.state || h.plan);
+}
+
+// Only the page shown is fetched: the daemon may hold tens of thousands of runs.
 async function loadRuns() {
+  const h = state.hist;
+  const seq = ++h.seq;
   try {
-    const list = await api("GET", "/runs");
+    const list = await api("GET", `/runs?${historyQuery()}`);
+    if (seq !== h.seq) return; // a newer page or filter was asked for meanwhile
+    if (!list.runs.length && h.page > 0) {
+      // The page emptied (runs removed, filters changed): back to the first.
+      h.page = 0;
+      h.cursors = [null];
+      return loadRuns();
+    }
     state.runs = list.runs;
+    h.next = list.next || null;
+    h.total = list.total || 0;
     state.activeId = list.active;
     const shown = list.active || state.shownId || (list.runs[0] && list.runs[0].id) || null;
     if (shown !== state.shownId) {
@@ -206,11 +239,57 @@ async function loadRuns() {
       state.stepsRun = null;
     }
     renderHistory();
+    if (shown && !shownRun()) await loadRun(shown);
     renderRun();
     if (state.shownId && state.stepsRun !== state.shownId) await loadSteps();
   } catch (e) {
     showMessage(`runs: ${errText(e)}`);
   }
+}
+
+function historyPage(delta) {
+  const h = state.hist;
+  if (delta > 0) {
+    if (!h.next) return;
+    h.cursors = h.cursors.slice(0, h.page + 1);
+    h.cursors.push(h.next);
+    h.page += 1;
+  } else {
+    if (h.page === 0) return;
+    h.page -= 1;
+  }
+  loadRuns();
+}
+
+function historyFilter() {
+  const h = state.hist;
+  h.sample = $("history-sample").value.trim();
+  h.state = $("history-state").value;
+  h.plan = $("history-plan").value.trim();
+  h.page = 0;
+  h.cursors = [null];
+  loadRuns();
+}
+
+function setupHistory() {
+  const typed = debounce(historyFilter, 300);
+  $("history-sample").addEventListener("input", typed);
+  $("history-plan").addEventListener("input", typed);
+  $("history-state").addEventListener("change", historyFilter);
+  $("history-filters").addEventListener("submit", (e) => {
+    e.preventDefault();
+    historyFilter();
+  });
+  $("history-prev").addEventListener("click", () => historyPage(-1));
+  $("history-next").addEventListener("click", () => historyPage(1));
+}
+
+function debounce(fn, ms) {
+  let timer = null;
+  return (...args) => {
+    clearTimeout(timer);
+    timer = setTimeout(() => fn(...args), ms);
+  };
 }
 
 async function loadRun(id) {
@@ -527,7 +606,12 @@ function onTradeoffEvent(e) {
 function upsertRun(run) {
   const i = state.runs.findIndex((r) => r.id === run.id);
   if (i >= 0) state.runs[i] = run;
-  else state.runs.unshift(run);
+  else if (state.hist.page === 0 && !historyFiltered()) {
+    // A new run belongs at the top of the first page.
+    state.runs.unshift(run);
+    if (state.runs.length > HISTORY_PAGE) state.runs.pop();
+  }
+  if (run.id === state.shownId) state.shownView = run;
   if (run.active) state.activeId = run.id;
   else if (state.activeId === run.id) state.activeId = null;
   renderHistory();
@@ -637,7 +721,10 @@ function planChanged() {
 }
 
 function shownRun() {
-  return state.runs.find((r) => r.id === state.shownId) || null;
+  const onPage = state.runs.find((r) => r.id === state.shownId);
+  if (onPage) return onPage;
+  const v = state.shownView;
+  return v && v.id === state.shownId ? v : null;
 }
 
 function renderRun() {
@@ -725,6 +812,19 @@ function renderQueue() {
 function renderHistory() {
   const tbody = $("history").tBodies[0];
   tbody.replaceChildren();
+  const h = state.hist;
+  const first = h.page * HISTORY_PAGE;
+  $("history-pos").textContent = state.runs.length
+    ? `${first + 1}–${first + state.runs.length} of ${h.total}`
+    : `0 of ${h.total}`;
+  $("history-prev").disabled = h.page === 0;
+  $("history-next").disabled = !h.next;
+  $("history-empty").hidden = state.runs.length > 0;
+  const plans = new Set([...state.plans.map((p) => p.name), ...state.runs.map((r) => r.plan)]);
+  const list = $("history-plans");
+  if (list.children.length !== plans.size) {
+    list.replaceChildren(...[...plans].sort().map((p) => text("option", "", { value: p })));
+  }
   for (const r of state.runs) {
     const tr = document.createElement("tr");
     tr.dataset.runId = r.id;
@@ -1300,6 +1400,7 @@ function setup() {
   $("rig-check").addEventListener("click", checkRig);
   setupManual();
   $("tradeoff-start").addEventListener("click", startTradeoff);
+  setupHistory();
   drawHemisphere();
   connect();
   if (!token()) askToken("No API token is stored in this browser yet.");
