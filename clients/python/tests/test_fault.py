@@ -46,7 +46,9 @@ def test_peers_pause_and_abort(client: Client, fault_client: Client) -> None:
     while True:  # the daemon polls its peers once a second
         peers = client.peers()
         faulty = [p for p in peers if p["name"] == "faulty"]
-        if faulty and faulty[0]["reachable"] and faulty[0]["active_run"]:
+        # Its run and its faults come from the same poll, but a poll from
+        # before the fault may be the one shown: wait for both.
+        if faulty and faulty[0]["reachable"] and faulty[0]["active_run"] and faulty[0]["faults"]:
             break
         assert time.monotonic() < deadline, peers
         time.sleep(0.2)
