@@ -408,26 +408,16 @@ fn is_history_id(s: &str) -> bool {
     s.len() == 32 && s.bytes().all(|b| b.is_ascii_hexdigit())
 }
 
-/// 16 random bytes from the kernel; should it have none to give, a hash of
-/// the time, the process and an address, which still tells data
+/// 16 random bytes from the operating system; should it have none to
+/// give, a hash of the time and the process, which still tells data
 /// directories apart in practice.
 fn random_bytes() -> [u8; 16] {
     let mut out = [0u8; 16];
-    if let Ok(mut f) = std::fs::File::open("/dev/urandom") {
-        use std::io::Read;
-        if f.read_exact(&mut out).is_ok() {
-            return out;
-        }
+    if getrandom::fill(&mut out).is_err() {
+        use sha2::Digest;
+        let seed = format!("{:?} {}", SystemTime::now(), std::process::id());
+        out.copy_from_slice(&sha2::Sha256::digest(seed.as_bytes())[..16]);
     }
-    use sha2::Digest;
-    let mut h = sha2::Sha256::new();
-    h.update(format!(
-        "{:?} {} {:p}",
-        SystemTime::now(),
-        std::process::id(),
-        &out
-    ));
-    out.copy_from_slice(&h.finalize()[..16]);
     out
 }
 
@@ -435,41 +425,23 @@ fn short(s: &str) -> String {
     s.chars().take(64).collect()
 }
 
-const B64: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_";
-
 /// Base64url without padding (RFC 4648 §5).
 fn base64url_encode(bytes: &[u8]) -> String {
-    let mut out = String::with_capacity(bytes.len().div_ceil(3) * 4);
-    for chunk in bytes.chunks(3) {
-        let n = chunk
-            .iter()
-            .enumerate()
-            .fold(0u32, |n, (i, b)| n | (u32::from(*b) << (16 - 8 * i)));
-        for i in 0..=chunk.len() {
-            out.push(char::from(B64[((n >> (18 - 6 * i)) & 63) as usize]));
-        }
-    }
-    out
+    use base64::Engine;
+    base64::engine::general_purpose::URL_SAFE_NO_PAD.encode(bytes)
 }
 
-/// Reads base64url, with or without padding; None for anything else.
+/// Reads base64url, with or without padding; None for anything else or
+/// anything longer than a cursor can be.
 fn base64url_decode(s: &str) -> Option<Vec<u8>> {
+    use base64::Engine;
     let s = s.trim_end_matches('=');
-    if s.len() % 4 == 1 || s.len() > 4096 {
+    if s.len() > 4096 {
         return None;
     }
-    let mut out = Vec::with_capacity(s.len() * 3 / 4);
-    for chunk in s.as_bytes().chunks(4) {
-        let mut n = 0u32;
-        for (i, c) in chunk.iter().enumerate() {
-            let v = B64.iter().position(|b| b == c)? as u32;
-            n |= v << (18 - 6 * i);
-        }
-        for i in 0..chunk.len() - 1 {
-            out.push((n >> (16 - 8 * i)) as u8);
-        }
-    }
-    Some(out)
+    base64::engine::general_purpose::URL_SAFE_NO_PAD
+        .decode(s)
+        .ok()
 }
 
 #[cfg(test)]

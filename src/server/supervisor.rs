@@ -38,6 +38,9 @@ pub struct Active {
     pub sim: Option<SimHandle>,
     /// The engine's state, as of its latest state event.
     pub state: RunState,
+    /// The last command sent to the engine since that event: the same
+    /// command again is already on its way, and is not sent twice.
+    pub pending: Option<Command>,
     /// Physical time at which the run should end (t_offset + estimate).
     pub end_estimate_s: f64,
     /// The asked and achieved speed of a simulated run's paced virtual
@@ -557,6 +560,7 @@ impl Daemon {
                 handle: p.handle,
                 sim: p.sim.clone(),
                 state: RunState::Preparing,
+                pending: None,
                 end_estimate_s: p.t_offset_s + p.estimate_s,
                 pace,
             });
@@ -605,6 +609,7 @@ impl Daemon {
             if let EventKind::State { to, .. } = &ev.kind {
                 if let Some(a) = inner.active.as_mut().filter(|a| a.id == id) {
                     a.state = *to;
+                    a.pending = None;
                 }
             }
             inner.runs.update(id, |v| {
@@ -831,17 +836,32 @@ impl Daemon {
             .view(id)
             .ok_or_else(|| SupervisorError::not_found(format!("no run `{}`", short(id))))?;
         let live = {
-            let inner = self.inner();
-            inner
-                .active
-                .as_ref()
-                .filter(|a| a.id == id)
-                .map(|a| (a.state, a.handle.commands.clone()))
+            let mut inner = self.inner();
+            match inner.active.as_mut().filter(|a| a.id == id) {
+                None => None,
+                // Already on its way (a client repeating itself, a fuzzer):
+                // the engine acts on it once, and its queue never fills.
+                Some(a) if a.pending == Some(cmd) => Some(Ok(())),
+                // Nothing after an abort can matter to the run; so at most a
+                // pause and an abort wait for an engine that is busy (homing,
+                // say) and its command queue never fills.
+                Some(a) if a.pending == Some(Command::Abort) => Some(Err(
+                    SupervisorError::conflict("an abort is on its way to the run's engine"),
+                )),
+                Some(a) => Some(
+                    check_command(a.state, cmd)
+                        .map_err(|r| SupervisorError::conflict(r.to_string()))
+                        .and_then(|()| {
+                            a.handle.commands.try_send(cmd).map_err(|e| {
+                                SupervisorError::unavailable(format!("the engine is busy: {e}"))
+                            })
+                        })
+                        .map(|()| a.pending = Some(cmd)),
+                ),
+            }
         };
-        if let Some((state, tx)) = live {
-            check_command(state, cmd).map_err(|r| SupervisorError::conflict(r.to_string()))?;
-            tx.try_send(cmd)
-                .map_err(|e| SupervisorError::unavailable(format!("the engine is busy: {e}")))?;
+        if let Some(sent) = live {
+            sent?;
             return Ok((true, self.view(id).unwrap_or(view)));
         }
         // No live engine.

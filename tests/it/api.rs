@@ -461,6 +461,41 @@ async fn racing_clients_exactly_one_wins() {
     s.shutdown().await;
 }
 
+/// A command sent again before the engine has acted on it (a client
+/// repeating itself) is on its way already: it is answered as sent, never
+/// queued twice, so the engine's command queue never fills (which answered
+/// 503 to a fuzzer's repeated pauses).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_command_repeated_before_the_engine_acts_is_sent_once() {
+    let (_d, mut s) = srv(20.0).await;
+    let id = start_run(&s, run_body("p", small_plan(9))).await;
+    s.wait_run(&id, "running", |v| v["state"] == "running")
+        .await;
+    let pause = format!("/api/v1/runs/{id}/pause");
+    let answers = futures::future::join_all((0..40).map(|_| s.post(&pause, None))).await;
+    let statuses: Vec<u16> = answers.iter().map(|(status, _)| *status).collect();
+    assert!(
+        statuses.iter().all(|s| *s == 202 || *s == 409),
+        "{statuses:?}"
+    );
+    assert!(statuses.contains(&202), "{statuses:?}");
+    // Pauses and aborts alternating, as fast as a client can: after an
+    // abort, nothing else goes to the engine.
+    let abort = format!("/api/v1/runs/{id}/abort");
+    let answers = futures::future::join_all((0..40).map(|i| {
+        let path = if i % 2 == 0 { &abort } else { &pause };
+        s.post(path, None)
+    }))
+    .await;
+    let statuses: Vec<u16> = answers.iter().map(|(status, _)| *status).collect();
+    assert!(
+        statuses.iter().all(|s| *s == 202 || *s == 200 || *s == 409),
+        "{statuses:?}"
+    );
+    s.wait_ended(&id, "aborted").await;
+    s.shutdown().await;
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn pause_resume_abort_and_estop() {
     let (_d, mut s) = srv(300.0).await;

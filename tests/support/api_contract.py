@@ -11,7 +11,7 @@ script makes them first, with rigd's own commands, then starts the daemon
 under test on them:
 
   rigd serve (A): the daemon under test, simulated Bonn rig, fast;
-  rigd serve (B): its peer, in real time, with long runs queued, so that
+  rigd serve (B): its peer, slow, with long runs queued, so that
                   A's /peers/B/pause and /abort always find a run.
 
 Usage: api_contract.py --rigd BIN --work DIR [--max-time S] [--repo DIR]
@@ -39,8 +39,10 @@ TINY_PLAN = {
     "lights": [{"theta_deg": 30, "phi_deg": 0}, {"theta_deg": 45, "phi_deg": 90}],
     "views": [{"theta_deg": 20, "phi_deg": 0}, {"theta_deg": 40, "phi_deg": 180}],
 }
-# The peer's runs: 36 images, minutes each in real time.
-BUSY_PLAN = {"name": "busy", "directions": [{"theta_deg": 10 + 10 * i, "phi_deg": 50 * i} for i in range(6)]}
+# The peer's runs: 100 images, about a minute each at the peer's speed
+# (after a lamp warm-up of seconds).
+BUSY_PLAN = {"name": "busy", "directions": [{"theta_deg": 5 + 8 * i, "phi_deg": 50 * i} for i in range(10)]}
+PEER_SPEED = 20.0
 BTF_RUN = "seed-btf"
 LASER_RUN = "seed-laser"
 PEER = "rig-b"
@@ -171,6 +173,27 @@ def make_idle(base: str, token: str) -> None:
     raise SystemExit("the rig never became idle")
 
 
+def wait_running(base: str, token: str) -> None:
+    """Until the daemon's active run is running: a paused one is resumed,
+    and a run is queued when there is none."""
+    deadline = time.monotonic() + 120
+    last = None
+    while time.monotonic() < deadline:
+        active = request(f"{base}/runs", token)[1].get("active")
+        last = active and request(f"{base}/runs/{active}", token)[1]
+        if active is None:
+            if not request(f"{base}/queue", token)[1]["items"]:
+                request(f"{base}/queue", token, {"sample": "busy", "plan": BUSY_PLAN}, "POST")
+        else:
+            state = request(f"{base}/runs/{active}", token)[1].get("state")
+            if state == "running":
+                return
+            if state == "paused":
+                request(f"{base}/runs/{active}/resume", token, method="POST")
+        time.sleep(0.2)
+    raise SystemExit(f"no run became active and running on {base}: the active run is {last}")
+
+
 def operation_matchers(spec: dict) -> list[tuple[str, re.Pattern, str]]:
     out = []
     for path, item in spec["paths"].items():
@@ -216,10 +239,10 @@ def main() -> int:
     work.mkdir(parents=True, exist_ok=True)
     daemons: list[subprocess.Popen] = []
     try:
-        # B: the peer, in real time, busy with long runs one after another.
+        # B: the peer, busy with long runs one after another.
         port_b = free_port()
         data_b = work / "rig-b"
-        daemons.append(start_daemon(args.rigd, data_b, port_b, 1.0, [], work / "rig-b.log"))
+        daemons.append(start_daemon(args.rigd, data_b, port_b, PEER_SPEED, [], work / "rig-b.log"))
         token_b = (data_b / "token").read_text().strip()
         for i in range(40):
             status, body = request(f"http://127.0.0.1:{port_b}/api/v1/queue", token_b,
@@ -265,7 +288,10 @@ def main() -> int:
         status, body = request(f"{base}/rig/manual/frame", token_a, {}, "POST")
         if status != 200:
             raise SystemExit(f"a manual frame: {status} {body}")
-        st.run("idle-rig", seeded, only=["check", "release", "take_frame", "last_frame", "btf_mesh"],
+        # (And a seeded run's own routes, which the broad pass reaches only
+        # through links.)
+        st.run("idle-rig", {**seeded, "get_run": {"path.id": BTF_RUN}, "run_steps": {"path.id": BTF_RUN}},
+               only=["check", "release", "take_frame", "last_frame", "btf_mesh", "get_run", "run_steps"],
                max_examples=5, phases="examples,fuzzing")
         # Moves need the axes homed, in one manual session (which a rig
         # check or a release ends).
@@ -300,6 +326,13 @@ def main() -> int:
                            ("abort_run", {"path.id": run_id})]:
             st.run(op, {op: params}, only=[op], max_examples=5, phases="examples,fuzzing")
         make_idle(base, token_a)
+
+        # The peer's commands: its run running (each new one warms its lamp
+        # up and homes first), then paused, then aborted through this daemon.
+        base_b = f"http://127.0.0.1:{port_b}/api/v1"
+        wait_running(base_b, token_b)
+        for op in ("pause_peer", "abort_peer"):
+            st.run(op, {op: {"path.name": PEER}}, only=[op], max_examples=5, phases="examples,fuzzing")
 
         # A new run, then (last: it keeps a core busy until the daemon
         # stops) a trade-off computation, each on an idle rig.

@@ -106,6 +106,7 @@ fn peer_error(status: StatusCode, error: &str, detail: String) -> Response {
               (status = 404, description = "No such peer (or the peer no longer knows its run)", body = ErrorBody),
               (status = 409, description = "The peer has no active run, or its run is not pausable in its state", body = ErrorBody),
               (status = 502, description = "`peer_unreachable`: the peer cannot be reached, refused the peers file's token, or answered no JSON", body = ErrorBody),
+              (status = 503, description = "The peer's own refusal: its engine has too many commands waiting, or it is shutting down", body = ErrorBody),
               (status = 504, description = "`peer_timeout`: the peer did not answer within 1.5 s", body = ErrorBody)))]
 pub async fn pause_peer(
     State(d): State<AppState>,
@@ -126,6 +127,7 @@ pub async fn pause_peer(
               (status = 404, description = "No such peer (or the peer no longer knows its run)", body = ErrorBody),
               (status = 409, description = "The peer has no active run, or its run is already final", body = ErrorBody),
               (status = 502, description = "`peer_unreachable`: the peer cannot be reached, refused the peers file's token, or answered no JSON", body = ErrorBody),
+              (status = 503, description = "The peer's own refusal: its engine has too many commands waiting, or it is shutting down", body = ErrorBody),
               (status = 504, description = "`peer_timeout`: the peer did not answer within 1.5 s", body = ErrorBody)))]
 pub async fn abort_peer(
     State(d): State<AppState>,

@@ -230,7 +230,8 @@ async fn command(d: AppState, id: String, cmd: Command) -> Result<Response, ApiE
     responses((status = 202, description = "Sent to the engine", body = CommandAck),
               (status = 401, description = "Missing or wrong token", body = ErrorBody),
               (status = 404, description = "No such run", body = ErrorBody),
-              (status = 409, description = "Not pausable in its state", body = ErrorBody)))]
+              (status = 409, description = "Not pausable in its state", body = ErrorBody),
+              (status = 503, description = "The engine has too many commands waiting, or the daemon is shutting down", body = ErrorBody)))]
 pub async fn pause_run(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
@@ -260,7 +261,8 @@ pub struct ResumeQuery {
               (status = 401, description = "Missing or wrong token", body = ErrorBody),
               (status = 404, description = "No such run", body = ErrorBody),
               (status = 400, description = "A malformed query", body = ErrorBody),
-              (status = 409, description = "Not resumable, another run is active, or an axis without homing whose reference is not confirmed", body = ErrorBody)))]
+              (status = 409, description = "Not resumable, another run is active, or an axis without homing whose reference is not confirmed", body = ErrorBody),
+              (status = 503, description = "The engine has too many commands waiting, or the daemon is shutting down", body = ErrorBody)))]
 pub async fn resume_run(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
@@ -290,7 +292,8 @@ pub async fn resume_run(
               (status = 202, description = "Sent to the live engine", body = CommandAck),
               (status = 401, description = "Missing or wrong token", body = ErrorBody),
               (status = 404, description = "No such run", body = ErrorBody),
-              (status = 409, description = "Already final", body = ErrorBody)))]
+              (status = 409, description = "Already final", body = ErrorBody),
+              (status = 503, description = "The engine has too many commands waiting, or the daemon is shutting down", body = ErrorBody)))]
 pub async fn abort_run(
     State(d): State<AppState>,
     ApiPath(id): ApiPath<String>,
