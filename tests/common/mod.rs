@@ -149,7 +149,8 @@ pub fn serve_sim(profile: &Path, served: &Path, speed: f64) -> (Child, Vec<Strin
     )
 }
 
-/// The Python of the test venv with pymodbus: `RIGD_TEST_PYTHON`, which
+/// The Python of the test venv (tests/support/requirements.txt: pymodbus,
+/// Schemathesis, httpx, pytest): `RIGD_TEST_PYTHON`, which
 /// `scripts/test.sh` sets, or the venv it creates under `target/`.
 pub fn test_python() -> PathBuf {
     let path = std::env::var_os("RIGD_TEST_PYTHON")
@@ -157,7 +158,7 @@ pub fn test_python() -> PathBuf {
         .unwrap_or_else(|| repo_file("target/test-venv/bin/python"));
     assert!(
         path.exists(),
-        "no Python with pymodbus at {}: run scripts/test.sh once, which creates it",
+        "no test Python at {}: run scripts/test.sh once, which creates its venv",
         path.display()
     );
     path

@@ -10,9 +10,14 @@ BTF, MDF texture), a trade-off report, a peer with an active run. This
 script makes them first, with rigd's own commands, then starts the daemon
 under test on them:
 
-  rigd serve (A): the daemon under test, simulated Bonn rig, fast;
+  rigd serve (A): the daemon under test, simulated Bonn rig;
   rigd serve (B): its peer, slow, with long runs queued, so that
-                  A's /peers/B/pause and /abort always find a run.
+                  A's /peers/B/pause and /abort find a run.
+
+A broad pass covers every operation; then targeted passes take the rig
+through the states the commands act on (idle, axes homed, a long run to
+pause, resume and abort, a queue item, a job, the peer's run), one pass per
+state, each with the ids it needs given as explicit test data.
 
 Usage: api_contract.py --rigd BIN --work DIR [--max-time S] [--repo DIR]
 Exit 0 when the contract holds; 1 with what failed otherwise.
@@ -22,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import re
 import shutil
 import socket
