@@ -393,11 +393,11 @@ pub fn decode_cursor(history_id: &str, cursor: &str) -> Result<Position, QueryEr
 /// then stop working, which is all it is for).
 pub fn history_id(data_dir: &Path) -> Result<String, std::io::Error> {
     let path = data_dir.join(HISTORY_ID_FILE);
-    match std::fs::read_to_string(&path) {
+    match rigd_core::read::read_text(&path, 1024) {
         Ok(s) if is_history_id(s.trim()) => return Ok(s.trim().to_string()),
         Ok(_) => tracing::warn!("{} holds no history id: making a new one", path.display()),
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-        Err(e) => tracing::warn!("cannot read {}: {e}; making a new one", path.display()),
+        Err(e) if e.io_kind() == Some(std::io::ErrorKind::NotFound) => {}
+        Err(e) => tracing::warn!("{e}; making a new history id"),
     }
     let id = hex::encode(random_bytes());
     rigd_core::atomic::write(&path, format!("{id}\n").as_bytes())?;

@@ -26,6 +26,9 @@ pub const INDEX_FILE: &str = "runs-index.json";
 /// The index's format; a file of another format (or another rigd version,
 /// whose views may differ) is ignored.
 const INDEX_FORMAT: &str = "rigd-runs-index/1";
+/// Largest index read back: about a thousand bytes a run, so room for a
+/// million runs.
+const INDEX_FILE_LIMIT: u64 = 1 << 30;
 
 /// One file's identity and state as `stat` gives it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -92,9 +95,11 @@ fn was_driven(state: RunState) -> bool {
 /// when it cannot be used.
 fn read_index(data_dir: &Path) -> Option<HashMap<String, IndexEntry>> {
     let path = data_dir.join(INDEX_FILE);
-    let bytes = match std::fs::read(&path) {
+    // Bounded, regular files only: a FIFO or a huge file put there must not
+    // hold up the start.
+    let bytes = match rigd_core::read::read_bounded(&path, INDEX_FILE_LIMIT) {
         Ok(b) => b,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return None,
+        Err(e) if e.io_kind() == Some(std::io::ErrorKind::NotFound) => return None,
         Err(e) => {
             tracing::warn!("cannot read {}: {e}; reading every run", path.display());
             return None;
