@@ -15,7 +15,10 @@
 #[path = "../tests/common/http.rs"]
 #[allow(dead_code)]
 mod http;
+#[path = "support/stats.rs"]
+mod stats;
 
+use stats::{env_or, pct};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -25,21 +28,6 @@ use serde_json::{json, Value};
 
 /// What one SSE client saw: event ids, marker latencies (ms), arrival times.
 type ReaderResult = (Vec<u64>, Vec<f64>, Vec<(u64, Instant)>);
-
-fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn pct(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
-}
 
 struct Row {
     what: String,

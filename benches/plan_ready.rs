@@ -16,19 +16,15 @@
 #[path = "../tests/common/http.rs"]
 #[allow(dead_code)]
 mod http;
+#[path = "support/stats.rs"]
+mod stats;
 
+use stats::{env_or, pct};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use serde_json::{json, Value};
-
-fn pct(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    sorted[(((sorted.len() - 1) as f64) * p).round() as usize]
-}
 
 /// Keeps one core busy until dropped.
 struct Hog(Arc<AtomicBool>, Option<std::thread::JoinHandle<()>>);
@@ -79,10 +75,7 @@ fn dir81() -> Vec<Value> {
 }
 
 fn main() {
-    let starts: usize = std::env::var("RIGD_PLAN_READY_STARTS")
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(20);
+    let starts: usize = env_or("RIGD_PLAN_READY_STARTS", 20);
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

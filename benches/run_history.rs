@@ -23,26 +23,14 @@ mod history;
 #[path = "../tests/common/http.rs"]
 #[allow(dead_code)]
 mod http;
+#[path = "support/stats.rs"]
+mod stats;
 
+use stats::{env_or, pct};
 use std::time::{Duration, Instant};
 
 use http::{run_body, small_plan, start_in, Srv};
 use serde_json::Value;
-
-fn env_or<T: std::str::FromStr>(name: &str, default: T) -> T {
-    std::env::var(name)
-        .ok()
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(default)
-}
-
-fn pct(sorted: &[f64], p: f64) -> f64 {
-    if sorted.is_empty() {
-        return f64::NAN;
-    }
-    let i = ((sorted.len() as f64 - 1.0) * p).round() as usize;
-    sorted[i.min(sorted.len() - 1)]
-}
 
 fn du(dir: &std::path::Path) -> u64 {
     let mut total = 0;

@@ -219,15 +219,8 @@ async fn runs_page_refuses_bad_queries() {
     ];
     for (query, names) in cases {
         let url = format!("/api/v1/runs?{query}");
-        let r = s.client.get(s.url(&url)).send().await.expect("GET");
-        let status = r.status().as_u16();
-        let ct = r
-            .headers()
-            .get("content-type")
-            .and_then(|v| v.to_str().ok())
-            .unwrap_or("")
-            .to_string();
-        let body: Value = r.json().await.unwrap_or(Value::Null);
+        let (status, ct, bytes) = s.get_bytes(&url).await;
+        let body: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
         assert_eq!(status, 400, "{url}: {body}");
         assert!(ct.starts_with("application/json"), "{url}: {ct}");
         assert_eq!(body["error"], "bad_request", "{url}: {body}");

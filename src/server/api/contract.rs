@@ -103,8 +103,8 @@ fn add_standard_answers(op: &mut Operation) {
 struct LinkSource {
     /// operationId of the operation whose answer gives the value.
     from: &'static str,
-    /// The answer's status.
-    status: &'static str,
+    /// The answers' statuses.
+    statuses: &'static [&'static str],
     /// A runtime expression for the value.
     value: &'static str,
     /// Paths under this prefix take it.
@@ -116,56 +116,49 @@ struct LinkSource {
 const LINK_SOURCES: &[LinkSource] = &[
     LinkSource {
         from: "create_run",
-        status: "201",
+        statuses: &["201"],
         value: "$response.body#/id",
         prefix: "/api/v1/runs/{id}",
         param: "id",
     },
     LinkSource {
         from: "list_runs",
-        status: "200",
+        statuses: &["200"],
         value: "$response.body#/runs/0/id",
         prefix: "/api/v1/runs/{id}",
         param: "id",
     },
     LinkSource {
         from: "submit",
-        status: "202",
-        value: "$request.path.id",
-        prefix: "/api/v1/runs/{id}/process",
-        param: "id",
-    },
-    LinkSource {
-        from: "submit",
-        status: "200",
+        statuses: &["200", "202"],
         value: "$request.path.id",
         prefix: "/api/v1/runs/{id}/process",
         param: "id",
     },
     LinkSource {
         from: "list_peers",
-        status: "200",
+        statuses: &["200"],
         value: "$response.body#/peers/1/name",
         prefix: "/api/v1/peers/{name}",
         param: "name",
     },
     LinkSource {
         from: "post_queue",
-        status: "201",
+        statuses: &["201"],
         value: "$response.body#/item/id",
         prefix: "/api/v1/queue/{item}",
         param: "item",
     },
     LinkSource {
         from: "get_queue",
-        status: "200",
+        statuses: &["200"],
         value: "$response.body#/items/0/id",
         prefix: "/api/v1/queue/{item}",
         param: "item",
     },
     LinkSource {
         from: "plans",
-        status: "200",
+        statuses: &["200"],
         value: "$response.body#/plans/0/name",
         prefix: "/api/v1/plans/{name}",
         param: "name",
@@ -190,9 +183,6 @@ fn add_links(openapi: &mut OpenApi) {
                 continue;
             };
             for source in LINK_SOURCES.iter().filter(|s| s.from == from) {
-                let Some(RefOr::T(answer)) = op.responses.responses.get_mut(source.status) else {
-                    continue;
-                };
                 let links: BTreeMap<_, _> = targets
                     .iter()
                     .filter(|(id, path)| *id != from && path.starts_with(source.prefix))
@@ -204,7 +194,11 @@ fn add_links(openapi: &mut OpenApi) {
                         (id.clone(), RefOr::T(link))
                     })
                     .collect();
-                answer.links.extend(links);
+                for status in source.statuses {
+                    if let Some(RefOr::T(answer)) = op.responses.responses.get_mut(*status) {
+                        answer.links.extend(links.clone());
+                    }
+                }
             }
         }
     }
