@@ -1119,7 +1119,8 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
     ))
     .expect("Bonn profile")
     .replace("[sim]\n", "[sim]\nscene = \"corduroy\"\n")
-    .replace("bit_depth = 12 }", "bit_depth = 12, cfa = \"RGGB\" }");
+    .replace("bit_depth = 12 }", "bit_depth = 12, cfa = \"RGGB\" }")
+        + "\n[holder]\ncolour_patches = true\n";
     assert!(toml.contains("cfa = \"RGGB\""), "the camera line changed");
     std::fs::write(&profile, toml).expect("write the profile");
     spawn_daemon(

@@ -12,6 +12,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use rigd_core::geometry::Direction;
+use rigd_core::holder::HolderSpec;
 
 /// The profiles of the three rigs of the source documents, embedded so the
 /// daemon runs on a fresh machine without any file.
@@ -54,6 +55,11 @@ pub struct Profile {
     pub rig: RigGeometry,
     /// Every device by name.
     pub devices: BTreeMap<String, Device>,
+    /// The sample holder plate: its markers, sample window and colour
+    /// references. Recorded with every run, so processing registers the
+    /// run's frames by the plate they show; the standard plate if left out.
+    #[serde(default)]
+    pub holder: HolderSpec,
     /// Settings of the simulated rig.
     #[serde(default)]
     pub sim: SimSettings,
@@ -801,6 +807,7 @@ impl Profile {
     fn validate(&self) -> Result<(), (String, String)> {
         crate::model::text::check_name(&self.name)
             .map_err(|why| ("name".to_string(), format!("the rig's name {why}")))?;
+        self.holder.check().map_err(|e| (e.key, e.message))?;
         for (name, dev) in &self.devices {
             check_device_name(name)?;
             dev.validate(&format!("devices.{name}"))?;

@@ -59,7 +59,7 @@ pub fn ps_pixel_errors_against_truth(
     let Some(first) = run.entries.first() else {
         return Ok(None);
     };
-    let scene = Scene::load(run.meta.profile.sim.scene_name())?;
+    let scene = Scene::load_on(run.meta.profile.sim.scene_name(), &run.meta.profile.holder)?;
     let size = [result.width as u32, result.height as u32];
     let geometry = camera_geometry(&run.meta.profile, &first.camera, size).ok_or_else(|| {
         ProcessError::Invalid(format!(
@@ -200,7 +200,7 @@ pub fn btf_truth_error(
             run.display()
         )));
     }
-    let scene = Scene::load(meta.profile.sim.scene_name())?;
+    let scene = Scene::load_on(meta.profile.sim.scene_name(), &meta.profile.holder)?;
     let index = NormtextureIndex::read(run)?;
     let truths: Vec<Vec<f32>> = pairs
         .iter()
@@ -223,7 +223,10 @@ pub fn mdf_truth_scene(
         .as_ref()
         .map(|s| s.name.clone())
         .unwrap_or_else(|| run.meta.profile.sim.scene_name().to_string());
-    Ok(Some(rigd_sim::scene::Scene::load(&name)?))
+    Ok(Some(rigd_sim::scene::Scene::load_on(
+        &name,
+        &run.meta.profile.holder,
+    )?))
 }
 
 /// The measured displacement against the true one, pixel by pixel, over

@@ -159,7 +159,10 @@ pub struct MarkerPixel {
 /// Renders one frame for the operator: `req.scene` is a built-in scene's
 /// name or a scene file's path.
 pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, RenderError> {
-    let scene = Scene::load(req.scene.as_deref().unwrap_or(profile.sim.scene_name()))?;
+    let scene = Scene::load_on(
+        req.scene.as_deref().unwrap_or(profile.sim.scene_name()),
+        &profile.holder,
+    )?;
     render_scene(profile, scene, req)
 }
 
@@ -179,7 +182,14 @@ pub fn offered_scene(
     name: Option<&str>,
 ) -> Result<Arc<Scene>, rigd_sim::scene::SceneError> {
     let configured = profile.sim.scene_name();
-    Scene::offered(name.unwrap_or(configured), &[configured])
+    let plate = profile
+        .holder
+        .holder()
+        .map_err(|e| rigd_sim::scene::SceneError::Invalid {
+            origin: "the profile".into(),
+            message: e.to_string(),
+        })?;
+    Scene::offered(name.unwrap_or(configured), &[configured])?.on_holder(plate)
 }
 
 /// The scene names [`offered_scene`] takes: the built-in ones, then the

@@ -50,7 +50,7 @@ pub struct SimOptions {
 /// The scene a profile's simulated cameras render, loaded once.
 pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
     let name = profile.sim.scene_name();
-    SceneModel::load(name)
+    SceneModel::load_on(name, &profile.holder)
         .map_err(|e| DeviceError::new("sim.scene", ErrorKind::NotReady, e.to_string()))
 }
 

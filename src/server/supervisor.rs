@@ -82,6 +82,8 @@ pub struct Daemon {
     inner: Mutex<Inner>,
     /// Serialises starting runs (prepare happens outside `inner`'s lock).
     pub(crate) start_gate: tokio::sync::Mutex<()>,
+    /// Woken when a run's engine has ended and the rig is free again.
+    run_ended: tokio::sync::Notify,
     /// The manual-control rig, between manual actions.
     pub manual: super::manual_session::ManualSession,
     supervisor: Mutex<Option<JoinHandle<()>>>,
@@ -104,6 +106,10 @@ pub struct Daemon {
     /// also serialises the writes.
     run_index: Mutex<super::run_index::RunIndex>,
 }
+
+/// Longest a start waits for a run that has reported its final state to
+/// close (its files and its paced runtime): far longer than that takes.
+const ENDING_GRACE: Duration = Duration::from_secs(10);
 
 /// Most characters a sample, operator name or plan name may have.
 const MAX_NAME: usize = crate::model::text::MAX_NAME_CHARS;
@@ -166,6 +172,7 @@ impl Daemon {
             runs_dir,
             inner: Mutex::new(inner),
             start_gate: tokio::sync::Mutex::new(()),
+            run_ended: tokio::sync::Notify::new(),
             manual: Default::default(),
             supervisor: Mutex::new(None),
             shutdown_tx,
@@ -340,6 +347,27 @@ impl Daemon {
         }
     }
 
+    /// Waits, at most [`ENDING_GRACE`], while the active run's engine has
+    /// reported its final state but not yet closed the run: a client that
+    /// saw `completed` and starts the next run at once gets the rig rather
+    /// than a 409. Called with the start gate held.
+    async fn settle_ending_run(&self) {
+        let deadline = tokio::time::Instant::now() + ENDING_GRACE;
+        loop {
+            let ended = self.run_ended.notified();
+            tokio::pin!(ended);
+            ended.as_mut().enable();
+            let ending = self
+                .inner()
+                .active
+                .as_ref()
+                .is_some_and(|a| a.state.ends_session());
+            if !ending || tokio::time::timeout_at(deadline, ended).await.is_err() {
+                return;
+            }
+        }
+    }
+
     fn conflict_active(inner: &Inner) -> Option<SupervisorError> {
         inner.active.as_ref().map(|a| {
             SupervisorError::conflict(format!(
@@ -356,6 +384,7 @@ impl Daemon {
         self: &Arc<Self>,
     ) -> Result<crate::rig::check::RigCheck, SupervisorError> {
         let _gate = self.start_gate.lock().await;
+        self.settle_ending_run().await;
         if let Some(e) = Self::conflict_active(&self.inner()) {
             return Err(e);
         }
@@ -393,6 +422,7 @@ impl Daemon {
                 None => false,
             };
         let _gate = self.start_gate.lock().await;
+        self.settle_ending_run().await;
         {
             let inner = self.inner();
             if inner.shutting_down {
@@ -664,6 +694,7 @@ impl Daemon {
             let mut inner = self.inner();
             if inner.active.as_ref().is_some_and(|a| a.id == id) {
                 inner.active = None;
+                self.run_ended.notify_waiters();
             }
             let before = inner.runs.get(id).cloned();
             let mut view = reloaded.or_else(|| before.clone());
@@ -918,6 +949,7 @@ impl Daemon {
 
     async fn resume_from_disk(self: &Arc<Self>, id: &str) -> Result<RunView, SupervisorError> {
         let _gate = self.start_gate.lock().await;
+        self.settle_ending_run().await;
         {
             let inner = self.inner();
             if inner.shutting_down {
@@ -1140,6 +1172,7 @@ impl Daemon {
         >,
     {
         let _gate = self.start_gate.lock().await;
+        self.settle_ending_run().await;
         {
             let inner = self.inner();
             if inner.shutting_down {

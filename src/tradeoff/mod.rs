@@ -402,7 +402,7 @@ pub fn run(
             cfg.texture, cfg.held_out, cfg.components
         )));
     }
-    let scene = Scene::load(scene_name)?;
+    let scene = Scene::load_on(scene_name, &profile.holder)?;
     let solver = Solver::new(profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let held = held_out_pairs(cfg.held_out);
     let truths: Vec<(Direction, Direction, Vec<f32>)> = held

@@ -5,7 +5,7 @@
 use crate::common;
 
 use std::collections::BTreeSet;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use common::assert_complete_run;
 use common::http::{run_body, small_plan, start_in, Srv, SseReader};
@@ -493,6 +493,35 @@ async fn a_command_repeated_before_the_engine_acts_is_sent_once() {
         "{statuses:?}"
     );
     s.wait_ended(&id, "aborted").await;
+    s.shutdown().await;
+}
+
+/// A script that sees `completed` starts its next run at once: the run
+/// that has reported its final state no longer holds the rig, although
+/// its engine may still be closing it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_next_run_starts_as_soon_as_the_last_is_seen_completed() {
+    let (_d, mut s) = srv(FAST).await;
+    let mut id = start_run(&s, run_body("a", small_plan(2))).await;
+    for round in 0..6 {
+        // Polled as fast as a client can, to meet the run the moment its
+        // state turns final.
+        let deadline = Instant::now() + Duration::from_secs(60);
+        loop {
+            let (status, v) = s.get(&format!("/api/v1/runs/{id}")).await;
+            assert_eq!(status, 200, "{v}");
+            if v["state"] == "completed" {
+                break;
+            }
+            assert!(Instant::now() < deadline, "run {id} did not complete: {v}");
+        }
+        let (status, v) = s
+            .post("/api/v1/runs", Some(run_body("a", small_plan(2))))
+            .await;
+        assert_eq!(status, 201, "round {round}: the next run after {id}: {v}");
+        id = v["id"].as_str().expect("id").to_string();
+    }
+    s.wait_ended(&id, "completed").await;
     s.shutdown().await;
 }
 

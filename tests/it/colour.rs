@@ -19,9 +19,21 @@ const RED_IN_FIT: f64 = 1.0;
 const RED_HELD_OUT: f64 = 2.0;
 
 /// The VirTex rig (one camera overhead, three lamps) on `scene`, its
-/// camera behind `cfa` (monochrome if `None`), 12 bits.
+/// camera behind `cfa` (monochrome if `None`), 12 bits. Under `corduroy`
+/// its holder carries the standard reference patches.
 fn virtex(dir: &Path, scene: &str, cfa: Option<&str>) -> PathBuf {
-    crate::camera_files::virtex_on(dir, Some(scene), cfa, 12)
+    let profile = crate::camera_files::virtex_on(dir, Some(scene), cfa, 12);
+    if scene == "corduroy" {
+        edit(&profile.clone(), &profile, with_reference_patches);
+    }
+    profile
+}
+
+/// A profile's holder with the standard row of colour reference patches.
+fn with_reference_patches(t: &mut toml::Table) {
+    let mut holder = toml::Table::new();
+    holder.insert("colour_patches".into(), true.into());
+    t.insert("holder".into(), holder.into());
 }
 
 fn capture(profile: &Path, out: &Path) {
@@ -137,6 +149,7 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
         &repo_file("rig-profiles/bonn-gonioreflectometer.toml"),
         &profile,
         |t| {
+            with_reference_patches(t);
             if let Some(cfa) = cfa {
                 device(t, "camera")
                     .get_mut("intrinsics")

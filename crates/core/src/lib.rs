@@ -17,6 +17,7 @@
 
 pub mod atomic;
 pub mod camera;
+pub mod chart;
 pub mod clock;
 pub mod config;
 pub mod geometry;

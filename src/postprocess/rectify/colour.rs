@@ -207,16 +207,10 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     let (holder, _) = super::holder_of(&run.meta)?;
     if holder.patches.is_empty() {
         return Err(ProcessError::Invalid(format!(
-            "the run's holder carries no colour reference patches{}",
-            if run.meta.simulated {
-                let scene = match run.meta.profile.sim.scene.as_deref() {
-                    Some(name) => format!("scene `{name}`"),
-                    None => "the default scene".into(),
-                };
-                format!(" ({scene}: set `[holder] colour_patches = true`)")
-            } else {
-                String::new()
-            }
+            "the run's holder `{}` carries no colour reference patches: describe them in the \
+             profile's [holder] table (`colour_patches = true`, a `chart` or `patches`; see \
+             docs/holder.md)",
+            holder.name
         )));
     }
     let mut order: Vec<&crate::store::FrameEntry> = run.entries.iter().collect();
@@ -333,7 +327,7 @@ fn read_patches(
     let mut readings = Vec::with_capacity(patches.len());
     let mut light = Vec::with_capacity(patches.len());
     for p in patches {
-        let name = p.patch.name;
+        let name = p.name.as_str();
         let [cx, cy] = p.centre;
         let inner = p.half * INNER_FRACTION;
         let raw = mean_at(
@@ -360,7 +354,7 @@ fn read_patches(
         }
         readings.push(PatchReading {
             name: name.to_string(),
-            reference: p.patch.rgb,
+            reference: p.rgb,
             raw,
         });
         light.push(plate);

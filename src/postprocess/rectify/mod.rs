@@ -4,7 +4,7 @@
 use std::path::Path;
 
 use rigd_core::geometry::Direction;
-use rigd_core::holder::{Holder, STANDARD_SAMPLE_MM};
+use rigd_core::holder::Holder;
 use rigd_process::image_io::Image;
 use serde::Serialize;
 
@@ -432,23 +432,15 @@ pub(super) fn slot_of(list: &mut Vec<Direction>, d: Direction) -> usize {
 }
 
 /// The holder plate the run's frames show and the sample's half-sides
-/// (metres): a simulated run's scene's, the standard plate on hardware.
+/// (metres): the one its recorded profile describes, simulated or not.
 pub(crate) fn holder_of(meta: &RunMeta) -> Result<(Holder, [f64; 2]), ProcessError> {
-    if meta.simulated {
-        #[cfg(feature = "sim")]
-        {
-            let scene = rigd_sim::scene::Scene::load(meta.profile.sim.scene_name())?;
-            return Ok((scene.holder.clone(), scene.sample_half));
-        }
-        #[cfg(not(feature = "sim"))]
-        return Err(ProcessError::Invalid(
-            "a simulated run shows its scene's holder, and this rigd was built without the \
-             simulator (cargo feature `sim`)"
-                .into(),
-        ));
-    }
-    let half = STANDARD_SAMPLE_MM * 1e-3 / 2.0;
-    Ok((Holder::standard(), [half, half]))
+    let holder = meta.profile.holder.holder().map_err(|e| {
+        ProcessError::Invalid(format!(
+            "the run's profile describes a holder that cannot work: {e}"
+        ))
+    })?;
+    let half = holder.sample_half;
+    Ok((holder, half))
 }
 
 /// A frame's plate → image homography from its holder's point markers, as

@@ -192,8 +192,14 @@ impl Rectifier<'_> {
                 .clamp(MIN_MARKER_AREA_BOUND_PX, defaults.max_area_px),
             ..defaults
         };
-        let detections =
-            rect::detect_markers(image, &predicted, radius, &opts).map_err(|e| e.to_string())?;
+        let dark: Vec<bool> = self
+            .holder
+            .points
+            .iter()
+            .map(|p| p.polarity == rigd_core::holder::Polarity::Dark)
+            .collect();
+        let detections = rect::detect_markers_of_polarity(image, &predicted, &dark, radius, &opts)
+            .map_err(|e| e.to_string())?;
         rect::register(&self.layout, &detections, &Default::default()).map_err(|e| e.to_string())
     }
 

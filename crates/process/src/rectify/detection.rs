@@ -59,6 +59,20 @@ pub fn detect_markers(
     search_radius_px: f64,
     opts: &DetectOptions,
 ) -> Result<Vec<Option<Detection>>, RectifyError> {
+    detect_markers_of_polarity(image, predicted_px, &[], search_radius_px, opts)
+}
+
+/// [`detect_markers`] for markers of either polarity: where `dark[i]` is
+/// true, marker `i` is a disc darker than the plate around it, found as a
+/// bright one in its search window with the values turned over. Markers
+/// beyond `dark`'s length are light.
+pub fn detect_markers_of_polarity(
+    image: &Image,
+    predicted_px: &[Option<[f64; 2]>],
+    dark: &[bool],
+    search_radius_px: f64,
+    opts: &DetectOptions,
+) -> Result<Vec<Option<Detection>>, RectifyError> {
     check_image(image)?;
     if !(search_radius_px.is_finite() && search_radius_px > 0.0) {
         return Err(RectifyError::InvalidInput(format!(
@@ -81,12 +95,26 @@ pub fn detect_markers(
     let grey = luminance(image);
     Ok(predicted_px
         .par_iter()
-        .map(|p| {
+        .enumerate()
+        .map(|(i, p)| {
             let p = (*p)?;
             if !(p[0].is_finite() && p[1].is_finite()) {
                 return None;
             }
-            detect_one(&grey, image.width, image.height, p, search_radius_px, opts)
+            let polarity = if dark.get(i).copied().unwrap_or(false) {
+                Polarity::Dark
+            } else {
+                Polarity::Light
+            };
+            detect_one(
+                &grey,
+                image.width,
+                image.height,
+                p,
+                search_radius_px,
+                opts,
+                polarity,
+            )
         })
         .collect())
 }
@@ -123,6 +151,13 @@ pub(super) struct Window {
     pub(super) dark: f32,
 }
 
+/// Whether a marker is lighter or darker than the plate around it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Polarity {
+    Light,
+    Dark,
+}
+
 pub(super) fn detect_one(
     grey: &[f32],
     width: usize,
@@ -130,6 +165,7 @@ pub(super) fn detect_one(
     pred: [f64; 2],
     radius: f64,
     opts: &DetectOptions,
+    polarity: Polarity,
 ) -> Option<Detection> {
     let margin = (opts.max_area_px * opts.max_elongation / std::f64::consts::PI).sqrt() + 3.0;
     let half = radius + margin;
@@ -145,6 +181,12 @@ pub(super) fn detect_one(
     let mut v = Vec::with_capacity(w * h);
     for y in y0..y0 + h {
         v.extend_from_slice(&grey[y * width + x0..y * width + x0 + w]);
+    }
+    if polarity == Polarity::Dark {
+        // A dark disc on a light plate is a light one on a dark plate once
+        // the window's values are turned over.
+        let top = v.iter().copied().fold(f32::MIN, f32::max);
+        v.iter_mut().for_each(|x| *x = top - *x);
     }
     let mut sorted = v.clone();
     let k = sorted.len() / 10;

@@ -237,7 +237,14 @@ mod render_tests {
 
     #[test]
     fn a_bayer_sensor_sees_the_dye_and_the_patches_colours() {
-        let scene = Scene::load("corduroy").expect("scene");
+        let holder = rigd_core::holder::HolderSpec {
+            colour_patches: true,
+            ..Default::default()
+        };
+        let scene = Scene::load("corduroy")
+            .expect("scene")
+            .on_holder(holder.holder().expect("the standard plate with patches"))
+            .expect("on the holder");
         assert!(scene.is_coloured());
         let cfa = Cfa::Rggb;
         let (bayer, _) = scene.render_linear(&shot(Some(cfa)));
@@ -254,7 +261,7 @@ mod render_tests {
             .holder
             .patches
             .iter()
-            .find(|p| p.patch.name == "red")
+            .find(|p| p.name == "red")
             .expect("a red patch");
         let [px, py] = scene
             .plate_pixel(&shot(Some(cfa)), patch.centre)

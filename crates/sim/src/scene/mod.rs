@@ -54,10 +54,6 @@ const BUILTIN: &[(&str, &str)] = &[
     ("ps-target", include_str!("../../scenes/ps-target.toml")),
 ];
 
-/// The narrowest colour patch a scene's holder may carry, mm: a few
-/// pixels across at the rigs' resolutions, after demosaicing.
-const MIN_PATCH_MM: f64 = 5.0;
-
 /// The scene simulated cameras render when a profile names none.
 pub const DEFAULT_SCENE: &str = "flat-calibration";
 
@@ -115,14 +111,17 @@ pub struct Specular {
 }
 
 /// A scene ready to render: grids baked, visibility maps computed.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub struct Scene {
     /// The scene's name (e.g. `corduroy`).
     pub name: String,
     /// A line saying what the sample is.
     pub description: String,
-    /// Half the sample's sides, metres.
+    /// Half the sides of the sample as it lies on the holder (the
+    /// holder's sample window), metres.
     pub sample_half: [f64; 2],
+    /// Half the sides of the sample the scene describes, metres.
+    pub material_half: [f64; 2],
     /// The holder plate under the sample, with its registration markers.
     pub holder: Holder,
     pub(crate) relief: Option<Relief>,
@@ -146,7 +145,7 @@ pub struct Scene {
 
 /// The sample's surface when it is not flat: total height (macro folds plus
 /// mesostructure) and its gradient.
-#[derive(Debug)]
+#[derive(Debug, Clone)]
 pub(crate) struct Relief {
     pub height: Grid,
     pub grad_x: Grid,
@@ -302,10 +301,12 @@ impl Scene {
             Some(m) => Response::new(m).map_err(|m| invalid(origin, m))?,
             None => Response::default(),
         };
-        let holder = Holder::new(&spec.holder, half);
-        holder
-            .check_patches(MIN_PATCH_MM)
-            .map_err(|m| invalid(origin, format!("holder.colour_patches: {m}")))?;
+        // The standard plate around this sample, until a rig's profile
+        // puts it on its own holder ([`Scene::on_holder`]).
+        let holder = Holder::new(&rigd_core::holder::HolderSpec {
+            sample_mm: s.size_mm,
+            ..Default::default()
+        });
         let relief = match (&meso, &s.macro_shape) {
             (None, None) => None,
             _ => {
@@ -348,6 +349,7 @@ impl Scene {
             name: spec.name.clone(),
             description: spec.description.clone(),
             sample_half: half,
+            material_half: half,
             holder,
             relief,
             albedo,
@@ -362,6 +364,45 @@ impl Scene {
             heightfield: s.heightfield.clone(),
             macro_shape: s.macro_shape.clone(),
         })
+    }
+
+    /// Scene `name_or_path` (as [`Scene::load`]) on the holder plate a
+    /// rig's profile describes.
+    pub fn load_on(
+        name_or_path: &str,
+        holder: &rigd_core::holder::HolderSpec,
+    ) -> Result<Arc<Scene>, SceneError> {
+        let plate = holder.holder().map_err(|e| SceneError::Invalid {
+            origin: "the profile".into(),
+            message: e.to_string(),
+        })?;
+        Scene::load(name_or_path)?.on_holder(plate)
+    }
+
+    /// This scene's sample on a rig's holder plate (its profile's
+    /// `[holder]`), in the plate's sample window. Refused when the sample
+    /// the scene describes is smaller than the window.
+    pub fn on_holder(&self, holder: Holder) -> Result<Arc<Scene>, SceneError> {
+        let [wx, wy] = holder.sample_half;
+        let [sx, sy] = self.material_half;
+        if wx > sx + 1e-9 || wy > sy + 1e-9 {
+            return Err(SceneError::Invalid {
+                origin: self.name.clone(),
+                message: format!(
+                    "the sample is {:.0} × {:.0} mm, smaller than the holder `{}`'s sample \
+                     window of {:.0} × {:.0} mm (holder.sample_mm)",
+                    2e3 * sx,
+                    2e3 * sy,
+                    holder.name,
+                    2e3 * wx,
+                    2e3 * wy
+                ),
+            });
+        }
+        let mut scene = self.clone();
+        scene.sample_half = holder.sample_half;
+        scene.holder = holder;
+        Ok(Arc::new(scene))
     }
 
     /// Whether (x, y) lies on the sample (else on the holder).
@@ -616,17 +657,14 @@ fn validate(spec: &SceneSpec, origin: &str) -> Result<(), SceneError> {
             );
         }
     }
-    let h = &spec.holder;
-    let sample_max = s.size_mm[0].max(s.size_mm[1]);
-    if !(h.size_mm.is_finite()
-        && h.size_mm
-            >= sample_max + 2.0 * (h.border_gap_mm + h.border_line_mm) + 3.0 * h.point_marker_mm
-        && h.size_mm <= 400.0)
-    {
-        return bad("holder.size_mm", format!("expected a plate big enough for the sample, its border lines and markers, and at most 400 mm, got {}", h.size_mm));
+    if spec.holder.is_some() {
+        return bad(
+            "holder",
+            "the holder plate is the rig's: describe it in the profile's [holder] table \
+             (docs/holder.md), not in a scene"
+                .into(),
+        );
     }
-    unit("holder.colour", h.colour)?;
-    unit("holder.marker_colour", h.marker_colour)?;
     let sn = &spec.sensor;
     if !(sn.read_noise_dn.is_finite() && sn.read_noise_dn >= 0.0) {
         return bad(

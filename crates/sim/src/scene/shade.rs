@@ -521,7 +521,7 @@ impl<'a> Frame<'a> {
                 None if self.colour && albedo > 0.0 => self.scene.holder.patch_at(x, y),
                 _ => None,
             };
-            let tint = patch.map_or(NEUTRAL, |p| p.patch.rgb.map(|v| v / albedo));
+            let tint = patch.map_or(NEUTRAL, |p| p.rgb.map(|v| v / albedo));
             Surface {
                 on_sample: false,
                 normal: [0.0, 0.0, 1.0],

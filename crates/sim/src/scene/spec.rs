@@ -2,7 +2,6 @@
 //! keys are errors, so a typo never silently renders the wrong sample.
 //! Lengths in the file are millimetres; the renderer works in metres.
 
-pub use rigd_core::holder::HolderSpec;
 use serde::Deserialize;
 
 /// A whole scene file.
@@ -16,10 +15,10 @@ pub struct SceneSpec {
     pub description: String,
     /// The sample (`[sample]`).
     pub sample: SampleSpec,
-    /// The holder plate and its markers (`[holder]`); absent: the standard
-    /// plate.
+    /// Refused when present: the holder plate is the rig's, described by
+    /// the profile's `[holder]` table, not a sample's.
     #[serde(default)]
-    pub holder: HolderSpec,
+    pub holder: Option<serde::de::IgnoredAny>,
     /// Sensor noise and vignetting (`[sensor]`); absent: none.
     #[serde(default)]
     pub sensor: SensorSpec,
