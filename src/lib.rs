@@ -21,3 +21,5 @@ pub mod server;
 pub mod store;
 #[cfg(feature = "sim")]
 pub mod tradeoff;
+#[cfg(feature = "sim")]
+pub mod truth;

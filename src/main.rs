@@ -86,6 +86,9 @@ fn main() -> ExitCode {
         )
         .with_writer(std::io::stderr)
         .init();
+    // Simulated runs' results are measured against their scene.
+    #[cfg(feature = "sim")]
+    rigd::truth::install();
     let result = match Cli::parse().command {
         Cmd::Plan { command } => plan::run(command),
         Cmd::Profile { command } => profile::run(command),

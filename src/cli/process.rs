@@ -556,7 +556,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
     );
     #[cfg(feature = "sim")]
     if let Some(run) = &run {
-        if let Some(err) = rigd::postprocess::truth::ps_error_against_truth(run, &result)? {
+        if let Some(err) = rigd::truth::ps_error_against_truth(run, &result)? {
             println!(
                 "against the scene `{}`: mean angular error {:.2}°, median {:.2}°, 95th percentile {:.2}° over {} sample pixels",
                 err.scene, err.mean_deg, err.median_deg, err.p95_deg, err.pixels
@@ -681,7 +681,7 @@ fn print_truth_error(
     if pairs.is_empty() {
         return Ok(());
     }
-    let errors = rigd::postprocess::truth::btf_truth_error(run, pairs)?;
+    let errors = rigd::truth::btf_truth_error(run, pairs)?;
     println!("held out: RMS error against the true BTF, relative to the truth's RMS (per channel)");
     for e in errors {
         let per: Vec<String> = e

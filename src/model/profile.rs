@@ -594,6 +594,11 @@ pub struct SimSettings {
     /// calibrate it away. Default `[0, 0]`.
     #[serde(default, skip_serializing_if = "is_zero_offset")]
     pub holder_offset_mm: [f64; 2],
+    /// How the simulated lamps' output drifts over the capture's physical
+    /// time (`{ amplitude = 0.05, period_s = 14400 }`), as an HMI lamp's
+    /// does; none if absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_drift: Option<rigd_core::lamp_drift::LampDrift>,
 }
 
 fn is_zero_offset(o: &[f64; 2]) -> bool {
@@ -655,6 +660,7 @@ impl Default for SimSettings {
             grbl_answer_delay_s: 0.0,
             zoom: default_zoom(),
             holder_offset_mm: [0.0, 0.0],
+            lamp_drift: None,
         }
     }
 }
@@ -950,6 +956,9 @@ impl Profile {
                     self.sim.holder_offset_mm
                 ),
             ));
+        }
+        if let Some(drift) = &self.sim.lamp_drift {
+            drift.check()?;
         }
         let delay = self.sim.grbl_answer_delay_s;
         if !(delay.is_finite() && (0.0..=1.0).contains(&delay)) {

@@ -131,7 +131,6 @@ pub struct ViewSummary {
     /// The error pixel by pixel, behind `truth` (not written to the
     /// report): `rigd tradeoff` compares source subsets on the pixels
     /// they all measure.
-    #[cfg(feature = "sim")]
     #[serde(skip)]
     pub truth_pixels: Option<super::accuracy::PixelErrors>,
 }
@@ -554,8 +553,7 @@ fn mdf_views(
         by_view.entry(view_of(sv)).or_default().push(i);
     }
     std::fs::create_dir_all(&out).map_err(|e| io_error(&out, e))?;
-    #[cfg(feature = "sim")]
-    let scene = super::truth::mdf_truth_scene(run)?;
+    let truth_source = depth_truth(run)?;
     let mut views = Vec::new();
     for v in selected.clone() {
         if let Some(k) = kept.get(&v) {
@@ -590,15 +588,10 @@ fn mdf_views(
             &merged,
             max_depth_m(plan.reference_mm * 1e-3, view),
         )?;
-        #[cfg(feature = "sim")]
-        let truth_pixels = scene.as_ref().map(|s| {
-            super::truth::depth_errors(s, &cam, &merged, plan.reference_mm * 1e-3, box_half)
-        });
-        #[cfg(feature = "sim")]
+        let truth_pixels = truth_source
+            .as_ref()
+            .map(|t| t.depth_errors(&cam, &merged, plan.reference_mm * 1e-3, box_half));
         let truth = truth_pixels.as_ref().map(|p| p.summary());
-        // Ground truth needs the simulator's scene.
-        #[cfg(not(feature = "sim"))]
-        let truth = None;
         let summary = ViewSummary {
             turntable_deg: first.turntable_deg,
             camera: camera.clone(),
@@ -608,7 +601,6 @@ fn mdf_views(
             frames_without_strip: members.iter().map(|&i| results[i].1).sum(),
             valid_fraction: merged.valid_fraction(),
             truth,
-            #[cfg(feature = "sim")]
             truth_pixels,
         };
         if part {
@@ -844,6 +836,43 @@ fn write_view(
 
 fn io_error(path: &Path, e: std::io::Error) -> ProcessError {
     ProcessError::io(path, "write", e)
+}
+
+/// The true surface under a run, against which the MDF's depths are
+/// measured: the simulator's scene, for a simulated run. Processing never
+/// links the simulator; the program that does installs a source of truth
+/// with [`install_depth_truth`].
+pub trait DepthTruth: Send + Sync {
+    /// The measured displacement `d` against the true one, pixel by pixel,
+    /// over pixels whose true surface point lies within `box_half` of the
+    /// sample centre: the distance along the pixel's ray from the
+    /// reference plane (`reference_m` above the holder) to the first
+    /// surface hit.
+    fn depth_errors(
+        &self,
+        cam: &PinholeCamera,
+        d: &DisplacementImage,
+        reference_m: f64,
+        box_half: f64,
+    ) -> super::accuracy::PixelErrors;
+}
+
+/// A run's depth truth, if it has one.
+pub type DepthTruthSource = fn(&RunFrames) -> Result<Option<Box<dyn DepthTruth>>, ProcessError>;
+
+static DEPTH_TRUTH: std::sync::OnceLock<DepthTruthSource> = std::sync::OnceLock::new();
+
+/// Installs where MDF steps find a run's depth truth (once per process;
+/// later calls change nothing). Without one, views carry no truth.
+pub fn install_depth_truth(source: DepthTruthSource) {
+    let _ = DEPTH_TRUTH.set(source);
+}
+
+fn depth_truth(run: &RunFrames) -> Result<Option<Box<dyn DepthTruth>>, ProcessError> {
+    match DEPTH_TRUTH.get() {
+        Some(source) => source(run),
+        None => Ok(None),
+    }
 }
 
 #[cfg(test)]

@@ -16,8 +16,6 @@ pub mod pipeline;
 pub mod ps;
 pub mod rectify;
 pub mod slurm;
-#[cfg(feature = "sim")]
-pub mod truth;
 pub mod viewer;
 
 /// The colour calibration is rectification's: re-exported where the
@@ -57,10 +55,6 @@ pub enum ProcessError {
     /// Options or data the step cannot work with.
     #[error("{0}")]
     Invalid(String),
-    /// The simulated run's scene could not be loaded.
-    #[cfg(feature = "sim")]
-    #[error(transparent)]
-    Scene(#[from] rigd_sim::scene::SceneError),
 }
 
 impl ProcessError {

@@ -396,6 +396,8 @@ pub(crate) fn firmware(
                         laser: crate::plan::laser::LaserRig::of(profile),
                         holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
                         cfa: dev.intrinsics.and_then(|i| i.cfa),
+                        lamp_drift: profile.sim.lamp_drift,
+                        clock: clock.clone(),
                     },
                     scene: scene.clone(),
                 });
@@ -529,6 +531,10 @@ struct CameraView {
     holder_offset_m: [f64; 2],
     /// The sensor's colour filter array (`intrinsics.cfa`); `None`: mono.
     cfa: Option<rigd_core::Cfa>,
+    /// `[sim] lamp_drift`: the lamps' level over physical time.
+    lamp_drift: Option<rigd_core::lamp_drift::LampDrift>,
+    /// The rig's clock, whose time the lamps drift over.
+    clock: Clock,
 }
 
 impl CameraView {
@@ -591,6 +597,7 @@ impl CameraView {
             plate_height_m: world.plate_mm.map(|h| h * 1e-3),
             holder_offset_m: self.holder_offset_m,
             cfa: self.cfa,
+            lamp_level: self.lamp_drift.map_or(1.0, |d| d.level(self.clock.now_s())),
             ..Shot::default()
         }
     }

@@ -37,10 +37,10 @@ use serde::{Deserialize, Serialize};
 use crate::kinematics::Solver;
 use crate::model::profile::Profile;
 use crate::plan::{self, Plan, H2_THETAS, HEMISPHERE_RING_COUNTS};
-use crate::postprocess::truth::true_texture;
 use crate::postprocess::ProcessError;
 use crate::schedule::{self, Schedule};
 use crate::store::StoreError;
+use crate::truth::true_texture;
 use rigd_core::geometry::Direction;
 
 /// Settings of a trade-off run.
@@ -402,7 +402,10 @@ pub fn run(
             cfg.texture, cfg.held_out, cfg.components
         )));
     }
-    let scene = Scene::load_on(scene_name, &profile.holder)?;
+    // The laser family's MDF is measured against the scene.
+    crate::truth::install();
+    let scene = Scene::load_on(scene_name, &profile.holder)
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let solver = Solver::new(profile).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let held = held_out_pairs(cfg.held_out);
     let truths: Vec<(Direction, Direction, Vec<f32>)> = held
@@ -791,11 +794,10 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
             )
             .map_err(|e| ProcessError::Invalid(format!("{name}: {e}")))?;
             let compute_s = started.elapsed().as_secs_f64();
-            let (_, pixels) =
-                crate::postprocess::truth::ps_pixel_errors_against_truth(&run, &result)?
-                    .ok_or_else(|| {
-                        ProcessError::Invalid(format!("{name}: the capture has no ground truth"))
-                    })?;
+            let (_, pixels) = crate::truth::ps_pixel_errors_against_truth(&run, &result)?
+                .ok_or_else(|| {
+                    ProcessError::Invalid(format!("{name}: the capture has no ground truth"))
+                })?;
             let row = Row {
                 family: "photometric stereo".into(),
                 setting: if robust {

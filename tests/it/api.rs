@@ -502,8 +502,15 @@ async fn a_command_repeated_before_the_engine_acts_is_sent_once() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_next_run_starts_as_soon_as_the_last_is_seen_completed() {
     let (_d, mut s) = srv(FAST).await;
-    let mut id = start_run(&s, run_body("a", small_plan(2))).await;
-    for round in 0..6 {
+    // Frames large enough that closing the run (its manifest hashes
+    // every frame) takes a while after its final state.
+    let body = || {
+        let mut b = run_body("a", small_plan(3));
+        b["frame_size"] = json!([640, 480]);
+        b
+    };
+    let mut id = start_run(&s, body()).await;
+    for round in 0..4 {
         // Polled as fast as a client can, to meet the run the moment its
         // state turns final.
         let deadline = Instant::now() + Duration::from_secs(60);
@@ -515,9 +522,7 @@ async fn the_next_run_starts_as_soon_as_the_last_is_seen_completed() {
             }
             assert!(Instant::now() < deadline, "run {id} did not complete: {v}");
         }
-        let (status, v) = s
-            .post("/api/v1/runs", Some(run_body("a", small_plan(2))))
-            .await;
+        let (status, v) = s.post("/api/v1/runs", Some(body())).await;
         assert_eq!(status, 201, "round {round}: the next run after {id}: {v}");
         id = v["id"].as_str().expect("id").to_string();
     }

@@ -19,6 +19,7 @@ const LAYERS: &[&[&str]] = &[
     &["store"],
     &["engine"],
     &["postprocess"],
+    &["truth"],
     &["tradeoff"],
     &["server"],
 ];
@@ -166,6 +167,36 @@ fn modules_use_only_lower_layers() {
     // (the check reads what it should).
     assert!(edges.get("server").is_some_and(|e| e.contains("engine")));
     assert!(edges.get("engine").is_some_and(|e| e.contains("rig")));
+}
+
+/// Processing reads everything it needs from the run (the holder from the
+/// run's profile): it works on a hardware run exactly as on a simulated
+/// one, and never links the simulator. Ground truth lives in `src/truth.rs`.
+#[test]
+fn processing_never_imports_the_simulator() {
+    let mut files = Vec::new();
+    rust_files(&repo_file("src/postprocess"), &mut files);
+    rust_files(&repo_file("crates/process/src"), &mut files);
+    assert!(files.len() > 20, "the check reads the processing sources");
+    let offending: Vec<String> = files
+        .iter()
+        .filter(|f| {
+            std::fs::read_to_string(f)
+                .expect("source")
+                .contains("rigd_sim")
+        })
+        .map(|f| f.display().to_string())
+        .collect();
+    assert!(
+        offending.is_empty(),
+        "processing imports the simulator: {offending:?}"
+    );
+    let manifest =
+        std::fs::read_to_string(repo_file("crates/process/Cargo.toml")).expect("manifest");
+    assert!(
+        !manifest.contains("rigd-sim"),
+        "rigd-process depends on rigd-sim"
+    );
 }
 
 #[test]

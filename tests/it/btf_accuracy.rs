@@ -82,7 +82,7 @@ fn held_out_reconstruction_error_against_the_true_btf() {
     let scene = rigd_sim::scene::Scene::load("ps-target").unwrap();
     let truths: Vec<Vec<f32>> = pairs
         .iter()
-        .map(|&(l, v)| rigd::postprocess::truth::true_texture(&scene, 48, l, v))
+        .map(|&(l, v)| rigd::truth::true_texture(&scene, 48, l, v))
         .collect();
     let mut by_c = Vec::new();
     for c in [1, 2, 4, 8, 15] {

@@ -218,7 +218,7 @@ fn btf_error(run: &Path) -> Vec<rigd::postprocess::btf::HeldOutError> {
         .iter()
         .map(|&(tl, pl, tv, pv)| (Direction::new(tl, pl), Direction::new(tv, pv)))
         .collect();
-    rigd::postprocess::truth::btf_truth_error(run, &pairs).expect("truth error")
+    rigd::truth::btf_truth_error(run, &pairs).expect("truth error")
 }
 
 #[test]
@@ -329,7 +329,7 @@ fn a_bayer_camera_gives_rgb_normtextures_and_an_rgb_btf_near_the_true_one() {
 /// eigen-texture storage. Prints the table `docs/processing.md` keeps.
 #[test]
 fn joint_rgb_pca_against_per_channel_and_opponent_colour_on_the_true_btf() {
-    use rigd::postprocess::truth::true_texture_channels;
+    use rigd::truth::true_texture_channels;
     use rigd_process::btf::{compress_slot, TextureShape};
     let size = 32;
     let lights: Vec<Direction> = [15.0, 30.0, 45.0, 60.0]

@@ -500,7 +500,7 @@ fn index_of(run: &Path) -> serde_json::Value {
 /// builds with an error against the truth close to a clean run's.
 #[test]
 fn degraded_frames_are_flagged_and_the_btf_still_builds() {
-    use rigd::postprocess::truth::btf_truth_error;
+    use rigd::truth::btf_truth_error;
     use rigd_core::geometry::Direction;
     let dir = tempfile::tempdir().unwrap();
     // Calls count from 1 in capture order: expose 3 is dark, 7 and 20 have

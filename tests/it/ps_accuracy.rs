@@ -2,7 +2,7 @@
 //! ps-target's closed-form normals, with 3 and with 12 lights, plain and
 //! robust; and a whole VirTex capture processed from its run directory.
 
-use rigd::postprocess::truth::normal_error;
+use rigd::truth::normal_error;
 use rigd_process::image_io::Image;
 use rigd_process::photometric_stereo::{solve_images, PsOptions};
 use rigd_sim::scene::{Scene, Shot};

@@ -22,6 +22,7 @@ pub mod clock;
 pub mod config;
 pub mod geometry;
 pub mod holder;
+pub mod lamp_drift;
 pub mod motion;
 pub mod pace;
 pub mod pixel_format;

@@ -48,8 +48,17 @@ pub(crate) struct Exposure<'a> {
 impl<'a> Exposure<'a> {
     pub(crate) fn new(scene: &'a Scene, shot: &Shot) -> Exposure<'a> {
         let (width, height) = (shot.width.max(1) as usize, shot.height.max(1) as usize);
-        let gain =
-            WHITE_LEVEL * max_code(shot) * shot.relative_exposure.max(0.0) * shot.gain.max(0.0);
+        // The lamp's level scales what it lights; a laser frame has no lamp.
+        let lamp = if shot.laser.is_none() {
+            shot.lamp_level.max(0.0)
+        } else {
+            1.0
+        };
+        let gain = WHITE_LEVEL
+            * max_code(shot)
+            * shot.relative_exposure.max(0.0)
+            * shot.gain.max(0.0)
+            * lamp;
         let camera = camera(scene, shot);
         let rays = RayFan::new(camera);
         let frame = Frame::new(scene, shot);

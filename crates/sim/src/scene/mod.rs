@@ -28,6 +28,7 @@ use colour::{Response, SampleColour};
 pub use effects::{Effect, EffectPlan, EffectSet, EffectSwitches};
 pub use render::Rendered;
 pub use rigd_core::holder::{Holder, Marker};
+pub use rigd_core::lamp_drift::LampDrift;
 pub use shot::{LaserSheet, Shot, WHITE_LEVEL};
 pub use spec::SceneSpec;
 use spec::{AlbedoSpec, HeightSpec, MacroSpec, SensorSpec};

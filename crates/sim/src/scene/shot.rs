@@ -50,6 +50,9 @@ pub struct Shot {
     pub relative_exposure: f64,
     /// Analogue gain relative to nominal.
     pub gain: f64,
+    /// The lamp's output relative to its nominal level: an HMI lamp
+    /// drifts by a few per cent over hours ([`crate::scene::LampDrift`]).
+    pub lamp_level: f64,
     /// Focal length in pixels of this frame, with `camera_distance_m` a
     /// pinhole camera; `None` an orthographic view of the whole plate.
     pub focal_px: Option<f64>,
@@ -88,6 +91,7 @@ impl Default for Shot {
             bit_depth: 12,
             relative_exposure: 1.0,
             gain: 1.0,
+            lamp_level: 1.0,
             focal_px: None,
             camera_distance_m: None,
             lamp_distance_m: None,

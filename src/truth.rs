@@ -1,8 +1,12 @@
 //! Ground truth of simulated runs: how far a result is from the scene the
-//! simulator rendered (photometric-stereo normals, BTF textures). Needs
-//! the simulator (cargo feature `sim`).
+//! simulator rendered (photometric-stereo normals, BTF textures, the MDF's
+//! depths). Needs the simulator (cargo feature `sim`); processing itself
+//! never does: it reads the holder from the run's profile, and takes the
+//! MDF's truth through [`crate::postprocess::mdf::DepthTruth`], which
+//! [`install`] provides.
 
 use std::path::Path;
+use std::sync::Arc;
 
 use rigd_core::geometry::Direction;
 use rigd_process::photometric_stereo::PsResult;
@@ -11,12 +15,12 @@ use serde::Serialize;
 
 use rigd_process::mdf::{DisplacementImage, PinholeCamera};
 
-use super::accuracy::{ErrorStats, PixelError, PixelErrors};
-use super::btf::{btf_error, HeldOutError};
-use super::frames::RunFrames;
-use super::rectify::NormtextureIndex;
-use super::ProcessError;
 use crate::kinematics::camera::camera_geometry;
+use crate::postprocess::accuracy::{ErrorStats, PixelError, PixelErrors};
+use crate::postprocess::btf::{btf_error, HeldOutError};
+use crate::postprocess::frames::RunFrames;
+use crate::postprocess::rectify::NormtextureIndex;
+use crate::postprocess::ProcessError;
 use crate::store::read_meta;
 
 /// How far recovered normals are from the scene's true ones.
@@ -59,7 +63,7 @@ pub fn ps_pixel_errors_against_truth(
     let Some(first) = run.entries.first() else {
         return Ok(None);
     };
-    let scene = Scene::load_on(run.meta.profile.sim.scene_name(), &run.meta.profile.holder)?;
+    let scene = scene_of(&run.meta)?;
     let size = [result.width as u32, result.height as u32];
     let geometry = camera_geometry(&run.meta.profile, &first.camera, size).ok_or_else(|| {
         ProcessError::Invalid(format!(
@@ -200,7 +204,7 @@ pub fn btf_truth_error(
             run.display()
         )));
     }
-    let scene = Scene::load_on(meta.profile.sim.scene_name(), &meta.profile.holder)?;
+    let scene = scene_of(&meta)?;
     let index = NormtextureIndex::read(run)?;
     let truths: Vec<Vec<f32>> = pairs
         .iter()
@@ -209,24 +213,46 @@ pub fn btf_truth_error(
     btf_error(run, pairs, &truths)
 }
 
-/// The scene of a simulated laser run, for the MDF's truth; `None` for
-/// hardware runs.
-pub fn mdf_truth_scene(
+/// The scene a simulated run rendered, on the holder its profile
+/// describes.
+fn scene_of(meta: &crate::store::RunMeta) -> Result<Arc<Scene>, ProcessError> {
+    let name = meta
+        .sim_scene
+        .as_ref()
+        .map_or_else(|| meta.profile.sim.scene_name(), |s| s.name.as_str());
+    Scene::load_on(name, &meta.profile.holder)
+        .map_err(|e| ProcessError::Invalid(format!("the run's simulated scene: {e}")))
+}
+
+/// Makes MDF steps measure simulated runs against their scene
+/// ([`crate::postprocess::mdf::DepthTruth`]); call once at start-up.
+pub fn install() {
+    crate::postprocess::mdf::install_depth_truth(mdf_truth);
+}
+
+/// The MDF's truth of a simulated laser run; `None` for hardware runs.
+fn mdf_truth(
     run: &RunFrames,
-) -> Result<Option<std::sync::Arc<rigd_sim::scene::Scene>>, ProcessError> {
+) -> Result<Option<Box<dyn crate::postprocess::mdf::DepthTruth>>, ProcessError> {
     if !run.meta.simulated {
         return Ok(None);
     }
-    let name = run
-        .meta
-        .sim_scene
-        .as_ref()
-        .map(|s| s.name.clone())
-        .unwrap_or_else(|| run.meta.profile.sim.scene_name().to_string());
-    Ok(Some(rigd_sim::scene::Scene::load_on(
-        &name,
-        &run.meta.profile.holder,
-    )?))
+    Ok(Some(Box::new(SceneDepth(scene_of(&run.meta)?))))
+}
+
+/// A scene as the MDF's depth truth.
+struct SceneDepth(Arc<Scene>);
+
+impl crate::postprocess::mdf::DepthTruth for SceneDepth {
+    fn depth_errors(
+        &self,
+        cam: &PinholeCamera,
+        d: &DisplacementImage,
+        reference_m: f64,
+        box_half: f64,
+    ) -> PixelErrors {
+        depth_errors(&self.0, cam, d, reference_m, box_half)
+    }
 }
 
 /// The measured displacement against the true one, pixel by pixel, over
