@@ -160,6 +160,13 @@ pub struct FrameRegistration {
     /// lights (`interpolated`), and `problem` says what was found.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub damaged: bool,
+    /// The lamp's output in this frame relative to the run's first frame
+    /// whose white reference areas are seen, as the holder's white areas
+    /// measure it; the texture is divided by it. None when the holder has
+    /// no white areas or they are not seen in this frame (the texture is
+    /// then as measured).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lamp_level: Option<f64>,
 }
 
 /// How a frame's texture came to be (`index.json` `method`).
@@ -215,6 +222,7 @@ impl FrameRegistration {
             problem: None,
             interpolated_from: Vec::new(),
             damaged: false,
+            lamp_level: None,
         }
     }
 }
@@ -461,12 +469,14 @@ pub(crate) fn register_by_markers(
         layout,
         out_dir: std::path::PathBuf::new(),
         colour: None,
+        lamp: None,
     };
     let camera = rectifier.camera(entry)?;
     Ok(rectifier.markers(image, &camera, entry)?.homography)
 }
 
 pub mod colour;
+mod lamp;
 mod part;
 mod resume;
 mod run;

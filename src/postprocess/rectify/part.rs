@@ -45,8 +45,10 @@ pub fn first_pass_range(
         layout,
         out_dir: out_dir.clone(),
         colour: super::colour::texture_colour(run, true)?,
-    };
-    let store = FirstPassStore::new(&out_dir, cfg, rectifier.colour.as_ref());
+        lamp: None,
+    }
+    .with_lamp();
+    let store = FirstPassStore::new(&out_dir, cfg, &rectifier);
     let total = positions.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let registered: usize = positions

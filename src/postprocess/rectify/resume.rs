@@ -41,17 +41,21 @@ pub(super) struct FirstPassStore {
 }
 
 impl FirstPassStore {
-    /// The store in `out_dir` (the normtextures folder) for `cfg` and the
-    /// colour calibration the textures are corrected by.
+    /// The store in `out_dir` (the normtextures folder) for `cfg`, and the
+    /// colour calibration and lamp reference the textures are corrected by.
     pub(super) fn new(
         out_dir: &Path,
         cfg: &RectifyConfig,
-        colour: Option<&rigd_process::colour::ColourCalibration>,
+        rectifier: &super::steps::Rectifier<'_>,
     ) -> FirstPassStore {
+        let (colour, lamp) = (
+            rectifier.colour.as_ref(),
+            rectifier.lamp.as_ref().map(|(_, reference)| reference),
+        );
         FirstPassStore {
             dir: out_dir.join(FIRST_PASS_DIR),
             out_dir: out_dir.to_path_buf(),
-            settings: format!("{} {cfg:?} {colour:?}", env!("CARGO_PKG_VERSION")),
+            settings: format!("{} {cfg:?} {colour:?} {lamp:?}", env!("CARGO_PKG_VERSION")),
         }
     }
 

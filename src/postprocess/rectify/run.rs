@@ -43,7 +43,9 @@ pub fn rectify_run(
         layout,
         out_dir: out_dir.clone(),
         colour: super::colour::texture_colour(run, true)?,
-    };
+        lamp: None,
+    }
+    .with_lamp();
     let (lights, views, slots) = assign_slots(&run.entries);
     let done = std::sync::atomic::AtomicUsize::new(0);
     let total = run.entries.len();
@@ -55,7 +57,7 @@ pub fn rectify_run(
 
     // 1. Markers, where they are found; frames an interrupted run of this
     // step had done come from its store.
-    let store = FirstPassStore::new(&out_dir, cfg, rectifier.colour.as_ref());
+    let store = FirstPassStore::new(&out_dir, cfg, &rectifier);
     let resumed = std::sync::atomic::AtomicUsize::new(0);
     let mut first: Vec<FirstPass> = slots
         .par_iter()

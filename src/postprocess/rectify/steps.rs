@@ -80,6 +80,10 @@ pub(super) struct Rectifier<'a> {
     /// The run's colour calibration (`rigd process colour`): textures are
     /// then RGB, corrected by it; `None`: grey.
     pub(super) colour: Option<rigd_process::colour::ColourCalibration>,
+    /// The lamp meter of a holder with white areas and the lamp's output
+    /// in the run's first frame that sees them: each frame is divided by
+    /// its lamp's output relative to that ([`Rectifier::with_lamp`]).
+    pub(super) lamp: Option<(super::lamp::LampMeter, f64)>,
 }
 
 /// A frame as rectification reads it: what its texture is made of, and
@@ -89,6 +93,9 @@ pub(super) struct FrameImages {
     pub(super) texture: Image,
     /// Its grey (luminance), when `texture` is RGB.
     rgb_grey: Option<Image>,
+    /// The lamp's output relative to the run's reference frame, which
+    /// both images have been divided by; `None`: not measured.
+    pub(super) lamp_level: Option<f64>,
 }
 
 impl FrameImages {
@@ -108,8 +115,58 @@ impl Rectifier<'_> {
         }
     }
 
-    /// A frame as its texture is made and as it is registered.
+    /// This rectifier with the lamp measured on the holder's white areas,
+    /// when it has any: the reference is the lamp's output in the first
+    /// frame, in journal order, that sees them.
+    pub(super) fn with_lamp(mut self) -> Self {
+        let Some(meter) = super::lamp::LampMeter::of(self.run, &self.holder) else {
+            return self;
+        };
+        let reference = self.run.entries.iter().find_map(|entry| {
+            let images = self.frame_images(entry).ok()?;
+            self.lamp_output(&meter, entry, images.grey())
+        });
+        self.lamp = reference.map(|r| (meter, r));
+        self
+    }
+
+    /// The lamp's output in a frame, measured through its pose.
+    fn lamp_output(
+        &self,
+        meter: &super::lamp::LampMeter,
+        entry: &crate::store::FrameEntry,
+        grey: &Image,
+    ) -> Option<f64> {
+        let camera = self.camera(entry).ok()?;
+        meter
+            .output(entry, grey, |p| camera.project([p[0], p[1], 0.0]))
+            .filter(|o| o.is_finite() && *o > 0.0)
+    }
+
+    /// A frame as its texture is made and as it is registered, divided by
+    /// its lamp's level where the holder's white areas measure it.
     pub(super) fn frame_images(
+        &self,
+        entry: &crate::store::FrameEntry,
+    ) -> Result<FrameImages, crate::postprocess::ProcessError> {
+        let mut images = self.read_images(entry)?;
+        if let Some((meter, reference)) = &self.lamp {
+            if let Some(output) = self.lamp_output(meter, entry, images.grey()) {
+                let level = output / reference;
+                let scale = (1.0 / level) as f32;
+                images.texture.data.iter_mut().for_each(|v| *v *= scale);
+                if let Some(g) = images.rgb_grey.as_mut() {
+                    g.data.iter_mut().for_each(|v| *v *= scale);
+                }
+                images.lamp_level = Some(level);
+            }
+        }
+        Ok(images)
+    }
+
+    /// A frame as its file holds it: colour-corrected RGB with a colour
+    /// calibration, else grey.
+    fn read_images(
         &self,
         entry: &crate::store::FrameEntry,
     ) -> Result<FrameImages, crate::postprocess::ProcessError> {
@@ -117,6 +174,7 @@ impl Rectifier<'_> {
             return Ok(FrameImages {
                 texture: self.run.image(entry)?,
                 rgb_grey: None,
+                lamp_level: None,
             });
         };
         let Some(rgb) = self.run.corrected(entry, colour)? else {
@@ -132,6 +190,7 @@ impl Rectifier<'_> {
         Ok(FrameImages {
             texture: rgb,
             rgb_grey: Some(grey),
+            lamp_level: None,
         })
     }
 
@@ -322,6 +381,7 @@ impl Rectifier<'_> {
                 return out;
             }
         };
+        out.rec.lamp_level = images.lamp_level;
         // Whether it is black is decided against its neighbours, later.
         let image = images.grey();
         out.p99 = percentile_f32(&image.data, 0.99);
@@ -536,6 +596,7 @@ pub(super) fn fill_from_neighbours(
         layout: rectifier.layout.clone(),
         out_dir: rectifier.out_dir.clone(),
         colour: rectifier.colour,
+        lamp: None,
     };
     local.store(rec, &mean, bits)?;
     Ok(neighbours.iter().map(|(_, f)| f.index).collect())

@@ -151,9 +151,11 @@ impl RectifyStream {
             layout: self.layout.clone(),
             out_dir: out_dir.clone(),
             colour: super::colour::texture_colour(&run, false)?,
-        };
+            lamp: None,
+        }
+        .with_lamp();
         self.channels = rectifier.channels();
-        let store = FirstPassStore::new(&out_dir, &self.cfg, rectifier.colour.as_ref());
+        let store = FirstPassStore::new(&out_dir, &self.cfg, &rectifier);
         let done: Vec<(FrameRegistration, bool)> = (self.next..end)
             .into_par_iter()
             .map(|position| {

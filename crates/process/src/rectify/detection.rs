@@ -149,6 +149,9 @@ pub(super) struct Window {
     pub(super) v: Vec<f32>,
     /// The window's dark level (10th percentile).
     pub(super) dark: f32,
+    /// The window's median: the plate's level where the plate fills most
+    /// of the window.
+    pub(super) plate: f32,
 }
 
 /// Whether a marker is lighter or darker than the plate around it.
@@ -192,6 +195,9 @@ pub(super) fn detect_one(
     let k = sorted.len() / 10;
     let (_, dark, _) = sorted.select_nth_unstable_by(k, f32::total_cmp);
     let dark = *dark;
+    let middle = sorted.len() / 2;
+    let (_, plate, _) = sorted.select_nth_unstable_by(middle, f32::total_cmp);
+    let plate = *plate;
     let bright = v.iter().copied().fold(f32::MIN, f32::max);
     if !above_or_eq(f64::from(bright - dark), opts.min_contrast) {
         return None;
@@ -203,6 +209,7 @@ pub(super) fn detect_one(
         h,
         v,
         dark,
+        plate,
     };
     let pred_local = [pred[0] - x0 as f64, pred[1] - y0 as f64];
     let mut tried_peaks = std::collections::HashSet::new();
@@ -372,12 +379,46 @@ pub(super) fn median_f32(mut v: Vec<f32>) -> Option<f32> {
     Some(*m)
 }
 
+/// Largest spread (90th minus 10th percentile) of a blob's surround, as a
+/// fraction of its contrast, for the surround to count as a uniform
+/// plate: a marker on a mid-grey plate is isolated although its surround
+/// is far above the window's dark level (the floor past the plate's
+/// edge); a speck of a textured sample's surround is not uniform.
+const UNIFORM_SURROUND: f64 = 0.25;
+
+/// How a blob is told from a bright speck of something larger.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Isolation {
+    /// Its surround is near the window's dark level: a light marker on a
+    /// dark plate.
+    DarkSurround,
+    /// Its surround is uniform: a light marker on a plate of any grey.
+    UniformSurround,
+}
+
 pub(super) fn analyse_blob(win: &Window, peak: usize, opts: &DetectOptions) -> Option<Detection> {
+    analyse_blob_as(win, peak, opts, win.dark, Isolation::DarkSurround).or_else(|| {
+        // On a plate brighter than the window's darkest part, the first
+        // threshold (midway from the dark level) floods the plate: grow
+        // from the plate's level instead.
+        (win.plate > win.dark)
+            .then(|| analyse_blob_as(win, peak, opts, win.plate, Isolation::UniformSurround))
+            .flatten()
+    })
+}
+
+fn analyse_blob_as(
+    win: &Window,
+    peak: usize,
+    opts: &DetectOptions,
+    first_level: f32,
+    isolation: Isolation,
+) -> Option<Detection> {
     let pv = win.v[peak];
     let max_pixels = opts.max_area_px.min(1e9) as usize;
-    // Threshold midway between the background and the peak: first with the
-    // window's dark level, then with the blob's own surround.
-    let mut bg = win.dark;
+    // Threshold midway between the background and the peak: first with
+    // `first_level`, then with the blob's own surround.
+    let mut bg = first_level;
     let mut blob = grow(win, peak, bg + 0.5 * (pv - bg), max_pixels)?;
     let (_, ring2) = rings(win, &blob.pixels);
     bg = median_f32(ring2.iter().map(|&i| win.v[i]).collect())?;
@@ -401,10 +442,21 @@ pub(super) fn analyse_blob(win: &Window, peak: usize, opts: &DetectOptions) -> O
     if !above_or_eq(contrast, opts.min_contrast) {
         return None;
     }
-    let surround_mean =
-        ring2.iter().map(|&i| f64::from(win.v[i])).sum::<f64>() / ring2.len() as f64;
-    let full = f64::from(pv - win.dark);
-    if full <= 0.0 || (surround_mean - f64::from(win.dark)) > opts.max_surround * full {
+    let isolated = match isolation {
+        Isolation::DarkSurround => {
+            let surround_mean =
+                ring2.iter().map(|&i| f64::from(win.v[i])).sum::<f64>() / ring2.len() as f64;
+            let full = f64::from(pv - win.dark);
+            full > 0.0 && (surround_mean - f64::from(win.dark)) <= opts.max_surround * full
+        }
+        Isolation::UniformSurround => {
+            let mut ring: Vec<f32> = ring2.iter().map(|&i| win.v[i]).collect();
+            ring.sort_by(f32::total_cmp);
+            let at = |q: f64| f64::from(ring[((ring.len() - 1) as f64 * q).round() as usize]);
+            at(0.9) - at(0.1) <= UNIFORM_SURROUND * contrast
+        }
+    };
+    if !isolated {
         return None;
     }
     // Shape from the binary region's second moments (+1/12 per axis for the
@@ -453,4 +505,73 @@ pub(super) fn analyse_blob(win: &Window, peak: usize, opts: &DetectOptions) -> O
         contrast,
         elongation,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A mid-grey plate (0.5) whose left edge gives onto a black floor,
+    /// with a light disc 15 px from that edge, a dark disc, and beside the
+    /// floor a patch of noisy texture holding a bright speck.
+    fn grey_plate() -> Image {
+        let (w, h) = (200, 200);
+        let mut img = Image::new(w, h, 1);
+        let mut seed = 7u64;
+        let mut noise = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as f32 / (1u64 << 31) as f32
+        };
+        for y in 0..h {
+            for x in 0..w {
+                let (fx, fy) = (x as f64 + 0.5, y as f64 + 0.5);
+                let disc = |cx: f64, cy: f64| (fx - cx).hypot(fy - cy) <= 5.0;
+                img.data[y * w + x] = if x < 40 {
+                    0.0
+                } else if disc(55.0, 60.0) {
+                    0.95
+                } else if disc(150.0, 60.0) {
+                    0.02
+                } else if y >= 120 && (40..100).contains(&x) {
+                    if (54..56).contains(&x) && (159..161).contains(&y) {
+                        0.95
+                    } else {
+                        0.3 + 0.4 * noise()
+                    }
+                } else {
+                    0.5
+                };
+            }
+        }
+        img
+    }
+
+    #[test]
+    fn markers_of_either_polarity_are_found_on_a_grey_plate_and_a_speck_is_not() {
+        let img = grey_plate();
+        let predicted = [Some([55.0, 60.0]), Some([150.0, 60.0]), Some([55.0, 160.0])];
+        let found = detect_markers_of_polarity(
+            &img,
+            &predicted,
+            &[false, true, false],
+            12.0,
+            &DetectOptions {
+                max_area_px: 400.0,
+                ..Default::default()
+            },
+        )
+        .expect("valid input");
+        for (k, want) in [(0, [55.0, 60.0]), (1, [150.0, 60.0])] {
+            let d = found[k].unwrap_or_else(|| panic!("marker {k} not found"));
+            let err = (d.centre_px[0] - want[0]).hypot(d.centre_px[1] - want[1]);
+            assert!(err < 0.1, "marker {k} at {:?}", d.centre_px);
+        }
+        assert!(found[2].is_none(), "a speck of texture: {:?}", found[2]);
+        // Taken as light, the dark disc is not found.
+        let light =
+            detect_markers(&img, &predicted[1..2], 12.0, &Default::default()).expect("valid input");
+        assert!(light[0].is_none(), "{:?}", light[0]);
+    }
 }
