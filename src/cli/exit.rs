@@ -160,6 +160,7 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<rigd::plan::PlanError>()
         || cause.is::<rigd::kinematics::KinematicsError>()
         || cause.is::<rigd::postprocess::viewer::ViewerError>()
+        || cause.is::<rigd::postprocess::holder_check::HolderCheckError>()
         || cause.is::<btf::BtfError>()
         || cause.is::<directions::DirectionError>()
         || cause.is::<export::ExportError>()

@@ -4,6 +4,7 @@
 
 pub mod dataset;
 pub mod exit;
+pub mod holder;
 pub mod plan;
 pub mod process;
 pub mod profile;

@@ -134,13 +134,54 @@ impl RunFrames {
             path: path.clone(),
             message,
         };
-        if !is_png(&bytes) {
-            let img = camera_file::decode(&bytes).map_err(|e| frame_err(e.to_string()))?;
-            return Ok(camera_file_linear(&img));
-        }
-        let (w, h, pixels) = decode_png(&bytes).map_err(frame_err)?;
-        Ok(png_linear(entry, w, h, &pixels))
+        decode_linear(&bytes, entry.bit_depth, cfa_of(entry)).map_err(frame_err)
     }
+}
+
+/// A frame file's bytes as linear values in [0, 1], read as a run's frames
+/// are: a camera file (DNG, vendor raw, JPEG, TIFF) by its content, a PNG
+/// as a rig writes it (values of `bit_depth` significant bits, a Bayer
+/// mosaic behind `cfa` when one is given). The image has one channel for
+/// a monochrome frame and three (red, green, blue, demosaiced bilinearly
+/// as [`RunFrames::colour_planes`] reads them) for a colour one. `Err`
+/// says why the bytes are no frame.
+pub fn decode_frame(bytes: &[u8], bit_depth: u8, cfa: Option<Cfa>) -> Result<Image, String> {
+    match decode_linear(bytes, bit_depth, cfa)? {
+        Linear::Grey(img) | Linear::Rgb(img) => Ok(img),
+        linear @ Linear::Mosaic(..) => {
+            let planes = linear
+                .planes()
+                .map_err(|e| e.to_string())?
+                .ok_or("a mosaic without colour planes")?;
+            let mut out = Image::new(planes.width, planes.height, 3);
+            for (c, plane) in planes.rgb.iter().enumerate() {
+                for (px, v) in out.data.chunks_exact_mut(3).zip(plane) {
+                    px[c] = *v;
+                }
+            }
+            Ok(out)
+        }
+    }
+}
+
+/// The filter array a frame was taken behind, as its device's pixel
+/// format names it; None for a monochrome one.
+fn cfa_of(entry: &FrameEntry) -> Option<Cfa> {
+    entry
+        .device
+        .as_ref()
+        .and_then(|d| d.pixel_format.parse::<rigd_core::PixelFormat>().ok())
+        .and_then(|f| f.cfa())
+}
+
+/// A frame file's samples, linear in [0, 1], before any demosaicing.
+fn decode_linear(bytes: &[u8], bit_depth: u8, cfa: Option<Cfa>) -> Result<Linear, String> {
+    if !is_png(bytes) {
+        let img = camera_file::decode(bytes).map_err(|e| e.to_string())?;
+        return Ok(camera_file_linear(&img));
+    }
+    let (w, h, pixels) = decode_png(bytes)?;
+    Ok(png_linear(bit_depth, cfa, w, h, &pixels))
 }
 
 impl CheckedReads {
@@ -283,18 +324,13 @@ fn camera_file_linear(img: &CameraImage) -> Linear {
 }
 
 /// A PNG frame's samples as linear values in [0, 1]. A Bayer frame (its
-/// device's pixel format names a filter array) is kept as its mosaic.
-fn png_linear(entry: &FrameEntry, w: u32, h: u32, pixels: &[u16]) -> Linear {
-    let full = ((1u32 << entry.bit_depth.clamp(1, 16)) - 1) as f32;
+/// device's pixel format names a filter array, `cfa`) is kept as its mosaic.
+fn png_linear(bit_depth: u8, cfa: Option<Cfa>, w: u32, h: u32, pixels: &[u16]) -> Linear {
+    let full = ((1u32 << bit_depth.clamp(1, 16)) - 1) as f32;
     let mut img = Image::new(w as usize, h as usize, 1);
     for (d, &p) in img.data.iter_mut().zip(pixels) {
         *d = p as f32 / full;
     }
-    let cfa = entry
-        .device
-        .as_ref()
-        .and_then(|d| d.pixel_format.parse::<rigd_core::PixelFormat>().ok())
-        .and_then(|f| f.cfa());
     match cfa {
         Some(cfa) => Linear::Mosaic(img, cfa),
         None => Linear::Grey(img),
@@ -318,6 +354,11 @@ mod tests {
             e["device"] = serde_json::json!({"frame_id": 1, "timestamp_ns": 2, "pixel_format": f});
         }
         serde_json::from_value(e).expect("a frame entry")
+    }
+
+    /// [`png_linear`] as [`RunFrames`] calls it for `entry`.
+    fn png_linear_of(entry: &FrameEntry, w: u32, h: u32, pixels: &[u16]) -> Linear {
+        png_linear(entry.bit_depth, cfa_of(entry), w, h, pixels)
     }
 
     #[test]
@@ -358,7 +399,7 @@ mod tests {
     fn a_bayer_mosaic_reads_as_grey_and_a_mono_frame_as_it_is() {
         // Red 255, green 51, blue 0 behind an RGGB tile.
         let mosaic = [255, 51, 255, 51, 51, 0, 51, 0];
-        let grey = png_linear(&entry(Some("BayerRG8")), 4, 2, &mosaic)
+        let grey = png_linear_of(&entry(Some("BayerRG8")), 4, 2, &mosaic)
             .grey()
             .expect("grey");
         let want = (0.25 * 255.0 + 0.5 * 51.0) / 255.0;
@@ -368,12 +409,12 @@ mod tests {
             grey.data
         );
         for format in [None, Some("Mono8")] {
-            let mono = png_linear(&entry(format), 4, 2, &mosaic)
+            let mono = png_linear_of(&entry(format), 4, 2, &mosaic)
                 .grey()
                 .expect("mono");
             assert_eq!(mono.data[1], 51.0 / 255.0, "{format:?}");
         }
-        let e = png_linear(&entry(Some("BayerRG8")), 4, 1, &mosaic[..4])
+        let e = png_linear_of(&entry(Some("BayerRG8")), 4, 1, &mosaic[..4])
             .grey()
             .expect_err("1 row");
         assert_eq!(e.height, 1);

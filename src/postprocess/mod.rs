@@ -9,6 +9,8 @@ pub mod dataset;
 pub mod executor;
 pub mod fit;
 pub mod frames;
+pub mod holder_check;
+pub mod holder_template;
 pub mod mdf;
 pub mod mdf_texture;
 pub mod parts;

@@ -30,6 +30,7 @@ mod full_runs;
 mod genicam;
 mod grbl_e2e;
 mod grbl_transcripts;
+mod holder;
 mod journal_readers;
 mod laser_mdf;
 mod manual_control;

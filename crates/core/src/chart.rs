@@ -152,9 +152,31 @@ pub fn linear_srgb_to_lab_d50(rgb: [f64; 3]) -> [f64; 3] {
     xyz_to_lab(mul(&D65_TO_D50, mul(&SRGB_TO_XYZ, rgb)), D50)
 }
 
+/// A linear sRGB value (reflectance, 0 to 1) as its sRGB-encoded value
+/// (IEC 61966-2-1), what a printer or a screen is given; clamped to [0, 1].
+pub fn linear_to_srgb(v: f64) -> f64 {
+    let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
+    if v <= 0.003_130_8 {
+        12.92 * v
+    } else {
+        1.055 * v.powf(1.0 / 2.4) - 0.055
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn srgb_encoding_meets_its_published_points() {
+        assert_eq!(linear_to_srgb(0.0), 0.0);
+        assert!((linear_to_srgb(1.0) - 1.0).abs() < 1e-12);
+        // 18 % grey is sRGB 117.6/255; the linear toe's end meets the curve.
+        assert!((linear_to_srgb(0.18) * 255.0 - 117.63).abs() < 0.05);
+        assert!((linear_to_srgb(0.003_130_8) - 0.040_45).abs() < 1e-5);
+        assert_eq!(linear_to_srgb(-1.0), 0.0);
+        assert_eq!(linear_to_srgb(2.0), 1.0);
+    }
 
     #[test]
     fn lab_and_linear_srgb_round_trip() {

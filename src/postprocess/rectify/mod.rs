@@ -472,7 +472,107 @@ pub(crate) fn register_by_markers(
         lamp: None,
     };
     let camera = rectifier.camera(entry)?;
-    Ok(rectifier.markers(image, &camera, entry)?.homography)
+    Ok(rectifier.markers(image, &camera)?.homography)
+}
+
+/// Largest marker blob accepted, as a multiple of the largest disc area
+/// the pose predicts (blur, the holder offset and the scale's error fit in
+/// it many times over).
+const MARKER_AREA_MARGIN: f64 = 6.0;
+/// The bound never falls below this many pixels (tiny frames).
+const MIN_MARKER_AREA_BOUND_PX: f64 = 64.0;
+
+/// The holder's point markers as registration fits them: their centres
+/// and, bounding the blobs accepted, the largest disc's radius.
+pub(crate) fn marker_layout(holder: &Holder) -> rigd_process::rectify::MarkerLayout {
+    rigd_process::rectify::MarkerLayout {
+        points: holder.points.iter().map(|p| p.position).collect(),
+        radius_m: holder.points.iter().map(|p| p.radius).fold(0.0, f64::max),
+        sample_half: holder.sample_half,
+    }
+}
+
+/// The camera model of `profile`'s camera `camera` looking from `view` at
+/// a frame of `size` pixels, as the rig's pose predicts it (`focal_px`, if
+/// given, instead of the profile's focal length); None if the profile has
+/// no such camera or no intrinsics for it.
+pub(crate) fn pose_camera(
+    profile: &crate::model::profile::Profile,
+    camera: &str,
+    size: [u32; 2],
+    view: Direction,
+    holder: &Holder,
+    focal_px: Option<f64>,
+) -> Option<rigd_core::camera::Camera> {
+    let geometry = crate::kinematics::camera::camera_geometry(profile, camera, size)?;
+    Some(rigd_core::camera::Camera::new(
+        view.to_vector(),
+        size,
+        Some(focal_px.unwrap_or(geometry.focal_px)),
+        geometry.distance_m,
+        1.1 * holder.half,
+    ))
+}
+
+/// Where a frame's holder markers are predicted and found.
+pub(crate) struct MarkerSearch {
+    /// Per marker, where the camera model puts it, pixels; None behind
+    /// the camera.
+    pub(crate) predicted: Vec<Option<[f64; 2]>>,
+    /// Per marker, the blob found around the prediction, if any.
+    pub(crate) detections: Vec<Option<rigd_process::rectify::Detection>>,
+}
+
+/// Looks for each of `holder`'s point markers (light or dark) around where
+/// `camera` puts it: the search every registration by markers makes, in
+/// `rigd process rectify`, `rigd process colour` and `rigd holder check`.
+pub(crate) fn find_markers(
+    holder: &Holder,
+    layout: &rigd_process::rectify::MarkerLayout,
+    image: &Image,
+    camera: &rigd_core::camera::Camera,
+) -> Result<MarkerSearch, rigd_process::rectify::RectifyError> {
+    use rigd_process::rectify as rect;
+    // Where the rig's pose says the markers are; the search finds them
+    // around that.
+    let predicted: Vec<Option<[f64; 2]>> = layout
+        .points
+        .iter()
+        .map(|p| camera.project([p[0], p[1], 0.0]))
+        .collect();
+    let radius = (0.03 * image.width.max(image.height) as f64).max(6.0);
+    // Blobs are accepted up to a few times the largest disc the pose
+    // predicts, not the default's fixed 5000 px: the search window's
+    // margin grows with that bound, and on a small textured frame the
+    // fixed bound made each window most of the frame.
+    let r = layout.radius_m;
+    let predicted_area = layout
+        .points
+        .iter()
+        .filter_map(|p| {
+            let c = camera.project([p[0], p[1], 0.0])?;
+            let a = camera.project([p[0] + r, p[1], 0.0])?;
+            let b = camera.project([p[0], p[1] + r, 0.0])?;
+            let (da, db) = ([a[0] - c[0], a[1] - c[1]], [b[0] - c[0], b[1] - c[1]]);
+            Some(std::f64::consts::PI * (da[0] * db[1] - da[1] * db[0]).abs())
+        })
+        .fold(0.0, f64::max);
+    let defaults = rect::DetectOptions::default();
+    let opts = rect::DetectOptions {
+        max_area_px: (MARKER_AREA_MARGIN * predicted_area)
+            .clamp(MIN_MARKER_AREA_BOUND_PX, defaults.max_area_px),
+        ..defaults
+    };
+    let dark: Vec<bool> = holder
+        .points
+        .iter()
+        .map(|p| p.polarity == rigd_core::holder::Polarity::Dark)
+        .collect();
+    let detections = rect::detect_markers_of_polarity(image, &predicted, &dark, radius, &opts)?;
+    Ok(MarkerSearch {
+        predicted,
+        detections,
+    })
 }
 
 pub mod colour;

@@ -439,15 +439,8 @@ pub(super) fn holder_layout(
     ),
     ProcessError,
 > {
-    let (holder, sample_half) = holder_of(meta)?;
-    let points: Vec<[f64; 2]> = holder.points.iter().map(|p| p.position).collect();
-    // The largest disc bounds the blobs accepted.
-    let radius_m = holder.points.iter().map(|p| p.radius).fold(0.0, f64::max);
-    let layout = rigd_process::rectify::MarkerLayout {
-        points,
-        radius_m,
-        sample_half,
-    };
+    let (holder, _) = holder_of(meta)?;
+    let layout = super::marker_layout(&holder);
     Ok((holder, layout))
 }
 

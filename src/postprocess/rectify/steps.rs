@@ -10,7 +10,6 @@ use rigd_process::image_io::Image;
 use rigd_process::npy::Dtype;
 
 use super::{FrameRegistration, NormtextureIndex, RectifyConfig, RegistrationMethod, TextureBits};
-use crate::kinematics::camera::camera_geometry;
 use crate::postprocess::frames::RunFrames;
 
 /// A frame is black (a lamp that did not fire, a closed shutter) when its
@@ -49,12 +48,6 @@ pub(super) const MAX_REFERENCE_LIGHT_DEG: f64 = 20.0;
 pub(super) const TEXTURE_CHECKS: usize = 16;
 /// An unusable frame is filled from this many nearest lights of its slot.
 pub(super) const FILL_NEIGHBOURS: usize = 3;
-/// Largest marker blob accepted, as a multiple of the largest disc area
-/// the pose predicts (blur, the holder offset and the scale's error fit in
-/// it many times over).
-pub(super) const MARKER_AREA_MARGIN: f64 = 6.0;
-/// The bound never falls below this many pixels (tiny frames).
-pub(super) const MIN_MARKER_AREA_BOUND_PX: f64 = 64.0;
 
 /// One frame after the first pass: its registration record and the two
 /// homographies (markers, pose) it has.
@@ -196,19 +189,15 @@ impl Rectifier<'_> {
 
     /// The frame's camera at its achieved pose.
     pub(super) fn camera(&self, entry: &crate::store::FrameEntry) -> Result<Camera, String> {
-        let geometry = camera_geometry(
+        super::pose_camera(
             &self.run.meta.profile,
             &entry.camera,
             [entry.width, entry.height],
+            entry.achieved_view,
+            &self.holder,
+            None,
         )
-        .ok_or_else(|| format!("no camera `{}` in the run's profile", entry.camera))?;
-        Ok(Camera::new(
-            entry.achieved_view.to_vector(),
-            [entry.width, entry.height],
-            Some(geometry.focal_px),
-            geometry.distance_m,
-            1.1 * self.holder.half,
-        ))
+        .ok_or_else(|| format!("no camera `{}` in the run's profile", entry.camera))
     }
 
     /// Marker registration, as Sattler et al. §3.2 does it.
@@ -216,50 +205,11 @@ impl Rectifier<'_> {
         &self,
         image: &Image,
         camera: &Camera,
-        entry: &crate::store::FrameEntry,
     ) -> Result<rigd_process::rectify::Registration, String> {
-        use rigd_process::rectify as rect;
-        // Where the rig's pose says the markers are; the search finds them
-        // around that.
-        let predicted: Vec<Option<[f64; 2]>> = self
-            .layout
-            .points
-            .iter()
-            .map(|p| camera.project([p[0], p[1], 0.0]))
-            .collect();
-        let radius = (0.03 * f64::from(entry.width.max(entry.height))).max(6.0);
-        // Blobs are accepted up to a few times the largest disc the pose
-        // predicts, not the default's fixed 5000 px: the search window's
-        // margin grows with that bound, and on a small textured frame the
-        // fixed bound made each window most of the frame.
-        let r = self.layout.radius_m;
-        let predicted_area = self
-            .layout
-            .points
-            .iter()
-            .filter_map(|p| {
-                let c = camera.project([p[0], p[1], 0.0])?;
-                let a = camera.project([p[0] + r, p[1], 0.0])?;
-                let b = camera.project([p[0], p[1] + r, 0.0])?;
-                let (da, db) = ([a[0] - c[0], a[1] - c[1]], [b[0] - c[0], b[1] - c[1]]);
-                Some(std::f64::consts::PI * (da[0] * db[1] - da[1] * db[0]).abs())
-            })
-            .fold(0.0, f64::max);
-        let defaults = rect::DetectOptions::default();
-        let opts = rect::DetectOptions {
-            max_area_px: (MARKER_AREA_MARGIN * predicted_area)
-                .clamp(MIN_MARKER_AREA_BOUND_PX, defaults.max_area_px),
-            ..defaults
-        };
-        let dark: Vec<bool> = self
-            .holder
-            .points
-            .iter()
-            .map(|p| p.polarity == rigd_core::holder::Polarity::Dark)
-            .collect();
-        let detections = rect::detect_markers_of_polarity(image, &predicted, &dark, radius, &opts)
+        let search = super::find_markers(&self.holder, &self.layout, image, camera)
             .map_err(|e| e.to_string())?;
-        rect::register(&self.layout, &detections, &Default::default()).map_err(|e| e.to_string())
+        rigd_process::rectify::register(&self.layout, &search.detections, &Default::default())
+            .map_err(|e| e.to_string())
     }
 
     /// The sample square of `image` through `h` at `side` texels.
@@ -398,7 +348,7 @@ impl Rectifier<'_> {
             rigd_process::rectify::Region::centred([self.holder.half, self.holder.half]),
         )
         .ok();
-        match self.markers(image, &camera, entry) {
+        match self.markers(image, &camera) {
             Ok(reg) => {
                 out.rec.rms_px = Some(reg.rms_px);
                 out.rec.max_px = Some(reg.max_px);
