@@ -9,7 +9,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use cli::{dataset, exit, plan, process, profile, rig, run, serve};
+use cli::{camera, dataset, exit, plan, process, profile, rig, run, serve};
 #[cfg(feature = "sim")]
 use cli::{sim, tradeoff};
 
@@ -43,6 +43,11 @@ enum Cmd {
     Rig {
         #[command(subcommand)]
         command: rig::RigCmd,
+    },
+    /// Calibrate a camera: its colour from a photographed colour chart.
+    Camera {
+        #[command(subcommand)]
+        command: camera::CameraCmd,
     },
     /// Capture a BTF: run a plan on a rig into a run directory, or resume one.
     Run(run::RunArgs),
@@ -90,6 +95,7 @@ fn main() -> ExitCode {
         Cmd::Plan { command } => plan::run(command),
         Cmd::Profile { command } => profile::run(command),
         Cmd::Rig { command } => rig::run(command),
+        Cmd::Camera { command } => camera::run(command),
         Cmd::Run(args) => run::run(args),
         Cmd::Serve(args) => serve::run(args),
         Cmd::Export(args) => dataset::export(args),
