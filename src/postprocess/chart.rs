@@ -85,7 +85,7 @@ pub enum ChartReadError {
         /// `red`, `green` or `blue`.
         channel: &'static str,
     },
-    /// An image without colour.
+    /// An image without colour, or whose samples do not fill it.
     #[error("{0}")]
     NoColour(String),
 }
@@ -151,6 +151,13 @@ pub fn read_chart(
             )))
         }
     };
+    let expected = width as usize * height as usize * channels;
+    if image.samples.len() != expected {
+        return Err(ChartReadError::NoColour(format!(
+            "the image holds {} samples, not the {expected} of {width}x{height} pixels of {channels}",
+            image.samples.len()
+        )));
+    }
     let decoded = (image.encoding == Encoding::Srgb).then(|| image.linear());
     let span = f64::from((image.white - image.black).max(1.0));
     let value = |i: usize| match &decoded {

@@ -195,6 +195,7 @@ fn a_photographed_colorchecker_is_read_and_corrected() {
     // The table names the patches and the choice.
     let out = camera_colour(&file, &[], &corners);
     let table = String::from_utf8_lossy(&out.stdout);
+    eprintln!("{table}");
     assert!(
         out.status.success(),
         "{}",
@@ -231,6 +232,32 @@ fn an_rgb_image_is_read_per_channel() {
     // A linear camera: the matrix recovers it but for the 16-bit rounding.
     assert!(fit.matrix.mean_delta_e2000 < 0.01, "{:?}", fit.matrix);
     assert!(fit.fit_of(CorrectionKind::Matrix).max_delta_e2000 < 0.05);
+
+    // The same as 8-bit sRGB-encoded samples (a JPEG's): decoded before
+    // averaging, so the correction is the same but for the 8-bit steps.
+    let encode = |v: f64| {
+        let s = if v <= 0.003_130_8 {
+            12.92 * v
+        } else {
+            1.055 * v.powf(1.0 / 2.4) - 0.055
+        };
+        (s * 255.0).round() as u16
+    };
+    let jpeg_like = CameraImage {
+        format: FileFormat::Jpeg,
+        samples: light.iter().flat_map(|rgb| rgb.map(encode)).collect(),
+        white: 255.0,
+        encoding: Encoding::Srgb,
+        ..image
+    };
+    let readings = read_chart(&jpeg_like, &COLORCHECKER24, CORNERS).expect("read");
+    let fit = fit_chart(&readings).expect("fits");
+    eprintln!(
+        "8-bit sRGB chart: mean dE00 {:.3} in the fit, {:.3} left out",
+        fit.matrix.mean_delta_e2000,
+        fit.matrix.mean_delta_e2000_left_out.unwrap_or(f64::NAN)
+    );
+    assert!(fit.matrix.mean_delta_e2000 < 0.5, "{:?}", fit.matrix);
 }
 
 #[test]
