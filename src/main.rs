@@ -9,7 +9,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use cli::{dataset, exit, holder, plan, process, profile, rig, run, serve};
+use cli::{camera, dataset, exit, holder, plan, process, profile, rig, run, serve};
 #[cfg(feature = "sim")]
 use cli::{sim, tradeoff};
 
@@ -48,6 +48,11 @@ enum Cmd {
     Holder {
         #[command(subcommand)]
         command: holder::HolderCmd,
+    },
+    /// Calibrate a camera: its colour from a photographed colour chart.
+    Camera {
+        #[command(subcommand)]
+        command: camera::CameraCmd,
     },
     /// Capture a BTF: run a plan on a rig into a run directory, or resume one.
     Run(run::RunArgs),
@@ -99,6 +104,7 @@ fn main() -> ExitCode {
         Cmd::Profile { command } => profile::run(command),
         Cmd::Rig { command } => rig::run(command),
         Cmd::Holder { command } => holder::run(command),
+        Cmd::Camera { command } => camera::run(command),
         Cmd::Run(args) => run::run(args),
         Cmd::Serve(args) => serve::run(args),
         Cmd::Export(args) => dataset::export(args),

@@ -2,6 +2,7 @@
 //! dispatches. Each command validates its own arguments (bad input exits 2,
 //! see [`exit`]) and prints its own report.
 
+pub mod camera;
 pub mod dataset;
 pub mod exit;
 pub mod holder;

@@ -5,6 +5,7 @@
 
 pub mod accuracy;
 pub mod btf;
+pub mod chart;
 pub mod dataset;
 pub mod executor;
 pub mod fit;

@@ -12,7 +12,7 @@ use crate::common::{repo_file, rigd, run_ok};
 
 /// ΔE*ab the red patch must come within after colour correction, fitted
 /// with all patches (measured 0.20) and held out of the fit (measured
-/// 0.53). A ΔE of 2 is about the smallest difference an
+/// 0.54). A ΔE of 2 is about the smallest difference an
 /// observer sees side by side.
 const RED_IN_FIT: f64 = 1.0;
 /// See [`RED_IN_FIT`].

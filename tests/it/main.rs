@@ -15,6 +15,7 @@ mod api_restart;
 mod architecture;
 mod bring_up;
 mod btf_accuracy;
+mod camera_colour;
 mod camera_files;
 mod cli;
 mod clock;

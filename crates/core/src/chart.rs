@@ -199,6 +199,39 @@ mod tests {
         }
     }
 
+    /// colour-science's `ColorChecker24 - After November 2014` (X-Rite's
+    /// L\*a\*b\* as xyY under the ICC D50 white, x 0.3457, y 0.3585): the
+    /// table above converted back must land within X-Rite's rounding.
+    #[test]
+    fn the_table_is_colour_science_s_after_november_2014_data() {
+        let xyy = [
+            ("dark skin", [0.437_488, 0.378_489, 0.098_324]),
+            ("blue sky", [0.276_138, 0.298_342, 0.178_552]),
+            ("bluish green", [0.286_402, 0.389_675, 0.414_355]),
+            ("red", [0.562_883, 0.335_536, 0.127_801]),
+            ("yellow", [0.467_778, 0.475_996, 0.599_298]),
+            ("cyan", [0.209_120, 0.302_615, 0.180_610]),
+            ("white 9.5", [0.348_912, 0.364_174, 0.880_690]),
+            ("black 2", [0.343_764, 0.356_019, 0.031_513]),
+        ];
+        for (name, [x, y, big_y]) in xyy {
+            let xyz = [x * big_y / y, big_y, (1.0 - x - y) * big_y / y];
+            let lab = xyz_to_lab(xyz, D50);
+            let patch = COLORCHECKER24
+                .patches
+                .iter()
+                .find(|p| p.name == name)
+                .expect("a ColorChecker patch");
+            for k in 0..3 {
+                assert!(
+                    (lab[k] - patch.lab_d50[k]).abs() < 0.05,
+                    "{name}: {lab:?} from colour-science, {:?} here",
+                    patch.lab_d50
+                );
+            }
+        }
+    }
+
     #[test]
     fn the_chart_reads_as_its_maker_lays_it_out() {
         let c = chart("colorchecker24").expect("known");

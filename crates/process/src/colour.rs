@@ -7,13 +7,20 @@
 //! white); raw values are a camera's demosaiced channel means with the
 //! black level off, in any common scale (the fit absorbs the exposure).
 //! Lab is computed against the reflectance of a perfect white diffuser, so
-//! `L* = 100` is a reflectance of 1.
+//! `L* = 100` is a reflectance of 1; the conversions are
+//! [`rigd_core::chart`]'s (sRGB through XYZ, Bradford-adapted to D50).
 //!
-//! The conversions are the three standard formulas of IEC 61966-2-1 (the
-//! sRGB → XYZ matrix) and CIE 15 (XYZ → L*a*b*, ΔE*ab), written out here
-//! rather than pulled in with a colour-science crate.
+//! [`ciede2000`] is the CIE's current colour difference, and [`chart_fit`]
+//! the corrections fitted on a photographed colour chart (3×3 matrix and
+//! root-polynomial) with their ΔE2000 in and out of the fit.
+
+pub mod chart_fit;
+pub mod ciede2000;
+
+pub use ciede2000::delta_e2000;
 
 use faer::Mat;
+use rigd_core::chart::linear_srgb_to_lab_d50;
 
 /// Why patches could not calibrate colour.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -148,35 +155,11 @@ pub fn held_out_delta_e(patches: &[PatchReading]) -> Vec<Option<f64>> {
         .collect()
 }
 
-/// Linear sRGB (D65) to CIE XYZ, IEC 61966-2-1.
-pub fn srgb_to_xyz(rgb: [f64; 3]) -> [f64; 3] {
-    const M: [[f64; 3]; 3] = [
-        [0.4124, 0.3576, 0.1805],
-        [0.2126, 0.7152, 0.0722],
-        [0.0193, 0.1192, 0.9505],
-    ];
-    M.map(|row| row[0] * rgb[0] + row[1] * rgb[1] + row[2] * rgb[2])
-}
-
-/// CIE 1976 L*a*b* of linear sRGB, white = a perfect diffuser (sRGB 1, 1, 1).
-pub fn srgb_to_lab(rgb: [f64; 3]) -> [f64; 3] {
-    let white = srgb_to_xyz([1.0; 3]);
-    let xyz = srgb_to_xyz(rgb);
-    let f = |t: f64| {
-        const D: f64 = 6.0 / 29.0;
-        if t > D * D * D {
-            t.cbrt()
-        } else {
-            t / (3.0 * D * D) + 4.0 / 29.0
-        }
-    };
-    let [fx, fy, fz] = [0, 1, 2].map(|c| f(xyz[c] / white[c]));
-    [116.0 * fy - 16.0, 500.0 * (fx - fy), 200.0 * (fy - fz)]
-}
-
-/// CIE 1976 colour difference ΔE*ab between two linear sRGB colours.
+/// CIE 1976 colour difference ΔE*ab between two linear sRGB colours, in
+/// L\*a\*b\* under D50 as the chart makers publish it
+/// ([`rigd_core::chart::linear_srgb_to_lab_d50`]: sRGB white is `L* = 100`).
 pub fn delta_e(a: [f64; 3], b: [f64; 3]) -> f64 {
-    let (la, lb) = (srgb_to_lab(a), srgb_to_lab(b));
+    let (la, lb) = (linear_srgb_to_lab_d50(a), linear_srgb_to_lab_d50(b));
     ((la[0] - lb[0]).powi(2) + (la[1] - lb[1]).powi(2) + (la[2] - lb[2]).powi(2)).sqrt()
 }
 
@@ -206,28 +189,12 @@ mod tests {
     }
 
     #[test]
-    fn lab_matches_published_values() {
-        // sRGB red, green, blue and white (CIE 15 / IEC 61966-2-1, D65).
-        let cases = [
-            ([1.0, 0.0, 0.0], [53.24, 80.09, 67.20]),
-            ([0.0, 1.0, 0.0], [87.73, -86.18, 83.18]),
-            ([0.0, 0.0, 1.0], [32.30, 79.19, -107.86]),
-            ([1.0, 1.0, 1.0], [100.0, 0.0, 0.0]),
-            // Mid grey 0.18: L* 49.5.
-            ([0.18, 0.18, 0.18], [49.50, 0.0, 0.0]),
-        ];
-        for (rgb, want) in cases {
-            let lab = srgb_to_lab(rgb);
-            for c in 0..3 {
-                assert!(
-                    (lab[c] - want[c]).abs() < 0.05,
-                    "{rgb:?}: {lab:?} vs {want:?}"
-                );
-            }
-        }
-        // Black: the linear segment, no cube root of 0 trouble.
-        assert_eq!(srgb_to_lab([0.0; 3]), [0.0, 0.0, 0.0]);
+    fn delta_e_is_lab_distance_from_white_to_black() {
         assert_eq!(delta_e([0.3, 0.2, 0.1], [0.3, 0.2, 0.1]), 0.0);
+        // sRGB white is L* 100, black L* 0, both neutral.
+        assert!((delta_e([1.0; 3], [0.0; 3]) - 100.0).abs() < 1e-3);
+        // Mid grey 0.18: L* 49.5.
+        assert!((delta_e([0.18; 3], [0.0; 3]) - 49.50).abs() < 0.01);
     }
 
     #[test]
