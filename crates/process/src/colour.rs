@@ -75,7 +75,14 @@ impl ColourCalibration {
 /// value accepted: below it the matrix would amplify noise without bound.
 pub const MIN_SPREAD: f64 = 1e-3;
 
-/// White balance from the patch named `white`, then the least-squares
+/// The patch white balance is set on: the one with the brightest
+/// reference (the standard row's `white`, a ColorChecker's `white 9.5`).
+pub fn white_patch(patches: &[PatchReading]) -> Option<usize> {
+    let sum = |p: &PatchReading| p.reference.iter().sum::<f64>();
+    (0..patches.len()).max_by(|&a, &b| sum(&patches[a]).total_cmp(&sum(&patches[b])))
+}
+
+/// White balance from the brightest patch ([`white_patch`]), then the least-squares
 /// colour correction over all `patches` (at least 4, so that the 9
 /// unknowns are over-determined).
 pub fn calibrate(patches: &[PatchReading]) -> Result<ColourCalibration, ColourError> {
@@ -87,10 +94,8 @@ pub fn calibrate(patches: &[PatchReading]) -> Result<ColourCalibration, ColourEr
             });
         }
     }
-    let Some(white) = patches.iter().find(|p| p.name == "white") else {
-        return Err(ColourError::TooFewPatches(
-            "no patch named `white` to balance on".into(),
-        ));
+    let Some(white) = white_patch(patches).map(|k| &patches[k]) else {
+        return Err(ColourError::TooFewPatches("no patch to balance on".into()));
     };
     if patches.len() < 4 {
         return Err(ColourError::TooFewPatches(format!(
@@ -137,9 +142,10 @@ pub fn calibrate(patches: &[PatchReading]) -> Result<ColourCalibration, ColourEr
 /// its entry is its in-fit ΔE. `None` where the remaining patches do not
 /// determine a matrix.
 pub fn held_out_delta_e(patches: &[PatchReading]) -> Vec<Option<f64>> {
+    let white = white_patch(patches);
     (0..patches.len())
         .map(|k| {
-            if patches[k].name == "white" {
+            if Some(k) == white {
                 let cal = calibrate(patches).ok()?;
                 return Some(delta_e(cal.apply(patches[k].raw), patches[k].reference));
             }

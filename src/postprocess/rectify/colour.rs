@@ -63,6 +63,13 @@ pub struct ColourReport {
     /// Every patch: what it is, what the camera read and how close the
     /// correction brings it.
     pub patches: Vec<PatchReport>,
+    /// The 3×3 matrix and the root-polynomial correction fitted on the
+    /// patches' L\*a\*b\* references and judged by CIEDE2000, in the fit
+    /// and left out (`rigd_process::colour::chart_fit`); None with too few
+    /// patches (a root-polynomial needs 7 to be judged). The textures are
+    /// corrected by `texture_calibration` whichever is chosen here.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub chart_fit: Option<cc::chart_fit::ChartFit>,
 }
 
 /// One reference patch in the report.
@@ -129,6 +136,24 @@ impl ColourReport {
                 held,
                 p.delta_e_white_balance_only
             );
+        }
+        if let Some(fit) = &self.chart_fit {
+            let _ = writeln!(out, "CIEDE2000 against the patches' L*a*b* (D50):");
+            for (name, f) in [
+                ("3x3 matrix", &fit.matrix),
+                ("root-polynomial", &fit.root_polynomial),
+            ] {
+                let left = |v: Option<f64>| v.map_or("-".to_string(), |e| format!("{e:.2}"));
+                let _ = writeln!(
+                    out,
+                    "  {name:<16} in the fit mean {:.2} max {:.2}; left out mean {} max {}",
+                    f.mean_delta_e2000,
+                    f.max_delta_e2000,
+                    left(f.mean_delta_e2000_left_out),
+                    left(f.max_delta_e2000_left_out)
+                );
+            }
+            let _ = writeln!(out, "  better left out: {:?}", fit.chosen);
         }
         out
     }
@@ -249,7 +274,25 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     };
     let frames: Vec<usize> = used.iter().map(|(e, _)| e.index).collect();
     let readings = average(used.iter().map(|(_, r)| r.as_slice()).collect());
-    let report = report(first, frames, &readings)?;
+    let mut report = report(first, frames, &readings)?;
+    // Both corrections on the patches' L*a*b* references, judged by
+    // CIEDE2000 in the fit and left out, where there are patches enough.
+    let chart: Vec<cc::chart_fit::ChartReading> = readings
+        .iter()
+        .zip(&holder.patches)
+        .map(|(r, p)| cc::chart_fit::ChartReading {
+            name: r.name.clone(),
+            lab_d50: p.lab_d50,
+            camera_rgb: r.raw,
+        })
+        .collect();
+    report.chart_fit = match cc::chart_fit::fit_chart(&chart) {
+        Ok(fit) => Some(fit),
+        Err(e) => {
+            tracing::info!("no chart fit on the run's {} patches: {e}", chart.len());
+            None
+        }
+    };
     let mut json =
         serde_json::to_vec_pretty(&report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     json.push(b'\n');
@@ -265,11 +308,7 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
 /// patch's green is the first frame's (the frames' exposures differ), then
 /// averaged.
 fn average(frames: Vec<&[PatchReading]>) -> Vec<PatchReading> {
-    let white_green = |r: &[PatchReading]| {
-        r.iter()
-            .find(|p| p.name == "white")
-            .map_or(1.0, |p| p.raw[1])
-    };
+    let white_green = |r: &[PatchReading]| cc::white_patch(r).map_or(1.0, |k| r[k].raw[1]);
     let Some(first) = frames.first() else {
         return Vec::new();
     };
@@ -375,7 +414,7 @@ fn report(
     let calibration = cc::calibrate(readings).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let held_out = cc::held_out_delta_e(readings);
     // White balance alone, scaled so the white patch's green is right.
-    let white = readings.iter().find(|p| p.name == "white");
+    let white = cc::white_patch(readings).map(|k| &readings[k]);
     let scale = white.map_or(1.0, |w| w.reference[1] / w.raw[1]);
     let patches = readings
         .iter()
@@ -412,5 +451,6 @@ fn report(
         calibration,
         texture_calibration,
         patches,
+        chart_fit: None,
     })
 }
