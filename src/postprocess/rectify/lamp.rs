@@ -124,6 +124,48 @@ fn mean_over(
     (count > 0).then(|| sum / count as f64)
 }
 
+/// The lamp-level figure's file in `RUN/processed/`.
+pub const LAMP_FIGURE: &str = "lamp-level.svg";
+
+/// Draws the lamp's level over the capture's physical time, one point a
+/// frame, as an SVG: what an operator looks at to see how far the lamp
+/// drifted. `points` are (physical seconds, level).
+pub(super) fn figure(points: &[(f64, f64)]) -> Result<String, String> {
+    use plotters::prelude::*;
+    let mut svg = String::new();
+    {
+        let root = SVGBackend::with_string(&mut svg, (720, 360)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| e.to_string())?;
+        let hours: Vec<(f64, f64)> = points.iter().map(|&(t, l)| (t / 3600.0, l)).collect();
+        let t_max = hours.iter().map(|p| p.0).fold(0.0, f64::max).max(1e-3);
+        let (lo, hi) = hours
+            .iter()
+            .fold((1.0f64, 1.0f64), |(a, b), p| (a.min(p.1), b.max(p.1)));
+        let pad = ((hi - lo) * 0.1).max(0.005);
+        let mut chart = ChartBuilder::on(&root)
+            .caption(
+                "Lamp level over the capture (white reference areas)",
+                ("sans-serif", 16),
+            )
+            .margin(12)
+            .x_label_area_size(36)
+            .y_label_area_size(56)
+            .build_cartesian_2d(0.0..t_max, (lo - pad)..(hi + pad))
+            .map_err(|e| e.to_string())?;
+        chart
+            .configure_mesh()
+            .x_desc("physical time, h")
+            .y_desc("lamp level (first frame = 1)")
+            .draw()
+            .map_err(|e| e.to_string())?;
+        chart
+            .draw_series(hours.iter().map(|&p| Circle::new(p, 2, BLUE.filled())))
+            .map_err(|e| e.to_string())?;
+        root.present().map_err(|e| e.to_string())?;
+    }
+    Ok(svg)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -141,6 +183,17 @@ mod tests {
         let near = irradiance([g.sin(), 0.0, g.cos()], Some(2.5), [0.065, 0.0]);
         let far = irradiance([g.sin(), 0.0, g.cos()], Some(2.5), [-0.065, 0.0]);
         assert!(near > far * 1.04, "{near} {far}");
+    }
+
+    #[test]
+    fn the_figure_is_an_svg_with_a_point_per_frame() {
+        let points: Vec<(f64, f64)> = (0..50)
+            .map(|k| (k as f64 * 600.0, 1.0 + 0.001 * k as f64))
+            .collect();
+        let svg = figure(&points).expect("drawn");
+        assert!(svg.starts_with("<svg"), "{}", &svg[..40.min(svg.len())]);
+        assert_eq!(svg.matches("<circle").count(), 50);
+        assert!(svg.contains("physical time, h"));
     }
 
     #[test]

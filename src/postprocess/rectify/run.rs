@@ -397,6 +397,7 @@ pub fn rectify_run(
     json.push(b'\n');
     crate::store::write_atomic(&path, &json)?;
     store.remove();
+    write_lamp_figure(run, &index)?;
     if !failed_slots.is_empty() {
         let described: Vec<String> = failed_slots
             .iter()
@@ -422,6 +423,24 @@ pub fn rectify_run(
         )));
     }
     Ok(index)
+}
+
+/// `processed/lamp-level.svg`, the lamp's level over the capture, when
+/// the holder's white areas measured it in any frame.
+fn write_lamp_figure(run: &RunFrames, index: &NormtextureIndex) -> Result<(), ProcessError> {
+    let by_index: std::collections::HashMap<usize, f64> =
+        run.entries.iter().map(|e| (e.index, e.t_s)).collect();
+    let points: Vec<(f64, f64)> = index
+        .frames
+        .iter()
+        .filter_map(|f| Some((*by_index.get(&f.index)?, f.lamp_level?)))
+        .collect();
+    if points.is_empty() {
+        return Ok(());
+    }
+    let svg = super::lamp::figure(&points).map_err(ProcessError::Invalid)?;
+    let path = crate::store::processed::processed_dir(&run.root).join(super::lamp::LAMP_FIGURE);
+    Ok(crate::store::write_atomic(&path, svg.as_bytes())?)
 }
 
 /// Checks the sizes of a rectification before any frame is read.
