@@ -196,7 +196,7 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
 
 /// Rectifies and compresses `run`, then its held-out error against the
 /// scene's truth at two (light, view) pairs the plan does not hold.
-fn btf_error(run: &Path) -> Vec<rigd::postprocess::btf::HeldOutError> {
+pub(crate) fn btf_error(run: &Path) -> Vec<rigd::postprocess::btf::HeldOutError> {
     let arg = run.to_str().expect("utf8");
     run_ok(&["process", "rectify", "--size", "256", "--final", "64", arg]);
     let out = run_ok(&[
