@@ -33,6 +33,7 @@ mod grbl_e2e;
 mod grbl_transcripts;
 mod holder;
 mod journal_readers;
+mod lab_holder;
 mod lamp_drift;
 mod laser_mdf;
 mod manual_control;

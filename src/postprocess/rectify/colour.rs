@@ -378,19 +378,28 @@ fn read_patches(
             return Err(format!("patch `{name}` is saturated ({raw:.3?})"));
         }
         let [near, far] = PLATE_BESIDE.map(|f| f * p.half);
-        let beside = mean_at(
-            &mut (0..2 * n * n).map(|k| {
+        let beside: Vec<[f64; 2]> = (0..2 * n * n)
+            .map(|k| {
                 let (side, k) = (if k < n * n { -1.0 } else { 1.0 }, k % (n * n));
                 let along = near + (far - near) * (spread(k % n) + 1.0) / 2.0;
                 [cx + side * along, cy + inner * spread(k / n)]
-            }),
-            name,
-            "the plate beside",
-        )?;
-        let plate: f64 = beside.iter().sum();
-        if plate.is_nan() || plate <= 0.0 {
-            return Err(format!("the plate beside patch `{name}` is black"));
-        }
+            })
+            .collect();
+        // A chart's patches touch their neighbours: there is no plate
+        // beside them to even their light out by.
+        let plate = if beside
+            .iter()
+            .any(|q| patches.iter().any(|o| o.contains(q[0], q[1])))
+        {
+            None
+        } else {
+            let beside = mean_at(&mut beside.into_iter(), name, "the plate beside")?;
+            let plate: f64 = beside.iter().sum();
+            if plate.is_nan() || plate <= 0.0 {
+                return Err(format!("the plate beside patch `{name}` is black"));
+            }
+            Some(plate)
+        };
         readings.push(PatchReading {
             name: name.to_string(),
             reference: p.rgb,
@@ -398,9 +407,14 @@ fn read_patches(
         });
         light.push(plate);
     }
-    let mean_light = light.iter().sum::<f64>() / light.len().max(1) as f64;
-    for (r, l) in readings.iter_mut().zip(&light) {
-        r.raw = r.raw.map(|v| v * mean_light / l);
+    // Evened out only when every patch has plate beside it (the standard
+    // row); a chart is small enough to be evenly lit.
+    let lights: Option<Vec<f64>> = light.into_iter().collect();
+    if let Some(light) = lights {
+        let mean_light = light.iter().sum::<f64>() / light.len().max(1) as f64;
+        for (r, l) in readings.iter_mut().zip(&light) {
+            r.raw = r.raw.map(|v| v * mean_light / l);
+        }
     }
     Ok(readings)
 }

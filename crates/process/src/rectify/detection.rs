@@ -149,9 +149,10 @@ pub(super) struct Window {
     pub(super) v: Vec<f32>,
     /// The window's dark level (10th percentile).
     pub(super) dark: f32,
-    /// The window's median: the plate's level where the plate fills most
-    /// of the window.
-    pub(super) plate: f32,
+    /// The window's 50th, 75th and 90th percentiles: the plate's level is
+    /// one of them when the plate fills half, a quarter or a tenth of the
+    /// window (the rest the floor past its edge, or shade).
+    pub(super) plate: [f32; 3],
 }
 
 /// Whether a marker is lighter or darker than the plate around it.
@@ -195,9 +196,9 @@ pub(super) fn detect_one(
     let k = sorted.len() / 10;
     let (_, dark, _) = sorted.select_nth_unstable_by(k, f32::total_cmp);
     let dark = *dark;
-    let middle = sorted.len() / 2;
-    let (_, plate, _) = sorted.select_nth_unstable_by(middle, f32::total_cmp);
-    let plate = *plate;
+    sorted.sort_unstable_by(f32::total_cmp);
+    let at = |q: f64| sorted[((sorted.len() - 1) as f64 * q).round() as usize];
+    let plate = [at(0.5), at(0.75), at(0.9)];
     let bright = v.iter().copied().fold(f32::MIN, f32::max);
     if !above_or_eq(f64::from(bright - dark), opts.min_contrast) {
         return None;
@@ -400,10 +401,12 @@ pub(super) fn analyse_blob(win: &Window, peak: usize, opts: &DetectOptions) -> O
     analyse_blob_as(win, peak, opts, win.dark, Isolation::DarkSurround).or_else(|| {
         // On a plate brighter than the window's darkest part, the first
         // threshold (midway from the dark level) floods the plate: grow
-        // from the plate's level instead.
-        (win.plate > win.dark)
-            .then(|| analyse_blob_as(win, peak, opts, win.plate, Isolation::UniformSurround))
-            .flatten()
+        // from the plate's level instead, whichever share of the window
+        // the plate covers.
+        win.plate
+            .iter()
+            .filter(|&&level| level > win.dark && level < win.v[peak])
+            .find_map(|&level| analyse_blob_as(win, peak, opts, level, Isolation::UniformSurround))
     })
 }
 
