@@ -246,7 +246,7 @@ mod tests {
     }
 
     #[test]
-    fn bad_readings_and_missing_white_are_named() {
+    fn bad_readings_and_too_few_patches_are_named() {
         let mut readings = seen_through([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], 1.0);
         readings[4].raw[2] = 0.0;
         assert!(
@@ -256,9 +256,13 @@ mod tests {
         assert!(calibrate(&readings).is_err());
         readings.remove(4);
         readings.remove(0);
+        // Without `white` the brightest patch left balances.
+        calibrate(&readings).expect("four patches calibrate");
+        readings.remove(0);
         assert!(matches!(
             calibrate(&readings),
             Err(ColourError::TooFewPatches(_))
         ));
+        assert!(matches!(calibrate(&[]), Err(ColourError::TooFewPatches(_))));
     }
 }
