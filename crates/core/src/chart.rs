@@ -156,7 +156,10 @@ pub fn linear_srgb_to_lab_d50(rgb: [f64; 3]) -> [f64; 3] {
 /// (IEC 61966-2-1), what a printer or a screen is given; clamped to [0, 1].
 pub fn linear_to_srgb(v: f64) -> f64 {
     let v = if v.is_nan() { 0.0 } else { v.clamp(0.0, 1.0) };
-    if v <= 0.003_130_8 {
+    if v >= 1.0 {
+        // The curve's end is exactly white, not a rounding short of it.
+        1.0
+    } else if v <= 0.003_130_8 {
         12.92 * v
     } else {
         1.055 * v.powf(1.0 / 2.4) - 0.055
