@@ -4,7 +4,7 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Args, Subcommand};
 use rigd::postprocess::chart::{read_chart, ChartReport, ColourCalibrationFile, CORNER_POSITIONS};
 use rigd_process::colour::chart_fit::fit_chart;
@@ -93,7 +93,9 @@ fn colour(args: ColourArgs) -> Result<()> {
         corners[i] = parse_corner(i + 1, text)?;
     }
     let name = args.file.display().to_string();
-    let bytes = std::fs::read(&args.file).with_context(|| format!("cannot read {name}"))?;
+    // A path that is no readable camera file is the caller's input.
+    let bytes = rigd_core::read::read_bounded(&args.file, rigd_core::read::IMAGE_LIMIT)
+        .map_err(|e| bad_input(format!("cannot read {e}")))?;
     let image =
         rigd::rig::camera_file::decode(&bytes).map_err(|e| bad_input(format!("{name}: {e}")))?;
     let readings =

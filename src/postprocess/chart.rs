@@ -404,7 +404,7 @@ pub enum CalibrationFileError {
         /// The file.
         path: String,
         /// Why.
-        source: std::io::Error,
+        source: rigd_core::read::ReadError,
     },
     /// The file is not a calibration rigd can apply.
     #[error("{path} is not a colour calibration rigd can apply: {why}")]
@@ -459,10 +459,13 @@ impl ColourCalibrationFile {
     /// checking that it can be applied.
     pub fn read(path: &Path) -> Result<Self, CalibrationFileError> {
         let name = path.display().to_string();
-        let bytes = std::fs::read(path).map_err(|source| CalibrationFileError::Read {
-            path: name.clone(),
-            source,
-        })?;
+        let bytes =
+            rigd_core::read::read_bounded(path, rigd_core::read::TEXT_LIMIT).map_err(|source| {
+                CalibrationFileError::Read {
+                    path: name.clone(),
+                    source,
+                }
+            })?;
         let invalid = |why: String| CalibrationFileError::Invalid {
             path: name.clone(),
             why,

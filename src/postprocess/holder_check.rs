@@ -420,17 +420,20 @@ pub fn read_frame(
         path: path.to_path_buf(),
         message,
     };
-    let bytes = std::fs::read(path).map_err(|e| frame_err(e.to_string()))?;
+    let bytes = rigd_core::read::read_bounded(path, rigd_core::read::IMAGE_LIMIT)
+        .map_err(|e| frame_err(e.to_string()))?;
     let mut pose = FramePose::default();
     let mut has_metadata = false;
     let is_png = crate::rig::hal::is_png(&bytes);
     let meta_path = path.with_extension("json");
     let mut bit_depth = None;
     if is_png && meta_path.is_file() {
-        let text = std::fs::read(&meta_path).map_err(|e| HolderCheckError::Frame {
-            path: meta_path.clone(),
-            message: e.to_string(),
-        })?;
+        let text = rigd_core::read::read_bounded(&meta_path, rigd_core::read::TEXT_LIMIT).map_err(
+            |e| HolderCheckError::Frame {
+                path: meta_path.clone(),
+                message: e.to_string(),
+            },
+        )?;
         let meta: RenderedMeta =
             serde_json::from_slice(&text).map_err(|e| HolderCheckError::Frame {
                 path: meta_path.clone(),

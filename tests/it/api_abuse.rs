@@ -846,6 +846,24 @@ fn cli_file_options_refuse_devices_and_fifos() {
             vec!["run", "--sim", "--scene", "/etc/passwd"],
             "/etc/passwd",
         ),
+        (
+            vec!["holder", "check", &fifo],
+            "not a regular file (a FIFO)",
+        ),
+        (vec!["holder", "check", "/dev/zero"], "not a regular file"),
+        (
+            vec![
+                "camera",
+                "colour",
+                &fifo,
+                "--corners",
+                "1,1",
+                "9,1",
+                "9,9",
+                "1,9",
+            ],
+            "not a regular file (a FIFO)",
+        ),
     ];
     for (args, expect) in cases {
         let mut cmd = common::rigd();
@@ -854,7 +872,7 @@ fn cli_file_options_refuse_devices_and_fifos() {
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped());
-        if args[0] == "plan" || args[0] == "sim" {
+        if args[0] != "run" {
             cmd = common::rigd();
             cmd.args(&args)
                 .stdin(Stdio::null())

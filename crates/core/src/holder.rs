@@ -467,7 +467,7 @@ impl HolderSpec {
         // and the white areas, each with the key it came from.
         let mut areas: Vec<(String, Rect)> = Vec::new();
         if let Some(c) = &self.chart {
-            let known = chart::chart(&c.name).ok_or_else(|| {
+            chart::chart(&c.name).ok_or_else(|| {
                 bad(
                     "holder.chart.name",
                     format!(
@@ -496,7 +496,6 @@ impl HolderSpec {
                     ),
                 ));
             }
-            let _ = known;
         }
         for (i, p) in self.patches.iter().enumerate() {
             if p.name.trim().is_empty() {
