@@ -35,6 +35,10 @@ pub const MARKER_DOUBT_FACTOR: f64 = 3.0;
 /// A frame whose sample texture is at full scale in more than this
 /// fraction of its texels is saturated.
 pub const SATURATED_FRACTION: f64 = 0.5;
+/// Frames, from the run's first, in which the lamp's reference level is
+/// looked for; a holder whose white areas none of them sees is not
+/// corrected for the lamp.
+pub(super) const LAMP_REFERENCE_CANDIDATES: usize = 16;
 /// Side of the textures the texture refinement correlates.
 pub(super) const CORRELATION_SIZE: usize = 512;
 /// Largest shift the texture refinement accepts, as a fraction of the
@@ -110,12 +114,15 @@ impl Rectifier<'_> {
 
     /// This rectifier with the lamp measured on the holder's white areas,
     /// when it has any: the reference is the lamp's output in the first
-    /// frame, in journal order, that sees them.
+    /// frame, in journal order, that sees them, among the first
+    /// [`LAMP_REFERENCE_CANDIDATES`] (a stream asks again for every chunk,
+    /// and must not read the whole run each time).
     pub(super) fn with_lamp(mut self) -> Self {
         let Some(meter) = super::lamp::LampMeter::of(self.run, &self.holder) else {
             return self;
         };
-        let reference = self.run.entries.iter().find_map(|entry| {
+        let candidates = self.run.entries.iter().take(LAMP_REFERENCE_CANDIDATES);
+        let reference = candidates.into_iter().find_map(|entry| {
             let images = self.frame_images(entry).ok()?;
             self.lamp_output(&meter, entry, images.grey())
         });
