@@ -121,8 +121,8 @@ impl Rectifier<'_> {
         let Some(meter) = super::lamp::LampMeter::of(self.run, &self.holder) else {
             return self;
         };
-        let candidates = self.run.entries.iter().take(LAMP_REFERENCE_CANDIDATES);
-        let reference = candidates.into_iter().find_map(|entry| {
+        let mut candidates = self.run.entries.iter().take(LAMP_REFERENCE_CANDIDATES);
+        let reference = candidates.find_map(|entry| {
             let images = self.frame_images(entry).ok()?;
             self.lamp_output(&meter, entry, images.grey())
         });
