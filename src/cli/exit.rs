@@ -15,6 +15,33 @@ use rigd::store::StoreError;
 
 /// Something failed while doing what was asked.
 pub const EXIT_FAILURE: u8 = 1;
+
+/// Prints a check's report (`rig check`, `holder check`): as JSON with
+/// `json`, else its lines; the exit code is success when it `passed`,
+/// else [`EXIT_FAILURE`].
+pub fn print_check(
+    report: &impl serde::Serialize,
+    lines: Vec<String>,
+    json: bool,
+    passed: bool,
+) -> anyhow::Result<std::process::ExitCode> {
+    use anyhow::Context;
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(report).context("cannot write the report")?
+        );
+    } else {
+        for line in lines {
+            println!("{line}");
+        }
+    }
+    Ok(if passed {
+        std::process::ExitCode::SUCCESS
+    } else {
+        std::process::ExitCode::from(EXIT_FAILURE)
+    })
+}
 /// The input was wrong; nothing was done that needs undoing.
 pub const EXIT_BAD_INPUT: u8 = 2;
 /// The run paused on a fault and can be resumed.

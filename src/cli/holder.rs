@@ -4,14 +4,14 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Args, Subcommand};
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::postprocess::holder_check::{check_frame, read_frame};
 use rigd::postprocess::holder_template::{write_template, TemplateError, TemplateFormat};
 use rigd_core::geometry::Direction;
 
-use super::exit::{bad_input, EXIT_FAILURE};
+use super::exit::bad_input;
 
 /// `rigd holder …`.
 #[derive(Subcommand)]
@@ -119,19 +119,5 @@ fn check(args: CheckArgs) -> Result<ExitCode> {
     }
     let report =
         check_frame(&profile, &frame.image, &pose).map_err(|e| bad_input(e.to_string()))?;
-    if args.json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&report).context("cannot write the report")?
-        );
-    } else {
-        for line in report.lines() {
-            println!("{line}");
-        }
-    }
-    Ok(if report.ok {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::from(EXIT_FAILURE)
-    })
+    super::exit::print_check(&report, report.lines(), args.json, report.ok)
 }

@@ -7,8 +7,6 @@ use clap::{Args, Subcommand};
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd_core::Clock;
 
-use super::exit::EXIT_FAILURE;
-
 /// `rigd rig …`.
 #[derive(Subcommand)]
 pub enum RigCmd {
@@ -65,21 +63,7 @@ fn check(args: CheckArgs) -> Result<ExitCode> {
             Ok(rigd::rig::hardware::check(&profile, &Clock::real()).await)
         }
     })?;
-    if args.json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&report).context("cannot write the report")?
-        );
-    } else {
-        for line in report.lines() {
-            println!("{line}");
-        }
-    }
-    Ok(if report.usable {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::from(EXIT_FAILURE)
-    })
+    super::exit::print_check(&report, report.lines(), args.json, report.usable)
 }
 
 #[cfg(feature = "sim")]

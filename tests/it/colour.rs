@@ -159,13 +159,22 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
             }
         },
     );
+    let run = dir.join(format!("run-{}", cfa.unwrap_or("mono")));
+    capture_sixteen_lights_two_views(&profile, &run, "640x480");
+    run
+}
+
+/// Captures `corduroy` on the simulated rig of `profile` into `run` at
+/// `frame_size`: 16 lights (θ 30° and 45°, every 45° of φ) and 2 views
+/// (frontal, and θ 40° φ 90°), the plan written beside `run`.
+pub(crate) fn capture_sixteen_lights_two_views(profile: &Path, run: &Path, frame_size: &str) {
     let lights: Vec<String> = [30, 45]
         .iter()
         .flat_map(|t| {
             (0..8).map(move |k| format!(r#"{{"theta_deg": {t}, "phi_deg": {}}}"#, 45 * k))
         })
         .collect();
-    let plan = dir.join("plan.json");
+    let plan = run.with_extension("plan.json");
     std::fs::write(
         &plan,
         format!(
@@ -174,7 +183,6 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
         ),
     )
     .expect("plan");
-    let run = dir.join(format!("run-{}", cfa.unwrap_or("mono")));
     run_ok(&[
         "run",
         "--sim",
@@ -183,7 +191,7 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
         "--scene",
         "corduroy",
         "--frame-size",
-        "640x480",
+        frame_size,
         "--plan",
         plan.to_str().expect("utf8"),
         "--progress",
@@ -191,7 +199,6 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
         "--out",
         run.to_str().expect("utf8"),
     ]);
-    run
 }
 
 /// Rectifies and compresses `run`, then its held-out error against the

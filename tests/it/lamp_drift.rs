@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use rigd_core::geometry::Direction;
 
 use crate::bring_up::edit;
-use crate::common::{repo_file, run_ok};
+use crate::common::repo_file;
 
 /// The drift injected: ±5 %, over a period the short test capture spans.
 const AMPLITUDE: f64 = 0.05;
@@ -42,38 +42,8 @@ fn capture(dir: &Path, name: &str, drift: bool, strip: bool) -> PathBuf {
             }
         },
     );
-    let lights: Vec<String> = [30, 45]
-        .iter()
-        .flat_map(|t| {
-            (0..8).map(move |k| format!(r#"{{"theta_deg": {t}, "phi_deg": {}}}"#, 45 * k))
-        })
-        .collect();
-    let plan = dir.join("plan.json");
-    std::fs::write(
-        &plan,
-        format!(
-            r#"{{"lights": [{}], "views": [{{"theta_deg": 0, "phi_deg": 0}}, {{"theta_deg": 40, "phi_deg": 90}}]}}"#,
-            lights.join(", ")
-        ),
-    )
-    .expect("plan");
     let run = dir.join(name);
-    run_ok(&[
-        "run",
-        "--sim",
-        "--profile",
-        profile.to_str().expect("utf8"),
-        "--scene",
-        "corduroy",
-        "--frame-size",
-        "320x240",
-        "--plan",
-        plan.to_str().expect("utf8"),
-        "--progress",
-        "none",
-        "--out",
-        run.to_str().expect("utf8"),
-    ]);
+    crate::colour::capture_sixteen_lights_two_views(&profile, &run, "320x240");
     run
 }
 

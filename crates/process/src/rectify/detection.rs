@@ -149,10 +149,22 @@ pub(super) struct Window {
     pub(super) v: Vec<f32>,
     /// The window's dark level (10th percentile).
     pub(super) dark: f32,
+    /// [`Window::plate_levels`], sorted out only when a blob needs them.
+    plate: std::cell::OnceCell<[f32; 3]>,
+}
+
+impl Window {
     /// The window's 50th, 75th and 90th percentiles: the plate's level is
     /// one of them when the plate fills half, a quarter or a tenth of the
     /// window (the rest the floor past its edge, or shade).
-    pub(super) plate: [f32; 3],
+    fn plate_levels(&self) -> [f32; 3] {
+        *self.plate.get_or_init(|| {
+            let mut sorted = self.v.clone();
+            sorted.sort_unstable_by(f32::total_cmp);
+            let at = |q: f64| sorted[((sorted.len() - 1) as f64 * q).round() as usize];
+            [at(0.5), at(0.75), at(0.9)]
+        })
+    }
 }
 
 /// Whether a marker is lighter or darker than the plate around it.
@@ -196,9 +208,6 @@ pub(super) fn detect_one(
     let k = sorted.len() / 10;
     let (_, dark, _) = sorted.select_nth_unstable_by(k, f32::total_cmp);
     let dark = *dark;
-    sorted.sort_unstable_by(f32::total_cmp);
-    let at = |q: f64| sorted[((sorted.len() - 1) as f64 * q).round() as usize];
-    let plate = [at(0.5), at(0.75), at(0.9)];
     let bright = v.iter().copied().fold(f32::MIN, f32::max);
     if !above_or_eq(f64::from(bright - dark), opts.min_contrast) {
         return None;
@@ -210,7 +219,7 @@ pub(super) fn detect_one(
         h,
         v,
         dark,
-        plate,
+        plate: std::cell::OnceCell::new(),
     };
     let pred_local = [pred[0] - x0 as f64, pred[1] - y0 as f64];
     let mut tried_peaks = std::collections::HashSet::new();
@@ -403,7 +412,7 @@ pub(super) fn analyse_blob(win: &Window, peak: usize, opts: &DetectOptions) -> O
         // threshold (midway from the dark level) floods the plate: grow
         // from the plate's level instead, whichever share of the window
         // the plate covers.
-        win.plate
+        win.plate_levels()
             .iter()
             .filter(|&&level| level > win.dark && level < win.v[peak])
             .find_map(|&level| analyse_blob_as(win, peak, opts, level, Isolation::UniformSurround))
