@@ -368,6 +368,11 @@ pub struct ColourArgs {
     /// The run directory: a colour camera's frames of a holder with
     /// colour patches.
     pub run: PathBuf,
+    /// Take this camera calibration (saved by `rigd camera colour --save`
+    /// from a chart photograph) as the run's colour instead of measuring
+    /// the holder's patches: for a plate without patches.
+    #[arg(long, value_name = "FILE")]
+    pub calibration: Option<PathBuf>,
 }
 
 #[derive(Args)]
@@ -914,6 +919,26 @@ fn relight(args: RelightArgs) -> Result<()> {
 fn colour(args: ColourArgs) -> Result<()> {
     use rigd::postprocess::{colour, ProcessError};
     let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
+    if let Some(file) = &args.calibration {
+        let (calibration, _) = match colour::import_calibration(&run, file) {
+            Ok(taken) => taken,
+            Err(ProcessError::Invalid(m)) => return Err(bad_input(m)),
+            Err(e) => return Err(e.into()),
+        };
+        println!(
+            "the {} fitted on {} ({}, mean CIEDE2000 {:.2} in the fit{}) corrects the run's \
+             textures",
+            calibration.correction.kind,
+            calibration.source,
+            calibration.chart,
+            calibration.mean_delta_e2000,
+            calibration
+                .mean_delta_e2000_left_out
+                .map_or(String::new(), |e| format!(", {e:.2} left out"))
+        );
+        println!("-> {}", colour::camera_colour_file(&args.run).display());
+        return Ok(());
+    }
     let report = match colour::calibrate_run(&run) {
         Ok(report) => report,
         Err(ProcessError::Invalid(m)) => return Err(bad_input(m)),

@@ -143,6 +143,109 @@ fn colour_calibration_refuses_a_monochrome_camera_and_a_plate_without_patches() 
 
 /// The Bonn rig on `corduroy`, its DCS 760 behind `cfa` (monochrome if
 /// `None`), over 16 lights (θ 30° and 45°, every 45° of φ) and 2 views.
+/// A camera calibration as `rigd camera colour --save` writes it, for the
+/// simulator's colour camera: the exact inverse of its response, as a
+/// chart photograph through it would give.
+fn simulated_camera_calibration(path: &Path) {
+    use rigd_process::colour::chart_fit::{Correction, CorrectionKind};
+    let m = rigd_sim::scene::spec::DEFAULT_COLOUR_RESPONSE;
+    let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+        - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+        + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+    let cof = |r: usize, c: usize| {
+        let (r1, r2) = ((r + 1) % 3, (r + 2) % 3);
+        let (c1, c2) = ((c + 1) % 3, (c + 2) % 3);
+        m[r1][c1] * m[r2][c2] - m[r1][c2] * m[r2][c1]
+    };
+    let inverse = [0, 1, 2].map(|r| (0..3).map(|c| cof(c, r) / det).collect::<Vec<f64>>());
+    let grey = m.map(|row| row.iter().sum::<f64>());
+    let file = rigd::postprocess::chart::ColourCalibrationFile {
+        version: 1,
+        chart: "colorchecker24".into(),
+        source: "chart.dng".into(),
+        width: 640,
+        height: 480,
+        correction: Correction {
+            kind: CorrectionKind::Matrix,
+            coefficients: inverse,
+        },
+        terms: vec!["r".into(), "g".into(), "b".into()],
+        white_balance: Some([grey[1] / grey[0], 1.0, grey[1] / grey[2]]),
+        mean_delta_e2000: 0.1,
+        mean_delta_e2000_left_out: Some(0.2),
+        max_delta_e2000_left_out: Some(0.4),
+    };
+    file.write(path).expect("write the calibration");
+}
+
+#[test]
+fn a_plate_without_patches_is_coloured_by_a_saved_camera_calibration() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let run = dir.path().join("run");
+    capture(&virtex(dir.path(), "flat-calibration", Some("RGGB")), &run);
+    let run_arg = run.to_str().expect("utf8");
+    let saved = dir.path().join("camera.json");
+    simulated_camera_calibration(&saved);
+    let saved_arg = saved.to_str().expect("utf8");
+
+    // Bad calibrations and a monochrome run are refused, naming why.
+    let not_json = dir.path().join("not.json");
+    std::fs::write(&not_json, "{ not json").expect("write");
+    let grey_run = dir.path().join("grey");
+    capture(&virtex(dir.path(), "flat-calibration", None), &grey_run);
+    for (target, file, says) in [
+        (
+            run_arg,
+            not_json.to_str().expect("utf8"),
+            "not a colour calibration",
+        ),
+        (
+            run_arg,
+            "/no/such/calibration.json",
+            "/no/such/calibration.json",
+        ),
+        (grey_run.to_str().expect("utf8"), saved_arg, "monochrome"),
+    ] {
+        let out = rigd()
+            .args(["process", "colour", target, "--calibration", file])
+            .output()
+            .expect("spawn rigd");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{file}: {err}");
+        assert!(err.contains(says), "{file}: {err}");
+    }
+    assert!(!run.join("processed/camera-colour.json").exists());
+
+    let out = run_ok(&["process", "colour", run_arg, "--calibration", saved_arg]);
+    let printed = String::from_utf8_lossy(&out.stdout);
+    assert!(printed.contains("chart.dng"), "{printed}");
+    assert!(run.join("processed/camera-colour.json").is_file());
+    run_ok(&["process", "rectify", run_arg]);
+    let textures = run.join("processed/normtextures");
+    let index: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(textures.join("index.json")).expect("index"))
+            .expect("json");
+    assert_eq!(index["channels"], 3, "colour textures");
+    // The plate's neutral checks come out neutral: without the white
+    // balance green would read half as much again as red and blue.
+    let first = index["frames"][0]["file"].as_str().expect("a texture");
+    let texture = rigd_process::image_io::load_png(&textures.join(first)).expect("png");
+    assert_eq!(texture.channels, 3);
+    let mut sum = [0.0f64; 3];
+    for px in texture.data.chunks_exact(3) {
+        for c in 0..3 {
+            sum[c] += f64::from(px[c]);
+        }
+    }
+    for c in [0, 2] {
+        assert!(
+            (sum[c] / sum[1] - 1.0).abs() < 0.03,
+            "channel {c} against green: {:?}",
+            sum
+        );
+    }
+}
+
 fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
     let profile = dir.join(format!("bonn-{}.toml", cfa.unwrap_or("mono")));
     edit(

@@ -53,21 +53,68 @@ pub struct PatchReading {
 }
 
 /// A camera's colour calibration: `corrected = matrix · (white_balance ⊙
-/// raw)`.
+/// raw)`, or, where a root-polynomial correction fits better, `corrected =
+/// root_polynomial · terms(white_balance ⊙ raw)`.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct ColourCalibration {
     /// Per-channel gains that make the white patch neutral, green 1.
     pub white_balance: [f64; 3],
     /// Row-major 3×3 colour correction from balanced raw to linear sRGB.
     pub matrix: [[f64; 3]; 3],
+    /// A root-polynomial correction (Finlayson, Mackiewicz & Hurlbert) from
+    /// balanced raw to linear sRGB: a row per output channel, a column per
+    /// term `r g b √(rg) √(gb) √(rb)`
+    /// ([`chart_fit::CorrectionKind::RootPolynomial`]). When set it is
+    /// applied instead of `matrix`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub root_polynomial: Option<[[f64; 6]; 3]>,
 }
 
 impl ColourCalibration {
     /// Balanced and corrected: raw camera values to linear sRGB.
     pub fn apply(&self, raw: [f64; 3]) -> [f64; 3] {
         let b = [0, 1, 2].map(|c| raw[c] * self.white_balance[c]);
-        self.matrix
-            .map(|row| row[0] * b[0] + row[1] * b[1] + row[2] * b[2])
+        match &self.root_polynomial {
+            Some(rows) => {
+                let terms = chart_fit::CorrectionKind::RootPolynomial.expand(b);
+                rows.map(|row| row.iter().zip(&terms).map(|(c, t)| c * t).sum())
+            }
+            None => self
+                .matrix
+                .map(|row| row[0] * b[0] + row[1] * b[1] + row[2] * b[2]),
+        }
+    }
+
+    /// The calibration of a chart's fitted `correction` (which takes raw
+    /// values as they are: no separate white balance), its output scaled
+    /// by `scale`. `None` when the correction's shape is not its kind's.
+    pub fn from_correction(correction: &chart_fit::Correction, scale: f64) -> Option<Self> {
+        let row = |c: usize| correction.coefficients[c].iter().map(|v| v * scale);
+        let identity = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+        match correction.kind {
+            chart_fit::CorrectionKind::Matrix => {
+                let matrix = [0, 1, 2].map(|c| <[f64; 3]>::try_from(row(c).collect::<Vec<_>>()));
+                let [Ok(r), Ok(g), Ok(b)] = matrix else {
+                    return None;
+                };
+                Some(ColourCalibration {
+                    white_balance: [1.0; 3],
+                    matrix: [r, g, b],
+                    root_polynomial: None,
+                })
+            }
+            chart_fit::CorrectionKind::RootPolynomial => {
+                let rows = [0, 1, 2].map(|c| <[f64; 6]>::try_from(row(c).collect::<Vec<_>>()));
+                let [Ok(r), Ok(g), Ok(b)] = rows else {
+                    return None;
+                };
+                Some(ColourCalibration {
+                    white_balance: [1.0; 3],
+                    matrix: identity,
+                    root_polynomial: Some([r, g, b]),
+                })
+            }
+        }
     }
 }
 
@@ -133,6 +180,7 @@ pub fn calibrate(patches: &[PatchReading]) -> Result<ColourCalibration, ColourEr
     Ok(ColourCalibration {
         white_balance,
         matrix,
+        root_polynomial: None,
     })
 }
 
@@ -192,6 +240,57 @@ mod tests {
                 raw: response.map(|row| exposure * (row[0] * r[0] + row[1] * r[1] + row[2] * r[2])),
             })
             .collect()
+    }
+
+    #[test]
+    fn a_chart_fits_correction_becomes_a_calibration_that_applies_it() {
+        let kinds = [
+            chart_fit::Correction {
+                kind: chart_fit::CorrectionKind::Matrix,
+                coefficients: [
+                    vec![1.5, -0.3, -0.1],
+                    vec![-0.2, 1.3, -0.1],
+                    vec![0.0, -0.4, 1.6],
+                ],
+            },
+            chart_fit::Correction {
+                kind: chart_fit::CorrectionKind::RootPolynomial,
+                coefficients: [
+                    vec![1.4, -0.2, -0.1, 0.05, -0.02, 0.1],
+                    vec![-0.2, 1.2, -0.1, 0.1, 0.03, -0.04],
+                    vec![0.0, -0.3, 1.5, -0.05, 0.08, 0.0],
+                ],
+            },
+        ];
+        for correction in kinds {
+            let cal = ColourCalibration::from_correction(&correction, 0.5).expect("its shape");
+            assert_eq!(cal.white_balance, [1.0; 3]);
+            for raw in [[0.2, 0.4, 0.1], [0.9, 0.8, 0.7], [0.0, 0.3, 0.0]] {
+                let want = correction.apply(raw).map(|v| 0.5 * v);
+                let got = cal.apply(raw);
+                for c in 0..3 {
+                    assert!((got[c] - want[c]).abs() < 1e-12, "{:?}", correction.kind);
+                }
+            }
+            // Kept in colour.json and read back, the same calibration.
+            let json = serde_json::to_string(&cal).expect("json");
+            let back: ColourCalibration = serde_json::from_str(&json).expect("reads back");
+            assert_eq!(back, cal);
+        }
+        // A calibration written before root-polynomials is still read.
+        let old = r#"{"white_balance":[2.0,1.0,1.5],"matrix":[[1,0,0],[0,1,0],[0,0,1]]}"#;
+        let cal: ColourCalibration = serde_json::from_str(old).expect("reads");
+        assert_eq!(cal.root_polynomial, None);
+        let applied = cal.apply([0.1, 0.2, 0.3]);
+        for (got, want) in applied.iter().zip([0.2, 0.2, 0.45]) {
+            assert!((got - want).abs() < 1e-12, "{applied:?}");
+        }
+        // A correction whose rows do not have its kind's terms is refused.
+        let short = chart_fit::Correction {
+            kind: chart_fit::CorrectionKind::RootPolynomial,
+            coefficients: [vec![1.0; 3], vec![1.0; 3], vec![1.0; 3]],
+        };
+        assert_eq!(ColourCalibration::from_correction(&short, 1.0), None);
     }
 
     #[test]

@@ -11,11 +11,15 @@ use rigd_core::holder::PlacedPatch;
 use rigd_process::colour::{self as cc, ColourCalibration, PatchReading};
 use serde::{Deserialize, Serialize};
 
+use crate::postprocess::chart::ColourCalibrationFile;
 use crate::postprocess::frames::{ColourPlanes, RunFrames};
 use crate::postprocess::ProcessError;
 
 /// The calibration's file in `RUN/processed/`.
 pub const COLOUR_FILE: &str = "colour.json";
+
+/// A camera calibration given to the run, in `RUN/processed/`.
+pub const CAMERA_COLOUR_FILE: &str = "camera-colour.json";
 
 /// Frames tried, most frontal first, before the step gives up.
 const MAX_CANDIDATES: usize = 24;
@@ -66,8 +70,8 @@ pub struct ColourReport {
     /// The 3×3 matrix and the root-polynomial correction fitted on the
     /// patches' L\*a\*b\* references and judged by CIEDE2000, in the fit
     /// and left out (`rigd_process::colour::chart_fit`); None with too few
-    /// patches (a root-polynomial needs 7 to be judged). The textures are
-    /// corrected by `texture_calibration` whichever is chosen here.
+    /// patches (a root-polynomial needs 7 to be judged). Where the
+    /// root-polynomial is chosen, it is `texture_calibration`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub chart_fit: Option<cc::chart_fit::ChartFit>,
 }
@@ -155,6 +159,12 @@ impl ColourReport {
             }
             let _ = writeln!(out, "  better left out: {:?}", fit.chosen);
         }
+        let textures = if self.texture_calibration.root_polynomial.is_some() {
+            "the root-polynomial"
+        } else {
+            "the white balance and 3x3 colour correction"
+        };
+        let _ = writeln!(out, "textures are corrected by {textures}");
         out
     }
 
@@ -173,7 +183,9 @@ impl ColourReport {
 }
 
 /// The colour calibration `rigd process rectify` applies to a run's frames,
-/// for its camera: the run's `processed/colour.json`. When there is none,
+/// for its camera: the run's `processed/colour.json`, or else the camera
+/// calibration it was given (`processed/camera-colour.json`,
+/// [`import_calibration`]). When there is neither,
 /// the run's camera records colour and its holder carries the reference
 /// patches, and `calibrate` is set, it is measured now
 /// ([`calibrate_run`]) and written. `None` means grey textures: a
@@ -187,6 +199,14 @@ pub fn texture_colour(
 ) -> Result<Option<ColourCalibration>, ProcessError> {
     let report = if colour_file(&run.root).exists() {
         ColourReport::read(&run.root)?
+    } else if camera_colour_file(&run.root).exists() {
+        let path = camera_colour_file(&run.root);
+        let file = ColourCalibrationFile::read(&path).map_err(|e| ProcessError::Frame {
+            path: path.clone(),
+            message: e.to_string(),
+        })?;
+        one_camera(run, &path)?;
+        return camera_texture_calibration(&file).map(Some);
     } else {
         let Some(first) = run.entries.first() else {
             return Ok(None);
@@ -223,6 +243,98 @@ pub fn texture_colour(
 /// Where a run's colour calibration is kept.
 pub fn colour_file(run: &Path) -> PathBuf {
     crate::store::processed::processed_dir(run).join(COLOUR_FILE)
+}
+
+/// Where a run keeps the camera calibration it was given
+/// ([`import_calibration`]).
+pub fn camera_colour_file(run: &Path) -> PathBuf {
+    crate::store::processed::processed_dir(run).join(CAMERA_COLOUR_FILE)
+}
+
+/// Takes a camera calibration saved by `rigd camera colour --save` (`file`,
+/// fitted on a chart photograph) as the run's colour: checked, copied to
+/// `RUN/processed/camera-colour.json`, replacing a calibration measured on
+/// the run's own patches, and returned as the textures' calibration. For a
+/// run whose plate carries no patches: its textures come out in colour.
+pub fn import_calibration(
+    run: &RunFrames,
+    file: &Path,
+) -> Result<(ColourCalibrationFile, ColourCalibration), ProcessError> {
+    let calibration =
+        ColourCalibrationFile::read(file).map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    let Some(first) = run.entries.first() else {
+        return Err(ProcessError::Invalid(format!(
+            "{} has no frames to colour",
+            run.root.display()
+        )));
+    };
+    if run.colour_planes(first)?.is_none() {
+        return Err(ProcessError::Invalid(format!(
+            "camera `{}` is monochrome (its profile gives no `intrinsics.cfa` and its frames \
+             carry no colour): a colour calibration does not apply",
+            first.camera
+        )));
+    }
+    one_camera(run, file)?;
+    let texture = camera_texture_calibration(&calibration)
+        .map_err(|e| ProcessError::Invalid(format!("{}: {e}", file.display())))?;
+    let mut json = serde_json::to_vec_pretty(&calibration)
+        .map_err(|e| ProcessError::Invalid(e.to_string()))?;
+    json.push(b'\n');
+    let path = camera_colour_file(&run.root);
+    if let Some(dir) = path.parent() {
+        crate::postprocess::create_dir(dir)?;
+    }
+    // The run's own calibration goes first: a crash between the two
+    // leaves none (grey textures, or one measured again), never both.
+    remove_if_present(&colour_file(&run.root))?;
+    crate::store::write_atomic(&path, &json)?;
+    Ok((calibration, texture))
+}
+
+/// A camera calibration as the textures' calibration: scaled so that a
+/// neutral surface's green keeps its raw value, as one measured on the
+/// run's patches is. The neutral is the one the chart's grey patches
+/// imply (the file's white balance).
+fn camera_texture_calibration(
+    file: &ColourCalibrationFile,
+) -> Result<ColourCalibration, ProcessError> {
+    let Some(wb) = file.white_balance else {
+        return Err(ProcessError::Invalid(
+            "the calibration gives no white balance (its chart had no neutral patches), so \
+             a neutral surface's level is not known"
+                .to_string(),
+        ));
+    };
+    texture_scaled(&file.correction, Some([1.0 / wb[0], 1.0, 1.0 / wb[2]]))
+}
+
+/// Refuses a run with frames of more than one camera: a calibration is one
+/// camera's.
+fn one_camera(run: &RunFrames, calibration: &Path) -> Result<(), ProcessError> {
+    let Some(first) = run.entries.first() else {
+        return Ok(());
+    };
+    match run.entries.iter().find(|e| e.camera != first.camera) {
+        Some(other) => Err(ProcessError::Invalid(format!(
+            "{} is one camera's calibration, and the run has frames of `{}` and `{}`: RGB \
+             textures from several cameras are not supported yet",
+            calibration.display(),
+            first.camera,
+            other.camera
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// Removes `path`; absent is fine.
+fn remove_if_present(path: &Path) -> Result<(), ProcessError> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+            Err(ProcessError::io(path, "remove", e))
+        }
+        _ => Ok(()),
+    }
 }
 
 /// Measures the patches in the run's most frontal usable frames (up to
@@ -293,6 +405,13 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
             None
         }
     };
+    if let Some(fit) = &report.chart_fit {
+        if fit.chosen == cc::chart_fit::CorrectionKind::RootPolynomial {
+            let white = cc::white_patch(&readings).map(|k| readings[k].raw);
+            let correction = &fit.root_polynomial.correction;
+            report.texture_calibration = texture_scaled(correction, white)?;
+        }
+    }
     let mut json =
         serde_json::to_vec_pretty(&report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     json.push(b'\n');
@@ -300,8 +419,33 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     if let Some(dir) = path.parent() {
         crate::postprocess::create_dir(dir)?;
     }
+    remove_if_present(&camera_colour_file(&run.root))?;
     crate::store::write_atomic(&path, &json)?;
     Ok(report)
+}
+
+/// A chart's fitted `correction` as the textures' calibration: scaled so
+/// that the white patch's green (`white`, raw) keeps its raw value, as the
+/// 3×3 texture calibration is.
+fn texture_scaled(
+    correction: &cc::chart_fit::Correction,
+    white: Option<[f64; 3]>,
+) -> Result<ColourCalibration, ProcessError> {
+    let white = white.unwrap_or([1.0; 3]);
+    let scale = white[1] / correction.apply(white)[1];
+    if !scale.is_finite() || scale <= 0.0 {
+        return Err(ProcessError::Invalid(format!(
+            "the {} maps the white patch's green to {}",
+            correction.kind,
+            correction.apply(white)[1]
+        )));
+    }
+    ColourCalibration::from_correction(correction, scale).ok_or_else(|| {
+        ProcessError::Invalid(format!(
+            "the {} has rows of the wrong length",
+            correction.kind
+        ))
+    })
 }
 
 /// The frames' readings, patch by patch, each frame scaled so its white
@@ -467,4 +611,41 @@ fn report(
         patches,
         chart_fit: None,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cc::chart_fit::{Correction, CorrectionKind};
+
+    #[test]
+    fn a_chosen_root_polynomial_corrects_the_textures_at_the_white_patch_s_level() {
+        let correction = Correction {
+            kind: CorrectionKind::RootPolynomial,
+            coefficients: [
+                vec![1.6, -0.2, -0.1, 0.2, -0.05, 0.1],
+                vec![-0.2, 1.1, -0.1, 0.15, 0.05, -0.05],
+                vec![0.0, -0.3, 1.7, -0.05, 0.1, 0.0],
+            ],
+        };
+        let white = [0.55, 0.8, 0.6];
+        let cal = texture_scaled(&correction, Some(white)).expect("a calibration");
+        assert!(cal.root_polynomial.is_some());
+        // The white patch's green keeps its raw value, …
+        assert!((cal.apply(white)[1] - white[1]).abs() < 1e-12);
+        // … and every colour is the correction's, scaled alike.
+        let scale = white[1] / correction.apply(white)[1];
+        for raw in [[0.1, 0.2, 0.3], [0.7, 0.1, 0.05]] {
+            let (got, want) = (cal.apply(raw), correction.apply(raw));
+            for c in 0..3 {
+                assert!((got[c] - scale * want[c]).abs() < 1e-12);
+            }
+        }
+        // A correction that sends white's green to nothing is refused.
+        let dark = Correction {
+            kind: CorrectionKind::Matrix,
+            coefficients: [vec![1.0, 0.0, 0.0], vec![0.0; 3], vec![0.0, 0.0, 1.0]],
+        };
+        assert!(texture_scaled(&dark, Some(white)).is_err());
+    }
 }
