@@ -86,6 +86,18 @@ impl RunFrames {
         linear.grey().map_err(|e| self.frame_error(entry, e))
     }
 
+    /// One frame as [`Self::image`] reads it, with the pixels the sensor
+    /// clipped ([`Clipped`]).
+    pub fn image_and_clipped(
+        &self,
+        entry: &FrameEntry,
+    ) -> Result<(Image, Option<Clipped>), ProcessError> {
+        let linear = self.linear(entry)?;
+        let clipped = linear.clipped();
+        let image = linear.grey().map_err(|e| self.frame_error(entry, e))?;
+        Ok((image, clipped))
+    }
+
     /// One frame's red, green and blue planes, linear in [0, 1], with its
     /// width and height: a Bayer mosaic demosaiced (bilinear, as
     /// [`Self::image`] reads it), an RGB file as it is. `None` for a
@@ -103,7 +115,21 @@ impl RunFrames {
         entry: &FrameEntry,
         calibration: &rigd_process::colour::ColourCalibration,
     ) -> Result<Option<Image>, ProcessError> {
-        let Some(planes) = self.colour_planes(entry)? else {
+        Ok(self
+            .corrected_and_clipped(entry, calibration)?
+            .map(|(image, _)| image))
+    }
+
+    /// One frame as [`Self::corrected`] reads it, with the pixels the
+    /// sensor clipped ([`Clipped`]).
+    pub fn corrected_and_clipped(
+        &self,
+        entry: &FrameEntry,
+        calibration: &rigd_process::colour::ColourCalibration,
+    ) -> Result<Option<(Image, Option<Clipped>)>, ProcessError> {
+        let linear = self.linear(entry)?;
+        let clipped = linear.clipped();
+        let Some(planes) = linear.planes().map_err(|e| self.frame_error(entry, e))? else {
             return Ok(None);
         };
         let mut out = Image::new(planes.width, planes.height, 3);
@@ -114,7 +140,7 @@ impl RunFrames {
                 *d = v as f32;
             }
         }
-        Ok(Some(out))
+        Ok(Some((out, clipped)))
     }
 
     fn frame_error(&self, entry: &FrameEntry, e: impl std::fmt::Display) -> ProcessError {
@@ -254,6 +280,24 @@ impl ColourPlanes {
     }
 }
 
+/// A sample at or above this fraction of full scale is clipped: the
+/// sensor's white level, less what rounding and a decoder's black
+/// subtraction move it by.
+pub const CLIPPED_LEVEL: f32 = 0.995;
+
+/// The pixels of a frame the sensor clipped: where a sample reached
+/// [`CLIPPED_LEVEL`] in any channel, and for a Bayer mosaic every pixel
+/// whose demosaiced value reads a clipped photosite (its 3 × 3
+/// neighbourhood). What a clipped pixel shows is a lower bound, not a
+/// measurement.
+#[derive(Debug, Clone)]
+pub struct Clipped {
+    /// 1 where clipped, 0 elsewhere, one channel at the frame's size.
+    pub mask: Image,
+    /// Pixels clipped.
+    pub pixels: usize,
+}
+
 /// A frame's samples, linear in [0, 1], before any demosaicing.
 enum Linear {
     /// A monochrome sensor's.
@@ -265,6 +309,33 @@ enum Linear {
 }
 
 impl Linear {
+    /// The clipped pixels; `None` when there are none.
+    fn clipped(&self) -> Option<Clipped> {
+        let (img, channels, spread) = match self {
+            Linear::Grey(img) => (img, 1, 0),
+            Linear::Mosaic(img, _) => (img, 1, 1),
+            Linear::Rgb(img) => (img, 3, 0),
+        };
+        let (w, h) = (img.width, img.height);
+        let mut mask = Image::new(w, h, 1);
+        let mut any = false;
+        for (i, px) in img.data.chunks_exact(channels).enumerate() {
+            if px.iter().any(|&v| v >= CLIPPED_LEVEL) {
+                any = true;
+                let (x, y) = (i % w, i / w);
+                for yy in y.saturating_sub(spread)..(y + spread + 1).min(h) {
+                    for xx in x.saturating_sub(spread)..(x + spread + 1).min(w) {
+                        mask.data[yy * w + xx] = 1.0;
+                    }
+                }
+            }
+        }
+        any.then(|| Clipped {
+            pixels: mask.data.iter().filter(|&&v| v > 0.0).count(),
+            mask,
+        })
+    }
+
     /// Grey: a mosaic demosaiced and weighted (R + 2G + B) / 4 as
     /// [`demosaic::luminance`] does, RGB weighted alike.
     fn grey(self) -> Result<Image, demosaic::TooSmall> {
@@ -359,6 +430,44 @@ mod tests {
     /// [`png_linear`] as [`RunFrames`] calls it for `entry`.
     fn png_linear_of(entry: &FrameEntry, w: u32, h: u32, pixels: &[u16]) -> Linear {
         png_linear(entry.bit_depth, cfa_of(entry), w, h, pixels)
+    }
+
+    #[test]
+    fn clipped_pixels_are_those_at_the_white_level_and_a_mosaic_s_neighbours() {
+        let grey = |data: Vec<f32>| Image {
+            width: 4,
+            height: 3,
+            channels: 1,
+            data,
+        };
+        let mut frame = vec![0.5f32; 12];
+        assert!(Linear::Grey(grey(frame.clone())).clipped().is_none());
+        // Just under the white level is measured; at it, clipped.
+        frame[5] = CLIPPED_LEVEL - 1e-4;
+        assert!(Linear::Grey(grey(frame.clone())).clipped().is_none());
+        frame[5] = 1.0;
+        let c = Linear::Grey(grey(frame.clone()))
+            .clipped()
+            .expect("clipped");
+        assert_eq!(c.pixels, 1);
+        assert_eq!(c.mask.data[5], 1.0);
+        // Through a demosaic, the photosite's 3 × 3 neighbourhood, cut at
+        // the frame's edge.
+        let c = Linear::Mosaic(grey(frame.clone()), Cfa::Rggb)
+            .clipped()
+            .expect("clipped");
+        assert_eq!(c.pixels, 9);
+        frame[5] = 0.5;
+        frame[0] = 1.0;
+        let c = Linear::Mosaic(grey(frame), Cfa::Rggb)
+            .clipped()
+            .expect("clipped");
+        assert_eq!(c.pixels, 4);
+        // RGB: any channel.
+        let mut rgb = Image::new(2, 1, 3);
+        rgb.data = vec![0.2, 0.3, 0.4, 0.2, 0.999, 0.4];
+        let c = Linear::Rgb(rgb).clipped().expect("clipped");
+        assert_eq!(c.mask.data, vec![0.0, 1.0]);
     }
 
     #[test]

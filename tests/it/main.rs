@@ -18,6 +18,7 @@ mod btf_accuracy;
 mod camera_colour;
 mod camera_files;
 mod cli;
+mod clipping;
 mod clock;
 mod colour;
 mod corruption;

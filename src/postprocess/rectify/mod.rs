@@ -167,6 +167,22 @@ pub struct FrameRegistration {
     /// then as measured).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lamp_level: Option<f64>,
+    /// Texels of the texture that read a pixel the sensor clipped
+    /// ([`crate::postprocess::frames::Clipped`]): their values are lower
+    /// bounds, not measurements. 0 when none did.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub clipped_texels: usize,
+    /// `clipped_texels` as a fraction of the texture's texels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clipped_share: Option<f64>,
+    /// Which texels: an 8-bit PNG the texture's size, 255 where clipped,
+    /// relative to the normtextures folder; None when none is.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clipped_mask: Option<String>,
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// How a frame's texture came to be (`index.json` `method`).
@@ -223,6 +239,9 @@ impl FrameRegistration {
             interpolated_from: Vec::new(),
             damaged: false,
             lamp_level: None,
+            clipped_texels: 0,
+            clipped_share: None,
+            clipped_mask: None,
         }
     }
 }
@@ -298,6 +317,32 @@ pub struct RegistrationSummary {
     /// was cut short (not registered again).
     #[serde(default)]
     pub resumed_frames: usize,
+    /// Frames with texels that read a pixel the sensor clipped.
+    #[serde(default)]
+    pub frames_clipped: usize,
+    /// Those texels, over all frames.
+    #[serde(default)]
+    pub clipped_texels: usize,
+    /// The frames with the largest shares clipped, largest first (at most
+    /// [`CLIPPED_LISTED`]): where the highlights are.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub most_clipped: Vec<ClippedFrame>,
+}
+
+/// Frames [`RegistrationSummary::most_clipped`] lists.
+pub const CLIPPED_LISTED: usize = 5;
+
+/// A frame with clipped texels, and its directions.
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct ClippedFrame {
+    /// The frame's image index.
+    pub index: usize,
+    /// The share of its texture's texels clipped.
+    pub share: f64,
+    /// Its commanded light direction.
+    pub light: Direction,
+    /// Its commanded view direction.
+    pub view: Direction,
 }
 
 impl RegistrationSummary {
@@ -330,6 +375,26 @@ impl RegistrationSummary {
                 self.frames_damaged,
                 crate::store::image_list(&self.damaged)
             );
+        }
+        if self.frames_clipped > 0 {
+            let _ = writeln!(
+                out,
+                "clipped: {} texels in {} frames read a pixel at the sensor's white level (flagged \
+                 per frame in index.json, clipped_texels and clipped_mask); most in:",
+                self.clipped_texels, self.frames_clipped
+            );
+            for f in &self.most_clipped {
+                let _ = writeln!(
+                    out,
+                    "  image {:>6}  {:>6.2} %  light θ {:.1}° φ {:.1}°, view θ {:.1}° φ {:.1}°",
+                    f.index,
+                    100.0 * f.share,
+                    f.light.theta_deg,
+                    f.light.phi_deg,
+                    f.view.theta_deg,
+                    f.view.phi_deg
+                );
+            }
         }
         let px = |v: Option<f64>| v.map_or("not measured".to_string(), |v| format!("{v:.2} px"));
         if let Some([p50, p95, max]) = self.marker_rms_px {

@@ -288,7 +288,7 @@ pub fn rectify_run(
                 Err(e) => rec.problem = Some(format!("lost: {e}")),
                 Ok(images) => {
                     let (h, method) = refine(i, images.grey());
-                    match rectifier.write_texture(&mut rec, &images.texture, &h, entry.bit_depth) {
+                    match rectifier.write_texture(&mut rec, &images, &h, entry.bit_depth) {
                         Ok(()) => {
                             rec.method = Some(method);
                             rec.error_px = match method {
@@ -373,7 +373,29 @@ pub fn rectify_run(
         .filter(|f| f.damaged)
         .map(|f| f.index)
         .collect();
+    let mut clipped: Vec<&FrameRegistration> =
+        frames.iter().filter(|f| f.clipped_texels > 0).collect();
+    clipped.sort_by(|a, b| {
+        b.clipped_share
+            .unwrap_or(0.0)
+            .total_cmp(&a.clipped_share.unwrap_or(0.0))
+    });
+    let most_clipped = clipped
+        .iter()
+        .take(super::CLIPPED_LISTED)
+        .filter_map(|f| {
+            Some(super::ClippedFrame {
+                index: f.index,
+                share: f.clipped_share.unwrap_or(0.0),
+                light: *index_so_far.lights.get(f.light_index)?,
+                view: *index_so_far.views.get(f.view_slot)?,
+            })
+        })
+        .collect();
     let summary = RegistrationSummary {
+        frames_clipped: clipped.len(),
+        clipped_texels: clipped.iter().map(|f| f.clipped_texels).sum(),
+        most_clipped,
         frames_by_method: by_method,
         frames_without_texture: frames.iter().filter(|f| f.file.is_none()).count(),
         frames_damaged: damaged.len(),

@@ -52,6 +52,9 @@ pub(super) const MAX_REFERENCE_LIGHT_DEG: f64 = 20.0;
 pub(super) const TEXTURE_CHECKS: usize = 16;
 /// An unusable frame is filled from this many nearest lights of its slot.
 pub(super) const FILL_NEIGHBOURS: usize = 3;
+/// A texel whose resampled clip mask exceeds this read a clipped pixel
+/// (the mask is 0 or 1 before resampling; this is above float noise).
+const CLIPPED_WEIGHT: f32 = 1e-4;
 
 /// One frame after the first pass: its registration record and the two
 /// homographies (markers, pose) it has.
@@ -93,6 +96,8 @@ pub(super) struct FrameImages {
     /// The lamp's output relative to the run's reference frame, which
     /// both images have been divided by; `None`: not measured.
     pub(super) lamp_level: Option<f64>,
+    /// The pixels the sensor clipped; `None`: none.
+    pub(super) clipped: Option<crate::postprocess::frames::Clipped>,
 }
 
 impl FrameImages {
@@ -171,13 +176,15 @@ impl Rectifier<'_> {
         entry: &crate::store::FrameEntry,
     ) -> Result<FrameImages, crate::postprocess::ProcessError> {
         let Some(colour) = &self.colour else {
+            let (texture, clipped) = self.run.image_and_clipped(entry)?;
             return Ok(FrameImages {
-                texture: self.run.image(entry)?,
+                texture,
                 rgb_grey: None,
                 lamp_level: None,
+                clipped,
             });
         };
-        let Some(rgb) = self.run.corrected(entry, colour)? else {
+        let Some((rgb, clipped)) = self.run.corrected_and_clipped(entry, colour)? else {
             return Err(crate::postprocess::ProcessError::Invalid(format!(
                 "frame {} is monochrome, and the run has a colour calibration",
                 entry.index
@@ -191,6 +198,7 @@ impl Rectifier<'_> {
             texture: rgb,
             rgb_grey: Some(grey),
             lamp_level: None,
+            clipped,
         })
     }
 
@@ -236,19 +244,26 @@ impl Rectifier<'_> {
         .map_err(|e| e.to_string())
     }
 
-    /// Rectifies, cuts, blends and stores a frame's texture through `h`;
-    /// `Err` names why it cannot be used (saturated) or written.
+    /// Rectifies, cuts, blends and stores a frame's texture through `h`,
+    /// with the texels that read a clipped pixel counted and their mask
+    /// stored beside it; `Err` names why it cannot be used (saturated) or
+    /// written.
     pub(super) fn write_texture(
         &self,
         rec: &mut FrameRegistration,
-        image: &Image,
+        images: &FrameImages,
         h: &rigd_process::rectify::Homography,
         bit_depth: u8,
     ) -> Result<(), String> {
         use rigd_process::rectify as rect;
         let cfg = self.cfg;
-        let full = self.sample_texture(image, h, cfg.size)?;
-        let saturated = full.texture.data.iter().filter(|&&v| v >= 0.995).count() as f64
+        let full = self.sample_texture(&images.texture, h, cfg.size)?;
+        let saturated = full
+            .texture
+            .data
+            .iter()
+            .filter(|&&v| v >= crate::postprocess::frames::CLIPPED_LEVEL)
+            .count() as f64
             / full.texture.data.len().max(1) as f64;
         if saturated > SATURATED_FRACTION {
             return Err(format!(
@@ -261,10 +276,41 @@ impl Rectifier<'_> {
         // With a blend the ROI is scaled to final + blend texels, whose
         // extra band is blended into the opposite edge.
         let side = cfg.final_size + cfg.blend;
-        let texture = rect::roi_cut(&full.texture, roi, [side, side])
-            .and_then(|t| rect::edge_blend(&t, cfg.blend))
-            .map_err(|e| e.to_string())?;
-        self.store(rec, &texture, bit_depth)
+        let cut = |t: &Image| {
+            rect::roi_cut(t, roi, [side, side])
+                .and_then(|t| rect::edge_blend(&t, cfg.blend))
+                .map_err(|e| e.to_string())
+        };
+        let texture = cut(&full.texture)?;
+        self.store(rec, &texture, bit_depth)?;
+        if let Some(clipped) = &images.clipped {
+            // Resampled as the texture is: a texel with any weight on a
+            // clipped pixel read a value that is only a lower bound.
+            let mask = cut(&self.sample_texture(&clipped.mask, h, cfg.size)?.texture)?;
+            self.store_clipped(rec, &mask)?;
+        }
+        Ok(())
+    }
+
+    /// Counts the texels a resampled clip mask marks and, when there are
+    /// any, writes them as the texture's clip mask.
+    fn store_clipped(&self, rec: &mut FrameRegistration, mask: &Image) -> Result<(), String> {
+        use rigd_process::image_io::{write_png, PngDepth};
+        let mut marks = Image::new(mask.width, mask.height, 1);
+        for (m, &v) in marks.data.iter_mut().zip(&mask.data) {
+            *m = if v > CLIPPED_WEIGHT { 1.0 } else { 0.0 };
+        }
+        let count = marks.data.iter().filter(|&&v| v > 0.0).count();
+        rec.clipped_texels = count;
+        rec.clipped_share = Some(count as f64 / marks.data.len().max(1) as f64);
+        if count == 0 {
+            rec.clipped_mask = None;
+            return Ok(());
+        }
+        let file = format!("v{:03}_l{:03}.clipped.png", rec.view_slot, rec.light_index);
+        write_png(&self.out_dir.join(&file), &marks, PngDepth::Eight).map_err(|e| e.to_string())?;
+        rec.clipped_mask = Some(file);
+        Ok(())
     }
 
     /// Writes a final texture in the configured encoding.
@@ -362,12 +408,7 @@ impl Rectifier<'_> {
                 out.rec.markers_found = reg.found;
                 out.rec.markers_used = reg.used;
                 out.rec.markers_rejected = reg.rejected.clone();
-                match self.write_texture(
-                    &mut out.rec,
-                    &images.texture,
-                    &reg.homography,
-                    entry.bit_depth,
-                ) {
+                match self.write_texture(&mut out.rec, &images, &reg.homography, entry.bit_depth) {
                     Ok(()) => {
                         out.rec.method = Some(RegistrationMethod::Markers);
                         out.rec.error_px = Some(reg.rms_px);

@@ -1,0 +1,135 @@
+//! Highlights the sensor clipped are never taken as measured: a simulated
+//! `leather` sample seen in its mirror direction clips at the profile's
+//! exposure, and `rigd process rectify` counts the texels that read a
+//! clipped pixel, writes their mask and names the frame and its
+//! directions; a matte sample under the same light clips nothing.
+
+use std::path::Path;
+
+use crate::common::{repo_file, run_ok};
+
+fn arg(p: &Path) -> String {
+    p.to_str().expect("utf8").to_string()
+}
+
+/// Captures `scene` under one light (θ 34° φ 240°), seen in its mirror
+/// direction and from θ 60° φ 150°, and rectifies it; what the rectify
+/// printed.
+fn capture_and_rectify(dir: &Path, scene: &str) -> (std::path::PathBuf, String) {
+    let run = dir.join(scene);
+    let plan = dir.join("plan.json");
+    std::fs::write(
+        &plan,
+        r#"{"lights": [{"theta_deg": 34, "phi_deg": 240}],
+            "views": [{"theta_deg": 34, "phi_deg": 60}, {"theta_deg": 60, "phi_deg": 150}]}"#,
+    )
+    .expect("plan");
+    let profile = repo_file("rig-profiles/bonn-gonioreflectometer.toml");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--profile",
+        &arg(&profile),
+        "--scene",
+        scene,
+        "--frame-size",
+        "320x240",
+        "--plan",
+        &arg(&plan),
+        "--progress",
+        "none",
+        "--out",
+        &arg(&run),
+    ]);
+    let out = run_ok(&["process", "rectify", &arg(&run)]);
+    (run, String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+#[test]
+fn texels_that_read_a_clipped_pixel_are_counted_masked_and_reported() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (run, printed) = capture_and_rectify(dir.path(), "leather");
+
+    let textures = run.join("processed/normtextures");
+    let index: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(textures.join("index.json")).expect("index"))
+            .expect("json");
+    let frames = index["frames"].as_array().expect("frames");
+    let views = index["views"].as_array().expect("views");
+    let of_view = |theta: f64| {
+        frames
+            .iter()
+            .find(|f| {
+                let slot = f["view_slot"].as_u64().expect("slot") as usize;
+                views[slot]["theta_deg"].as_f64().map(f64::round) == Some(theta)
+            })
+            .expect("the view's frame")
+    };
+    let mirror = of_view(34.0);
+    let aside = of_view(60.0);
+
+    // The mirror frame: its clipped texels counted, and masked where they
+    // are, each of them bright in the texture.
+    let clipped = mirror["clipped_texels"].as_u64().unwrap_or(0) as usize;
+    assert!(
+        clipped > 0,
+        "the mirror highlight clips: {mirror}\n{printed}"
+    );
+    let mask_file = mirror["clipped_mask"].as_str().expect("a clip mask");
+    let mask = rigd_process::image_io::load_png(&textures.join(mask_file)).expect("mask png");
+    let marked: Vec<usize> = (0..mask.data.len())
+        .filter(|&i| mask.data[i] > 0.5)
+        .collect();
+    assert_eq!(marked.len(), clipped, "the mask marks every counted texel");
+    let share = mirror["clipped_share"].as_f64().expect("share");
+    assert!((share - clipped as f64 / mask.data.len() as f64).abs() < 1e-9);
+    let texture =
+        rigd_process::image_io::load_png(&textures.join(mirror["file"].as_str().expect("texture")))
+            .expect("texture png");
+    let mean = |clipped: bool| {
+        let (sum, n) = (0..texture.data.len())
+            .filter(|&i| (mask.data[i] > 0.5) == clipped)
+            .fold((0.0, 0usize), |(s, n), i| (s + texture.data[i], n + 1));
+        sum / n.max(1) as f32
+    };
+    assert!(
+        mean(true) > 1.2 * mean(false),
+        "clipped texels are the highlight: {} against {} elsewhere",
+        mean(true),
+        mean(false)
+    );
+    // Away from the mirror, far fewer.
+    let aside_share = aside["clipped_share"].as_f64().unwrap_or(0.0);
+    assert!(share > 4.0 * aside_share, "{share} against {aside_share}");
+
+    // The summary counts them and names where they are, the mirror first.
+    let summary = &index["summary"];
+    let total = frames
+        .iter()
+        .map(|f| f["clipped_texels"].as_u64().unwrap_or(0))
+        .sum::<u64>();
+    assert_eq!(summary["clipped_texels"].as_u64(), Some(total));
+    let worst = &summary["most_clipped"][0];
+    assert_eq!(worst["index"], mirror["index"]);
+    assert_eq!(
+        worst["view"]["phi_deg"].as_f64().map(f64::round),
+        Some(60.0)
+    );
+    assert_eq!(
+        worst["light"]["phi_deg"].as_f64().map(f64::round),
+        Some(240.0)
+    );
+    assert!(
+        printed.contains("clipped:") && printed.contains("view θ 34.0° φ 60.0°"),
+        "{printed}"
+    );
+
+    // A matte sample under the same light clips nothing, and its index
+    // says nothing of clipping.
+    let (matte, printed) = capture_and_rectify(dir.path(), "flat-calibration");
+    let index =
+        std::fs::read_to_string(matte.join("processed/normtextures/index.json")).expect("index");
+    assert!(!index.contains("clipped_mask"), "{index}");
+    assert!(index.contains("\"frames_clipped\": 0"), "{index}");
+    assert!(!printed.contains("clipped:"), "{printed}");
+}
