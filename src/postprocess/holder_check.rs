@@ -11,6 +11,7 @@ use rigd_core::geometry::Direction;
 use rigd_core::holder::{HolderError, Polarity};
 use rigd_process::image_io::Image;
 use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
 
 use super::frames::{cfa_of_pixel_format, decode_frame, decode_samples};
 use super::rectify::{find_markers, marker_layout, pose_camera};
@@ -75,11 +76,12 @@ pub enum HolderCheckError {
 }
 
 /// One point marker in the frame.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct MarkerCheck {
     /// Its index among the holder's markers.
     pub index: usize,
     /// `light` or `dark`.
+    #[schema(schema_with = polarity_schema)]
     pub polarity: Polarity,
     /// Where it is on the plate, mm from the sample centre.
     pub position_mm: [f64; 2],
@@ -97,7 +99,7 @@ pub struct MarkerCheck {
 }
 
 /// The mean of a patch or white area in the frame.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct AreaReading {
     /// The patch's name, or `white[i]` for a white area.
     pub name: String,
@@ -111,7 +113,7 @@ pub struct AreaReading {
 }
 
 /// What `rigd holder check` found in one frame.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct HolderCheck {
     /// The profile's name.
     pub profile: String,
@@ -120,6 +122,7 @@ pub struct HolderCheck {
     /// The camera whose model predicted the markers.
     pub camera: String,
     /// The view the frame was taken from.
+    #[schema(schema_with = direction_schema)]
     pub view: Direction,
     /// Frame width and height, pixels.
     pub size: [usize; 2],
@@ -309,6 +312,40 @@ pub fn check_frame(
         ok: problems.is_empty(),
         problems,
     })
+}
+
+/// The OpenAPI schema of a [`Direction`] (rigd-core knows nothing of
+/// OpenAPI).
+fn direction_schema() -> utoipa::openapi::Object {
+    use utoipa::openapi::{ObjectBuilder, Type};
+    let degrees = |what: &str| {
+        ObjectBuilder::new()
+            .schema_type(Type::Number)
+            .description(Some(what))
+    };
+    ObjectBuilder::new()
+        .description(Some("A direction in the sample frame, degrees."))
+        .property(
+            "theta_deg",
+            degrees("Polar angle from the sample normal, degrees."),
+        )
+        .required("theta_deg")
+        .property(
+            "phi_deg",
+            degrees("Azimuth in the sample plane, counter-clockwise from +x, degrees."),
+        )
+        .required("phi_deg")
+        .build()
+}
+
+/// The OpenAPI schema of a marker's [`Polarity`].
+fn polarity_schema() -> utoipa::openapi::Object {
+    use utoipa::openapi::{ObjectBuilder, Type};
+    ObjectBuilder::new()
+        .schema_type(Type::String)
+        .description(Some("`light` or `dark`: lighter or darker than the plate."))
+        .enum_values(Some(["light", "dark"]))
+        .build()
 }
 
 fn polarity_name(p: Polarity) -> &'static str {
