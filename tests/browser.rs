@@ -707,6 +707,85 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         |v| v.as_str().is_some_and(|s| s.contains("/api/v1/rig/manual/frame")),
     )
     .await;
+    // The holder check: refused until the rig has taken a pose (the rail
+    // was jogged since it connected), then, posed frontally with the lamp
+    // on, every marker of the default profile's standard plate (eight
+    // light discs, no colour patches) found and registered.
+    click_id(c, "manual-holder").await;
+    manual_says(c, "the holder check refused before a pose", |t| {
+        t.starts_with("holder-check: conflict: move to a pose first")
+    })
+    .await;
+    c.find(Locator::Id("manual-axis"))
+        .await
+        .expect("#manual-axis")
+        .select_by_value("arm")
+        .await
+        .expect("choose the arm");
+    click_id(c, "manual-home").await;
+    manual_says(c, "the arm homed", |t| t.starts_with("arm homed at ")).await;
+    for (id, dir) in [("manual-light", "30,0"), ("manual-view", "0,0")] {
+        let input = c.find(Locator::Id(id)).await.expect(id);
+        input.clear().await.expect("clear");
+        input.send_keys(dir).await.expect("a direction");
+    }
+    click_id(c, "manual-pose").await;
+    manual_says(c, "the frontal pose", |t| {
+        t.starts_with("pose reached: ") && t.ends_with("lit by hmi, seen by camera")
+    })
+    .await;
+    click_id(c, "manual-on").await;
+    manual_says(c, "the lamp on for the holder check", |t| t == "hmi ON").await;
+    click_id(c, "manual-holder").await;
+    manual_says(c, "the holder check", |t| {
+        t == "holder check from camera: OK"
+    })
+    .await;
+    let result = wait_js(
+        c,
+        "the holder check's result",
+        10,
+        "const r = document.getElementById('manual-holder-result'); \
+         return r.hidden ? null : [r.querySelector('[data-testid=holder-summary]').textContent, \
+           [...r.querySelectorAll('[data-testid=holder-problems] li')].map(l => l.textContent), \
+           r.querySelectorAll('[data-testid=holder-patches] tr[data-patch]').length, r.textContent]",
+        |v| v.is_array(),
+    )
+    .await;
+    let summary = result[0].as_str().unwrap_or_default();
+    assert!(
+        summary.starts_with("holder standard (bonn-gonioreflectometer), camera at view θ 0.0°")
+            && summary.contains("8 of 8 markers found, registered, residual RMS"),
+        "{result}"
+    );
+    assert_eq!(
+        result[1],
+        json!(["OK every marker found, nothing clipped"]),
+        "{result}"
+    );
+    assert_eq!(
+        result[2],
+        json!(0),
+        "the standard plate has no patches: {result}"
+    );
+    assert!(
+        result[3]
+            .as_str()
+            .is_some_and(|t| t.contains("no colour patches or white areas")),
+        "{result}"
+    );
+    let holder_png = c
+        .find(Locator::Id("manual-holder-result"))
+        .await
+        .expect("#manual-holder-result")
+        .screenshot()
+        .await
+        .expect("a screenshot of the holder check");
+    std::fs::write(out.join("dashboard-holder.png"), holder_png).expect("write the screenshot");
+    // The clicks above scrolled far down the rig card: back to the top,
+    // so the run card's buttons are not under the sticky top bar when a
+    // click scrolls them into view.
+    js(c, "window.scrollTo(0, 0); return true").await;
     let log_lines = js(c, "return document.querySelectorAll('#log li').length").await;
     assert!(
         log_lines.as_u64().is_some_and(|n| n > 10),

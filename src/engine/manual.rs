@@ -60,6 +60,21 @@ pub struct PoseReached {
     pub reason: Option<String>,
 }
 
+/// The (light, view) pair the rig was last moved to under manual control,
+/// as its set-points really produce them: what a test frame from here
+/// shows.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LastPose {
+    /// The light direction, sample frame.
+    pub light: Direction,
+    /// The view direction of `camera`, sample frame.
+    pub view: Direction,
+    /// The camera the pair is seen by.
+    pub camera: String,
+    /// The set-points commanded: another camera's view is found from them.
+    setpoints: Setpoints,
+}
+
 /// A connected rig under manual control.
 pub struct ManualRig {
     rig: Rig,
@@ -70,6 +85,9 @@ pub struct ManualRig {
     /// Axes and arms homed (or referenced) under manual control: only
     /// these move, since a controller's position means nothing before.
     homed: BTreeSet<String>,
+    /// The last pose taken; None before one, and once anything has moved
+    /// otherwise (a jog or a homing), since the view is then unknown.
+    last_pose: Option<LastPose>,
 }
 
 impl ManualRig {
@@ -83,7 +101,36 @@ impl ManualRig {
             clock,
             estop,
             homed: BTreeSet::new(),
+            last_pose: None,
         }
+    }
+
+    /// The (light, view) pair of the last pose, while the rig still
+    /// stands there; None before a pose, and after a jog or a homing.
+    pub fn last_pose(&self) -> Option<&LastPose> {
+        self.last_pose.as_ref()
+    }
+
+    /// The view `camera` has of the sample at the last pose: the pose's
+    /// own view for the camera that sees the pair, forward kinematics for
+    /// another. None before a pose (and after a jog or a homing).
+    pub fn posed_view(&self, camera: &str) -> Result<Option<Direction>, ManualError> {
+        let Some(pose) = &self.last_pose else {
+            return Ok(None);
+        };
+        if pose.camera == camera {
+            return Ok(Some(pose.view));
+        }
+        let (_, view) = self
+            .solver
+            .forward(&pose.setpoints, camera)
+            .map_err(|e| {
+                ManualError::BadInput(format!(
+                    "camera `{camera}` at the last pose: {e}; take the frame with `{}`, which sees the pair",
+                    pose.camera
+                ))
+            })?;
+        Ok(Some(view))
     }
 
     /// Refuses to move a device not homed under manual control. An
@@ -143,8 +190,10 @@ impl ManualRig {
                     .axes
                     .get_mut(device)
                     .ok_or_else(|| not_connected(device))?;
-                // Until it answers, its position is unknown again.
+                // Until it answers, its position is unknown again, and so
+                // is the view.
                 self.homed.remove(device);
+                self.last_pose = None;
                 let at = deadline(&clock, device, HOMING_DEADLINE_S, axis.home()).await?;
                 self.homed.insert(device.to_string());
                 Ok(vec![at])
@@ -156,6 +205,7 @@ impl ManualRig {
                     .get_mut(device)
                     .ok_or_else(|| not_connected(device))?;
                 self.homed.remove(device);
+                self.last_pose = None;
                 let at = deadline(&clock, device, HOMING_DEADLINE_S, arm.home()).await?;
                 self.homed.insert(device.to_string());
                 Ok(at)
@@ -200,6 +250,8 @@ impl ManualRig {
             )));
         }
         let budget = motion.move_time(target - from) * 2.0 + DEADLINE_SLACK_S;
+        // The rig leaves the pose (a refused jog above moved nothing).
+        self.last_pose = None;
         Ok(deadline(&clock, device, budget, axis.move_to(target)).await?)
     }
 
@@ -251,6 +303,8 @@ impl ManualRig {
                 from.arm = Some(deadline(&clock, name, DEADLINE_SLACK_S, arm.joints()).await?);
             }
         }
+        // Known again only once every mover has arrived.
+        self.last_pose = None;
         // The same moves, in parallel and under the same deadline, as a
         // run's step.
         let timing = Timing::new(&self.profile, None);
@@ -268,6 +322,12 @@ impl ManualRig {
         let reached = goto(&clock, &timing, movers, &mut lights, &from, None, to)
             .await
             .map_err(|f| f.error)?;
+        self.last_pose = Some(LastPose {
+            light: pose.achieved_light,
+            view: pose.achieved_view,
+            camera: pose.camera.clone(),
+            setpoints: to.clone(),
+        });
         Ok(PoseReached {
             axes: reached
                 .axes

@@ -172,22 +172,36 @@ impl RunFrames {
 /// as [`RunFrames::colour_planes`] reads them) for a colour one. `Err`
 /// says why the bytes are no frame.
 pub fn decode_frame(bytes: &[u8], bit_depth: u8, cfa: Option<Cfa>) -> Result<Image, String> {
-    match decode_linear(bytes, bit_depth, cfa)? {
-        Linear::Grey(img) | Linear::Rgb(img) => Ok(img),
-        linear @ Linear::Mosaic(..) => {
-            let planes = linear
-                .planes()
-                .map_err(|e| e.to_string())?
-                .ok_or("a mosaic without colour planes")?;
-            let mut out = Image::new(planes.width, planes.height, 3);
-            for (c, plane) in planes.rgb.iter().enumerate() {
-                for (px, v) in out.data.chunks_exact_mut(3).zip(plane) {
-                    px[c] = *v;
-                }
-            }
-            Ok(out)
-        }
+    decode_linear(bytes, bit_depth, cfa)?.into_image()
+}
+
+/// A frame's bare samples (`width × height` values of `bit_depth`
+/// significant bits, row by row, as a camera delivers them) as
+/// [`decode_frame`] reads the PNG a rig stores them in: one channel for a
+/// monochrome sensor, three (demosaiced alike) behind `cfa`.
+pub fn decode_samples(
+    width: u32,
+    height: u32,
+    bit_depth: u8,
+    pixels: &[u16],
+    cfa: Option<Cfa>,
+) -> Result<Image, String> {
+    if pixels.len() as u64 != u64::from(width) * u64::from(height) {
+        return Err(format!(
+            "{} samples for a {width}×{height} frame",
+            pixels.len()
+        ));
     }
+    png_linear(bit_depth, cfa, width, height, pixels).into_image()
+}
+
+/// The filter array a camera's pixel format (PFNC name, `BayerRG12`) puts
+/// its samples behind; None for a monochrome or an unknown one.
+pub fn cfa_of_pixel_format(pixel_format: &str) -> Option<Cfa> {
+    pixel_format
+        .parse::<rigd_core::PixelFormat>()
+        .ok()
+        .and_then(|f| f.cfa())
 }
 
 /// The filter array a frame was taken behind, as its device's pixel
@@ -196,8 +210,7 @@ fn cfa_of(entry: &FrameEntry) -> Option<Cfa> {
     entry
         .device
         .as_ref()
-        .and_then(|d| d.pixel_format.parse::<rigd_core::PixelFormat>().ok())
-        .and_then(|f| f.cfa())
+        .and_then(|d| cfa_of_pixel_format(&d.pixel_format))
 }
 
 /// A frame file's samples, linear in [0, 1], before any demosaicing.
@@ -334,6 +347,27 @@ impl Linear {
             pixels: mask.data.iter().filter(|&&v| v > 0.0).count(),
             mask,
         })
+    }
+
+    /// One image: grey as it is, three channels (red, green, blue) for a
+    /// colour frame, a mosaic demosaiced as [`Self::planes`] does.
+    fn into_image(self) -> Result<Image, String> {
+        match self {
+            Linear::Grey(img) | Linear::Rgb(img) => Ok(img),
+            linear @ Linear::Mosaic(..) => {
+                let planes = linear
+                    .planes()
+                    .map_err(|e| e.to_string())?
+                    .ok_or("a mosaic without colour planes")?;
+                let mut out = Image::new(planes.width, planes.height, 3);
+                for (c, plane) in planes.rgb.iter().enumerate() {
+                    for (px, v) in out.data.chunks_exact_mut(3).zip(plane) {
+                        px[c] = *v;
+                    }
+                }
+                Ok(out)
+            }
+        }
     }
 
     /// Grey: a mosaic demosaiced and weighted (R + 2G + B) / 4 as

@@ -11,9 +11,12 @@ use rigd_core::geometry::Direction;
 use rigd_core::holder::{HolderError, Polarity};
 use rigd_process::image_io::Image;
 use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
 
+use super::frames::{cfa_of_pixel_format, decode_frame, decode_samples};
 use super::rectify::{find_markers, marker_layout, pose_camera};
 use crate::model::profile::Profile;
+use crate::rig::hal::Frame;
 
 /// A sample at or above this fraction of full scale is clipped.
 pub const CLIP_LEVEL: f64 = 0.98;
@@ -73,11 +76,12 @@ pub enum HolderCheckError {
 }
 
 /// One point marker in the frame.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct MarkerCheck {
     /// Its index among the holder's markers.
     pub index: usize,
     /// `light` or `dark`.
+    #[schema(schema_with = polarity_schema)]
     pub polarity: Polarity,
     /// Where it is on the plate, mm from the sample centre.
     pub position_mm: [f64; 2],
@@ -95,7 +99,7 @@ pub struct MarkerCheck {
 }
 
 /// The mean of a patch or white area in the frame.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct AreaReading {
     /// The patch's name, or `white[i]` for a white area.
     pub name: String,
@@ -109,7 +113,7 @@ pub struct AreaReading {
 }
 
 /// What `rigd holder check` found in one frame.
-#[derive(Debug, Clone, Serialize, Deserialize)]
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
 pub struct HolderCheck {
     /// The profile's name.
     pub profile: String,
@@ -118,6 +122,7 @@ pub struct HolderCheck {
     /// The camera whose model predicted the markers.
     pub camera: String,
     /// The view the frame was taken from.
+    #[schema(schema_with = direction_schema)]
     pub view: Direction,
     /// Frame width and height, pixels.
     pub size: [usize; 2],
@@ -309,6 +314,40 @@ pub fn check_frame(
     })
 }
 
+/// The OpenAPI schema of a [`Direction`] (rigd-core knows nothing of
+/// OpenAPI).
+fn direction_schema() -> utoipa::openapi::Object {
+    use utoipa::openapi::{ObjectBuilder, Type};
+    let degrees = |what: &str| {
+        ObjectBuilder::new()
+            .schema_type(Type::Number)
+            .description(Some(what))
+    };
+    ObjectBuilder::new()
+        .description(Some("A direction in the sample frame, degrees."))
+        .property(
+            "theta_deg",
+            degrees("Polar angle from the sample normal, degrees."),
+        )
+        .required("theta_deg")
+        .property(
+            "phi_deg",
+            degrees("Azimuth in the sample plane, counter-clockwise from +x, degrees."),
+        )
+        .required("phi_deg")
+        .build()
+}
+
+/// The OpenAPI schema of a marker's [`Polarity`].
+fn polarity_schema() -> utoipa::openapi::Object {
+    use utoipa::openapi::{ObjectBuilder, Type};
+    ObjectBuilder::new()
+        .schema_type(Type::String)
+        .description(Some("`light` or `dark`: lighter or darker than the plate."))
+        .enum_values(Some(["light", "dark"]))
+        .build()
+}
+
 fn polarity_name(p: Polarity) -> &'static str {
     match p {
         Polarity::Light => "light",
@@ -471,6 +510,35 @@ pub fn read_frame(
     })
 }
 
+/// A test frame as the camera delivered it, as the check reads it (linear,
+/// 0 to 1 of full scale): the camera's own file (a PTP camera's DNG, raw
+/// or JPEG) by its content, as a run's stored frame is read; else its
+/// samples behind the filter array its pixel format names or, where the
+/// camera names none, the one of `profile`'s camera `camera`
+/// (`intrinsics.cfa`), as [`read_frame`] reads a rig's PNG. A Bayer mosaic
+/// is demosaiced to red, green and blue, as there. `Err` says why the
+/// frame cannot be read.
+pub fn frame_image(frame: &Frame, profile: &Profile, camera: &str) -> Result<Image, String> {
+    if let Some(original) = &frame.original {
+        return decode_frame(&original.bytes, frame.bit_depth, None);
+    }
+    let cfa = match &frame.device {
+        Some(d) => cfa_of_pixel_format(&d.pixel_format),
+        None => profile
+            .devices
+            .get(camera)
+            .and_then(|d| d.intrinsics)
+            .and_then(|i| i.cfa),
+    };
+    decode_samples(
+        frame.width,
+        frame.height,
+        frame.bit_depth,
+        &frame.pixels,
+        cfa,
+    )
+}
+
 impl HolderCheck {
     /// The report as `rigd holder check` prints it, one line each.
     pub fn lines(&self) -> Vec<String> {
@@ -537,5 +605,59 @@ impl HolderCheck {
             }
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rig::hal::DeviceFrameInfo;
+
+    /// A 4×2 frame of 8-bit samples: red 255, green 51, blue 0 behind an
+    /// RGGB tile.
+    fn mosaic(device: Option<&str>) -> Frame {
+        Frame {
+            width: 4,
+            height: 2,
+            bit_depth: 8,
+            pixels: vec![255, 51, 255, 51, 51, 0, 51, 0],
+            device: device.map(|f| DeviceFrameInfo {
+                frame_id: 1,
+                timestamp_ns: 2,
+                pixel_format: f.to_string(),
+            }),
+            original: None,
+        }
+    }
+
+    fn profile(name: &str) -> Profile {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("rig-profiles")
+            .join(format!("{name}.toml"));
+        crate::plan::load_profile(&path.to_string_lossy()).expect("profile")
+    }
+
+    #[test]
+    fn a_test_frame_is_demosaiced_where_its_camera_has_a_filter_array() {
+        let mono = profile("bonn-gonioreflectometer");
+        let bayer = profile("bonn-colorchecker");
+        // The camera names no format: the profile's camera says.
+        let grey = frame_image(&mosaic(None), &mono, "camera").expect("grey");
+        assert_eq!(grey.channels, 1);
+        assert_eq!(grey.get(1, 0, 0), 51.0 / 255.0);
+        let rgb = frame_image(&mosaic(None), &bayer, "camera").expect("colour");
+        assert_eq!((rgb.width, rgb.height, rgb.channels), (4, 2, 3));
+        assert_eq!(rgb.get(1, 0, 0), 1.0, "red");
+        assert_eq!(rgb.get(1, 0, 1), 0.2, "green");
+        assert_eq!(rgb.get(1, 0, 2), 0.0, "blue");
+        // The camera's own pixel format wins over the profile.
+        let rgb = frame_image(&mosaic(Some("BayerRG8")), &mono, "camera").expect("colour");
+        assert_eq!(rgb.channels, 3);
+        let grey = frame_image(&mosaic(Some("Mono8")), &bayer, "camera").expect("grey");
+        assert_eq!(grey.channels, 1);
+        // Samples that do not fill the frame are refused, not read.
+        let mut short = mosaic(None);
+        short.pixels.pop();
+        assert!(frame_image(&short, &mono, "camera").is_err());
     }
 }

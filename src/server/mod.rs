@@ -202,6 +202,7 @@ pub fn router(daemon: Arc<supervisor::Daemon>, token: auth::Token) -> Router {
             "/rig/manual/frame",
             get(manual::last_frame).post(manual::take_frame),
         )
+        .route("/rig/manual/holder-check", post(manual::holder_check))
         .route("/rig/manual/release", post(manual::release))
         .route("/plans", get(plans::plans))
         .route("/plans/{name}", get(plans::plan_detail))

@@ -15,9 +15,10 @@ under test on them:
                   A's /peers/B/pause and /abort find a run.
 
 A broad pass covers every operation; then targeted passes take the rig
-through the states the commands act on (idle, axes homed, a long run to
-pause, resume and abort, a queue item, a job, the peer's run), one pass per
-state, each with the ids it needs given as explicit test data.
+through the states the commands act on (idle, axes homed, posed for the
+holder check, a long run to pause, resume and abort, a queue item, a job,
+the peer's run), one pass per state, each with the ids it needs given as
+explicit test data.
 
 Usage: api_contract.py --rigd BIN --work DIR [--max-time S] [--repo DIR]
 Exit 0 when the contract holds; 1 with what failed otherwise.
@@ -311,6 +312,18 @@ def main() -> int:
             if status != 200:
                 raise SystemExit(f"homing {device}: {status} {body}")
         st.run("manual", {}, only=["home", "jog", "lamp", "pose"], max_examples=5, phases="examples,fuzzing")
+        # The holder check needs the view of a pose taken in this session.
+        # A pass of its own: the rig-check pass's check and release end the
+        # session, and the manual pass's jogs and homings leave the pose.
+        for device in ("rail", "arm"):
+            status, body = request(f"{base}/rig/manual/home", token_a, {"device": device}, "POST")
+            if status != 200:
+                raise SystemExit(f"homing {device}: {status} {body}")
+        frontal = {"light": {"theta_deg": 30, "phi_deg": 0}, "view": {"theta_deg": 0, "phi_deg": 0}}
+        status, body = request(f"{base}/rig/manual/pose", token_a, frontal, "POST")
+        if status != 200:
+            raise SystemExit(f"a pose for the holder check: {status} {body}")
+        st.run("holder-check", {}, only=["holder_check"], max_examples=5, phases="examples,fuzzing")
         make_idle(base, token_a)
         # A finished run's processing: asked for, then looked at.
         for op in ("submit", "get_job"):

@@ -330,6 +330,21 @@ class Client:
         """``GET /rig/manual/frame``: the last test frame as an 8-bit PNG (404 before one)."""
         return self._bytes("/rig/manual/frame")
 
+    def manual_holder_check(
+        self, camera: Optional[str] = None, exposure_s: Optional[float] = None
+    ) -> Dict[str, Any]:
+        """``POST /rig/manual/holder-check``: takes a test frame at the last pose and
+        finds the profile's holder in it, as ``rigd holder check`` does: ``markers``,
+        ``markers_found``, ``registered``, ``rms_px``/``max_px``, ``patches`` and
+        ``whites`` (``name``, ``mean``, ``clipped``), ``problems``, ``ok``. A check
+        that finds problems is still answered (``ok`` false); 409 before a pose."""
+        body: Dict[str, Any] = {}
+        if camera is not None:
+            body["camera"] = camera
+        if exposure_s is not None:
+            body["exposure_s"] = exposure_s
+        return self._post("/rig/manual/holder-check", body)
+
     def manual_release(self) -> None:
         """``POST /rig/manual/release``: lets go of the manual-control rig (204)."""
         self._request("POST", "/rig/manual/release")

@@ -20,6 +20,7 @@ OPERATIONS = {
     "get_queue": "queue", "post_queue": "enqueue", "delete_queue": "dequeue", "rig": "rig",
     "check": "rig_check", "last_frame": "manual_frame_png", "take_frame": "manual_frame",
     "home": "manual_home", "jog": "manual_jog", "lamp": "manual_lamp", "pose": "manual_pose",
+    "holder_check": "manual_holder_check",
     "release": "manual_release", "list_runs": "runs", "create_run": "start_run", "get_run": "run",
     "abort_run": "abort", "btf_manifest": "btf", "btf_data": "btf_data", "btf_mesh": "btf_mesh",
     "frame_raw": "frame", "frame_preview": "frame_preview", "run_manifest": "manifest",
@@ -86,9 +87,16 @@ def test_manual_control(client: Client) -> None:
     assert e.value.status == 422 and "soft limits" in e.value.detail
     with pytest.raises(ValueError):
         client.manual_jog("rail")
+    # The holder check needs the view: 409 until the rig takes a pose.
+    with pytest.raises(RigdError) as e:
+        client.manual_holder_check()
+    assert e.value.status == 409 and "pose" in e.value.detail
     pose = client.manual_pose((30, 0), {"theta_deg": 0, "phi_deg": 0})
     assert pose["feasible"] is True and pose["lamp"] == "hmi"
     assert client.manual_lamp("hmi", True) == {"device": "hmi", "on": True}
+    check = client.manual_holder_check(camera="camera")
+    assert check["ok"] is True and check["registered"] is True and check["problems"] == []
+    assert check["markers_found"] == len(check["markers"]) == 8 and check["holder"] == "standard"
     frame = client.manual_frame(exposure_s=0.05)
     assert frame["camera"] == "camera" and frame["width"] > 0 and 0 <= frame["saturated"] <= 1
     assert client.manual_frame_png().startswith(PNG)

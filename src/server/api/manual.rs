@@ -11,6 +11,9 @@ use utoipa::ToSchema;
 
 use super::AppState;
 use crate::engine::manual::{Jog, PoseReached};
+use crate::postprocess::holder_check::{
+    check_frame, frame_image, FramePose, HolderCheck, HolderCheckError,
+};
 use crate::rig::hal::encode_png;
 use crate::server::api::frames::{make_preview, PREVIEW_MAX};
 use crate::server::error::{ApiError, ApiJson, ErrorBody};
@@ -243,6 +246,88 @@ pub async fn take_frame(
     let png = encode_png(&frame).map_err(ApiError::internal)?;
     d.manual.keep_frame(png);
     Ok(Json(answer))
+}
+
+/// What a holder check answers when the rig has not been posed since it
+/// connected, or has moved since.
+pub const NOT_POSED: &str = "move to a pose first: POST /api/v1/rig/manual/pose; the holder check needs the view (a jog or a homing since the last pose makes it unknown)";
+
+/// Takes a test frame at the last pose and checks the profile's holder in it.
+///
+/// As `rigd holder check` does: every marker looked for where the camera
+/// model puts it at the last pose's view, the frame registered by those
+/// found, each colour patch and white area read and checked for clipping.
+/// A check that finds problems is still 200, with `ok` false and one line
+/// per problem in `problems`. The frame becomes the last test frame
+/// (`GET /api/v1/rig/manual/frame`).
+#[utoipa::path(post, path = "/api/v1/rig/manual/holder-check", tag = "manual", security(("bearer" = [])),
+    request_body(content = Option<FrameRequest>, description = "The camera and exposure, as for a test frame; no body (or `null`): the profile's first camera at its exposure"),
+    responses((status = 200, description = "What the check found; `ok` false names each problem", body = HolderCheck),
+              (status = 401, description = "Missing or wrong token", body = ErrorBody),
+              (status = 409, description = "A run is active, or the rig has not been posed (or has moved since): the check needs the view", body = ErrorBody),
+              (status = 415, description = "A body that is not `Content-Type: application/json`", body = ErrorBody),
+              (status = 422, description = "No such camera, an exposure out of range, a view at the horizon, or a holder the check cannot use", body = ErrorBody),
+              (status = 500, description = "The check failed inside the daemon", body = ErrorBody),
+              (status = 502, description = "The camera failed, did not answer in time, or sent a frame that cannot be read", body = ErrorBody)))]
+pub async fn holder_check(
+    State(d): State<AppState>,
+    req: Option<ApiJson<Option<FrameRequest>>>,
+) -> Result<Json<HolderCheck>, ApiError> {
+    let req = req.and_then(|ApiJson(r)| r).unwrap_or_default();
+    // The view is asked for first: without one no frame is taken.
+    let taken = d
+        .manual(move |rig| {
+            Box::pin(async move {
+                if rig.last_pose().is_none() {
+                    return Ok(None);
+                }
+                let (camera, frame) = rig
+                    .test_frame(req.camera.as_deref(), req.exposure_s)
+                    .await?;
+                let view = rig.posed_view(&camera)?;
+                Ok(view.map(|view| (camera, frame, view)))
+            })
+        })
+        .await?;
+    let Some((camera, frame, view)) = taken else {
+        return Err(ApiError::conflict(NOT_POSED));
+    };
+    let profile = d.profile.clone();
+    let (png, checked) = tokio::task::spawn_blocking(move || {
+        let png = encode_png(&frame);
+        let checked = frame_image(&frame, &profile, &camera)
+            .map_err(|e| {
+                ApiError::new(
+                    axum::http::StatusCode::BAD_GATEWAY,
+                    format!("camera `{camera}` sent a frame that cannot be read: {e}"),
+                )
+            })
+            .and_then(|image| {
+                let pose = FramePose {
+                    view,
+                    camera: Some(camera),
+                    focal_px: None,
+                };
+                check_frame(&profile, &image, &pose).map_err(holder_check_error)
+            });
+        (png, checked)
+    })
+    .await
+    .map_err(|e| ApiError::internal(e.to_string()))?;
+    d.manual.keep_frame(png.map_err(ApiError::internal)?);
+    Ok(Json(checked?))
+}
+
+/// Why the check could not be made: the profile's holder or camera, or
+/// the view, cannot be used (422).
+fn holder_check_error(e: HolderCheckError) -> ApiError {
+    match e {
+        HolderCheckError::Holder(_)
+        | HolderCheckError::Camera(_)
+        | HolderCheckError::Invalid(_) => ApiError::invalid(e.to_string()),
+        // Only `read_frame` reads files; a frame in memory has no path.
+        HolderCheckError::Frame { .. } => ApiError::internal(e.to_string()),
+    }
 }
 
 /// The last test frame as an 8-bit PNG, stretched to its brightest pixel.

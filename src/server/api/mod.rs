@@ -45,7 +45,7 @@ names in a request are looked up, never used as paths (docs/api.md, \"Security\"
         runs::resume_run, runs::abort_run, rig::estop, daemon::events_sse, frames::frame_raw,
         frames::frame_preview, queue::get_queue, queue::post_queue, queue::delete_queue,
         viewer::btf_manifest, viewer::btf_data, viewer::btf_mesh, viewer::mdf_manifest, viewer::mdf_data, manual::home, manual::jog,
-        manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::release,
+        manual::pose, manual::lamp, manual::take_frame, manual::last_frame, manual::holder_check, manual::release,
         process::submit, process::get_job, process::cancel, peers::list_peers, peers::pause_peer,
         peers::abort_peer
     ),
@@ -56,6 +56,9 @@ names in a request are looked up, never used as paths (docs/api.md, \"Security\"
         crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,
         manual::JogRequest, manual::PoseRequest, manual::SwitchRequest, manual::FrameRequest,
         manual::Reached, manual::Switched, manual::TestFrame, crate::engine::manual::PoseReached,
+        crate::postprocess::holder_check::HolderCheck,
+        crate::postprocess::holder_check::MarkerCheck,
+        crate::postprocess::holder_check::AreaReading,
         crate::server::wire::ProcessJob, crate::server::wire::StepStatus,
         crate::server::wire::JobState, crate::postprocess::pipeline::ProcessOptions,
         crate::postprocess::pipeline::Step, crate::postprocess::pipeline::RectifyOptions,

@@ -1338,6 +1338,70 @@ async function testFrame() {
   $("preview-caption").textContent = `test frame from ${r.camera} (manual control)`;
 }
 
+// POST /rig/manual/holder-check: a test frame at the last pose, with the
+// holder found in it: markers, registration, patches, each problem.
+async function checkHolder() {
+  const button = $("manual-holder");
+  const out = $("manual-holder-result");
+  button.disabled = true;
+  // An old result must not stand beside a new failure.
+  out.replaceChildren();
+  out.hidden = true;
+  const r = await manual("holder-check", { camera: $("manual-camera").value || undefined }, (c) =>
+    `holder check from ${c.camera}: ${c.ok ? "OK" : `${c.problems.length} problem${c.problems.length === 1 ? "" : "s"}`}`);
+  button.disabled = false;
+  if (!r) return;
+  renderHolderCheck(r);
+  state.testFrame = true;
+  const img = $("preview");
+  img.src = `${API}/rig/manual/frame?t=${Date.now()}`;
+  img.alt = `Holder check frame from ${r.camera}`;
+  $("preview-caption").textContent = `holder check frame from ${r.camera} (manual control)`;
+}
+
+function renderHolderCheck(c) {
+  const out = $("manual-holder-result");
+  const px = (v) => (v == null ? "–" : `${v.toFixed(3)} px`);
+  const summary = text("p", null, { "data-testid": "holder-summary", class: c.ok ? "ok-text" : "fault-text" });
+  summary.textContent = `holder ${c.holder} (${c.profile}), ${c.camera} at view θ ${c.view.theta_deg.toFixed(1)}° ` +
+    `φ ${c.view.phi_deg.toFixed(1)}°: ${c.markers_found} of ${c.markers.length} markers found, ` +
+    `${c.registered ? "registered" : "not registered"}` +
+    (c.registered ? `, residual RMS ${px(c.rms_px)}, max ${px(c.max_px)}` : "");
+  out.append(summary);
+  const areas = c.patches.concat(c.whites);
+  if (areas.length) {
+    const table = text("table", null, { class: "table", "data-testid": "holder-patches" });
+    const head = table.createTHead().insertRow();
+    for (const h of ["Patch", `Mean (${c.channels === 1 ? "grey" : "R G B"})`, "Clipped"]) {
+      head.append(text("th", h, { scope: "col" }));
+    }
+    const body = table.createTBody();
+    for (const a of areas) {
+      const tr = body.insertRow();
+      tr.dataset.patch = a.name;
+      if (a.clipped.length) tr.className = "fault";
+      tr.append(text("td", a.name), text("td", a.mean.map((v) => v.toFixed(4)).join(" ")),
+        text("td", a.clipped.length ? a.clipped.join(", ") : "no"));
+    }
+    out.append(table);
+  } else if (c.registered) {
+    out.append(text("p", "This holder has no colour patches or white areas to read.", { class: "muted small" }));
+  }
+  const list = text("ul", null, { class: "check-list", "data-testid": "holder-problems" });
+  if (c.ok) {
+    const li = text("li", "", { class: "ok" });
+    li.append(text("strong", "OK"), text("span", " every marker found, nothing clipped"));
+    list.append(li);
+  }
+  for (const p of c.problems) {
+    const li = text("li", "", { class: "fault" });
+    li.append(text("strong", "FAIL"), text("span", ` ${p}`));
+    list.append(li);
+  }
+  out.append(list);
+  out.hidden = false;
+}
+
 function setupManual() {
   $("manual-home").addEventListener("click", () => {
     const device = $("manual-axis").value;
@@ -1365,6 +1429,7 @@ function setupManual() {
   $("manual-on").addEventListener("click", () => sw(true));
   $("manual-off").addEventListener("click", () => sw(false));
   $("manual-frame").addEventListener("click", testFrame);
+  $("manual-holder").addEventListener("click", checkHolder);
 }
 
 async function estop() {
