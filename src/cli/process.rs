@@ -665,6 +665,13 @@ fn btf(args: BtfArgs) -> Result<()> {
         args.run.join("processed/btf").display(),
         report.compress_s
     );
+    if report.clipped.filled + report.clipped.left > 0 {
+        println!(
+            "clipped texels: {} filled from their slot's neighbouring lights, {} clipped under \
+             every light and kept as read (lower bounds)",
+            report.clipped.filled, report.clipped.left
+        );
+    }
     println!("C\tmean RMS error over slots (1 = full scale)");
     for (c, rms) in report.mean_rms_by_components.iter().enumerate() {
         if [1, 2, 4, 8, 16, 32].contains(&(c + 1)) {

@@ -7,6 +7,7 @@ use rigd_core::geometry::Direction;
 use serde::Serialize;
 
 use super::rectify::NormtextureIndex;
+use super::slot_textures::{load_slot, ClipFill};
 use super::ProcessError;
 
 /// Per slot and for the whole run: how fast the spectrum decays and what
@@ -32,6 +33,10 @@ pub struct BtfReport {
     /// tasks of a cluster's job array ([`compress_slot_ahead`]), rather
     /// than compressed now.
     pub slots_ahead: usize,
+    /// Texels that read a clipped pixel, filled from their slot's
+    /// neighbouring lights before the compression, and those clipped under
+    /// every light and kept as read ([`crate::postprocess::slot_textures`]).
+    pub clipped: ClipFill,
 }
 
 /// The PCA of one view slot: its spectrum and error curve.
@@ -91,24 +96,25 @@ pub fn btf_run(
     .clamp(1, rayon::current_num_threads().max(1));
     let ahead = std::sync::atomic::AtomicUsize::new(0);
     let compress = |slot: usize| -> Result<_, ProcessError> {
-        if let Some(pca) = take_slot_ahead(run, &index, slot, components) {
+        if let Some((pca, fill)) = take_slot_ahead(run, &index, slot, components) {
             ahead.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            return Ok(pca);
+            return Ok((pca, fill));
         }
-        let images = (0..index.lights.len())
-            .map(|l| index.load(run, slot, l).map(|img| img.data))
-            .collect::<Result<Vec<_>, _>>()?;
-        let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
-        compress_slot(&refs, shape, components)
-            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))
+        let (images, fill) = load_slot(run, &index, slot)?;
+        let refs: Vec<&[f32]> = images.iter().map(|i| i.data.as_slice()).collect();
+        let pca = compress_slot(&refs, shape, components)
+            .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
+        Ok((pca, fill))
     };
+    let mut clipped = ClipFill::default();
     let mut per_slot = Vec::with_capacity(slots);
     for first in (0..slots).step_by(in_flight) {
         let batch = (first..(first + in_flight).min(slots))
             .into_par_iter()
             .map(compress)
             .collect::<Result<Vec<_>, _>>()?;
-        for (pca, slot) in batch.into_iter().zip(first..) {
+        for ((pca, fill), slot) in batch.into_iter().zip(first..) {
+            clipped = clipped + fill;
             writer
                 .write_slot(slot, &pca)
                 .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
@@ -162,6 +168,7 @@ pub fn btf_run(
         compress_s,
         bytes,
         slots_ahead: ahead.into_inner(),
+        clipped,
     };
     let mut json =
         serde_json::to_vec_pretty(&report).map_err(|e| ProcessError::Invalid(e.to_string()))?;
@@ -182,6 +189,8 @@ struct SlotAhead {
     key: String,
     shape: [usize; 3],
     singular_values: Vec<f64>,
+    #[serde(default)]
+    clipped: ClipFill,
 }
 
 fn ahead_paths(run: &Path, slot: usize) -> (std::path::PathBuf, std::path::PathBuf) {
@@ -249,10 +258,8 @@ pub fn compress_slot_ahead(
     })?;
     let shape = TextureShape::new(index.size, index.size, index.channels)
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-    let images = (0..index.lights.len())
-        .map(|l| index.load(run, slot, l).map(|img| img.data))
-        .collect::<Result<Vec<_>, _>>()?;
-    let refs: Vec<&[f32]> = images.iter().map(Vec::as_slice).collect();
+    let (images, clipped) = load_slot(run, index, slot)?;
+    let refs: Vec<&[f32]> = images.iter().map(|i| i.data.as_slice()).collect();
     let pca = compress_slot(&refs, shape, components)
         .map_err(|e| ProcessError::Invalid(format!("view slot {slot}: {e}")))?;
     let (meta_path, bin_path) = ahead_paths(run, slot);
@@ -264,6 +271,7 @@ pub fn compress_slot_ahead(
         key,
         shape: [pca.values(), pca.lights(), pca.components()],
         singular_values: pca.singular_values().to_vec(),
+        clipped,
     };
     let json = serde_json::to_vec(&kept).map_err(|e| ProcessError::Invalid(e.to_string()))?;
     // Written last: a slot without it is not taken.
@@ -317,7 +325,7 @@ fn take_slot_ahead(
     index: &NormtextureIndex,
     slot: usize,
     components: usize,
-) -> Option<rigd_process::btf::SlotPca> {
+) -> Option<(rigd_process::btf::SlotPca, ClipFill)> {
     let (meta_path, bin_path) = ahead_paths(run, slot);
     let kept: SlotAhead = serde_json::from_slice(&std::fs::read(meta_path).ok()?).ok()?;
     let key = slot_key(run, index, slot, &format!("C{components}"));
@@ -329,7 +337,9 @@ fn take_slot_ahead(
         return None;
     }
     let bytes = std::fs::read(bin_path).ok()?;
-    rigd_process::btf::SlotPca::from_le_bytes(&bytes, kept.shape, kept.singular_values).ok()
+    let pca =
+        rigd_process::btf::SlotPca::from_le_bytes(&bytes, kept.shape, kept.singular_values).ok()?;
+    Some((pca, kept.clipped))
 }
 
 fn remove_slots_ahead(run: &Path) {

@@ -94,9 +94,7 @@ fn fit_one_slot(
     crate::postprocess::create_dir(&dir)?;
     let invalid =
         |e: &dyn std::fmt::Display| ProcessError::Invalid(format!("view slot {slot}: {e}"));
-    let images = (0..lights.len())
-        .map(|l| index.load(run, slot, l))
-        .collect::<Result<Vec<_>, _>>()?;
+    let (images, _) = crate::postprocess::slot_textures::load_slot(run, index, slot)?;
     let texels = images.first().map_or(0, |i| i.data.len());
     if let Some(l) = images.iter().position(|i| i.data.len() != texels) {
         return Err(ProcessError::Invalid(format!(

@@ -18,6 +18,7 @@ pub mod parts;
 pub mod pipeline;
 pub mod ps;
 pub mod rectify;
+pub mod slot_textures;
 pub mod slurm;
 pub mod viewer;
 

@@ -2,7 +2,9 @@
 //! `leather` sample seen in its mirror direction clips at the profile's
 //! exposure, and `rigd process rectify` counts the texels that read a
 //! clipped pixel, writes their mask and names the frame and its
-//! directions; a matte sample under the same light clips nothing.
+//! directions; the BTF compression fills them from the slot's
+//! neighbouring lights and says how many; a matte sample under the same
+//! lights clips nothing.
 
 use std::path::Path;
 
@@ -12,15 +14,16 @@ fn arg(p: &Path) -> String {
     p.to_str().expect("utf8").to_string()
 }
 
-/// Captures `scene` under one light (θ 34° φ 240°), seen in its mirror
-/// direction and from θ 60° φ 150°, and rectifies it; what the rectify
-/// printed.
+/// Captures `scene` under three lights, the first (θ 34° φ 240°) seen in
+/// its mirror direction, and from θ 60° φ 150°, and rectifies it; what
+/// the rectify printed.
 fn capture_and_rectify(dir: &Path, scene: &str) -> (std::path::PathBuf, String) {
     let run = dir.join(scene);
     let plan = dir.join("plan.json");
     std::fs::write(
         &plan,
-        r#"{"lights": [{"theta_deg": 34, "phi_deg": 240}],
+        r#"{"lights": [{"theta_deg": 34, "phi_deg": 240}, {"theta_deg": 60, "phi_deg": 300},
+                       {"theta_deg": 15, "phi_deg": 120}],
             "views": [{"theta_deg": 34, "phi_deg": 60}, {"theta_deg": 60, "phi_deg": 150}]}"#,
     )
     .expect("plan");
@@ -56,12 +59,16 @@ fn texels_that_read_a_clipped_pixel_are_counted_masked_and_reported() {
             .expect("json");
     let frames = index["frames"].as_array().expect("frames");
     let views = index["views"].as_array().expect("views");
+    let lights = index["lights"].as_array().expect("lights");
+    // The first light's frame from the view at `theta`.
     let of_view = |theta: f64| {
         frames
             .iter()
             .find(|f| {
                 let slot = f["view_slot"].as_u64().expect("slot") as usize;
+                let light = f["light_index"].as_u64().expect("light") as usize;
                 views[slot]["theta_deg"].as_f64().map(f64::round) == Some(theta)
+                    && lights[light]["phi_deg"].as_f64().map(f64::round) == Some(240.0)
             })
             .expect("the view's frame")
     };
@@ -122,6 +129,49 @@ fn texels_that_read_a_clipped_pixel_are_counted_masked_and_reported() {
     assert!(
         printed.contains("clipped:") && printed.contains("view θ 34.0° φ 60.0°"),
         "{printed}"
+    );
+
+    // The BTF compression takes none of them as measured: each is filled
+    // from the lights of its slot that did not clip there, or counted as
+    // clipped under every light. With as many components as lights it
+    // gives back its input, so where the mirror frame clipped the BTF
+    // holds the fill (lower than the clipped reading), and elsewhere what
+    // was measured.
+    let out = run_ok(&["process", "btf", "--components", "3", &arg(&run)]);
+    let printed = String::from_utf8_lossy(&out.stdout);
+    let report: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(run.join("processed/btf/report.json")).expect("btf report"),
+    )
+    .expect("json");
+    let (filled, left) = (
+        report["clipped"]["filled"].as_u64().expect("filled"),
+        report["clipped"]["left"].as_u64().expect("left"),
+    );
+    assert_eq!(filled + left, total, "{printed}");
+    assert!(
+        filled > 0 && printed.contains("clipped texels:"),
+        "{printed}"
+    );
+    let btf = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).expect("the BTF");
+    let slot = mirror["view_slot"].as_u64().expect("slot") as usize;
+    let light = mirror["light_index"].as_u64().expect("light") as usize;
+    let stored = btf
+        .reconstruct_measured(slot, light)
+        .expect("reconstructed");
+    let (mut lowered, mut kept) = (0usize, 0usize);
+    for (i, (&value, &read)) in stored.iter().zip(&texture.data).enumerate() {
+        let difference = value - read;
+        if mask.data[i] > 0.5 {
+            lowered += usize::from(difference < -0.02);
+        } else {
+            assert!(difference.abs() < 1e-3, "texel {i}: {difference}");
+            kept += 1;
+        }
+    }
+    assert!(kept > 0);
+    assert!(
+        lowered > clipped / 2,
+        "{lowered} of {clipped} clipped texels replaced by lower values"
     );
 
     // A matte sample under the same light clips nothing, and its index
