@@ -283,6 +283,7 @@ impl Rectifier<'_> {
         };
         let texture = cut(&full.texture)?;
         self.store(rec, &texture, bit_depth)?;
+        (rec.clipped_texels, rec.clipped_share, rec.clipped_mask) = (0, None, None);
         if let Some(clipped) = &images.clipped {
             // Resampled as the texture is: a texel with any weight on a
             // clipped pixel read a value that is only a lower bound.
@@ -301,12 +302,11 @@ impl Rectifier<'_> {
             *m = if v > CLIPPED_WEIGHT { 1.0 } else { 0.0 };
         }
         let count = marks.data.iter().filter(|&&v| v > 0.0).count();
-        rec.clipped_texels = count;
-        rec.clipped_share = Some(count as f64 / marks.data.len().max(1) as f64);
         if count == 0 {
-            rec.clipped_mask = None;
             return Ok(());
         }
+        rec.clipped_texels = count;
+        rec.clipped_share = Some(count as f64 / marks.data.len().max(1) as f64);
         let file = format!("v{:03}_l{:03}.clipped.png", rec.view_slot, rec.light_index);
         write_png(&self.out_dir.join(&file), &marks, PngDepth::Eight).map_err(|e| e.to_string())?;
         rec.clipped_mask = Some(file);
