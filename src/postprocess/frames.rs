@@ -329,12 +329,14 @@ impl Linear {
             Linear::Mosaic(img, _) => (img, 1, 1),
             Linear::Rgb(img) => (img, 3, 0),
         };
+        // Most frames clip nothing: no mask is made for them.
+        if !img.data.iter().any(|&v| v >= CLIPPED_LEVEL) {
+            return None;
+        }
         let (w, h) = (img.width, img.height);
         let mut mask = Image::new(w, h, 1);
-        let mut any = false;
         for (i, px) in img.data.chunks_exact(channels).enumerate() {
             if px.iter().any(|&v| v >= CLIPPED_LEVEL) {
-                any = true;
                 let (x, y) = (i % w, i / w);
                 for yy in y.saturating_sub(spread)..(y + spread + 1).min(h) {
                     for xx in x.saturating_sub(spread)..(x + spread + 1).min(w) {
@@ -343,7 +345,7 @@ impl Linear {
                 }
             }
         }
-        any.then(|| Clipped {
+        Some(Clipped {
             pixels: mask.data.iter().filter(|&&v| v > 0.0).count(),
             mask,
         })

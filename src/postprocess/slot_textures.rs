@@ -11,11 +11,8 @@ use std::path::Path;
 use rigd_process::image_io::Image;
 use serde::{Deserialize, Serialize};
 
-use super::rectify::NormtextureIndex;
+use super::rectify::{NormtextureIndex, FILL_NEIGHBOURS};
 use super::ProcessError;
-
-/// A clipped texel is filled from at most this many lights.
-pub const FILL_NEIGHBOURS: usize = 3;
 
 /// What the fill did to a slot's (or a run's) clipped texels.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]

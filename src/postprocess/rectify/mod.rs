@@ -650,6 +650,7 @@ mod stream;
 pub use part::first_pass_range;
 pub use run::rectify_run;
 pub use steps::{
-    BLACK_FLOOR, BLACK_P99, BLACK_RATIO, MARKER_DOUBT_FACTOR, MARKER_DOUBT_PX, SATURATED_FRACTION,
+    BLACK_FLOOR, BLACK_P99, BLACK_RATIO, FILL_NEIGHBOURS, MARKER_DOUBT_FACTOR, MARKER_DOUBT_PX,
+    SATURATED_FRACTION,
 };
 pub use stream::{RectifyStream, StreamProgress};

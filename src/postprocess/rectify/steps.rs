@@ -50,8 +50,9 @@ pub(super) const MAX_TEXTURE_SHIFT: f64 = 0.03;
 pub(super) const MAX_REFERENCE_LIGHT_DEG: f64 = 20.0;
 /// Marker-registered frames the texture refinement's error is measured on.
 pub(super) const TEXTURE_CHECKS: usize = 16;
-/// An unusable frame is filled from this many nearest lights of its slot.
-pub(super) const FILL_NEIGHBOURS: usize = 3;
+/// An unusable frame, or a texel that clipped, is filled from this many
+/// nearest lights of its slot.
+pub const FILL_NEIGHBOURS: usize = 3;
 /// A texel whose resampled clip mask exceeds this read a clipped pixel
 /// (the mask is 0 or 1 before resampling; this is above float noise).
 const CLIPPED_WEIGHT: f32 = 1e-4;
