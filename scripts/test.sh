@@ -66,6 +66,14 @@ if ! command -v raw-identify >/dev/null || ! command -v unprocessed_raw >/dev/nu
     apt_install libraw-bin
 fi
 
+# PTP/IP cameras (tests/it/gphoto2_peer.rs): the `gphoto2` tool, through
+# libgphoto2's own ptp2 driver, lists and captures from rigd's simulated
+# camera served over PTP/IP by `rigd sim serve`.
+if ! command -v gphoto2 >/dev/null; then
+    echo "== installing gphoto2 (for tests/it/gphoto2_peer.rs)"
+    apt_install gphoto2
+fi
+
 # The Python the tests run, from a venv of their own (target/ is not
 # committed), with the exact packages of tests/support/requirements.txt:
 # pymodbus for tests/support/relay_module.py (a relay module),

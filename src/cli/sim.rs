@@ -31,8 +31,8 @@ pub fn run(cmd: SimCmd) -> Result<ExitCode> {
 pub enum SimCmd {
     /// Serve a profile's simulated firmware in real time, as hardware would be
     /// reached: serial devices (GRBL, ACL) on pseudo-terminals, relay modules on
-    /// Modbus TCP on 127.0.0.1 (RTU modules also on a pty), cameras as PTP over
-    /// a loopback socket. Prints the endpoints and a profile that points at them
+    /// Modbus TCP on 127.0.0.1 (RTU modules also on a pty), cameras as PTP/IP
+    /// cameras on 127.0.0.1 (gphoto2 drives them too). Prints the endpoints and a profile that points at them
     /// (`rigd run --profile THAT_FILE` drives the served rig), then runs until
     /// interrupted.
     Serve {

@@ -188,7 +188,7 @@ pub struct Device {
     /// decides the tables it needs.
     pub kind: DeviceKind,
     /// How the daemon reaches it: `{ type = "serial" | "modbus_rtu" |
-    /// "modbus_tcp" | "usb" | "ptp_tcp" | "genicam", ... }`.
+    /// "modbus_tcp" | "usb" | "ptpip" | "genicam", ... }`.
     pub transport: Transport,
     /// Wire protocol: `grbl`, `modbus`, `acl`, `ptp` or `genicam`.
     pub protocol: String,
@@ -496,12 +496,15 @@ pub enum Transport {
         #[serde(default)]
         serial: Option<String>,
     },
-    /// A PTP camera's USB transfers carried over TCP, one frame per
-    /// transfer (how `rigd sim serve` offers its simulated cameras).
-    PtpTcp {
-        /// Host name or IP address serving the camera link.
+    /// A PTP camera on the network, over PTP/IP (CIPA DC-005): its command
+    /// and event connections on one port (how `rigd sim serve` offers its
+    /// simulated cameras, too).
+    #[serde(rename = "ptpip")]
+    PtpIp {
+        /// The camera's host name or IP address.
         host: String,
-        /// TCP port of the camera link.
+        /// TCP port, 15740 (PTP/IP's own) if absent.
+        #[serde(default = "default_ptpip_port")]
         port: u16,
     },
     /// A GenICam camera (GigE Vision or USB3 Vision) reached through
@@ -517,6 +520,10 @@ fn default_unit() -> u8 {
     1
 }
 
+fn default_ptpip_port() -> u16 {
+    rigd_proto::ptp::ip::DEFAULT_PORT
+}
+
 impl Transport {
     /// The relay module a lamp or laser on this transport is wired to, as
     /// `modbus-rtu:PORT#UNIT` or `modbus-tcp:HOST:PORT#UNIT` (a module on a
@@ -529,7 +536,7 @@ impl Transport {
                 host, port, unit, ..
             } => Some(format!("modbus-tcp:{host}:{port}#{unit}")),
             Transport::Serial { port, .. } => Some(format!("modbus-rtu:{port}#1")),
-            Transport::Usb { .. } | Transport::PtpTcp { .. } | Transport::Genicam { .. } => None,
+            Transport::Usb { .. } | Transport::PtpIp { .. } | Transport::Genicam { .. } => None,
         }
     }
 
@@ -1403,7 +1410,7 @@ fn check_transport(key: &str, transport: &Transport) -> Result<(), (String, Stri
                 ));
             }
         }
-        Transport::ModbusTcp { host, port, .. } | Transport::PtpTcp { host, port } => {
+        Transport::ModbusTcp { host, port, .. } | Transport::PtpIp { host, port } => {
             if host.trim().is_empty() {
                 return Err((
                     format!("{key}.host"),

@@ -1,5 +1,5 @@
 //! Links to real hardware: serial ports (tokio-serial), Modbus TCP sockets,
-//! USB cameras (nusb) and GenICam cameras (Aravis), as the profile's
+//! USB cameras (nusb), PTP/IP cameras and GenICam cameras (Aravis), as the profile's
 //! `transport` of each device says.
 
 use std::collections::BTreeMap;
@@ -10,6 +10,7 @@ use async_trait::async_trait;
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::model::profile::{DeviceKind, Profile, Transport};
 use crate::rig::drivers::genicam::{GenicamConfig, GenicamOpener, GenicamSession, SessionError};
+use crate::rig::drivers::ptpip::PtpIpPipe;
 use crate::rig::drivers::usb::{NusbPipe, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Rig};
 use rigd_core::Clock;
@@ -85,28 +86,26 @@ impl PipeOpener for UsbOpener {
     }
 }
 
-/// A camera's USB transfers over TCP (see `ptp-camera.md`).
-pub struct PtpTcpOpener {
-    /// Host name or IP address serving the camera link.
+/// A PTP/IP camera (CIPA DC-005) on the network.
+pub struct PtpIpOpener {
+    /// The camera's host name or IP address.
     pub host: String,
-    /// TCP port of the camera link.
+    /// Its TCP port (15740 as a rule).
     pub port: u16,
 }
 
 #[async_trait]
-impl PipeOpener for PtpTcpOpener {
+impl PipeOpener for PtpIpOpener {
     fn describe(&self) -> String {
-        format!("PTP camera link at TCP {}:{}", self.host, self.port)
+        format!("PTP/IP camera at {}:{}", self.host, self.port)
     }
 
     async fn open(&self) -> Result<BoxPipe, UsbError> {
-        let stream = tokio::net::TcpStream::connect((self.host.as_str(), self.port))
+        let pipe = PtpIpPipe::connect(&self.host, self.port)
             .await
             .map_err(|e| UsbError::Io(e.to_string()))?;
-        stream
-            .set_nodelay(true)
-            .map_err(|e| UsbError::Io(e.to_string()))?;
-        Ok(Box::new(rigd_proto::ptp::link::host_over(stream)))
+        tracing::info!(camera = %pipe.camera().name, "PTP/IP session open");
+        Ok(Box::new(pipe))
     }
 }
 
@@ -149,7 +148,7 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                     }),
                     Framing::Tcp,
                 ),
-                (Transport::PtpTcp { host, port }, _) => Link::Usb(Arc::new(PtpTcpOpener {
+                (Transport::PtpIp { host, port }, _) => Link::Usb(Arc::new(PtpIpOpener {
                     host: host.clone(),
                     port: *port,
                 })),

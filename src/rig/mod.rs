@@ -14,6 +14,8 @@ pub mod drivers;
 pub mod hal;
 pub mod hardware;
 pub mod plate;
+#[cfg(feature = "sim")]
+mod ptpip_serve;
 mod relink;
 #[cfg(feature = "sim")]
 pub mod serve;
@@ -57,7 +59,7 @@ use crate::rig::drivers::genicam::{GenicamCamera, GenicamConfig, GenicamOpener};
 use crate::rig::drivers::grbl::{GrblAxis, GrblConfig};
 use crate::rig::drivers::modbus::{all_off, ModbusConfig, ModbusLamp, ModbusLaser, SharedBus};
 use crate::rig::drivers::ptp::{PtpCamera, PtpConfig};
-use crate::rig::drivers::usb::{UsbError, UsbPipe};
+use crate::rig::drivers::usb::{PtpPipe, UsbError};
 use crate::rig::hal::{
     Arm, Axis, Camera, DeviceError, EmergencyStop, ErrorKind, Lamp, LaserLine, Rig,
 };
@@ -72,7 +74,7 @@ impl<T: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static> ByteLink f
 pub type ByteStream = Box<dyn ByteLink>;
 
 /// A boxed USB pipe: a real camera or the simulated one.
-pub type BoxPipe = Box<dyn UsbPipe>;
+pub type BoxPipe = Box<dyn PtpPipe>;
 
 /// Opens (and re-opens) the byte stream of one device or bus.
 #[async_trait]

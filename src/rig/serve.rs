@@ -1,8 +1,8 @@
 //! `rigd sim serve`: the simulated firmware of a profile offered the way
 //! hardware is, so anything that talks to real devices can talk to it:
 //! serial devices on pseudo-terminals, relay modules on Modbus TCP on
-//! 127.0.0.1 (and RTU modules also on a pty), cameras as PTP transfers
-//! over a loopback socket. It answers with a copy of the profile whose
+//! 127.0.0.1 (and RTU modules also on a pty), cameras as PTP/IP cameras
+//! on 127.0.0.1. It answers with a copy of the profile whose
 //! transports point at these endpoints.
 
 use std::collections::BTreeMap;
@@ -27,7 +27,7 @@ pub struct Endpoint {
     /// A pty path or `127.0.0.1:PORT`, with what speaks there.
     pub address: String,
     /// What speaks there: `GRBL`, `ACL`, `Modbus RTU`, `Modbus TCP`,
-    /// `PTP over TCP`.
+    /// `PTP/IP`.
     pub protocol: String,
 }
 
@@ -171,22 +171,20 @@ pub async fn serve(
                     continue;
                 };
                 let (listener, port) = listen(name).await?;
-                let cam_name = name.clone();
-                tokio::spawn(async move {
-                    while let Ok((stream, _)) = listener.accept().await {
-                        let _ = stream.set_nodelay(true);
-                        tracing::info!(camera = %cam_name, "client connected");
-                        cam.start(rigd_proto::ptp::link::device_over(stream));
-                    }
-                });
-                dev.transport = Transport::PtpTcp {
+                tokio::spawn(super::ptpip_serve::serve_camera(
+                    listener,
+                    cam,
+                    name.clone(),
+                    clock.clone(),
+                ));
+                dev.transport = Transport::PtpIp {
                     host: "127.0.0.1".into(),
                     port,
                 };
                 endpoints.push(Endpoint {
                     device: name.clone(),
                     address: format!("127.0.0.1:{port}"),
-                    protocol: "PTP over TCP".into(),
+                    protocol: "PTP/IP".into(),
                 });
             }
             // The simulator's cameras are PTP cameras; it serves no GenICam.

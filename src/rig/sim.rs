@@ -612,6 +612,11 @@ pub(crate) struct PtpOpener {
 }
 
 impl PtpOpener {
+    /// The camera's model, as its DeviceInfo names it.
+    pub(crate) fn model(&self) -> &str {
+        &self.spec.model
+    }
+
     /// Starts the camera's firmware on the device end of a link.
     pub(crate) fn start(&self, dev: MemoryDevice) {
         let view = self.view.clone();

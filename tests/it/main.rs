@@ -30,6 +30,7 @@ mod faults;
 mod full_runs;
 #[cfg(feature = "genicam")]
 mod genicam;
+mod gphoto2_peer;
 mod grbl_e2e;
 mod grbl_transcripts;
 mod holder;

@@ -34,7 +34,7 @@ fn served_msra_rig_answers_a_modbus_client_and_completes_a_run() {
             lines
                 .iter()
                 .any(|l| l.split_whitespace().nth(1) == Some(name.as_str())
-                    && l.contains("PTP over TCP")),
+                    && l.contains("PTP/IP")),
             "{name}"
         );
     }

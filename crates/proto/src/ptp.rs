@@ -8,7 +8,9 @@
 //! camera (or a broken cable) delivers. The in-memory USB link shared by the
 //! driver tests and the simulated firmware lives in [`link`].
 
+pub mod ip;
 pub mod link;
+pub mod property;
 
 use std::fmt;
 
@@ -87,6 +89,18 @@ pub enum CodecError {
     /// Bytes were left after a dataset was decoded (carries their number).
     #[error("{0} trailing bytes after the dataset")]
     Trailing(usize),
+    /// A property value does not fit the property's data type.
+    #[error("value {0} does not fit a 16-bit property")]
+    ValueTooWide(u32),
+    /// A property's value list is longer than its u16 count can say.
+    #[error("{0} values in one list, at most 65535")]
+    TooManyValues(usize),
+    /// A property description of a data type rigd does not read.
+    #[error("property data type 0x{0:04X} (rigd reads UINT16 and UINT32)")]
+    UnknownDataType(u16),
+    /// A property description's FormFlag is not 0, 1 or 2.
+    #[error("property form flag {0}")]
+    UnknownForm(u8),
 }
 
 /// What a container is (the `type` field of the header).
@@ -207,6 +221,9 @@ codes! {
         DeleteObject = 0x100B,
         /// Start a capture; answered at once, the frame is announced by events.
         InitiateCapture = 0x100E,
+        /// Read a device property's description (DevicePropDesc): its
+        /// value and the values it takes; parameter: the property code.
+        GetDevicePropDesc = 0x1014,
         /// Read a device property's value; parameter: the property code.
         GetDevicePropValue = 0x1015,
         /// Write a device property's value (data phase host to camera).

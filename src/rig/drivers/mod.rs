@@ -9,6 +9,7 @@ pub mod genicam;
 pub mod grbl;
 pub mod modbus;
 pub mod ptp;
+pub mod ptpip;
 pub mod usb;
 
 use std::time::Duration;

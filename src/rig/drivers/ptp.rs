@@ -1,5 +1,5 @@
 //! The PTP camera driver (ISO 15740 over USB, `firmware-protocols/ptp-camera.md`):
-//! a [`Camera`] over any [`UsbPipe`], so the same code drives a real camera
+//! a [`Camera`] over any [`PtpPipe`], so the same code drives a real camera
 //! through `nusb` and the simulated firmware through the in-memory link.
 //!
 //! Every transaction is command → optional data phase → response, with a
@@ -23,7 +23,7 @@ use rigd_proto::ptp::{
     Header, ObjectInfo, OpCode, PropCode, ResponseCode, HEADER_LEN,
 };
 
-use super::usb::{UsbError, UsbPipe};
+use super::usb::{PtpPipe, UsbError};
 use crate::rig::camera_file::{self, CameraImage};
 use crate::rig::hal::{Camera, DeviceError, ErrorKind, Frame, OriginalFile};
 
@@ -174,7 +174,7 @@ fn protocol(op: OpCode, e: impl std::fmt::Display) -> PtpError {
 
 /// A PTP camera on a USB pipe.
 #[derive(Debug)]
-pub struct PtpCamera<P: UsbPipe> {
+pub struct PtpCamera<P: PtpPipe> {
     name: String,
     pipe: P,
     clock: Clock,
@@ -187,7 +187,7 @@ pub struct PtpCamera<P: UsbPipe> {
     pending: Option<u32>,
 }
 
-impl<P: UsbPipe> PtpCamera<P> {
+impl<P: PtpPipe> PtpCamera<P> {
     /// A driver for the camera `name` (the device name in errors). Nothing is
     /// sent until [`PtpCamera::connect`].
     pub fn new(name: &str, pipe: P, clock: Clock, config: PtpConfig) -> PtpCamera<P> {
@@ -424,11 +424,14 @@ impl<P: UsbPipe> PtpCamera<P> {
         let cmd = Container::with_params(ContainerKind::Command, op.0, tid, params)
             .and_then(|c| c.encode())
             .map_err(codec)?;
-        self.pipe.bulk_out(cmd).await.map_err(PtpError::Usb)?;
-        if let Some(d) = data_out {
-            let bytes = Container::data(op.0, tid, d).encode().map_err(codec)?;
-            self.pipe.bulk_out(bytes).await.map_err(PtpError::Usb)?;
-        }
+        let data_out = match data_out {
+            Some(d) => Some(Container::data(op.0, tid, d).encode().map_err(codec)?),
+            None => None,
+        };
+        self.pipe
+            .send_operation(cmd, data_out)
+            .await
+            .map_err(PtpError::Usb)?;
         let mut data: Option<Vec<u8>> = None;
         let mut truncated: Option<(usize, usize)> = None;
         loop {
@@ -533,7 +536,7 @@ fn grey_or_mosaic(image: &CameraImage) -> Vec<u16> {
 }
 
 #[async_trait]
-impl<P: UsbPipe> Camera for PtpCamera<P> {
+impl<P: PtpPipe> Camera for PtpCamera<P> {
     async fn set_exposure(&mut self, exposure_s: f64) -> Result<(), DeviceError> {
         self.set_exposure_s(exposure_s)
             .await

@@ -35,12 +35,29 @@ pub enum UsbError {
     NoStillImageInterface,
 }
 
-/// The three endpoints of a PTP camera. One transfer per call: a
-/// `bulk_in` shorter than `max` ends the device's transfer.
+/// The channels a PTP camera talks over, in the shape of its USB
+/// endpoints: bulk-out, bulk-in and interrupt-in. One transfer per call: a
+/// `bulk_in` shorter than `max` ends the device's transfer. A PTP/IP camera
+/// ([`super::ptpip::PtpIpPipe`]) presents its packets in this shape too.
 #[async_trait]
-pub trait UsbPipe: Send {
+pub trait PtpPipe: Send {
     /// Sends one bulk-out transfer.
     async fn bulk_out(&mut self, bytes: Vec<u8>) -> Result<(), UsbError>;
+    /// Sends an operation: its Command container and, for an operation
+    /// that sends data, its Data container. On USB each is its own
+    /// bulk-out transfer; PTP/IP must know both at once, because its
+    /// Operation Request says whether data follows.
+    async fn send_operation(
+        &mut self,
+        command: Vec<u8>,
+        data_out: Option<Vec<u8>>,
+    ) -> Result<(), UsbError> {
+        self.bulk_out(command).await?;
+        match data_out {
+            Some(d) => self.bulk_out(d).await,
+            None => Ok(()),
+        }
+    }
     /// Reads up to `max` bytes of bulk-in data.
     async fn bulk_in(&mut self, max: usize) -> Result<Vec<u8>, UsbError>;
     /// Waits for the next interrupt-in transfer (a PTP event).
@@ -48,9 +65,17 @@ pub trait UsbPipe: Send {
 }
 
 #[async_trait]
-impl<P: UsbPipe + ?Sized> UsbPipe for Box<P> {
+impl<P: PtpPipe + ?Sized> PtpPipe for Box<P> {
     async fn bulk_out(&mut self, bytes: Vec<u8>) -> Result<(), UsbError> {
         (**self).bulk_out(bytes).await
+    }
+
+    async fn send_operation(
+        &mut self,
+        command: Vec<u8>,
+        data_out: Option<Vec<u8>>,
+    ) -> Result<(), UsbError> {
+        (**self).send_operation(command, data_out).await
     }
 
     async fn bulk_in(&mut self, max: usize) -> Result<Vec<u8>, UsbError> {
@@ -63,7 +88,7 @@ impl<P: UsbPipe + ?Sized> UsbPipe for Box<P> {
 }
 
 #[async_trait]
-impl UsbPipe for MemoryPipe {
+impl PtpPipe for MemoryPipe {
     async fn bulk_out(&mut self, bytes: Vec<u8>) -> Result<(), UsbError> {
         MemoryPipe::bulk_out(self, bytes).map_err(|_| UsbError::Disconnected)
     }
@@ -200,7 +225,7 @@ fn transfer_error(e: nusb::transfer::TransferError) -> UsbError {
 }
 
 #[async_trait]
-impl UsbPipe for NusbPipe {
+impl PtpPipe for NusbPipe {
     async fn bulk_out(&mut self, bytes: Vec<u8>) -> Result<(), UsbError> {
         self.interface
             .bulk_out(self.bulk_out_ep, bytes)
@@ -251,14 +276,14 @@ mod tests {
         let (mut host, dev) = memory_pair();
         dev.write_in(vec![1, 2, 3])
             .unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(UsbPipe::bulk_in(&mut host, 16).await, Ok(vec![1, 2, 3]));
+        assert_eq!(PtpPipe::bulk_in(&mut host, 16).await, Ok(vec![1, 2, 3]));
         drop(dev);
         assert_eq!(
-            UsbPipe::bulk_in(&mut host, 16).await,
+            PtpPipe::bulk_in(&mut host, 16).await,
             Err(UsbError::Disconnected)
         );
         assert_eq!(
-            UsbPipe::bulk_out(&mut host, vec![0]).await,
+            PtpPipe::bulk_out(&mut host, vec![0]).await,
             Err(UsbError::Disconnected)
         );
     }

@@ -2,7 +2,7 @@
 //! endpoints of one camera, as a host end (for the driver) and a device end
 //! (for the simulated firmware) joined by channels.
 //!
-//! It lives here, beside the codec, because both `rigd` (whose `UsbPipe`
+//! It lives here, beside the codec, because both `rigd` (whose `PtpPipe`
 //! trait the host end implements) and `rigd-sim` (whose firmware serves the
 //! device end) must reach it without depending on each other.
 //!
@@ -91,6 +91,30 @@ impl HostEnd {
     /// Waits for the next interrupt transfer (an event container).
     pub async fn interrupt_in(&mut self) -> Result<Vec<u8>, LinkClosed> {
         self.int_rx.recv().await.ok_or(LinkClosed)
+    }
+}
+
+/// A host end taken apart, for a bridge that forwards whole transfers in
+/// both directions at once.
+#[derive(Debug)]
+pub struct HostParts {
+    /// Sends bulk-out transfers.
+    pub bulk_out: mpsc::UnboundedSender<Vec<u8>>,
+    /// Receives whole bulk-in transfers.
+    pub bulk_in: mpsc::UnboundedReceiver<Vec<u8>>,
+    /// Receives interrupt transfers.
+    pub interrupt_in: mpsc::UnboundedReceiver<Vec<u8>>,
+}
+
+impl HostEnd {
+    /// The end's channels, each usable on its own. A transfer already
+    /// partly read is lost, so take an end apart before reading from it.
+    pub fn into_parts(self) -> HostParts {
+        HostParts {
+            bulk_out: self.out_tx,
+            bulk_in: self.in_rx,
+            interrupt_in: self.int_rx,
+        }
     }
 }
 

@@ -26,6 +26,7 @@ use std::pin::Pin;
 
 use rigd_core::Cfa;
 use rigd_proto::ptp::link::{DeviceEnd, LinkClosed};
+use rigd_proto::ptp::property::{DevicePropDesc, PropForm, DATATYPE_UINT16, DATATYPE_UINT32};
 use rigd_proto::ptp::{
     exposure_to_prop, prop_to_exposure, Container, ContainerKind, DeviceInfo, EventCode,
     ObjectInfo, OpCode, PropCode, ResponseCode, FORMAT_DNG, HEADER_LEN,
@@ -46,6 +47,59 @@ pub const STORAGE_ID: u32 = 0x0001_0001;
 pub const BASE_ISO: u16 = 100;
 /// The handle of the first captured object; later ones count up.
 pub const FIRST_HANDLE: u32 = 0x0001_0001;
+/// The shutter speeds the camera lists, seconds: the third-stop series of
+/// a camera body, from 1/2000 s (the shortest the 0.1 ms unit of
+/// ExposureTime tells apart) to 30 s.
+pub const SHUTTER_SPEEDS_S: [f64; 46] = [
+    1.0 / 2000.0,
+    1.0 / 1600.0,
+    1.0 / 1250.0,
+    1.0 / 1000.0,
+    1.0 / 800.0,
+    1.0 / 640.0,
+    1.0 / 500.0,
+    1.0 / 400.0,
+    1.0 / 320.0,
+    1.0 / 250.0,
+    1.0 / 200.0,
+    1.0 / 160.0,
+    1.0 / 125.0,
+    1.0 / 100.0,
+    1.0 / 80.0,
+    1.0 / 60.0,
+    1.0 / 50.0,
+    1.0 / 40.0,
+    1.0 / 30.0,
+    1.0 / 25.0,
+    1.0 / 20.0,
+    1.0 / 15.0,
+    1.0 / 13.0,
+    1.0 / 10.0,
+    1.0 / 8.0,
+    1.0 / 6.0,
+    1.0 / 5.0,
+    1.0 / 4.0,
+    0.3,
+    0.4,
+    0.5,
+    0.6,
+    0.8,
+    1.0,
+    1.3,
+    1.6,
+    2.0,
+    2.5,
+    3.2,
+    4.0,
+    5.0,
+    6.0,
+    8.0,
+    10.0,
+    15.0,
+    30.0,
+];
+/// The ISO speeds the camera lists.
+pub const ISO_SPEEDS: [u32; 7] = [100, 200, 400, 800, 1600, 3200, 6400];
 
 /// Who the simulated camera says it is, and its physics.
 #[derive(Debug, Clone, PartialEq)]
@@ -280,6 +334,13 @@ impl PtpFirmware {
                     None => respond(dev, ResponseCode::DevicePropNotSupported, tid, &[])?,
                 }
             }
+            OpCode::GetDevicePropDesc => match self.prop_desc(p0).map(|d| d.encode()) {
+                Some(Ok(desc)) => {
+                    send_data(dev, op, tid, desc)?;
+                    respond(dev, ResponseCode::OK, tid, &[])?;
+                }
+                _ => respond(dev, ResponseCode::DevicePropNotSupported, tid, &[])?,
+            },
             OpCode::SetDevicePropValue => {
                 let value = data_out
                     .as_deref()
@@ -365,6 +426,47 @@ impl PtpFirmware {
             _ => respond(dev, ResponseCode::OperationNotSupported, tid, &[])?,
         }
         Ok(Next::Continue)
+    }
+
+    /// The description of a property the camera has. The lists are what a
+    /// tool picks from: the standard third-stop shutter speeds and ISO
+    /// speeds, plus the nominal and current values. Like a machine-vision
+    /// body, the camera accepts any positive value set, listed or not.
+    fn prop_desc(&self, code: u32) -> Option<DevicePropDesc> {
+        let with = |mut list: Vec<u32>, extra: [u32; 2]| {
+            list.extend(extra);
+            list.sort_unstable();
+            list.dedup();
+            PropForm::Enumeration(list)
+        };
+        if code == u32::from(PropCode::ExposureTime.0) {
+            let nominal = exposure_to_prop(self.spec.times.exposure_s).unwrap_or(1);
+            let list = SHUTTER_SPEEDS_S
+                .iter()
+                .filter_map(|&s| exposure_to_prop(s))
+                .collect();
+            Some(DevicePropDesc {
+                code: PropCode::ExposureTime,
+                data_type: DATATYPE_UINT32,
+                writable: true,
+                factory_default: nominal,
+                current: self.exposure_units,
+                form: with(list, [nominal, self.exposure_units]),
+            })
+        } else if code == u32::from(PropCode::ExposureIndex.0) {
+            let current = u32::from(self.exposure_index);
+            let base = u32::from(BASE_ISO);
+            Some(DevicePropDesc {
+                code: PropCode::ExposureIndex,
+                data_type: DATATYPE_UINT16,
+                writable: true,
+                factory_default: base,
+                current,
+                form: with(ISO_SPEEDS.to_vec(), [base, current]),
+            })
+        } else {
+            None
+        }
     }
 
     fn start_capture(&mut self, transaction_id: u32, frame_fault: Option<FaultKind>) {
@@ -471,7 +573,7 @@ pub fn fault_op(op: OpCode) -> &'static str {
         OpCode::GetDeviceInfo => "get_device_info",
         OpCode::OpenSession => "open_session",
         OpCode::CloseSession => "close_session",
-        OpCode::GetDevicePropValue => "get_exposure",
+        OpCode::GetDevicePropValue | OpCode::GetDevicePropDesc => "get_exposure",
         OpCode::SetDevicePropValue => "set_exposure",
         OpCode::InitiateCapture => "expose",
         OpCode::GetObjectInfo => "get_object_info",
