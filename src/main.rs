@@ -9,7 +9,7 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use cli::{camera, dataset, exit, holder, plan, process, profile, rig, run, serve};
+use cli::{camera, dataset, exit, frame, holder, internal, plan, process, profile, rig, run, serve};
 #[cfg(feature = "sim")]
 use cli::{sim, tradeoff};
 
@@ -80,6 +80,17 @@ enum Cmd {
         #[command(subcommand)]
         command: process::ProcessCmd,
     },
+    /// Camera files: what rigd makes of one (DNG, vendor raw, TIFF, JPEG).
+    Frame {
+        #[command(subcommand)]
+        command: frame::FrameCmd,
+    },
+    /// What rigd runs of itself (the camera-file decoder child).
+    #[command(hide = true)]
+    Internal {
+        #[command(subcommand)]
+        command: internal::InternalCmd,
+    },
     /// The simulated rig's firmware, for tools outside rigd.
     #[cfg(feature = "sim")]
     Sim {
@@ -112,6 +123,8 @@ fn main() -> ExitCode {
         #[cfg(feature = "sim")]
         Cmd::Tradeoff(args) => tradeoff::run(args),
         Cmd::Process { command } => process::run(command),
+        Cmd::Frame { command } => frame::run(command),
+        Cmd::Internal { command } => internal::run(command),
         #[cfg(feature = "sim")]
         Cmd::Sim { command } => sim::run(command),
     };

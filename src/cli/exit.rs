@@ -168,6 +168,15 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
     if cause.is::<DeviceError>() {
         return Some(EXIT_FAILURE);
     }
+    // A camera file the decoder refuses, or that crashes it, is the
+    // caller's input; a decoder that cannot be started is the system's.
+    if let Some(e) = cause.downcast_ref::<rigd::rig::camera_file::CameraFileError>() {
+        return Some(if e.is_the_file_s() {
+            EXIT_BAD_INPUT
+        } else {
+            EXIT_FAILURE
+        });
+    }
     if let Some(e) = cause.downcast_ref::<ServerError>() {
         return Some(match e {
             ServerError::Profile(_)

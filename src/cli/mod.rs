@@ -5,7 +5,9 @@
 pub mod camera;
 pub mod dataset;
 pub mod exit;
+pub mod frame;
 pub mod holder;
+pub mod internal;
 pub mod plan;
 pub mod process;
 pub mod profile;

@@ -160,7 +160,16 @@ impl RunFrames {
             path: path.clone(),
             message,
         };
-        decode_linear(&bytes, entry.bit_depth, cfa_of(entry)).map_err(frame_err)
+        // A simulated run's frames are DNGs rigd's own simulator wrote,
+        // and these bytes hash to the journal's line: they are decoded in
+        // this process. Anything a camera delivered goes to the decoder
+        // child (`docs/processing.md`, "Camera files").
+        let origin = if self.meta.simulated {
+            Origin::Verified
+        } else {
+            Origin::Outside
+        };
+        decode_linear(&bytes, entry.bit_depth, cfa_of(entry), origin).map_err(frame_err)
     }
 }
 
@@ -172,7 +181,18 @@ impl RunFrames {
 /// as [`RunFrames::colour_planes`] reads them) for a colour one. `Err`
 /// says why the bytes are no frame.
 pub fn decode_frame(bytes: &[u8], bit_depth: u8, cfa: Option<Cfa>) -> Result<Image, String> {
-    decode_linear(bytes, bit_depth, cfa)?.into_image()
+    decode_linear(bytes, bit_depth, cfa, Origin::Outside)?.into_image()
+}
+
+/// Where a camera file's bytes come from, which decides where they are
+/// decoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Origin {
+    /// Written by rigd itself (the simulator's DNG) and checked against
+    /// the SHA-256 its journal recorded: decoded in this process.
+    Verified,
+    /// From a camera or a disk: decoded in the decoder child.
+    Outside,
 }
 
 /// A frame's bare samples (`width × height` values of `bit_depth`
@@ -214,9 +234,18 @@ fn cfa_of(entry: &FrameEntry) -> Option<Cfa> {
 }
 
 /// A frame file's samples, linear in [0, 1], before any demosaicing.
-fn decode_linear(bytes: &[u8], bit_depth: u8, cfa: Option<Cfa>) -> Result<Linear, String> {
+fn decode_linear(
+    bytes: &[u8],
+    bit_depth: u8,
+    cfa: Option<Cfa>,
+    origin: Origin,
+) -> Result<Linear, String> {
     if !is_png(bytes) {
-        let img = camera_file::decode(bytes).map_err(|e| e.to_string())?;
+        let img = match origin {
+            Origin::Verified => camera_file::decode_here(bytes),
+            Origin::Outside => camera_file::decode(bytes),
+        }
+        .map_err(|e| e.to_string())?;
         return Ok(camera_file_linear(&img));
     }
     let (w, h, pixels) = decode_png(bytes)?;

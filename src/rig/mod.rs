@@ -23,7 +23,6 @@ pub mod serve;
 pub mod shot;
 #[cfg(feature = "sim")]
 pub mod sim;
-mod tiff_walk;
 
 #[cfg(feature = "sim")]
 pub use rigd_sim::FaultRule;

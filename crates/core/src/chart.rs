@@ -166,9 +166,60 @@ pub fn linear_to_srgb(v: f64) -> f64 {
     }
 }
 
+
+/// The matrix from a camera's white-balanced RGB to linear sRGB, from its
+/// XYZ (D65) to camera matrix (a raw file's ColorMatrix), as raw converters
+/// build it: sRGB to camera through XYZ, each row scaled so that white
+/// stays white, then inverted. None when it cannot be inverted.
+pub fn camera_to_linear_srgb(xyz_to_camera: [[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let mut srgb_to_camera = [[0.0; 3]; 3];
+    for (r, row) in srgb_to_camera.iter_mut().enumerate() {
+        for (c, v) in row.iter_mut().enumerate() {
+            *v = (0..3).map(|k| xyz_to_camera[r][k] * SRGB_TO_XYZ[k][c]).sum();
+        }
+        let sum: f64 = row.iter().sum();
+        if sum.abs() < 1e-12 || !sum.is_finite() {
+            return None;
+        }
+        for v in row.iter_mut() {
+            *v /= sum;
+        }
+    }
+    invert3(&srgb_to_camera)
+}
+
+/// The inverse of a 3×3 matrix by its adjugate; None when singular.
+fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
+    let cof = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let adj = [
+        [cof(1, 2, 1, 2), -cof(0, 2, 1, 2), cof(0, 1, 1, 2)],
+        [-cof(1, 2, 0, 2), cof(0, 2, 0, 2), -cof(0, 1, 0, 2)],
+        [cof(1, 2, 0, 1), -cof(0, 2, 0, 1), cof(0, 1, 0, 1)],
+    ];
+    let det = m[0][0] * adj[0][0] + m[0][1] * adj[1][0] + m[0][2] * adj[2][0];
+    if det.abs() < 1e-12 || !det.is_finite() {
+        return None;
+    }
+    Some(adj.map(|row| row.map(|v| v / det)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn an_srgb_camera_s_matrix_is_the_identity() {
+        // A camera whose channels are the sRGB primaries: its ColorMatrix
+        // is XYZ to linear sRGB.
+        let m = camera_to_linear_srgb(XYZ_TO_SRGB).expect("invertible");
+        for (r, row) in m.iter().enumerate() {
+            for (c, v) in row.iter().enumerate() {
+                let want = if r == c { 1.0 } else { 0.0 };
+                assert!((v - want).abs() < 1e-3, "{m:?}");
+            }
+        }
+        assert_eq!(camera_to_linear_srgb([[0.0; 3]; 3]), None);
+    }
 
     #[test]
     fn srgb_encoding_meets_its_published_points() {
