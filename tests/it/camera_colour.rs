@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 use std::process::Output;
 
 use rigd::postprocess::chart::{read_chart, ColourCalibrationFile};
-use rigd::rig::camera_file::{CameraImage, Encoding, FileFormat};
+use rigd::rig::camera_file::{CameraImage, Encoding, Facts, FileFormat};
 use rigd_core::chart::{lab_d50_to_linear_srgb, COLORCHECKER24};
 use rigd_core::Cfa;
 use rigd_process::colour::chart_fit::{fit_chart, CorrectionKind};
@@ -226,6 +226,7 @@ fn an_rgb_image_is_read_per_channel() {
         black: 0.0,
         white: white as f32,
         encoding: Encoding::Linear,
+        facts: Facts::rendered(WIDTH, HEIGHT, 16),
     };
     let readings = read_chart(&image, &COLORCHECKER24, CORNERS).expect("read");
     let fit = fit_chart(&readings).expect("fits");

@@ -8,7 +8,9 @@ use std::process::Command;
 
 use proptest::prelude::*;
 
-use rigd::rig::camera_file::{self, FileFormat};
+use std::ffi::OsString;
+
+use rigd::rig::camera_file::{self, CameraFileError, Decoder, FileFormat};
 use rigd_core::Cfa;
 
 use crate::bring_up::{device, edit};
@@ -50,6 +52,19 @@ fn pgm_samples(bytes: &[u8]) -> (u32, u32, Vec<u16>) {
         .map(|c| u16::from_be_bytes([c[0], c[1]]))
         .collect();
     (w, h, samples)
+}
+
+/// LibRaw's raw values of `file` (`unprocessed_raw`, the whole sensor
+/// readout): width, height, samples.
+pub(crate) fn libraw_raw(file: &Path) -> (u32, u32, Vec<u16>) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let name = file.file_name().expect("a file name");
+    let copy = dir.path().join(name);
+    std::fs::copy(file, &copy).expect("copy");
+    libraw("unprocessed_raw", &[Path::new("-q"), &copy]);
+    let mut pgm = copy.into_os_string();
+    pgm.push(".pgm");
+    pgm_samples(&std::fs::read(pgm).expect("LibRaw's PGM"))
 }
 
 /// The VirTex rig (three lamps, one PTP camera) with its camera's sensor
@@ -211,34 +226,64 @@ fn sim_dng(cfa: Option<Cfa>, bit_depth: u8) -> Vec<u8> {
     encode(&camera, 8, 6, &to_raw(&values, bit_depth), 0.1).expect("dng")
 }
 
-proptest! {
-    // A fixed seed: the cases CI runs are the ones a newcomer's run finds.
-    // rawler allocates what a file claims (an IFD entry's count, an image
-    // size) before checking it against the file, and a failed allocation
-    // aborts the process; `camera_file` walks the structure rawler will
-    // read and refuses such claims first. After changing that guard, run
-    // this with `RngSeed::Random` and a few thousand cases, several times:
-    // without it, every such run aborted on a 26 to 34 GB allocation.
-    #![proptest_config(ProptestConfig {
-        cases: 256,
-        rng_seed: proptest::test_runner::RngSeed::Fixed(16),
-        ..ProptestConfig::default()
-    })]
+/// The rigd binary as the decoder child, as the library runs it.
+fn rigd_decoder() -> Decoder {
+    Decoder::command(
+        env!("CARGO_BIN_EXE_rigd"),
+        ["internal", "decode-frame"].map(OsString::from),
+    )
+}
 
-    /// Whatever a camera or a disk hands over, decoding answers: an image
-    /// or an error, never a panic. Flipped and cut DNGs reach deep into
-    /// rawler's TIFF and DNG code; random bytes behind a JPEG or TIFF
-    /// header reach zune-jpeg's and tiff's.
-    #[test]
-    fn decoding_a_damaged_camera_file_is_an_answer_not_a_panic(
-        flips in proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..8),
-        cut in any::<prop::sample::Index>(),
-        tail in proptest::collection::vec(any::<u8>(), 0..64),
-        which in 0usize..4,
-    ) {
+/// Cases of the damaged-file property test: `RIGD_DAMAGED_CASES`, else
+/// what CI runs. Each case decodes two files (the damaged one whole and
+/// cut). `RIGD_DAMAGED_CASES=100000 cargo test --release -p rigd --test it
+/// -- damaged` is the long run (`docs/processing.md`, "Camera files").
+fn damaged_cases() -> u32 {
+    std::env::var("RIGD_DAMAGED_CASES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(DAMAGED_CASES_CI)
+}
+
+/// The cases CI runs (about half a minute in the debug build).
+const DAMAGED_CASES_CI: u32 = 4000;
+
+/// Whatever a camera or a disk hands over, decoding answers: an image or
+/// an error, never a crash of this process. Flipped and cut DNGs reach
+/// deep into rawler's TIFF and DNG code; random bytes behind a JPEG or TIFF
+/// header reach zune-jpeg's and tiff's. The files go to one decoder child
+/// kept for all of them (`BatchDecoder`); one that dies (an allocation a
+/// file asked for over its address-space limit aborts it) is an error and
+/// a new child takes the next file. A fixed seed: the cases CI runs are
+/// the ones a newcomer's run finds.
+#[test]
+fn decoding_a_damaged_camera_file_is_an_answer_not_a_crash() {
+    use proptest::test_runner::{Config, RngSeed, TestRunner};
+    let cases = damaged_cases();
+    let mut runner = TestRunner::new(Config {
+        cases,
+        rng_seed: RngSeed::Fixed(16),
+        failure_persistence: None,
+        ..Config::default()
+    });
+    let decoder = std::sync::Mutex::new(
+        rigd_decoder()
+            .with_deadline(std::time::Duration::from_secs(20))
+            .batch(),
+    );
+    // Images, refusals, crashes (signal, exit status, garbage, deadline).
+    let counts = std::sync::Mutex::new([0usize; 3]);
+    let strategy = (
+        proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..8),
+        any::<prop::sample::Index>(),
+        proptest::collection::vec(any::<u8>(), 0..64),
+        0usize..4,
+    );
+    let good = [sim_dng(Some(Cfa::Rggb), 12), sim_dng(None, 8)];
+    let started = std::time::Instant::now();
+    let outcome = runner.run(&strategy, |(flips, cut, tail, which)| {
         let mut file = match which {
-            0 => sim_dng(Some(Cfa::Rggb), 12),
-            1 => sim_dng(None, 8),
+            0 | 1 => good[which].clone(),
             2 => [&[0xFF, 0xD8, 0xFF, 0xE0][..], &tail].concat(),
             _ => [&b"II*\0\x08\0\0\0"[..], &tail].concat(),
         };
@@ -247,9 +292,32 @@ proptest! {
             file[i] ^= byte;
         }
         let keep = cut.index(file.len() + 1);
-        let _ = camera_file::decode(&file[..keep]);
-        let _ = camera_file::decode(&file);
+        let mut decoder = decoder.lock().expect("decoder");
+        for bytes in [&file[..keep], &file[..]] {
+            let kind = match decoder.decode(bytes) {
+                Ok(_) => 0,
+                Err(CameraFileError::Crashed(_)) => 2,
+                Err(CameraFileError::NoDecoder(e)) => {
+                    return Err(proptest::test_runner::TestCaseError::fail(e))
+                }
+                Err(_) => 1,
+            };
+            counts.lock().expect("counts")[kind] += 1;
+        }
+        Ok(())
+    });
+    let [images, refused, crashed] = *counts.lock().expect("counts");
+    let children = decoder.lock().expect("decoder").children_started();
+    eprintln!(
+        "{cases} damaged-file cases, {} files: {images} images, {refused} refused, \
+         {crashed} crashed the decoder ({children} children started) in {:.1} s",
+        images + refused + crashed,
+        started.elapsed().as_secs_f64()
+    );
+    if let Err(e) = outcome {
+        panic!("{e}");
     }
+    assert_eq!(images + refused + crashed, 2 * cases as usize);
 }
 
 #[test]

@@ -23,6 +23,7 @@ mod clock;
 mod colour;
 mod corruption;
 mod crash_resume;
+mod decoder_child;
 mod disk_full;
 mod estop;
 mod fault_kinds;

@@ -13,6 +13,7 @@
 
 use std::ffi::OsString;
 use std::io::{self, BufReader, BufWriter, Read, Write};
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, ChildStdin, ChildStdout, Command, ExitStatus, Stdio};
 use std::sync::mpsc::{self, RecvTimeoutError};
@@ -134,7 +135,9 @@ impl Decoder {
         if batch {
             cmd.arg("--batch");
         }
-        cmd.stdin(Stdio::piped())
+        // Its own process group: a deadline kills whatever it started too.
+        cmd.process_group(0)
+            .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
@@ -213,6 +216,10 @@ impl Decoder {
                 self.deadline.as_secs_f64()
             )));
         }
+        // rigd killed a child that answered garbage: the garbage is the news.
+        if let Err(e @ WireError::Garbage(_)) = &record {
+            return Err(CameraFileError::Crashed(e.to_string()));
+        }
         let status = status.map_err(|e| CameraFileError::Crashed(format!("was lost: {e}")))?;
         if !status.success() {
             return Err(CameraFileError::Crashed(self.ended(status, stderr)));
@@ -274,12 +281,15 @@ fn signal_name(sig: i32) -> &'static str {
     }
 }
 
-/// Sends SIGKILL to a child that has not been reaped.
+/// Sends SIGKILL to a child that has not been reaped, and to its process
+/// group (whatever it started).
 fn kill(pid: u32) {
     if let Ok(pid) = libc::pid_t::try_from(pid) {
         // SAFETY: kill(2) takes plain integers; the caller holds the
-        // child unreaped, so the pid is still its.
+        // child unreaped, so its pid (and the group named by it) is still
+        // its own.
         unsafe {
+            libc::kill(-pid, libc::SIGKILL);
             libc::kill(pid, libc::SIGKILL);
         }
     }
@@ -406,13 +416,7 @@ impl BatchDecoder {
                 let status = running.child.wait();
                 let _ = running.errors.join();
                 let stderr = rigd_core::sync::lock(&running.stderr).clone();
-                match record {
-                    // rigd killed it for its garbage: the garbage is the news.
-                    Err(WireError::Garbage(g)) if !timed_out => {
-                        Err(CameraFileError::Crashed(WireError::Garbage(g).to_string()))
-                    }
-                    record => self.decoder.answer(record, timed_out, status, &stderr),
-                }
+                self.decoder.answer(record, timed_out, status, &stderr)
             }
         }
     }

@@ -89,6 +89,10 @@ pub(super) fn write_record(
                 format: format.clone(),
                 what: what.clone(),
             },
+            CameraFileError::Corrupt { format, message } => ErrorHeader::Corrupt {
+                format: format.clone(),
+                message: message.clone(),
+            },
             // The child's own errors are all about the file; the others
             // (no decoder, a crash) are the parent's to say.
             other => ErrorHeader::Corrupt {
