@@ -273,6 +273,8 @@ fn decoding_a_damaged_camera_file_is_an_answer_not_a_crash() {
     );
     // Images, refusals, crashes (signal, exit status, garbage, deadline).
     let counts = std::sync::Mutex::new([0usize; 3]);
+    // How the decoder died, by the start of the message.
+    let deaths = std::sync::Mutex::new(std::collections::BTreeMap::<String, usize>::new());
     let strategy = (
         proptest::collection::vec((any::<prop::sample::Index>(), any::<u8>()), 1..8),
         any::<prop::sample::Index>(),
@@ -296,7 +298,14 @@ fn decoding_a_damaged_camera_file_is_an_answer_not_a_crash() {
         for bytes in [&file[..keep], &file[..]] {
             let kind = match decoder.decode(bytes) {
                 Ok(_) => 0,
-                Err(CameraFileError::Crashed(_)) => 2,
+                Err(CameraFileError::Crashed(what)) => {
+                    let head: String = what
+                        .chars()
+                        .map(|c| if c.is_ascii_digit() { '#' } else { c })
+                        .collect();
+                    *deaths.lock().expect("deaths").entry(head).or_default() += 1;
+                    2
+                }
                 Err(CameraFileError::NoDecoder(e)) => {
                     return Err(proptest::test_runner::TestCaseError::fail(e))
                 }
@@ -314,6 +323,9 @@ fn decoding_a_damaged_camera_file_is_an_answer_not_a_crash() {
         images + refused + crashed,
         started.elapsed().as_secs_f64()
     );
+    for (how, n) in deaths.lock().expect("deaths").iter() {
+        eprintln!("  {n:6}  {how}");
+    }
     if let Err(e) = outcome {
         panic!("{e}");
     }

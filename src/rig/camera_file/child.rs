@@ -136,7 +136,9 @@ impl Decoder {
             cmd.arg("--batch");
         }
         // Its own process group: a deadline kills whatever it started too.
-        cmd.process_group(0)
+        // Its messages are a line for the parent's error, not a backtrace.
+        cmd.env("RUST_BACKTRACE", "0")
+            .process_group(0)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -230,11 +232,12 @@ impl Decoder {
     /// How a child that did not exit cleanly ended, in words.
     fn ended(&self, status: ExitStatus, stderr: &str) -> String {
         use std::os::unix::process::ExitStatusExt;
-        let said = stderr
-            .lines()
-            .rev()
-            .find(|l| !l.trim().is_empty())
-            .map(|l| format!(": {}", l.trim()))
+        // The allocation that failed, else the first thing it said.
+        let lines = || stderr.lines().map(str::trim).filter(|l| !l.is_empty());
+        let said = lines()
+            .find(|l| l.starts_with("memory allocation of"))
+            .or_else(|| lines().next())
+            .map(|l| format!(": {l}"))
             .unwrap_or_default();
         match (status.signal(), status.code()) {
             (Some(sig), _) => {
