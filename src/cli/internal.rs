@@ -22,14 +22,21 @@ pub enum InternalCmd {
         /// stdin ends.
         #[arg(long)]
         batch: bool,
+        /// The file's length in bytes, when the parent knows it.
+        #[arg(long)]
+        size: Option<u64>,
     },
 }
 
 /// Runs an internal command.
 pub fn run(cmd: InternalCmd) -> anyhow::Result<ExitCode> {
     match cmd {
-        InternalCmd::DecodeFrame { memory, batch } => {
-            camera_file::serve(memory, batch)?;
+        InternalCmd::DecodeFrame {
+            memory,
+            batch,
+            size,
+        } => {
+            camera_file::serve(memory, batch, size)?;
             Ok(ExitCode::SUCCESS)
         }
     }

@@ -5,13 +5,13 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::Mutex;
+use std::sync::{Mutex, OnceLock};
 
 use rigd_process::demosaic;
 use rigd_process::image_io::Image;
 
 use super::ProcessError;
-use crate::rig::camera_file::{self, CameraImage};
+use crate::rig::camera_file::{self, CameraFileError, CameraImage, Decoder, DecoderPool};
 use crate::rig::hal::{decode_png, is_png};
 use crate::store::{
     check_manifest, read_journal, read_meta, sha256_hex, FrameEntry, RunMeta, JOURNAL_FILE,
@@ -29,6 +29,9 @@ pub struct RunFrames {
     pub entries: Vec<FrameEntry>,
     /// Reads frames checked against their SHA-256.
     checked: CheckedReads,
+    /// Decoder children kept for a hardware run's camera files, started
+    /// at the first one.
+    decoders: OnceLock<Result<DecoderPool, CameraFileError>>,
 }
 
 /// Reads frames checked against the SHA-256 their journal lines recorded,
@@ -77,6 +80,7 @@ impl RunFrames {
             meta,
             entries,
             checked: CheckedReads::default(),
+            decoders: OnceLock::new(),
         })
     }
 
@@ -164,12 +168,19 @@ impl RunFrames {
         // and these bytes hash to the journal's line: they are decoded in
         // this process. Anything a camera delivered goes to the decoder
         // child (`docs/processing.md`, "Camera files").
-        let origin = if self.meta.simulated {
-            Origin::Verified
-        } else {
-            Origin::Outside
+        let decode = |bytes: &[u8]| {
+            if self.meta.simulated {
+                return camera_file::decode_here(bytes);
+            }
+            match self
+                .decoders
+                .get_or_init(|| Decoder::rigd().map(DecoderPool::new))
+            {
+                Ok(pool) => pool.decode(bytes),
+                Err(e) => Err(e.clone()),
+            }
         };
-        decode_linear(&bytes, entry.bit_depth, cfa_of(entry), origin).map_err(frame_err)
+        decode_linear(&bytes, entry.bit_depth, cfa_of(entry), decode).map_err(frame_err)
     }
 }
 
@@ -181,18 +192,7 @@ impl RunFrames {
 /// as [`RunFrames::colour_planes`] reads them) for a colour one. `Err`
 /// says why the bytes are no frame.
 pub fn decode_frame(bytes: &[u8], bit_depth: u8, cfa: Option<Cfa>) -> Result<Image, String> {
-    decode_linear(bytes, bit_depth, cfa, Origin::Outside)?.into_image()
-}
-
-/// Where a camera file's bytes come from, which decides where they are
-/// decoded.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Origin {
-    /// Written by rigd itself (the simulator's DNG) and checked against
-    /// the SHA-256 its journal recorded: decoded in this process.
-    Verified,
-    /// From a camera or a disk: decoded in the decoder child.
-    Outside,
+    decode_linear(bytes, bit_depth, cfa, camera_file::decode)?.into_image()
 }
 
 /// A frame's bare samples (`width × height` values of `bit_depth`
@@ -234,18 +234,16 @@ fn cfa_of(entry: &FrameEntry) -> Option<Cfa> {
 }
 
 /// A frame file's samples, linear in [0, 1], before any demosaicing.
+/// A camera file is decoded by `decode` (the decoder child, or this
+/// process for frames rigd wrote and checked).
 fn decode_linear(
     bytes: &[u8],
     bit_depth: u8,
     cfa: Option<Cfa>,
-    origin: Origin,
+    decode: impl FnOnce(&[u8]) -> Result<CameraImage, CameraFileError>,
 ) -> Result<Linear, String> {
     if !is_png(bytes) {
-        let img = match origin {
-            Origin::Verified => camera_file::decode_here(bytes),
-            Origin::Outside => camera_file::decode(bytes),
-        }
-        .map_err(|e| e.to_string())?;
+        let img = decode(bytes).map_err(|e| e.to_string())?;
         return Ok(camera_file_linear(&img));
     }
     let (w, h, pixels) = decode_png(bytes)?;

@@ -50,6 +50,7 @@ mod ps_accuracy;
 mod ptp_camera;
 mod ptp_transcripts;
 mod python_client;
+mod real_camera_files;
 mod refusals;
 mod runs_page;
 mod sim_serve;

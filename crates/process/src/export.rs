@@ -346,33 +346,9 @@ pub fn read(format: Format, path: &Path) -> Result<Vec<Texture>, ExportError> {
 /// A JPEG as an image in [0, 1]: grey for a one-component JPEG, RGB for a
 /// colour one.
 fn decode_jpeg(bytes: &[u8]) -> Result<Image, String> {
-    use zune_core::bytestream::ZCursor;
-    use zune_core::colorspace::ColorSpace;
-    use zune_core::options::DecoderOptions;
-    // The header says whether the JPEG is grey; decode it as what it is.
-    let mut probe = zune_jpeg::JpegDecoder::new(ZCursor::new(bytes));
-    probe.decode_headers().map_err(|e| e.to_string())?;
-    let grey = probe
-        .input_colorspace()
-        .is_some_and(|c| c.num_components() == 1);
-    let (space, channels) = if grey {
-        (ColorSpace::Luma, 1)
-    } else {
-        (ColorSpace::RGB, 3)
-    };
-    let options = DecoderOptions::default().jpeg_set_out_colorspace(space);
-    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
-    decoder.decode_headers().map_err(|e| e.to_string())?;
-    let (w, h) = decoder.dimensions().ok_or("no image dimensions")?;
-    let pixels = decoder.decode().map_err(|e| e.to_string())?;
-    if pixels.len() != w * h * channels {
-        return Err(format!(
-            "decoded {} values for {w}x{h} pixels of {channels} channels",
-            pixels.len()
-        ));
-    }
-    let mut image = Image::new(w, h, channels);
-    for (d, p) in image.data.iter_mut().zip(pixels) {
+    let jpeg = crate::image_io::decode_jpeg(bytes)?;
+    let mut image = Image::new(jpeg.width, jpeg.height, jpeg.channels);
+    for (d, p) in image.data.iter_mut().zip(jpeg.samples) {
         *d = f32::from(p) / 255.0;
     }
     Ok(image)

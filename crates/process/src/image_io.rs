@@ -264,6 +264,57 @@ pub fn encode_png(image: &Image, depth: PngDepth, path: &Path) -> Result<Vec<u8>
     Ok(out)
 }
 
+/// A decoded JPEG: 8-bit codes, sRGB-encoded, as the file holds them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Jpeg {
+    /// Width, pixels.
+    pub width: usize,
+    /// Height, pixels.
+    pub height: usize,
+    /// 1 for a one-component (grey) JPEG, else 3 (RGB).
+    pub channels: usize,
+    /// `width · height · channels` codes, row-major, channels interleaved.
+    pub samples: Vec<u8>,
+}
+
+/// Decodes a JPEG (zune-jpeg) as what it is: grey for a one-component
+/// file, RGB for a colour one. The one JPEG reader of rigd: camera files,
+/// and the texture databases an import reads. `Err` says why the bytes are
+/// no JPEG.
+pub fn decode_jpeg(bytes: &[u8]) -> Result<Jpeg, String> {
+    use zune_core::bytestream::ZCursor;
+    use zune_core::colorspace::ColorSpace;
+    use zune_core::options::DecoderOptions;
+    // The header says whether the JPEG is grey; decode it as what it is.
+    let mut probe = zune_jpeg::JpegDecoder::new(ZCursor::new(bytes));
+    probe.decode_headers().map_err(|e| e.to_string())?;
+    let grey = probe
+        .input_colorspace()
+        .is_some_and(|c| c.num_components() == 1);
+    let (space, channels) = if grey {
+        (ColorSpace::Luma, 1)
+    } else {
+        (ColorSpace::RGB, 3)
+    };
+    let options = DecoderOptions::default().jpeg_set_out_colorspace(space);
+    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
+    decoder.decode_headers().map_err(|e| e.to_string())?;
+    let (width, height) = decoder.dimensions().ok_or("no image dimensions")?;
+    let samples = decoder.decode().map_err(|e| e.to_string())?;
+    if samples.len() != width * height * channels {
+        return Err(format!(
+            "decoded {} values for {width}x{height} pixels of {channels} channels",
+            samples.len()
+        ));
+    }
+    Ok(Jpeg {
+        width,
+        height,
+        channels,
+        samples,
+    })
+}
+
 /// Writes an image as PNG, atomically.
 pub fn write_png(path: &Path, image: &Image, depth: PngDepth) -> Result<(), ImageError> {
     let bytes = encode_png(image, depth, path)?;

@@ -39,6 +39,9 @@ pub const DEFAULT_DEADLINE: Duration = Duration::from_secs(60);
 /// The largest file a child reads (as [`rigd_core::read::IMAGE_LIMIT`]).
 const MAX_FILE: u64 = rigd_core::read::IMAGE_LIMIT;
 
+/// The pipes' capacity to and from a child: Linux's default most.
+const PIPE_SIZE: libc::c_int = 1 << 20;
+
 /// How much of a child's stderr is kept for the error message.
 const STDERR_KEPT: usize = 4096;
 
@@ -127,13 +130,17 @@ impl Decoder {
         self.memory / 2
     }
 
-    fn spawn(&self, batch: bool) -> Result<Child, CameraFileError> {
+    fn spawn(&self, batch: bool, size: Option<usize>) -> Result<Child, CameraFileError> {
         let mut cmd = Command::new(&self.program);
         cmd.args(&self.args)
             .arg("--memory")
             .arg(self.memory.to_string());
         if batch {
             cmd.arg("--batch");
+        }
+        if let Some(size) = size {
+            // The child reads the file into a buffer of that size at once.
+            cmd.arg("--size").arg(size.to_string());
         }
         // Its own process group: a deadline kills whatever it started too.
         // Its messages are a line for the parent's error, not a backtrace.
@@ -143,6 +150,23 @@ impl Decoder {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
+            .map(|child| {
+                // A frame is megabytes: wide pipes cross it in fewer steps.
+                use std::os::fd::AsRawFd;
+                let fds = [
+                    child.stdin.as_ref().map(|p| p.as_raw_fd()),
+                    child.stdout.as_ref().map(|p| p.as_raw_fd()),
+                ];
+                for fd in fds.into_iter().flatten() {
+                    // SAFETY: fcntl(2) on a pipe this process holds open;
+                    // a refusal (over the system's pipe-max-size) leaves
+                    // the pipe as it was.
+                    unsafe {
+                        libc::fcntl(fd, libc::F_SETPIPE_SZ, PIPE_SIZE);
+                    }
+                }
+                child
+            })
             .map_err(|e| {
                 CameraFileError::NoDecoder(format!(
                     "cannot start {}: {e}",
@@ -153,7 +177,7 @@ impl Decoder {
 
     /// Decodes `bytes` in a child of its own.
     pub fn decode(&self, bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
-        let mut child = self.spawn(false)?;
+        let mut child = self.spawn(false, Some(bytes.len()))?;
         let pid = child.id();
         let (Some(mut stdin), Some(stdout), Some(stderr)) =
             (child.stdin.take(), child.stdout.take(), child.stderr.take())
@@ -358,7 +382,7 @@ impl BatchDecoder {
 
     fn start(&mut self) -> Result<&mut Running, CameraFileError> {
         if self.running.is_none() {
-            let mut child = self.decoder.spawn(true)?;
+            let mut child = self.decoder.spawn(true, None)?;
             let (Some(stdin), Some(stdout), Some(stderr)) =
                 (child.stdin.take(), child.stdout.take(), child.stderr.take())
             else {
@@ -436,6 +460,34 @@ impl Drop for BatchDecoder {
     }
 }
 
+/// Kept decoder children for many files decoded by several threads (a
+/// processing step reading a hardware run's frames): a thread takes an
+/// idle child, or starts one, and gives it back after its file. The
+/// children end with the pool.
+pub struct DecoderPool {
+    decoder: Decoder,
+    idle: Mutex<Vec<BatchDecoder>>,
+}
+
+impl DecoderPool {
+    /// A pool of children of `decoder`.
+    pub fn new(decoder: Decoder) -> Self {
+        DecoderPool {
+            decoder,
+            idle: Mutex::new(Vec::new()),
+        }
+    }
+
+    /// Decodes `bytes` in an idle child of the pool, or a new one.
+    pub fn decode(&self, bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
+        let kept = rigd_core::sync::lock(&self.idle).pop();
+        let mut child = kept.unwrap_or_else(|| self.decoder.batch());
+        let result = child.decode(bytes);
+        rigd_core::sync::lock(&self.idle).push(child);
+        result
+    }
+}
+
 /// Sets this process's address-space limit to `bytes` (lower only).
 fn limit_memory(bytes: u64) -> io::Result<()> {
     let mut lim = libc::rlimit {
@@ -460,8 +512,8 @@ fn limit_memory(bytes: u64) -> io::Result<()> {
 /// The child's side (`rigd internal decode-frame`): lowers its address
 /// space to `memory` bytes, then decodes the file on stdin and writes the
 /// record to stdout; with `batch`, file after file (each prefixed by its
-/// length) until stdin ends.
-pub fn serve(memory: u64, batch: bool) -> io::Result<()> {
+/// length) until stdin ends. `size`, when given, is the file's length.
+pub fn serve(memory: u64, batch: bool, size: Option<u64>) -> io::Result<()> {
     limit_memory(memory)?;
     let mut input = io::stdin().lock();
     let mut out = BufWriter::with_capacity(1 << 20, io::stdout().lock());
@@ -471,7 +523,7 @@ pub fn serve(memory: u64, batch: bool) -> io::Result<()> {
         }
         return Ok(());
     }
-    let mut bytes = Vec::new();
+    let mut bytes = Vec::with_capacity(size.unwrap_or(0).min(MAX_FILE + 1) as usize);
     input.take(MAX_FILE + 1).read_to_end(&mut bytes)?;
     let result = if bytes.len() as u64 > MAX_FILE {
         Err(CameraFileError::Corrupt {

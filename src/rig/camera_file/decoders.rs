@@ -152,7 +152,7 @@ fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
     let format = raw_format(decoder.format_hint());
     let name = format.name();
     let params = RawDecodeParams::default();
-    let raw = match decoder.raw_image(&source, &params, false) {
+    let mut raw = match decoder.raw_image(&source, &params, false) {
         Ok(raw) => raw,
         Err(e) => {
             if format == FileFormat::Dng {
@@ -174,8 +174,9 @@ fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
             });
         }
     };
-    let RawImageData::Integer(data) = &raw.data else {
-        return Err(unsupported(name, "floating-point samples"));
+    let data = match std::mem::replace(&mut raw.data, RawImageData::Integer(Vec::new())) {
+        RawImageData::Integer(data) => data,
+        RawImageData::Float(_) => return Err(unsupported(name, "floating-point samples")),
     };
     if raw.cpp != 1 && raw.cpp != 3 {
         return Err(unsupported(name, format!("{} samples per pixel", raw.cpp)));
@@ -217,10 +218,15 @@ fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
         _ => None,
     };
     let cpp = raw.cpp;
-    let mut samples = Vec::with_capacity(w * h * cpp);
-    for row in data.chunks_exact(raw.width * cpp).skip(y0).take(h) {
-        samples.extend_from_slice(&row[x0 * cpp..(x0 + w) * cpp]);
-    }
+    let samples = if (x0, y0, w, h) == (0, 0, raw.width, raw.height) {
+        data
+    } else {
+        let mut samples = Vec::with_capacity(w * h * cpp);
+        for row in data.chunks_exact(raw.width * cpp).skip(y0).take(h) {
+            samples.extend_from_slice(&row[x0 * cpp..(x0 + w) * cpp]);
+        }
+        samples
+    };
     let black = raw.blacklevel.as_bayer_array();
     let white = raw.whitelevel.as_bayer_array();
     let mean = |v: [f32; 4]| v.iter().sum::<f32>() / 4.0;
@@ -271,29 +277,19 @@ fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
 }
 
 fn decode_jpeg(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
-    use zune_jpeg::zune_core::bytestream::ZCursor;
-    use zune_jpeg::zune_core::colorspace::ColorSpace;
-    use zune_jpeg::zune_core::options::DecoderOptions;
-    let options = DecoderOptions::default().jpeg_set_out_colorspace(ColorSpace::RGB);
-    let mut decoder = zune_jpeg::JpegDecoder::new_with_options(ZCursor::new(bytes), options);
-    let pixels = decoder.decode().map_err(|e| corrupt("JPEG", e))?;
-    let info = decoder
-        .info()
-        .ok_or_else(|| corrupt("JPEG", "no image header"))?;
-    let (w, h) = (u32::from(info.width), u32::from(info.height));
-    if pixels.len() != w as usize * h as usize * 3 {
-        return Err(corrupt(
-            "JPEG",
-            format!("{} samples for {w}x{h} RGB", pixels.len()),
-        ));
-    }
+    let jpeg = rigd_process::image_io::decode_jpeg(bytes).map_err(|e| corrupt("JPEG", e))?;
+    let too_large = |_| corrupt("JPEG", "the image is too large");
+    let (w, h) = (
+        u32::try_from(jpeg.width).map_err(too_large)?,
+        u32::try_from(jpeg.height).map_err(too_large)?,
+    );
     Ok(CameraImage {
         format: FileFormat::Jpeg,
         width: w,
         height: h,
-        channels: 3,
+        channels: jpeg.channels,
         cfa: None,
-        samples: pixels.into_iter().map(u16::from).collect(),
+        samples: jpeg.samples.into_iter().map(u16::from).collect(),
         black: 0.0,
         white: 255.0,
         encoding: Encoding::Srgb,

@@ -4,8 +4,15 @@
 //! A frame from such a camera is stored exactly as delivered; this module
 //! is how the driver checks it, and how previews and processing read it.
 //! DNG and vendor raw files (NEF, CR2, CR3, ARW, RAF, ORF, RW2, …) go
-//! through `rawler`, JPEG through `zune-jpeg`, plain TIFF through `tiff`.
-//! Which one is chosen by the file's own bytes, never by its name.
+//! through `rawler`, JPEG through `rigd_process::image_io::decode_jpeg`,
+//! plain TIFF through `tiff`. Which one is chosen by the file's own bytes,
+//! never by its name.
+//!
+//! [`decode`] runs them in a child process ([`Decoder`]): a file from
+//! outside can make a decoder allocate until its process aborts, and that
+//! process must not be rigd (`docs/processing.md`, "Camera files").
+//! [`decode_here`] runs them in this process, for frames rigd wrote itself
+//! and checked against their journal's SHA-256.
 
 mod child;
 mod decoders;
@@ -14,7 +21,9 @@ mod wire;
 use rigd_core::Cfa;
 use serde::{Deserialize, Serialize};
 
-pub use child::{serve, BatchDecoder, Decoder, DECODER_ENV, DEFAULT_DEADLINE, DEFAULT_MEMORY};
+pub use child::{
+    serve, BatchDecoder, Decoder, DecoderPool, DECODER_ENV, DEFAULT_DEADLINE, DEFAULT_MEMORY,
+};
 
 /// What kind of file a camera delivered.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -107,15 +107,7 @@ pub(super) fn write_record(
     out.write_all(&len.to_le_bytes())?;
     out.write_all(&json)?;
     if let Ok(img) = result {
-        // In blocks, so a large frame is not copied whole once more.
-        let mut block = Vec::with_capacity(64 * 1024);
-        for chunk in img.samples.chunks(32 * 1024) {
-            block.clear();
-            for s in chunk {
-                block.extend_from_slice(&s.to_le_bytes());
-            }
-            out.write_all(&block)?;
-        }
+        write_samples(out, &img.samples)?;
     }
     out.flush()
 }
@@ -184,12 +176,7 @@ pub(super) fn read_record(
         ));
     }
     let n = usize::try_from(h.samples).or_else(|_| garbage("too many samples"))?;
-    let mut bytes = vec![0u8; n * 2];
-    input.read_exact(&mut bytes)?;
-    let samples = bytes
-        .chunks_exact(2)
-        .map(|b| u16::from_le_bytes([b[0], b[1]]))
-        .collect();
+    let samples = read_samples(input, n)?;
     Ok(Ok(CameraImage {
         format,
         width: h.width,
@@ -206,6 +193,35 @@ pub(super) fn read_record(
         },
         facts: h.facts,
     }))
+}
+
+/// The samples as little-endian u16: on a little-endian machine the
+/// memory as it is (no copy), else swapped block by block.
+fn write_samples(out: &mut impl Write, samples: &[u16]) -> io::Result<()> {
+    if cfg!(target_endian = "little") {
+        return out.write_all(bytemuck::cast_slice(samples));
+    }
+    let mut block = Vec::with_capacity(64 * 1024);
+    for chunk in samples.chunks(32 * 1024) {
+        block.clear();
+        for s in chunk {
+            block.extend_from_slice(&s.to_le_bytes());
+        }
+        out.write_all(&block)?;
+    }
+    Ok(())
+}
+
+/// `n` little-endian u16 samples, read straight into their vector.
+fn read_samples(input: &mut impl Read, n: usize) -> io::Result<Vec<u16>> {
+    let mut samples = vec![0u16; n];
+    input.read_exact(bytemuck::cast_slice_mut(&mut samples))?;
+    if cfg!(target_endian = "big") {
+        for s in &mut samples {
+            *s = u16::from_le(*s);
+        }
+    }
+    Ok(samples)
 }
 
 /// Writes one request of the batch mode: the file's length (u64,

@@ -150,19 +150,19 @@ pub fn make_preview(frame_bytes: &[u8], max: u32) -> Result<Vec<u8>, String> {
         .collect();
     let peak = avg.iter().cloned().fold(0.0, f64::max);
     let peak = if peak > 0.0 { peak } else { 1.0 };
-    let data: Vec<u8> = avg
-        .iter()
-        .map(|v| ((v / peak) * 255.0).round().clamp(0.0, 255.0) as u8)
-        .collect();
-    let mut out = Vec::new();
-    {
-        let mut enc = png::Encoder::new(&mut out, ow, oh);
-        enc.set_color(png::ColorType::Grayscale);
-        enc.set_depth(png::BitDepth::Eight);
-        let mut wr = enc.write_header().map_err(|e| e.to_string())?;
-        wr.write_image_data(&data).map_err(|e| e.to_string())?;
-    }
-    Ok(out)
+    // One PNG writer for every image rigd renders (rigd_process::image_io).
+    let image = rigd_process::image_io::Image {
+        width: ow as usize,
+        height: oh as usize,
+        channels: 1,
+        data: avg.iter().map(|v| (v / peak) as f32).collect(),
+    };
+    rigd_process::image_io::encode_png(
+        &image,
+        rigd_process::image_io::PngDepth::Eight,
+        std::path::Path::new("preview.png"),
+    )
+    .map_err(|e| e.to_string())
 }
 
 #[cfg(test)]
