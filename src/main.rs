@@ -9,7 +9,9 @@ use std::process::ExitCode;
 
 use clap::{Parser, Subcommand};
 
-use cli::{camera, dataset, exit, frame, holder, internal, plan, process, profile, rig, run, serve};
+use cli::{
+    camera, dataset, exit, frame, holder, internal, plan, process, profile, rig, run, serve,
+};
 #[cfg(feature = "sim")]
 use cli::{sim, tradeoff};
 

@@ -137,7 +137,10 @@ fn lines(r: &FrameReport) -> Vec<String> {
         format!("bits          {}", f.bits_per_sample),
     ];
     if f.black_levels.is_empty() {
-        out.push(format!("levels        black {}, white {}", r.black, r.white));
+        out.push(format!(
+            "levels        black {}, white {}",
+            r.black, r.white
+        ));
     } else {
         out.push(format!(
             "levels        black {}, white {}",
@@ -278,7 +281,8 @@ fn preview(img: &CameraImage) -> Result<Image, String> {
         .enumerate()
         .map(|(i, v)| v * wb[cfa.channel_at(i % w, i / w)])
         .collect();
-    let planes = rigd_process::demosaic::bilinear(&balanced, w, h, cfa).map_err(|e| e.to_string())?;
+    let planes =
+        rigd_process::demosaic::bilinear(&balanced, w, h, cfa).map_err(|e| e.to_string())?;
     let matrix = img
         .facts
         .xyz_to_camera
@@ -289,8 +293,9 @@ fn preview(img: &CameraImage) -> Result<Image, String> {
             rigd_core::chart::camera_to_linear_srgb(m)
         });
     let mut data = Vec::with_capacity(w * h * 3);
-    for i in 0..w * h {
-        let cam = [0, 1, 2].map(|c| f64::from(planes[c][i]));
+    let [r, g, b] = &planes;
+    for ((r, g), b) in r.iter().zip(g).zip(b) {
+        let cam = [r, g, b].map(|v| f64::from(*v));
         let rgb = match matrix {
             Some(m) => [0, 1, 2].map(|r| (0..3).map(|k| m[r][k] * cam[k]).sum::<f64>()),
             None => cam,

@@ -245,8 +245,8 @@ fn damaged_cases() -> u32 {
         .unwrap_or(DAMAGED_CASES_CI)
 }
 
-/// The cases CI runs (about half a minute in the debug build).
-const DAMAGED_CASES_CI: u32 = 4000;
+/// The cases CI runs (about half a minute in the test build).
+const DAMAGED_CASES_CI: u32 = 2000;
 
 /// Whatever a camera or a disk hands over, decoding answers: an image or
 /// an error, never a crash of this process. Flipped and cut DNGs reach

@@ -75,10 +75,15 @@ fn a_child_that_aborts_hangs_fails_or_babbles_is_an_error_and_the_parent_goes_on
 
     // A hang is killed at the deadline, the child's own children too.
     let started = Instant::now();
-    let hang = sh("sleep 30 & cat >/dev/null; exec sleep 30").with_deadline(Duration::from_millis(500));
+    let hang =
+        sh("sleep 30 & cat >/dev/null; exec sleep 30").with_deadline(Duration::from_millis(500));
     let what = crashed(hang.decode(&file));
     assert!(what.contains("did not answer within 0.5 s"), "{what}");
-    assert!(started.elapsed() < Duration::from_secs(10), "{:?}", started.elapsed());
+    assert!(
+        started.elapsed() < Duration::from_secs(10),
+        "{:?}",
+        started.elapsed()
+    );
 
     let what = crashed(sh("cat >/dev/null; echo 'out of film' >&2; exit 3").decode(&file));
     assert_eq!(what, "exited with status 3: out of film");
@@ -144,10 +149,18 @@ fn rigd_s_child_dies_alone_on_an_allocation_over_its_limit() {
     // goes on and says so.
     let big = dng(3032, 2008, Some(Cfa::Rggb), 16);
     let what = crashed(rigd_decoder().with_memory(40 << 20).decode(&big));
-    assert!(what.contains("SIGABRT") && what.contains("40 MiB"), "{what}");
-    let img = rigd_decoder().decode(&big).expect("within the default limit");
+    assert!(
+        what.contains("SIGABRT") && what.contains("40 MiB"),
+        "{what}"
+    );
+    let img = rigd_decoder()
+        .decode(&big)
+        .expect("within the default limit");
     assert_eq!((img.width, img.height, img.bit_depth()), (3032, 2008, 16));
-    assert_eq!(img, rigd::rig::camera_file::decode_here(&big).expect("here"));
+    assert_eq!(
+        img,
+        rigd::rig::camera_file::decode_here(&big).expect("here")
+    );
 }
 
 #[test]
@@ -164,7 +177,11 @@ fn frame_decode_prints_the_facts_and_writes_raw_npy_frame_json_and_a_preview() {
         .output()
         .expect("rigd");
     let text = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success(), "{text}{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     for line in [
         "format        DNG",
         "camera        rigd child",
@@ -186,7 +203,10 @@ fn frame_decode_prints_the_facts_and_writes_raw_npy_frame_json_and_a_preview() {
     let npy = std::fs::read(out_dir.join("raw.npy")).expect("raw.npy");
     let header_len = u16::from_le_bytes([npy[8], npy[9]]) as usize;
     let header = String::from_utf8_lossy(&npy[10..10 + header_len]);
-    assert!(header.contains("'descr': '<u2'") && header.contains("(48, 64,"), "{header}");
+    assert!(
+        header.contains("'descr': '<u2'") && header.contains("(48, 64,"),
+        "{header}"
+    );
     let values: Vec<u16> = npy[10 + header_len..]
         .chunks_exact(2)
         .map(|c| u16::from_le_bytes([c[0], c[1]]))
@@ -196,11 +216,18 @@ fn frame_decode_prints_the_facts_and_writes_raw_npy_frame_json_and_a_preview() {
     assert_eq!(values, libraw);
     let png = std::fs::read(out_dir.join("preview.png")).expect("preview.png");
     let preview = rigd_process::image_io::load_png(&out_dir.join("preview.png")).expect("png");
-    assert_eq!((preview.width, preview.height, preview.channels), (64, 48, 3));
+    assert_eq!(
+        (preview.width, preview.height, preview.channels),
+        (64, 48, 3)
+    );
     assert!(png.len() > 100);
 
     // --json says the same facts.
-    let out = rigd().args(["frame", "decode", "--json"]).arg(&file).output().expect("rigd");
+    let out = rigd()
+        .args(["frame", "decode", "--json"])
+        .arg(&file)
+        .output()
+        .expect("rigd");
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
     assert_eq!(json["make"], "rigd");
     assert_eq!(json["width"], 64);
@@ -213,13 +240,25 @@ fn a_file_rigd_cannot_decode_exits_2_naming_the_format_and_what_is_missing() {
     set_entry(&mut vc5, 0x0103, 9);
     let cases: [(&str, Vec<u8>, &str); 3] = [
         ("vc5.dng", vc5, "DNG with compression 9 (VC-5): no decoder"),
-        ("text.nef", b"not a raw file".to_vec(), "not a camera file rigd reads"),
-        ("cut.dng", dng(16, 8, None, 12)[..200].to_vec(), "file cannot be decoded"),
+        (
+            "text.nef",
+            b"not a raw file".to_vec(),
+            "not a camera file rigd reads",
+        ),
+        (
+            "cut.dng",
+            dng(16, 8, None, 12)[..200].to_vec(),
+            "file cannot be decoded",
+        ),
     ];
     for (name, bytes, says) in cases {
         let path = dir.path().join(name);
         std::fs::write(&path, bytes).expect("write");
-        let out = rigd().args(["frame", "decode"]).arg(&path).output().expect("rigd");
+        let out = rigd()
+            .args(["frame", "decode"])
+            .arg(&path)
+            .output()
+            .expect("rigd");
         let err = String::from_utf8_lossy(&out.stderr);
         assert_eq!(out.status.code(), Some(2), "{name}: {err}");
         assert!(err.contains(says) && err.contains(name), "{name}: {err}");
@@ -241,7 +280,10 @@ fn the_decoder_is_hidden_from_help_and_frame_decode_is_not() {
         .collect();
     assert!(commands.contains(&"frame"), "{text}");
     assert!(!commands.contains(&"internal"), "{text}");
-    let help = rigd().args(["frame", "decode", "--help"]).output().expect("rigd");
+    let help = rigd()
+        .args(["frame", "decode", "--help"])
+        .output()
+        .expect("rigd");
     let text = String::from_utf8_lossy(&help.stdout);
     for word in ["raw.npy", "frame.json", "preview.png", "--out", "--json"] {
         assert!(text.contains(word), "{word}: {text}");
@@ -256,6 +298,9 @@ fn a_dng_through_the_child_is_the_dng_decoded_here() {
         let file = dng(30, 20, cfa, depth);
         let child = rigd_decoder().decode(&file).expect("child");
         assert_eq!(child.format, FileFormat::Dng);
-        assert_eq!(child, rigd::rig::camera_file::decode_here(&file).expect("here"));
+        assert_eq!(
+            child,
+            rigd::rig::camera_file::decode_here(&file).expect("here")
+        );
     }
 }

@@ -24,7 +24,9 @@ fn libraw_opens(file: &Path) -> bool {
     std::process::Command::new("raw-identify")
         .arg(file)
         .output()
-        .map(|o| o.status.success() && !String::from_utf8_lossy(&o.stdout).contains("Cannot decode"))
+        .map(|o| {
+            o.status.success() && !String::from_utf8_lossy(&o.stdout).contains("Cannot decode")
+        })
         .unwrap_or(false)
 }
 
@@ -59,7 +61,10 @@ fn real_cameras_files_read_as_libraw_reads_them() {
         let name = file.display();
         match decoder.decode(&bytes) {
             Ok(img) => {
-                assert!(libraw_opens(file), "{name}: rigd decodes what LibRaw cannot");
+                assert!(
+                    libraw_opens(file),
+                    "{name}: rigd decodes what LibRaw cannot"
+                );
                 let (lw, lh, libraw) = crate::camera_files::libraw_raw(file);
                 let [x0, y0, w, h] = img.facts.active_area;
                 assert_eq!(
@@ -69,7 +74,11 @@ fn real_cameras_files_read_as_libraw_reads_them() {
                 );
                 assert_eq!((w, h), (img.width, img.height), "{name}");
                 let mut cropped = Vec::with_capacity(img.samples.len());
-                for row in libraw.chunks_exact(lw as usize).skip(y0 as usize).take(h as usize) {
+                for row in libraw
+                    .chunks_exact(lw as usize)
+                    .skip(y0 as usize)
+                    .take(h as usize)
+                {
                     cropped.extend_from_slice(&row[x0 as usize..(x0 + w) as usize]);
                 }
                 let differ = cropped

@@ -166,7 +166,6 @@ pub fn linear_to_srgb(v: f64) -> f64 {
     }
 }
 
-
 /// The matrix from a camera's white-balanced RGB to linear sRGB, from its
 /// XYZ (D65) to camera matrix (a raw file's ColorMatrix), as raw converters
 /// build it: sRGB to camera through XYZ, each row scaled so that white
@@ -175,7 +174,9 @@ pub fn camera_to_linear_srgb(xyz_to_camera: [[f64; 3]; 3]) -> Option<[[f64; 3]; 
     let mut srgb_to_camera = [[0.0; 3]; 3];
     for (r, row) in srgb_to_camera.iter_mut().enumerate() {
         for (c, v) in row.iter_mut().enumerate() {
-            *v = (0..3).map(|k| xyz_to_camera[r][k] * SRGB_TO_XYZ[k][c]).sum();
+            *v = (0..3)
+                .map(|k| xyz_to_camera[r][k] * SRGB_TO_XYZ[k][c])
+                .sum();
         }
         let sum: f64 = row.iter().sum();
         if sum.abs() < 1e-12 || !sum.is_finite() {
@@ -190,7 +191,8 @@ pub fn camera_to_linear_srgb(xyz_to_camera: [[f64; 3]; 3]) -> Option<[[f64; 3]; 
 
 /// The inverse of a 3×3 matrix by its adjugate; None when singular.
 fn invert3(m: &[[f64; 3]; 3]) -> Option<[[f64; 3]; 3]> {
-    let cof = |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
+    let cof =
+        |r0: usize, r1: usize, c0: usize, c1: usize| m[r0][c0] * m[r1][c1] - m[r0][c1] * m[r1][c0];
     let adj = [
         [cof(1, 2, 1, 2), -cof(0, 2, 1, 2), cof(0, 1, 1, 2)],
         [-cof(1, 2, 0, 2), cof(0, 2, 0, 2), -cof(0, 1, 0, 2)],

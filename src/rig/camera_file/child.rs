@@ -80,12 +80,12 @@ fn rigd_program() -> Result<PathBuf, String> {
                 .map(|d| d.join("rigd"))
                 .find(|p| p.is_file());
             found.ok_or_else(|| {
-                    format!(
-                        "{} is not rigd and no rigd binary is beside it: set {DECODER_ENV} \
+                format!(
+                    "{} is not rigd and no rigd binary is beside it: set {DECODER_ENV} \
                          to the rigd binary that decodes camera files",
-                        exe.display()
-                    )
-                })
+                    exe.display()
+                )
+            })
         })
         .clone()
 }
@@ -150,7 +150,7 @@ impl Decoder {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
-            .map(|child| {
+            .inspect(|child| {
                 // A frame is megabytes: wide pipes cross it in fewer steps.
                 use std::os::fd::AsRawFd;
                 let fds = [
@@ -165,13 +165,9 @@ impl Decoder {
                         libc::fcntl(fd, libc::F_SETPIPE_SZ, PIPE_SIZE);
                     }
                 }
-                child
             })
             .map_err(|e| {
-                CameraFileError::NoDecoder(format!(
-                    "cannot start {}: {e}",
-                    self.program.display()
-                ))
+                CameraFileError::NoDecoder(format!("cannot start {}: {e}", self.program.display()))
             })
     }
 

@@ -20,7 +20,7 @@ const MAX_HEADER: u32 = 1 << 20;
 #[derive(Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 enum Header {
-    Image(ImageHeader),
+    Image(Box<ImageHeader>),
     Error(ErrorHeader),
 }
 
@@ -69,7 +69,7 @@ pub(super) fn write_record(
     result: &Result<CameraImage, CameraFileError>,
 ) -> io::Result<()> {
     let header = match result {
-        Ok(img) => Header::Image(ImageHeader {
+        Ok(img) => Header::Image(Box::new(ImageHeader {
             format: img.format.extension().to_string(),
             width: img.width,
             height: img.height,
@@ -80,7 +80,7 @@ pub(super) fn write_record(
             srgb: img.encoding == Encoding::Srgb,
             facts: img.facts.clone(),
             samples: img.samples.len() as u64,
-        }),
+        })),
         Err(e) => Header::Error(match e {
             CameraFileError::Unknown(start) => ErrorHeader::Unknown {
                 start: start.clone(),
