@@ -70,17 +70,10 @@ struct FrameReport {
     facts: Facts,
 }
 
-fn format_name(img: &CameraImage) -> String {
-    match img.format {
-        camera_file::FileFormat::VendorRaw(ext) => ext.to_uppercase(),
-        other => other.name().to_string(),
-    }
-}
-
 fn report(file: &Path, img: &CameraImage) -> FrameReport {
     FrameReport {
         file: file.display().to_string(),
-        format: format_name(img),
+        format: img.format.name().to_string(),
         width: img.width,
         height: img.height,
         channels: img.channels,

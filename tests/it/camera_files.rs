@@ -228,8 +228,11 @@ fn sim_dng(cfa: Option<Cfa>, bit_depth: u8) -> Vec<u8> {
 
 /// The rigd binary as the decoder child, as the library runs it.
 fn rigd_decoder() -> Decoder {
+    // `RIGD_DECODER` lets a long run use a binary that a rebuild cannot
+    // replace under it.
     Decoder::command(
-        env!("CARGO_BIN_EXE_rigd"),
+        std::env::var_os(rigd::rig::camera_file::DECODER_ENV)
+            .unwrap_or_else(|| env!("CARGO_BIN_EXE_rigd").into()),
         ["internal", "decode-frame"].map(OsString::from),
     )
 }

@@ -1,56 +1,81 @@
-//! Real cameras' files, when the machine has them: every file in the
-//! samples folder (`RIGD_RAW_SAMPLES`, else `shared/raw-samples` beside
-//! the repository) is decoded as `rigd frame decode` decodes it, in the
-//! decoder child, and its values compared with LibRaw's (`unprocessed_raw`,
-//! Debian's `libraw-bin`) over the active area; a file LibRaw cannot open
-//! either must be refused by rigd naming its format and what is missing.
-//! The folder's README names each file's camera, source and licence.
-//! Without the folder the test says so and checks nothing.
+//! Real cameras' files. The repository carries real cameras' files cut
+//! short (`tests/data/camera-files`, whose README names each file's camera,
+//! source and licence): LibRaw refuses each, and `rigd frame decode` must
+//! refuse each with exit 2, naming the format and what is wrong. A lab's
+//! whole files, in the folder `RIGD_RAW_SAMPLES` names, are decoded as
+//! `rigd frame decode` decodes them, in the decoder child, and their values
+//! compared with LibRaw's (`unprocessed_raw`, Debian's `libraw-bin`) over
+//! the active area; a file LibRaw cannot open must be refused by rigd too.
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
 
 use rigd::rig::camera_file::{CameraFileError, Decoder};
 
-/// Where the real files are.
-fn samples_dir() -> PathBuf {
-    std::env::var_os("RIGD_RAW_SAMPLES")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| crate::common::repo_file("../shared/raw-samples"))
-}
-
-/// Whether LibRaw opens the file (`raw-identify` exits 0).
+/// Whether LibRaw opens the file: `raw-identify` exits 0 without saying
+/// "Cannot decode" (which it says on stderr, and exits 0 all the same).
 fn libraw_opens(file: &Path) -> bool {
     std::process::Command::new("raw-identify")
         .arg(file)
         .output()
         .map(|o| {
-            o.status.success() && !String::from_utf8_lossy(&o.stdout).contains("Cannot decode")
+            o.status.success()
+                && ![&o.stdout, &o.stderr]
+                    .iter()
+                    .any(|s| String::from_utf8_lossy(s).contains("Cannot decode"))
         })
         .unwrap_or(false)
 }
 
-#[test]
-fn real_cameras_files_read_as_libraw_reads_them() {
-    let dir = samples_dir();
-    let Ok(entries) = std::fs::read_dir(&dir) else {
-        eprintln!(
-            "no real camera files at {} (set RIGD_RAW_SAMPLES): nothing checked",
-            dir.display()
-        );
-        return;
-    };
+/// The camera files in `dir`, by name.
+fn files_in(dir: &Path) -> Vec<PathBuf> {
+    let entries = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("the camera files' folder {}: {e}", dir.display()));
     let mut files: Vec<PathBuf> = entries
         .flatten()
         .map(|e| e.path())
-        .filter(|p| {
-            p.is_file()
-                && !p
-                    .extension()
-                    .is_some_and(|e| e.eq_ignore_ascii_case("md") || e.eq_ignore_ascii_case("pgm"))
-        })
+        .filter(|p| p.is_file() && !p.extension().is_some_and(|e| e.eq_ignore_ascii_case("md")))
         .collect();
     files.sort();
+    files
+}
+
+#[test]
+fn real_cameras_files_cut_short_are_refused_naming_their_format() {
+    let dir = crate::common::repo_file("tests/data/camera-files");
+    let files = files_in(&dir);
+    assert_eq!(files.len(), 3, "{files:?}");
+    for file in &files {
+        assert!(!libraw_opens(file), "{}: LibRaw opens it", file.display());
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigd"))
+            .args(["frame", "decode"])
+            .arg(file)
+            .output()
+            .expect("run rigd");
+        let said = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{}: {said}", file.display());
+        let format = file
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_uppercase)
+            .expect("an extension");
+        assert!(
+            said.contains(&format!("{format} file cannot be decoded")),
+            "{}: {said}",
+            file.display()
+        );
+        assert!(!said.contains("panicked"), "{said}");
+    }
+    if let Some(lab) = std::env::var_os("RIGD_RAW_SAMPLES") {
+        read_as_libraw_reads_them(Path::new(&lab));
+    }
+}
+
+/// Every file in `dir` decodes to LibRaw's values, or is refused as LibRaw
+/// refuses it.
+fn read_as_libraw_reads_them(dir: &Path) {
+    let files = files_in(dir);
+    assert!(!files.is_empty(), "no files in {}", dir.display());
     let decoder = Decoder::command(
         env!("CARGO_BIN_EXE_rigd"),
         ["internal", "decode-frame"].map(OsString::from),

@@ -63,6 +63,23 @@ fn shown_start(bytes: &[u8]) -> String {
     }
 }
 
+/// The raw format whose own signature `bytes` start with, for the raw
+/// formats that are not TIFF underneath (a TIFF-based one that rawler does
+/// not claim is read as a rendered TIFF).
+fn signature_format(bytes: &[u8]) -> Option<&'static str> {
+    // ISO base media (ISO/IEC 14496-12): a `ftyp` box whose brand is Canon's `crx `.
+    if bytes.get(4..12) == Some(b"ftypcrx ") {
+        return Some("CR3");
+    }
+    if bytes.starts_with(b"FUJIFILMCCD-RAW") {
+        return Some("RAF");
+    }
+    if bytes.get(6..14) == Some(b"HEAPCCDR") {
+        return Some("CRW");
+    }
+    None
+}
+
 /// The format rawler's decoder stands for.
 fn raw_format(hint: rawler::decoders::FormatHint) -> FileFormat {
     use rawler::decoders::FormatHint as H;
@@ -146,9 +163,15 @@ fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
     use rawler::decoders::RawDecodeParams;
     use rawler::rawimage::{RawImageData, RawPhotometricInterpretation};
     let source = rawler::rawsource::RawSource::new_from_slice(bytes);
-    // No raw decoder knows these bytes: they are no raw file.
-    let decoder =
-        rawler::get_decoder(&source).map_err(|_| CameraFileError::Unknown(shown_start(bytes)))?;
+    // No raw decoder knows these bytes: a raw file whose container is cut
+    // short or broken says what it is by its signature; else it is no raw file.
+    let decoder = rawler::get_decoder(&source).map_err(|_| match signature_format(bytes) {
+        Some(format) => corrupt(
+            format,
+            "its container cannot be read (cut short, or not as the format defines it)",
+        ),
+        None => CameraFileError::Unknown(shown_start(bytes)),
+    })?;
     let format = raw_format(decoder.format_hint());
     let name = format.name();
     let params = RawDecodeParams::default();
@@ -229,6 +252,19 @@ fn decode_raw(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
     };
     let black = raw.blacklevel.as_bayer_array();
     let white = raw.whitelevel.as_bayer_array();
+    // Levels that leave no range between black and white make every sample
+    // meaningless: a file whose metadata lies (or was stripped) is refused,
+    // not decoded into numbers nobody can use.
+    if let Some((b, w)) = black
+        .iter()
+        .zip(&white)
+        .find(|(b, w)| !(b.is_finite() && w.is_finite() && **b >= 0.0 && b < w))
+    {
+        return Err(corrupt(
+            name,
+            format!("its black level {b} is not below its white level {w}"),
+        ));
+    }
     let mean = |v: [f32; 4]| v.iter().sum::<f32>() / 4.0;
     let to_u32 = |n: usize| u32::try_from(n).map_err(|_| corrupt(name, "the image is too large"));
     // The metadata is a description: a file whose EXIF cannot be read still

@@ -53,7 +53,10 @@ impl FileFormat {
     pub fn name(self) -> &'static str {
         match self {
             FileFormat::Dng => "DNG",
-            FileFormat::VendorRaw(_) => "raw",
+            FileFormat::VendorRaw(ext) => VENDOR_NAMES
+                .iter()
+                .find(|(e, _)| *e == ext)
+                .map_or("raw", |(_, name)| name),
             FileFormat::Tiff => "TIFF",
             FileFormat::Jpeg => "JPEG",
         }
@@ -69,6 +72,23 @@ impl FileFormat {
         }
     }
 }
+
+/// The vendor raw formats by extension, as their makers name them.
+const VENDOR_NAMES: [(&str, &str); 13] = [
+    ("nef", "NEF"),
+    ("nrw", "NRW"),
+    ("cr2", "CR2"),
+    ("cr3", "CR3"),
+    ("crw", "CRW"),
+    ("arw", "ARW"),
+    ("raf", "RAF"),
+    ("orf", "ORF"),
+    ("rw2", "RW2"),
+    ("pef", "PEF"),
+    ("srw", "SRW"),
+    ("iiq", "IIQ"),
+    ("raw", "raw"),
+];
 
 /// Every extension a stored camera file can have, besides rigd's own
 /// `png` frames.
@@ -327,6 +347,37 @@ mod tests {
         set_short(&mut vc5, 0x0103, 9);
         let e = decode_here(&vc5).expect_err("no VC-5 decoder");
         assert_eq!(e.to_string(), "DNG with compression 9 (VC-5): no decoder");
+    }
+
+    #[cfg(feature = "sim")]
+    #[test]
+    fn a_raw_file_whose_white_level_is_not_above_its_black_is_refused() {
+        let mut flat = sim_dng();
+        // WhiteLevel 0: no range above the black level is left.
+        set_short(&mut flat, 0xC61D, 0);
+        let e = decode_here(&flat).expect_err("no range");
+        assert!(matches!(e, CameraFileError::Corrupt { .. }), "{e}");
+        assert!(
+            e.to_string().contains("is not below its white level"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn a_cut_cr3_or_raf_is_named_by_its_signature() {
+        let mut cr3 = b"\0\0\0\x18ftypcrx \0\0\0\x01".to_vec();
+        cr3.resize(64, 0);
+        let e = decode_here(&cr3).expect_err("cut short");
+        assert!(
+            e.to_string().starts_with("CR3 file cannot be decoded"),
+            "{e}"
+        );
+        let raf = b"FUJIFILMCCD-RAW 0201FF383501".to_vec();
+        let e = decode_here(&raf).expect_err("cut short");
+        assert!(
+            e.to_string().starts_with("RAF file cannot be decoded"),
+            "{e}"
+        );
     }
 
     #[test]
