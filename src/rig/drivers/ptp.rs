@@ -358,22 +358,7 @@ impl<P: PtpPipe> PtpCamera<P> {
                 info.compressed_size
             )));
         }
-        let image = camera_file::decode(&data).map_err(|e| PtpError::BadFrame(e.to_string()))?;
-        self.check_sensor(&image)?;
-        let frame = Frame {
-            width: image.width,
-            height: image.height,
-            bit_depth: image.bit_depth(),
-            pixels: grey_or_mosaic(&image),
-            device: None,
-            original: Some(OriginalFile {
-                extension: image.format.extension(),
-                bytes: data,
-            }),
-        };
-        frame
-            .validate(&self.name)
-            .map_err(|e| PtpError::BadFrame(e.message))?;
+        let frame = frame_of_file(&self.name, data, self.config.cfa, &self.config.cfa_key)?;
         self.transaction(OpCode::DeleteObject, &[handle], None)
             .await?;
         self.pending = None;
@@ -501,28 +486,59 @@ impl<P: PtpPipe> PtpCamera<P> {
         Ok((header, buf))
     }
 
-    /// Refuses a raw frame whose colour filter array is not the profile's.
-    fn check_sensor(&self, image: &CameraImage) -> Result<(), PtpError> {
-        if image.channels != 1 || image.cfa == self.config.cfa {
-            return Ok(());
-        }
-        let name = |c: Option<Cfa>| c.map_or("monochrome".to_string(), |c| format!("{c}"));
-        let set = match image.cfa {
-            Some(c) => format!("set `{}` = \"{c}\"", self.config.cfa_key),
-            None => format!("remove `{}`", self.config.cfa_key),
-        };
-        Err(PtpError::WrongSensor(format!(
-            "the camera delivers a {} {} frame but the profile describes a {} sensor; \
-             {set} if the camera is right",
-            name(image.cfa),
-            image.format.extension().to_uppercase(),
-            name(self.config.cfa),
-        )))
-    }
-
     fn device_error(&self, e: PtpError) -> DeviceError {
         DeviceError::new(&self.name, e.kind(), e.to_string())
     }
+}
+
+/// The frame a camera file makes, the file kept byte for byte as
+/// [`Frame::original`]: decoded ([`camera_file`]) to refuse a broken file,
+/// and refused when its colour filter array is not `cfa`, the one the
+/// profile describes at `cfa_key`. Every driver that downloads camera
+/// files (PTP, libgphoto2) makes its frames here, so they are stored and
+/// checked alike.
+pub(crate) fn frame_of_file(
+    camera: &str,
+    bytes: Vec<u8>,
+    cfa: Option<Cfa>,
+    cfa_key: &str,
+) -> Result<Frame, PtpError> {
+    let image = camera_file::decode(&bytes).map_err(|e| PtpError::BadFrame(e.to_string()))?;
+    check_sensor(&image, cfa, cfa_key)?;
+    let frame = Frame {
+        width: image.width,
+        height: image.height,
+        bit_depth: image.bit_depth(),
+        pixels: grey_or_mosaic(&image),
+        device: None,
+        original: Some(OriginalFile {
+            extension: image.format.extension(),
+            bytes,
+        }),
+    };
+    frame
+        .validate(camera)
+        .map_err(|e| PtpError::BadFrame(e.message))?;
+    Ok(frame)
+}
+
+/// Refuses a raw frame whose colour filter array is not the profile's.
+fn check_sensor(image: &CameraImage, cfa: Option<Cfa>, cfa_key: &str) -> Result<(), PtpError> {
+    if image.channels != 1 || image.cfa == cfa {
+        return Ok(());
+    }
+    let name = |c: Option<Cfa>| c.map_or("monochrome".to_string(), |c| format!("{c}"));
+    let set = match image.cfa {
+        Some(c) => format!("set `{cfa_key}` = \"{c}\""),
+        None => format!("remove `{cfa_key}`"),
+    };
+    Err(PtpError::WrongSensor(format!(
+        "the camera delivers a {} {} frame but the profile describes a {} sensor; \
+         {set} if the camera is right",
+        name(image.cfa),
+        image.format.extension().to_uppercase(),
+        name(cfa),
+    )))
 }
 
 /// The samples a frame holds for in-flight checks and manual-shot
