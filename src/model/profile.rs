@@ -188,9 +188,10 @@ pub struct Device {
     /// decides the tables it needs.
     pub kind: DeviceKind,
     /// How the daemon reaches it: `{ type = "serial" | "modbus_rtu" |
-    /// "modbus_tcp" | "usb" | "ptpip" | "genicam", ... }`.
+    /// "modbus_tcp" | "usb" | "ptpip" | "genicam" | "gphoto2", ... }`.
     pub transport: Transport,
-    /// Wire protocol: `grbl`, `modbus`, `acl`, `ptp` or `genicam`.
+    /// Wire protocol: `grbl`, `modbus`, `acl`, `ptp`, `genicam` or
+    /// `gphoto2` (libgphoto2 picks the camera's own protocol).
     pub protocol: String,
     /// Axis soft limits, in degrees.
     #[serde(default)]
@@ -256,7 +257,28 @@ pub struct Device {
     /// PTP camera: the device properties rigd sets at connect.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub ptp: Option<PtpSettings>,
+    /// Camera through libgphoto2: the configuration widgets rigd sets at
+    /// connect.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub gphoto2: Option<Gphoto2Settings>,
 }
+
+/// The libgphoto2 configuration of a camera on `transport = { type =
+/// "gphoto2" }`, set at every connect. The exposure time is the
+/// `shutterspeed` widget, from `timing.exposure_s` (or the run's
+/// exposure), so it is not among these.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Gphoto2Settings {
+    /// Widget name → value, as `gphoto2 --get-config NAME` lists them
+    /// (`iso = "100"`, `imageformat = "RAW"`). A value the camera does not
+    /// offer is refused at connect, naming what it offers.
+    #[serde(default)]
+    pub settings: std::collections::BTreeMap<String, String>,
+}
+
+/// The libgphoto2 widget that holds the exposure time.
+pub const GPHOTO2_SHUTTER_WIDGET: &str = "shutterspeed";
 
 /// The PTP device properties of a camera on `protocol = "ptp"`, set at
 /// every connect (ExposureTime comes from `timing.exposure_s` or the run's
@@ -514,6 +536,23 @@ pub enum Transport {
         /// (`Vendor-Model-Serial`, as `arv-tool-0.8` lists it).
         id: String,
     },
+    /// A camera reached through libgphoto2 (USB or PTP/IP, any make
+    /// libgphoto2 drives); needs a rigd built with the `gphoto2` feature.
+    /// With neither field, libgphoto2 autodetects and exactly one camera
+    /// must be found.
+    Gphoto2 {
+        /// libgphoto2's port: `usb:BUS,DEV`, or `ptpip:HOST:CMDPORT:EVENTPORT`
+        /// for a network camera (`gphoto2 --auto-detect` lists them);
+        /// absent: the one camera autodetected (with `model`, the one of
+        /// that model).
+        #[serde(default)]
+        port: Option<String>,
+        /// libgphoto2's model name (`gphoto2 --list-cameras`), which picks
+        /// its driver; `PTP/IP Camera` for a generic PTP/IP camera. Absent:
+        /// the model autodetected on the port.
+        #[serde(default)]
+        model: Option<String>,
+    },
 }
 
 fn default_unit() -> u8 {
@@ -536,7 +575,10 @@ impl Transport {
                 host, port, unit, ..
             } => Some(format!("modbus-tcp:{host}:{port}#{unit}")),
             Transport::Serial { port, .. } => Some(format!("modbus-rtu:{port}#1")),
-            Transport::Usb { .. } | Transport::PtpIp { .. } | Transport::Genicam { .. } => None,
+            Transport::Usb { .. }
+            | Transport::PtpIp { .. }
+            | Transport::Genicam { .. }
+            | Transport::Gphoto2 { .. } => None,
         }
     }
 
@@ -1289,6 +1331,7 @@ impl Device {
                 ));
             }
         }
+        self.validate_gphoto2(key)?;
         if self.genicam.is_some() && !on_genicam {
             return Err((
                 format!("{key}.genicam"),
@@ -1339,6 +1382,48 @@ impl Device {
                 format!("{key}.genicam.trigger_source"),
                 format!("expected `Software` or a line (`Line0`, …), got `{source}`"),
             ));
+        }
+        Ok(())
+    }
+
+    /// A camera through libgphoto2 speaks `protocol = "gphoto2"`, and only
+    /// it has a `gphoto2` table, whose widgets are named and valued and
+    /// leave the exposure to `timing.exposure_s`.
+    fn validate_gphoto2(&self, key: &str) -> Result<(), (String, String)> {
+        let on_gphoto2 = matches!(self.transport, Transport::Gphoto2 { .. });
+        if on_gphoto2 != (self.protocol == "gphoto2") {
+            return Err((
+                format!("{key}.protocol"),
+                "a camera on `transport = { type = \"gphoto2\" }` speaks `protocol = \"gphoto2\"`, and only it does".into(),
+            ));
+        }
+        let Some(g) = &self.gphoto2 else {
+            return Ok(());
+        };
+        if !on_gphoto2 {
+            return Err((
+                format!("{key}.gphoto2"),
+                "is for cameras on `transport = { type = \"gphoto2\" }`".into(),
+            ));
+        }
+        for (name, value) in &g.settings {
+            let widget = format!("{key}.gphoto2.settings.{name}");
+            if name == GPHOTO2_SHUTTER_WIDGET {
+                return Err((
+                    widget,
+                    "the exposure time comes from `timing.exposure_s` (or the run's `--exposure`): remove it here".into(),
+                ));
+            }
+            if name.trim().is_empty() || name.contains('/') || name.chars().any(char::is_control) {
+                return Err((
+                    format!("{key}.gphoto2.settings"),
+                    "a widget's name, as `gphoto2 --list-config` lists it (without its path)"
+                        .into(),
+                ));
+            }
+            if value.chars().any(char::is_control) {
+                return Err((widget, "expected a value without control characters".into()));
+            }
         }
         Ok(())
     }
@@ -1422,6 +1507,27 @@ fn check_transport(key: &str, transport: &Transport) -> Result<(), (String, Stri
                     format!("{key}.port"),
                     "0: expected a TCP port of 1 … 65535".into(),
                 ));
+            }
+        }
+        Transport::Gphoto2 { port, model } => {
+            for (field, value, expected) in [
+                (
+                    "port",
+                    port,
+                    "libgphoto2's port, e.g. `usb:001,004` or `ptpip:192.168.1.20:15740:15740`",
+                ),
+                (
+                    "model",
+                    model,
+                    "libgphoto2's model name, e.g. `PTP/IP Camera`",
+                ),
+            ] {
+                if value.as_ref().is_some_and(|v| v.trim().is_empty()) {
+                    return Err((
+                        format!("{key}.{field}"),
+                        format!("expected {expected}, or no `{field}` to autodetect"),
+                    ));
+                }
             }
         }
         Transport::Usb { .. } | Transport::Genicam { .. } => {}
@@ -1522,6 +1628,107 @@ mod tests {
             "protocol = \"{protocol}\"\ntransport = {{ type = \"genicam\", id = \"192.168.1.20\" }}\n{extra}"
         );
         text.replace(usb, &genicam)
+    }
+
+    /// The VirTex profile's text with its camera on libgphoto2: `transport`
+    /// and `protocol` as given, `extra` lines in its table.
+    fn gphoto2_virtex(
+        transport: &str,
+        protocol: &str,
+        extra: &str,
+    ) -> Result<Profile, ProfileError> {
+        let usb = "protocol = \"ptp\"\ntransport = { type = \"usb\", vendor_id = 0x04a9, product_id = 0x3200 }";
+        assert!(virtex_text().contains(usb), "fixture drifted");
+        let text = virtex_text().replace(
+            usb,
+            &format!("protocol = \"{protocol}\"\ntransport = {transport}\n{extra}"),
+        );
+        Profile::parse(&text, "gphoto2.toml")
+    }
+
+    #[test]
+    fn a_gphoto2_camera_names_port_and_model_or_neither_and_its_widgets() {
+        let p = gphoto2_virtex(
+            r#"{ type = "gphoto2", port = "ptpip:127.0.0.1:15740:15740", model = "PTP/IP Camera" }"#,
+            "gphoto2",
+            r#"gphoto2 = { settings = { iso = "100", imageformat = "RAW" } }"#,
+        )
+        .expect("port, model and widgets");
+        let cam = &p.devices["camera"];
+        assert_eq!(
+            cam.transport,
+            Transport::Gphoto2 {
+                port: Some("ptpip:127.0.0.1:15740:15740".into()),
+                model: Some("PTP/IP Camera".into()),
+            }
+        );
+        let widgets = &cam.gphoto2.as_ref().expect("table").settings;
+        assert_eq!(widgets.get("iso").map(String::as_str), Some("100"));
+        gphoto2_virtex(r#"{ type = "gphoto2" }"#, "gphoto2", "").expect("autodetect");
+        for (transport, protocol, extra, key, says) in [
+            (
+                r#"{ type = "gphoto2" }"#,
+                "ptp",
+                "",
+                "devices.camera.protocol",
+                "speaks `protocol = \"gphoto2\"`",
+            ),
+            (
+                r#"{ type = "usb", vendor_id = 1, product_id = 2 }"#,
+                "gphoto2",
+                "",
+                "devices.camera.protocol",
+                "and only it does",
+            ),
+            (
+                r#"{ type = "gphoto2", port = " " }"#,
+                "gphoto2",
+                "",
+                "devices.camera.transport.port",
+                "libgphoto2's port",
+            ),
+            (
+                r#"{ type = "gphoto2", model = "" }"#,
+                "gphoto2",
+                "",
+                "devices.camera.transport.model",
+                "model name",
+            ),
+            (
+                r#"{ type = "gphoto2" }"#,
+                "gphoto2",
+                r#"gphoto2 = { settings = { shutterspeed = "1/100" } }"#,
+                "devices.camera.gphoto2.settings.shutterspeed",
+                "timing.exposure_s",
+            ),
+            (
+                r#"{ type = "gphoto2" }"#,
+                "gphoto2",
+                r#"gphoto2 = { settings = { "/main/iso" = "100" } }"#,
+                "devices.camera.gphoto2.settings",
+                "without its path",
+            ),
+            (
+                r#"{ type = "gphoto2" }"#,
+                "gphoto2",
+                "ptp = { exposure_index = 100 }",
+                "devices.camera.ptp",
+                "protocol = \"ptp\"",
+            ),
+        ] {
+            let e = gphoto2_virtex(transport, protocol, extra).expect_err(extra);
+            assert_eq!(e.key, key, "{e}");
+            assert!(e.message.contains(says), "{e}");
+        }
+        let e = Profile::parse(
+            &virtex_text().replace(
+                "protocol = \"ptp\"\n",
+                "protocol = \"ptp\"\ngphoto2 = { settings = { iso = \"100\" } }\n",
+            ),
+            "x.toml",
+        )
+        .expect_err("a gphoto2 table on USB");
+        assert_eq!(e.key, "devices.camera.gphoto2", "{e}");
     }
 
     #[test]

@@ -101,6 +101,7 @@ fn fix_for(name: &str, e: &DeviceError) -> Option<String> {
         "check ballast",
         "to what the camera offers",
         "--features genicam",
+        "--features gphoto2",
     ]
     .iter()
     .any(|m| e.message.contains(m));

@@ -1,6 +1,7 @@
 //! Links to real hardware: serial ports (tokio-serial), Modbus TCP sockets,
-//! USB cameras (nusb), PTP/IP cameras and GenICam cameras (Aravis), as the profile's
-//! `transport` of each device says.
+//! USB cameras (nusb), PTP/IP cameras, GenICam cameras (Aravis) and
+//! cameras through libgphoto2, as the profile's `transport` of each device
+//! says.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -10,6 +11,7 @@ use async_trait::async_trait;
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::model::profile::{DeviceKind, Profile, Transport};
 use crate::rig::drivers::genicam::{GenicamConfig, GenicamOpener, GenicamSession, SessionError};
+use crate::rig::drivers::gphoto2::{Gphoto2Error, Gphoto2Opener, Gphoto2Session};
 use crate::rig::drivers::ptpip::PtpIpPipe;
 use crate::rig::drivers::usb::{NusbPipe, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Rig};
@@ -153,6 +155,9 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                     port: *port,
                 })),
                 (Transport::Genicam { id }, _) => Link::Genicam(genicam_opener(id)),
+                (Transport::Gphoto2 { port, model }, _) => {
+                    Link::Gphoto2(gphoto2_opener(port.clone(), model.clone()))
+                }
                 (Transport::Serial { port, baud }, _) => Link::Line(Arc::new(SerialOpener {
                     port: port.clone(),
                     baud: *baud,
@@ -222,5 +227,42 @@ pub fn genicam_opener(id: &str) -> Arc<dyn GenicamOpener> {
     #[cfg(not(feature = "genicam"))]
     {
         Arc::new(NoGenicam { id: id.to_string() })
+    }
+}
+
+/// Stands in for libgphoto2 in a rigd built without the `gphoto2`
+/// feature: every open says how to get a build that has it.
+pub struct NoGphoto2 {
+    /// The transport's port, for messages.
+    pub port: Option<String>,
+}
+
+impl Gphoto2Opener for NoGphoto2 {
+    fn describe(&self) -> String {
+        match &self.port {
+            Some(p) => format!("libgphoto2 camera on `{p}`"),
+            None => "libgphoto2 camera".into(),
+        }
+    }
+
+    fn open(&self) -> Result<Box<dyn Gphoto2Session>, Gphoto2Error> {
+        Err(Gphoto2Error::new(
+            ErrorKind::NotReady,
+            "this rigd was built without libgphoto2 support: install Debian's libgphoto2-dev and libclang-dev and build with `cargo build --release --features gphoto2`",
+        ))
+    }
+}
+
+/// The opener of a camera on `transport = { type = "gphoto2" }`:
+/// libgphoto2 when built in, else [`NoGphoto2`].
+pub fn gphoto2_opener(port: Option<String>, model: Option<String>) -> Arc<dyn Gphoto2Opener> {
+    #[cfg(feature = "gphoto2")]
+    {
+        Arc::new(crate::rig::drivers::libgphoto2::LibGphoto2Opener { port, model })
+    }
+    #[cfg(not(feature = "gphoto2"))]
+    {
+        let _ = model;
+        Arc::new(NoGphoto2 { port })
     }
 }

@@ -55,6 +55,7 @@ use tokio_modbus::Slave;
 use crate::model::profile::{Device, DeviceKind, Profile};
 use crate::rig::drivers::acl::{AclArm, AclConfig, AclJointConfig};
 use crate::rig::drivers::genicam::{GenicamCamera, GenicamConfig, GenicamOpener};
+use crate::rig::drivers::gphoto2::{Gphoto2Camera, Gphoto2Config, Gphoto2Opener};
 use crate::rig::drivers::grbl::{GrblAxis, GrblConfig};
 use crate::rig::drivers::modbus::{all_off, ModbusConfig, ModbusLamp, ModbusLaser, SharedBus};
 use crate::rig::drivers::ptp::{PtpCamera, PtpConfig};
@@ -119,6 +120,8 @@ pub enum Link {
     Usb(Arc<dyn PipeOpener>),
     /// A GenICam camera (Aravis opens it by IP address or device id).
     Genicam(Arc<dyn GenicamOpener>),
+    /// A camera through libgphoto2 (by its port and model).
+    Gphoto2(Arc<dyn Gphoto2Opener>),
 }
 
 /// Deadline for opening a link (physical time).
@@ -257,7 +260,7 @@ pub async fn build_rig(
         })?;
         match (dev.kind, link) {
             (DeviceKind::Axis | DeviceKind::Arm, link @ Link::Line(_))
-            | (DeviceKind::Camera, link @ (Link::Usb(_) | Link::Genicam(_))) => {
+            | (DeviceKind::Camera, link @ (Link::Usb(_) | Link::Genicam(_) | Link::Gphoto2(_))) => {
                 wiring.push((name, Wiring::Own(dev, link)));
             }
             (
@@ -541,6 +544,30 @@ pub(crate) async fn connect_device(
                 id.serial,
                 id.version,
                 cam.describe()
+            ));
+            Ok((Connected::Camera(Box::new(cam)), identity))
+        }
+        (DeviceKind::Camera, Link::Gphoto2(opener)) => {
+            let Some(cfg) = Gphoto2Config::of(name, dev) else {
+                return Err(wrong_transport(name, dev));
+            };
+            // The driver holds its own deadlines (the open's included), on
+            // the clock it is given.
+            let (cam, id) = Gphoto2Camera::connect(cfg, opener, clock.clone()).await?;
+            let widgets = id
+                .widgets
+                .iter()
+                .map(|(w, v)| format!("{w} {v}"))
+                .collect::<Vec<_>>()
+                .join(", ");
+            let said = [("firmware", &id.version), ("serial", &id.serial)]
+                .iter()
+                .filter(|(_, v)| !v.is_empty())
+                .map(|(k, v)| format!(", {k} {v}"))
+                .collect::<String>();
+            let identity = Identity::usable(format!(
+                "libgphoto2 camera {} {}{said} (libgphoto2 model `{}` on `{}`); set {widgets}",
+                id.manufacturer, id.model, id.driver_model, id.port
             ));
             Ok((Connected::Camera(Box::new(cam)), identity))
         }

@@ -188,7 +188,7 @@ pub async fn serve(
                 });
             }
             // The simulator's cameras are PTP cameras; it serves no GenICam.
-            Link::Genicam(_) => {}
+            Link::Genicam(_) | Link::Gphoto2(_) => {}
         }
     }
     // The faults are the served firmware's business, not the client's.

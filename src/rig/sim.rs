@@ -718,7 +718,7 @@ mod tests {
                 status_registers,
             },
             Link::Usb(o) => Link::Usb(Arc::new(SlowPipe(o, c, delay))),
-            genicam @ Link::Genicam(_) => genicam,
+            own @ (Link::Genicam(_) | Link::Gphoto2(_)) => own,
         }
     }
 

@@ -6,7 +6,10 @@ pub mod acl;
 #[cfg(feature = "genicam")]
 pub mod aravis;
 pub mod genicam;
+pub mod gphoto2;
 pub mod grbl;
+#[cfg(feature = "gphoto2")]
+pub mod libgphoto2;
 pub mod modbus;
 pub mod ptp;
 pub mod ptpip;
