@@ -32,6 +32,8 @@ mod full_runs;
 #[cfg(feature = "genicam")]
 mod genicam;
 mod gphoto2_peer;
+#[cfg(feature = "gphoto2")]
+mod gphoto2_transport;
 mod grbl_e2e;
 mod grbl_transcripts;
 mod holder;
@@ -66,5 +68,16 @@ mod tradeoff;
 fn genicam_tests_need_the_genicam_feature() {
     panic!(
         "the GenICam tests need `--features genicam` and Debian's libaravis-dev and aravis-tools: run scripts/test.sh, which installs them and passes the feature"
+    );
+}
+
+/// The libgphoto2 transport's tests (tests/it/gphoto2_transport.rs) need a
+/// rigd built with libgphoto2: without the feature they would vanish from
+/// the suite, so this fails instead, saying how to run them.
+#[cfg(not(feature = "gphoto2"))]
+#[test]
+fn gphoto2_transport_tests_need_the_gphoto2_feature() {
+    panic!(
+        "the libgphoto2 transport's tests need `--features gphoto2` and Debian's libgphoto2-dev and libclang-dev: run scripts/test.sh, which installs them and passes the feature"
     );
 }
