@@ -58,6 +58,14 @@ if ! command -v arv-fake-gv-camera-0.8 >/dev/null || ! pkg-config --exists aravi
     apt_install aravis-tools libaravis-dev libusb-1.0-0-dev pkg-config
 fi
 
+# Cameras through libgphoto2 (tests/it/gphoto2_transport.rs): rigd links
+# Debian's libgphoto2 with the cargo feature `gphoto2`, whose bindings are
+# generated at build time by bindgen (libclang-dev).
+if ! pkg-config --exists libgphoto2 2>/dev/null || ! ls /usr/lib/llvm-*/lib/libclang*.so >/dev/null 2>&1; then
+    echo "== installing libgphoto2-dev and libclang-dev (for tests/it/gphoto2_transport.rs)"
+    apt_install libgphoto2-dev libclang-dev pkg-config
+fi
+
 # Camera files (tests/it/camera_files.rs): every DNG a simulated PTP run
 # stores is opened by LibRaw's sample programs (raw-identify,
 # unprocessed_raw), a raw decoder independent of the one rigd uses.
@@ -122,18 +130,18 @@ fi
 
 phase "cargo fmt --check"
 cargo fmt --all -- --check
-phase "cargo clippy --features genicam"
-cargo clippy --workspace --all-targets --locked --features genicam -- -D warnings
+phase "cargo clippy --features genicam,gphoto2"
+cargo clippy --workspace --all-targets --locked --features genicam,gphoto2 -- -D warnings
 # The hardware path builds without the simulator (no rigd-sim in the build),
-# and without Aravis (no `genicam` feature).
-phase "cargo clippy --no-default-features (rigd without the simulator or Aravis)"
+# and without Aravis or libgphoto2 (no `genicam`, no `gphoto2` feature).
+phase "cargo clippy --no-default-features (rigd without the simulator, Aravis or libgphoto2)"
 cargo clippy -p rigd --no-default-features --lib --bins --locked -- -D warnings
-phase "cargo test --features genicam --no-run (build the tests)"
-cargo test --workspace --locked --features genicam --no-run
-phase "cargo test --features genicam (run the tests)"
+phase "cargo test --features genicam,gphoto2 --no-run (build the tests)"
+cargo test --workspace --locked --features genicam,gphoto2 --no-run
+phase "cargo test --features genicam,gphoto2 (run the tests)"
 log="$(mktemp)"
 trap 'rm -f "$log"' EXIT
-cargo test --workspace --locked --features genicam 2>&1 | tee "$log"
+cargo test --workspace --locked --features genicam,gphoto2 2>&1 | tee "$log"
 # One closing line for the whole suite (cargo ends with the doc tests' own count).
 awk '/^test result:/ { for (i = 1; i <= NF; i++) { if ($(i+1) ~ /^passed/) p += $i; if ($(i+1) ~ /^failed/) f += $i } }
      END { printf "tests: %d passed, %d failed\n", p, f }' "$log"
