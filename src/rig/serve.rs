@@ -181,6 +181,14 @@ pub async fn serve(
                     host: "127.0.0.1".into(),
                     port,
                 };
+                // The served camera is a PTP camera whatever the profile
+                // reached it by (libgphoto2, Aravis): the printed profile
+                // reaches it with rigd's own PTP driver.
+                if dev.protocol != "ptp" {
+                    dev.protocol = "ptp".into();
+                    dev.gphoto2 = None;
+                    dev.genicam = None;
+                }
                 endpoints.push(Endpoint {
                     device: name.clone(),
                     address: format!("127.0.0.1:{port}"),
