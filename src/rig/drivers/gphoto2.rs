@@ -676,6 +676,8 @@ mod tests {
         file: Vec<u8>,
         captured: usize,
         deleted: Vec<String>,
+        /// What the next captures fail with, in order.
+        capture_errors: Vec<Gphoto2Error>,
     }
 
     struct Scripted(Arc<Mutex<Script>>);
@@ -707,6 +709,9 @@ mod tests {
             let delay = self.0.lock().unwrap().capture_delay;
             std::thread::sleep(delay);
             let mut s = self.0.lock().unwrap();
+            if !s.capture_errors.is_empty() {
+                return Err(s.capture_errors.remove(0));
+            }
             s.captured += 1;
             Ok(CameraPath {
                 folder: "/store".into(),
@@ -854,6 +859,47 @@ mod tests {
         script.lock().unwrap().capture_delay = Duration::ZERO;
         cam.expose().await.expect("a fresh session");
         assert_eq!(o.opens.load(Ordering::SeqCst), 2);
+    }
+
+    #[tokio::test]
+    async fn a_lost_link_reopens_with_every_widget_and_the_run_s_exposure_but_a_busy_camera_does_not(
+    ) {
+        let mut s = script();
+        s.capture_errors = vec![
+            Gphoto2Error::keeping_session(ErrorKind::Timeout, "Camera is busy"),
+            Gphoto2Error::new(ErrorKind::Disconnected, "I/O problem"),
+        ];
+        let (o, script) = opener(s);
+        let (mut cam, _) =
+            Gphoto2Camera::connect(cfg(&[("iso", "200")], 0.1), o.clone(), Clock::real())
+                .await
+                .expect("connect");
+        cam.set_exposure(1.0).await.expect("exposure");
+        let e = cam.expose().await.expect_err("busy");
+        assert_eq!(e.kind, ErrorKind::Timeout);
+        assert_eq!(o.opens.load(Ordering::SeqCst), 1, "busy keeps the session");
+        let e = cam.expose().await.expect_err("gone");
+        assert_eq!(
+            (e.kind, e.message.as_str()),
+            (ErrorKind::Disconnected, "I/O problem")
+        );
+        {
+            // The camera came back from a power cycle at its own settings.
+            let mut s = script.lock().unwrap();
+            s.set.clear();
+            if let Some(w) = s.widgets.get_mut("shutterspeed") {
+                w.value = "0.1000s".into();
+            }
+        }
+        cam.expose().await.expect("reconnected");
+        assert_eq!(o.opens.load(Ordering::SeqCst), 2);
+        assert_eq!(
+            script.lock().unwrap().set,
+            vec![
+                ("iso".to_string(), "200".to_string()),
+                ("shutterspeed".to_string(), "1.0000s".to_string()),
+            ]
+        );
     }
 
     #[tokio::test]
