@@ -565,9 +565,16 @@ pub(crate) async fn connect_device(
                 .filter(|(_, v)| !v.is_empty())
                 .map(|(k, v)| format!(", {k} {v}"))
                 .collect::<String>();
+            // A camera that names neither maker nor model is named by
+            // libgphoto2's model alone, in the parentheses.
+            let named = [id.manufacturer.as_str(), id.model.as_str()]
+                .iter()
+                .filter(|s| !s.is_empty())
+                .map(|s| format!(" {s}"))
+                .collect::<String>();
             let identity = Identity::usable(format!(
-                "libgphoto2 camera {} {}{said} (libgphoto2 model `{}` on `{}`); set {widgets}",
-                id.manufacturer, id.model, id.driver_model, id.port
+                "libgphoto2 camera{named}{said} (libgphoto2 model `{}` on `{}`); set {widgets}",
+                id.driver_model, id.port
             ));
             Ok((Connected::Camera(Box::new(cam)), identity))
         }
