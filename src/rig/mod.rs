@@ -15,7 +15,7 @@ pub mod hal;
 pub mod hardware;
 pub mod plate;
 #[cfg(feature = "sim")]
-mod ptpip_serve;
+pub mod ptpip_serve;
 mod relink;
 #[cfg(feature = "sim")]
 pub mod serve;
@@ -53,6 +53,7 @@ use tokio_modbus::client::Context;
 use tokio_modbus::Slave;
 
 use crate::model::profile::{Device, DeviceKind, Profile};
+use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::acl::{AclArm, AclConfig, AclJointConfig};
 use crate::rig::drivers::genicam::{GenicamCamera, GenicamConfig, GenicamOpener};
 use crate::rig::drivers::gphoto2::{Gphoto2Camera, Gphoto2Config, Gphoto2Opener};
@@ -92,6 +93,11 @@ pub trait PipeOpener: Send + Sync {
     fn describe(&self) -> String;
     /// Opens a fresh pipe; called again after the camera is lost.
     async fn open(&self) -> Result<BoxPipe, UsbError>;
+    /// Where the camera's files are decoded: in a child, unless the camera
+    /// runs in this process.
+    fn decode_in(&self) -> DecodeIn {
+        DecodeIn::Child
+    }
 }
 
 /// Modbus framing on a byte stream: the wire codecs' own type.
@@ -489,7 +495,10 @@ pub(crate) async fn connect_device(
         }
         (DeviceKind::Camera, Link::Usb(opener)) => {
             let pipe = open_pipe(clock, name, opener.as_ref()).await?;
-            let config = ptp_config(name, dev);
+            let config = PtpConfig {
+                decode_in: opener.decode_in(),
+                ..ptp_config(name, dev)
+            };
             let mut cam = PtpCamera::new(name, pipe, clock.clone(), config.clone());
             let info = cam
                 .connect()

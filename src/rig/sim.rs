@@ -28,6 +28,7 @@ use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
 use crate::model::profile::{DeviceKind, Profile, SimGrblSettings, Transport};
+use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
 
@@ -641,6 +642,10 @@ impl PipeOpener for PtpOpener {
         self.start(dev);
         Ok(Box::new(host))
     }
+
+    fn decode_in(&self) -> DecodeIn {
+        DecodeIn::ThisProcess
+    }
 }
 
 /// The simulated operator: moves the plate in the simulated world.
@@ -697,6 +702,9 @@ mod tests {
         async fn open(&self) -> Result<BoxPipe, UsbError> {
             self.1.sleep(self.2).await;
             self.0.open().await
+        }
+        fn decode_in(&self) -> DecodeIn {
+            self.0.decode_in()
         }
     }
 

@@ -18,6 +18,8 @@ mod child;
 mod decoders;
 mod wire;
 
+use std::sync::OnceLock;
+
 use rigd_core::Cfa;
 use serde::{Deserialize, Serialize};
 
@@ -257,9 +259,39 @@ impl CameraFileError {
 
 /// Decodes a camera file by its content, in a decoder child
 /// ([`child`]): a file that crashes or hangs the decoder is an error
-/// naming what happened, and this process goes on.
+/// naming what happened, and this process goes on. The children are kept
+/// for the next file (one per thread decoding at once) and end with this
+/// process.
 pub fn decode(bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
-    Decoder::rigd()?.decode(bytes)
+    static KEPT: OnceLock<Result<DecoderPool, CameraFileError>> = OnceLock::new();
+    match KEPT.get_or_init(|| Decoder::rigd().map(DecoderPool::new)) {
+        Ok(pool) => pool.decode(bytes),
+        Err(e) => Err(e.clone()),
+    }
+}
+
+/// Where a camera's files are decoded.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum DecodeIn {
+    /// In a decoder child ([`decode`]): the file comes from outside this
+    /// process (a camera, a network peer, a disk).
+    #[default]
+    Child,
+    /// In this process ([`decode_here`]): the file was made by this
+    /// process's own simulated camera, which no device or disk can have
+    /// made hostile, and a simulated run of thousands of frames must not
+    /// pay a child's round trip for each.
+    ThisProcess,
+}
+
+impl DecodeIn {
+    /// Decodes `bytes` where this says.
+    pub fn decode(self, bytes: &[u8]) -> Result<CameraImage, CameraFileError> {
+        match self {
+            DecodeIn::Child => decode(bytes),
+            DecodeIn::ThisProcess => decode_here(bytes),
+        }
+    }
 }
 
 /// Decodes a camera file in this process. Only for bytes rigd wrote itself

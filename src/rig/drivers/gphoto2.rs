@@ -36,6 +36,7 @@ use tokio::sync::oneshot;
 
 use super::ptp::frame_of_file;
 use crate::model::profile::{Device, Transport, GPHOTO2_SHUTTER_WIDGET};
+use crate::rig::camera_file::DecodeIn;
 use crate::rig::hal::{Camera, DeviceError, ErrorKind, Frame};
 
 /// How far a `shutterspeed` choice's time may lie from the requested
@@ -598,8 +599,15 @@ impl Camera for Gphoto2Camera {
             .call("downloading the capture", limit, move |s| s.download(&from))
             .await?;
         // A file that is no frame stays pending: the retake deletes it.
-        let frame = frame_of_file(&self.cfg.name, bytes, self.cfg.cfa, &self.cfg.cfa_key())
-            .map_err(|e| DeviceError::new(&self.cfg.name, e.kind(), format!("{file}: {e}")))?;
+        let frame = frame_of_file(
+            &self.cfg.name,
+            bytes,
+            DecodeIn::Child,
+            self.cfg.cfa,
+            &self.cfg.cfa_key(),
+        )
+        .await
+        .map_err(|e| DeviceError::new(&self.cfg.name, e.kind(), format!("{file}: {e}")))?;
         let limit = self.cfg.call_timeout;
         self.call("deleting the capture", limit, move |s| s.delete(&file))
             .await?;

@@ -24,7 +24,7 @@ use rigd_proto::ptp::{
 };
 
 use super::usb::{PtpPipe, UsbError};
-use crate::rig::camera_file::{self, CameraImage};
+use crate::rig::camera_file::{self, CameraImage, DecodeIn};
 use crate::rig::hal::{Camera, DeviceError, ErrorKind, Frame, OriginalFile};
 
 /// Bulk-in reads ask for this much: a multiple of every USB packet size, so
@@ -62,6 +62,9 @@ pub struct PtpConfig {
     pub cfa_key: String,
     /// ExposureIndex (ISO) set at every connect; None leaves the camera's.
     pub exposure_index: Option<u16>,
+    /// Where the camera's files are decoded: in a child, unless the camera
+    /// is this process's own simulated one.
+    pub decode_in: DecodeIn,
 }
 
 impl Default for PtpConfig {
@@ -74,6 +77,7 @@ impl Default for PtpConfig {
             cfa: None,
             cfa_key: "intrinsics.cfa".into(),
             exposure_index: None,
+            decode_in: DecodeIn::Child,
         }
     }
 }
@@ -358,7 +362,14 @@ impl<P: PtpPipe> PtpCamera<P> {
                 info.compressed_size
             )));
         }
-        let frame = frame_of_file(&self.name, data, self.config.cfa, &self.config.cfa_key)?;
+        let frame = frame_of_file(
+            &self.name,
+            data,
+            self.config.decode_in,
+            self.config.cfa,
+            &self.config.cfa_key,
+        )
+        .await?;
         self.transaction(OpCode::DeleteObject, &[handle], None)
             .await?;
         self.pending = None;
@@ -492,18 +503,28 @@ impl<P: PtpPipe> PtpCamera<P> {
 }
 
 /// The frame a camera file makes, the file kept byte for byte as
-/// [`Frame::original`]: decoded ([`camera_file`]) to refuse a broken file,
-/// and refused when its colour filter array is not `cfa`, the one the
-/// profile describes at `cfa_key`. Every driver that downloads camera
-/// files (PTP, libgphoto2) makes its frames here, so they are stored and
-/// checked alike.
-pub(crate) fn frame_of_file(
+/// [`Frame::original`]: decoded ([`camera_file`], where `decode_in` says)
+/// to refuse a broken file, and refused when its colour filter array is
+/// not `cfa`, the one the profile describes at `cfa_key`. Every driver
+/// that downloads camera files (PTP, libgphoto2) makes its frames here, so
+/// they are stored and checked alike.
+pub(crate) async fn frame_of_file(
     camera: &str,
     bytes: Vec<u8>,
+    decode_in: DecodeIn,
     cfa: Option<Cfa>,
     cfa_key: &str,
 ) -> Result<Frame, PtpError> {
-    let image = camera_file::decode(&bytes).map_err(|e| PtpError::BadFrame(e.to_string()))?;
+    let (decoded, bytes) = match decode_in {
+        DecodeIn::ThisProcess => (camera_file::decode_here(&bytes), bytes),
+        // A child's round trip blocks: it runs off the runtime's threads.
+        DecodeIn::Child => {
+            tokio::task::spawn_blocking(move || (camera_file::decode(&bytes), bytes))
+                .await
+                .map_err(|e| PtpError::BadFrame(format!("the decoding thread failed: {e}")))?
+        }
+    };
+    let image = decoded.map_err(|e| PtpError::BadFrame(e.to_string()))?;
     check_sensor(&image, cfa, cfa_key)?;
     let frame = Frame {
         width: image.width,
