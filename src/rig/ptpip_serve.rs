@@ -17,29 +17,33 @@ use rigd_proto::ptp::ip::{
     read_packet, serve_device, write_packet, FailReason, Identity, Packet, PROTOCOL_VERSION,
 };
 use sha2::{Digest, Sha256};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::io::{AsyncRead, AsyncWrite};
+use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
 use super::sim::PtpOpener;
-use crate::rig::drivers::usb::memory_pair;
+use crate::rig::drivers::usb::{memory_pair, MemoryDevice};
 
 /// How long a connection may take to send its init packet, and a command
 /// connection to be joined by its event connection.
 const HANDSHAKE: Duration = Duration::from_secs(10);
 
+/// Starts a camera's firmware on the device end of a fresh link, once per
+/// session.
+pub type StartFirmware = Arc<dyn Fn(MemoryDevice) + Send + Sync>;
+
 /// The command connections waiting for their event connection, and whether
 /// an initiator holds the camera.
-#[derive(Default)]
-struct Sessions {
+struct Sessions<S> {
     next_connection: u32,
-    waiting: BTreeMap<u32, oneshot::Sender<TcpStream>>,
+    waiting: BTreeMap<u32, oneshot::Sender<S>>,
     held: bool,
 }
 
 /// Frees the camera when a session ends, however it ends.
-struct Hold(Arc<Mutex<Sessions>>, u32);
+struct Hold<S>(Arc<Mutex<Sessions<S>>>, u32);
 
-impl Drop for Hold {
+impl<S> Drop for Hold<S> {
     fn drop(&mut self) {
         let mut s = rigd_core::sync::lock(&self.0);
         s.held = false;
@@ -60,6 +64,48 @@ fn camera_identity(model: &str, device: &str) -> Identity {
     }
 }
 
+/// One simulated camera's PTP/IP responder, over any byte streams: TCP
+/// connections in `rigd sim serve`, in-memory ones in the transcripts'
+/// replay.
+pub struct PtpIpResponder<S> {
+    start: StartFirmware,
+    sessions: Arc<Mutex<Sessions<S>>>,
+    identity: Arc<Identity>,
+    clock: Clock,
+}
+
+impl<S> PtpIpResponder<S>
+where
+    S: AsyncRead + AsyncWrite + Send + Unpin + 'static,
+{
+    /// The responder of the camera `device` whose DeviceInfo names `model`;
+    /// `start` runs its firmware for each session.
+    pub fn new(model: &str, device: &str, start: StartFirmware, clock: Clock) -> Self {
+        PtpIpResponder {
+            start,
+            sessions: Arc::new(Mutex::new(Sessions {
+                next_connection: 0,
+                waiting: BTreeMap::new(),
+                held: false,
+            })),
+            identity: Arc::new(camera_identity(model, device)),
+            clock,
+        }
+    }
+
+    /// Serves one new connection (a command or an event connection, as its
+    /// first packet says) on a task of its own.
+    pub fn accept(&self, stream: S) {
+        tokio::spawn(connection(
+            stream,
+            self.start.clone(),
+            self.sessions.clone(),
+            self.identity.clone(),
+            self.clock.clone(),
+        ));
+    }
+}
+
 /// Accepts initiators on `listener` until the runtime shuts down.
 pub(crate) async fn serve_camera(
     listener: TcpListener,
@@ -67,24 +113,19 @@ pub(crate) async fn serve_camera(
     device: String,
     clock: Clock,
 ) {
-    let sessions = Arc::new(Mutex::new(Sessions::default()));
-    let identity = Arc::new(camera_identity(camera.model(), &device));
+    let model = camera.model().to_string();
+    let start: StartFirmware = Arc::new(move |dev| camera.start(dev));
+    let responder = PtpIpResponder::new(&model, &device, start, clock);
     while let Ok((stream, peer)) = listener.accept().await {
         let _ = stream.set_nodelay(true);
         tracing::debug!(camera = %device, %peer, "PTP/IP connection");
-        tokio::spawn(connection(
-            stream,
-            camera.clone(),
-            sessions.clone(),
-            identity.clone(),
-            clock.clone(),
-        ));
+        responder.accept(stream);
     }
 }
 
 /// Takes the camera for a new command connection: its number, and where
 /// its event connection will arrive. None while another initiator holds it.
-fn hold_camera(sessions: &Mutex<Sessions>) -> Option<(u32, oneshot::Receiver<TcpStream>)> {
+fn hold_camera<S>(sessions: &Mutex<Sessions<S>>) -> Option<(u32, oneshot::Receiver<S>)> {
     let mut s = rigd_core::sync::lock(sessions);
     if s.held {
         return None;
@@ -97,13 +138,15 @@ fn hold_camera(sessions: &Mutex<Sessions>) -> Option<(u32, oneshot::Receiver<Tcp
     Some((connection, rx))
 }
 
-async fn connection(
-    mut stream: TcpStream,
-    camera: Arc<PtpOpener>,
-    sessions: Arc<Mutex<Sessions>>,
+async fn connection<S>(
+    mut stream: S,
+    start: StartFirmware,
+    sessions: Arc<Mutex<Sessions<S>>>,
     identity: Arc<Identity>,
     clock: Clock,
-) {
+) where
+    S: AsyncRead + AsyncWrite + Send + Unpin + 'static,
+{
     let first = match clock.deadline(HANDSHAKE, read_packet(&mut stream)).await {
         Ok(Ok(p)) => p,
         Ok(Err(e)) => {
@@ -147,7 +190,7 @@ async fn connection(
             }
             tracing::info!(initiator = %initiator.name, "PTP/IP session open");
             let (host, dev) = memory_pair();
-            camera.start(dev);
+            start(dev);
             let why = serve_device(stream, event, host).await;
             tracing::info!(initiator = %initiator.name, "PTP/IP session ended: {why}");
         }

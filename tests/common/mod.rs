@@ -149,6 +149,18 @@ pub fn serve_sim(profile: &Path, served: &Path, speed: f64) -> (Child, Vec<Strin
     )
 }
 
+/// The port of the (first) PTP/IP camera among `rigd sim serve`'s endpoint
+/// lines: command and event connections both go to it.
+pub fn served_ptpip_port(lines: &[String]) -> u16 {
+    lines
+        .iter()
+        .find(|l| l.contains("PTP/IP"))
+        .and_then(|l| l.split_whitespace().last())
+        .and_then(|a| a.rsplit(':').next())
+        .and_then(|p| p.parse().ok())
+        .unwrap_or_else(|| panic!("no PTP/IP endpoint: {lines:?}"))
+}
+
 /// The Python of the test venv (tests/support/requirements.txt: pymodbus,
 /// Schemathesis, httpx, pytest): `RIGD_TEST_PYTHON`, which
 /// `scripts/test.sh` sets, or the venv it creates under `target/`.

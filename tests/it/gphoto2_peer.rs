@@ -9,7 +9,7 @@ use crate::common;
 use std::process::Command;
 use std::time::Duration;
 
-use common::{repo_file, serve_sim};
+use common::{repo_file, serve_sim, served_ptpip_port};
 use rigd::rig::drivers::ptp::{PtpCamera, PtpConfig};
 use rigd::rig::drivers::ptpip::PtpIpPipe;
 use rigd::rig::hal::Camera;
@@ -45,13 +45,7 @@ fn gphoto2_lists_sets_and_captures_from_the_served_camera_byte_for_byte() {
         &served,
         20.0,
     );
-    let port: u16 = lines
-        .iter()
-        .find(|l| l.contains("PTP/IP"))
-        .and_then(|l| l.split_whitespace().last())
-        .and_then(|a| a.rsplit(':').next())
-        .and_then(|p| p.parse().ok())
-        .unwrap_or_else(|| panic!("no PTP/IP endpoint: {lines:?}"));
+    let port = served_ptpip_port(&lines);
 
     let summary = gphoto2(port, tmp.path(), &["--summary"]);
     assert!(summary.contains("Model: simulated PTP camera"), "{summary}");

@@ -10,7 +10,7 @@ use crate::common;
 use std::path::{Path, PathBuf};
 
 use crate::bring_up::{device, edit, line_of, rig_check};
-use common::{assert_complete_run, repo_file, rigd, serve_sim};
+use common::{assert_complete_run, repo_file, rigd, serve_sim, served_ptpip_port};
 
 /// The VirTex rig served by `rigd sim serve`, and the profile it printed
 /// with the camera moved to libgphoto2 on its PTP/IP port (the event
@@ -23,13 +23,7 @@ fn virtex_through_libgphoto2(tmp: &Path, exposure_s: f64) -> (common::Child, Pat
         &served,
         20.0,
     );
-    let port: u16 = lines
-        .iter()
-        .find(|l| l.contains("PTP/IP"))
-        .and_then(|l| l.split_whitespace().last())
-        .and_then(|a| a.rsplit(':').next())
-        .and_then(|p| p.parse().ok())
-        .unwrap_or_else(|| panic!("no PTP/IP endpoint: {lines:?}"));
+    let port = served_ptpip_port(&lines);
     let profile = tmp.join("virtex-gphoto2.toml");
     edit(&served, &profile, |t| {
         let cam = device(t, "camera");

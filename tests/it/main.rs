@@ -51,6 +51,7 @@ mod process_run;
 mod ps_accuracy;
 mod ptp_camera;
 mod ptp_transcripts;
+mod ptpip_transcripts;
 mod python_client;
 mod real_camera_files;
 mod refusals;

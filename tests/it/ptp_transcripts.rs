@@ -6,7 +6,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use rigd::rig::drivers::ptp::{PtpCamera, PtpConfig};
-use rigd::rig::drivers::usb::{memory_pair, MemoryDevice, MemoryPipe};
+use rigd::rig::drivers::usb::{memory_pair, MemoryDevice, MemoryPipe, PtpPipe};
 use rigd::rig::hal::{Camera, ErrorKind};
 use rigd_core::{Cfa, Clock};
 use rigd_proto::ptp::{Container, ContainerKind, EventCode, Header, OpCode, ResponseCode};
@@ -46,7 +46,7 @@ struct Wire {
 }
 
 #[derive(Debug, Clone, PartialEq)]
-enum Call {
+pub(crate) enum Call {
     Connect,
     SetExposure(f64),
     Expose,
@@ -61,7 +61,7 @@ enum Line {
     Wire(Wire),
 }
 
-fn kind_of(s: &str) -> ErrorKind {
+pub(crate) fn kind_of(s: &str) -> ErrorKind {
     match s {
         "timeout" => ErrorKind::Timeout,
         "disconnected" => ErrorKind::Disconnected,
@@ -73,7 +73,7 @@ fn kind_of(s: &str) -> ErrorKind {
     }
 }
 
-fn number(s: &str) -> u32 {
+pub(crate) fn number(s: &str) -> u32 {
     let s = s.trim();
     let r = match s.strip_prefix("0x") {
         Some(h) => u32::from_str_radix(h, 16),
@@ -91,6 +91,19 @@ fn code_of(kind: ContainerKind, s: &str) -> u16 {
     c.unwrap_or_else(|| panic!("unknown {kind} code `{s}`"))
 }
 
+/// Hex digits (spaces ignored) as bytes; `line` names the line in a panic.
+pub(crate) fn hex_bytes(hex: &str, line: &str) -> Vec<u8> {
+    let hex: String = hex.chars().filter(|c| !c.is_whitespace()).collect();
+    (0..hex.len())
+        .step_by(2)
+        .map(|i| {
+            hex.get(i..i + 2)
+                .and_then(|b| u8::from_str_radix(b, 16).ok())
+                .unwrap_or_else(|| panic!("bad hex in `{line}`"))
+        })
+        .collect()
+}
+
 fn parse_wire(line: &str) -> Wire {
     let (head, data_text) = match line.split_once(" data=") {
         Some((h, d)) => (h, Some(d)),
@@ -104,16 +117,7 @@ fn parse_wire(line: &str) -> Wire {
                 Some(h) => (h, true),
                 None => (d, false),
             };
-            let hex: String = hex.chars().filter(|c| !c.is_whitespace()).collect();
-            let bytes = (0..hex.len())
-                .step_by(2)
-                .map(|i| {
-                    hex.get(i..i + 2)
-                        .and_then(|b| u8::from_str_radix(b, 16).ok())
-                        .unwrap_or_else(|| panic!("bad hex in `{line}`"))
-                })
-                .collect();
-            (bytes, elided)
+            (hex_bytes(hex, line), elided)
         }
     };
     let (head, params) = match head.split_once(" params=[") {
@@ -179,11 +183,17 @@ fn parse_wire(line: &str) -> Wire {
     }
 }
 
-fn parse_line(line: &str) -> Option<Line> {
-    let line = line.trim();
-    if line.is_empty() || line.starts_with('#') {
-        return None;
-    }
+/// A line that is not a container: a driver call with its outcome, or a
+/// fault armed on the camera.
+pub(crate) enum Control {
+    /// `! CALL -> OUTCOME`.
+    Call(Call, Option<ErrorKind>),
+    /// `% fault RULE`.
+    Fault(FaultRule),
+}
+
+/// `line` as a call or a fault; None for anything else.
+pub(crate) fn parse_control(line: &str) -> Option<Control> {
     if let Some(rest) = line.strip_prefix("! ") {
         let (call, outcome) = rest
             .split_once(" -> ")
@@ -206,12 +216,24 @@ fn parse_line(line: &str) -> Option<Line> {
                     .unwrap_or_else(|| panic!("bad outcome `{o}`")),
             )),
         };
-        return Some(Line::Call(call, outcome));
+        return Some(Control::Call(call, outcome));
     }
-    if let Some(rule) = line.strip_prefix("% fault ") {
-        return Some(Line::Fault(rule.parse().unwrap_or_else(|e| panic!("{e}"))));
+    let rule = line.strip_prefix("% fault ")?;
+    Some(Control::Fault(
+        rule.parse().unwrap_or_else(|e| panic!("{e}")),
+    ))
+}
+
+fn parse_line(line: &str) -> Option<Line> {
+    let line = line.trim();
+    if line.is_empty() || line.starts_with('#') {
+        return None;
     }
-    Some(Line::Wire(parse_wire(line)))
+    match parse_control(line) {
+        Some(Control::Call(c, o)) => Some(Line::Call(c, o)),
+        Some(Control::Fault(r)) => Some(Line::Fault(r)),
+        None => Some(Line::Wire(parse_wire(line))),
+    }
 }
 
 fn transcripts() -> Vec<Vec<Line>> {
@@ -229,10 +251,14 @@ fn transcripts() -> Vec<Vec<Line>> {
     out
 }
 
-/// The reference camera of the spec.
-fn firmware(clock: &Clock, faults: Vec<FaultRule>) -> (MemoryPipe, Arc<FaultInjector>) {
+/// The reference camera of the spec, started on the device end of a link
+/// each time the returned function is called.
+pub(crate) fn reference_camera(
+    clock: &Clock,
+    faults: Vec<FaultRule>,
+) -> impl Fn(MemoryDevice) + Send + Sync + 'static {
     let injector = Arc::new(FaultInjector::new(faults));
-    let ctx = SimContext::new(clock.clone(), injector.clone());
+    let ctx = SimContext::new(clock.clone(), injector);
     let spec = PtpCameraSpec {
         name: "cam".into(),
         manufacturer: "rigd".into(),
@@ -246,17 +272,23 @@ fn firmware(clock: &Clock, faults: Vec<FaultRule>) -> (MemoryPipe, Arc<FaultInje
         },
         cfa: Some(Cfa::Rggb),
     };
-    let shot = || Shot {
-        light: [0.0, 0.0, 1.0],
-        view: [0.0, 0.0, 1.0],
-        width: 4,
-        height: 2,
-        bit_depth: 12,
-        ..Shot::default()
-    };
+    move |dev| {
+        let shot = || Shot {
+            light: [0.0, 0.0, 1.0],
+            view: [0.0, 0.0, 1.0],
+            width: 4,
+            height: 2,
+            bit_depth: 12,
+            ..Shot::default()
+        };
+        PtpFirmware::new(spec.clone(), ctx.clone(), Box::new(shot)).spawn(dev);
+    }
+}
+
+fn firmware(clock: &Clock, faults: Vec<FaultRule>) -> MemoryPipe {
     let (host, dev) = memory_pair();
-    PtpFirmware::new(spec, ctx, Box::new(shot)).spawn(dev);
-    (host, injector)
+    reference_camera(clock, faults)(dev);
+    host
 }
 
 fn container_of(w: &Wire) -> Vec<u8> {
@@ -271,7 +303,7 @@ fn container_of(w: &Wire) -> Vec<u8> {
 }
 
 /// Bytes as the transcripts write them: hex in groups of four bytes.
-fn hex_groups(bytes: &[u8]) -> String {
+pub(crate) fn hex_groups(bytes: &[u8]) -> String {
     bytes
         .chunks(4)
         .map(|c| c.iter().map(|b| format!("{b:02x}")).collect::<String>())
@@ -338,7 +370,7 @@ async fn replay_against_firmware(lines: &[Line]) {
             _ => None,
         })
         .collect();
-    let (mut host, _faults) = firmware(&clock, faults);
+    let mut host = firmware(&clock, faults);
     for line in lines {
         let Line::Wire(w) = line else { continue };
         match (w.dir, w.ep) {
@@ -374,10 +406,11 @@ async fn replay_against_firmware(lines: &[Line]) {
     assert!(more.is_err(), "firmware sent more events: {more:?}");
 }
 
-async fn run_calls(
-    mut cam: PtpCamera<MemoryPipe>,
+/// Runs `calls` on the driver, in order; their outcomes (None for ok).
+pub(crate) async fn run_calls<P: PtpPipe>(
+    mut cam: PtpCamera<P>,
     calls: Vec<Call>,
-) -> (Vec<Option<ErrorKind>>, PtpCamera<MemoryPipe>) {
+) -> (Vec<Option<ErrorKind>>, PtpCamera<P>) {
     let mut outcomes = Vec::new();
     for call in calls {
         let r = match call {

@@ -7,6 +7,7 @@
 use async_trait::async_trait;
 use rigd_proto::ptp::ip::{self, Identity, IpError, IpHost};
 use sha2::{Digest, Sha256};
+use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpStream;
 
 use super::usb::{PtpPipe, UsbError};
@@ -29,7 +30,24 @@ impl PtpIpPipe {
             Ok::<TcpStream, IpError>(s)
         };
         let command = open().await?;
-        let (camera, ip) = ip::initiator(command, open, &initiator_identity()).await?;
+        PtpIpPipe::handshake(command, open, &initiator_identity()).await
+    }
+
+    /// Opens the session over a command connection already made, as the
+    /// initiator `me`; `open_event` makes the event connection when the
+    /// camera has acknowledged the command connection.
+    pub async fn handshake<C, E, F, Fut>(
+        command: C,
+        open_event: F,
+        me: &Identity,
+    ) -> Result<PtpIpPipe, IpError>
+    where
+        C: AsyncRead + AsyncWrite + Send + Unpin + 'static,
+        E: AsyncRead + AsyncWrite + Send + Unpin + 'static,
+        F: FnOnce() -> Fut,
+        Fut: std::future::Future<Output = Result<E, IpError>>,
+    {
+        let (camera, ip) = ip::initiator(command, open_event, me).await?;
         Ok(PtpIpPipe { ip, camera })
     }
 
