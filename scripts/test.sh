@@ -128,6 +128,29 @@ if [ -z "${CARGO_TARGET_DIR:-}" ] && mkdir -p "$build_cache" 2>/dev/null && [ -w
     echo "== building in $build_cache"
 fi
 
+# Disk space: a build and the tests' scratch folders need about 15 GiB. On a
+# full disk the tests do not fail fast: disk full pauses a run, and a test
+# that waits for the run to complete waits out its whole time limit. So a
+# short disk is named here, before anything is built; an old build cache is
+# emptied first when that makes the room.
+free_gib() { df -Pk "$1" | awk 'NR == 2 { print int($4 / 1048576) }'; }
+need_gib=15
+scratch="${CARGO_TARGET_DIR:-target}"
+mkdir -p "$scratch"
+if [ "$(free_gib "$scratch")" -lt "$need_gib" ] && [ -n "${CARGO_TARGET_DIR:-}" ] \
+    && [ "$CARGO_TARGET_DIR" = "$build_cache" ]; then
+    echo "== emptying the build cache $build_cache (the disk has less than $need_gib GiB free)"
+    rm -rf "$build_cache"
+    mkdir -p "$build_cache"
+fi
+for dir in "$scratch" "${TMPDIR:-/tmp}"; do
+    if [ "$(free_gib "$dir")" -lt "$need_gib" ]; then
+        echo "error: $(free_gib "$dir") GiB free on the disk of $dir; the build and the tests need $need_gib GiB" >&2
+        df -h "$dir" >&2
+        exit 1
+    fi
+done
+
 phase "cargo fmt --check"
 cargo fmt --all -- --check
 phase "cargo clippy --features genicam,gphoto2"
