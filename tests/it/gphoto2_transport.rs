@@ -10,6 +10,7 @@ use crate::common;
 use std::path::{Path, PathBuf};
 
 use crate::bring_up::{device, edit, line_of, rig_check};
+use crate::sim_serve::{hostile_relay, Misbehaviour};
 use common::{assert_complete_run, repo_file, rigd, serve_sim, served_ptpip_port};
 
 /// The VirTex rig served by `rigd sim serve`, and the profile it printed
@@ -133,4 +134,53 @@ fn a_shutterspeed_the_camera_does_not_list_is_refused_naming_the_list() {
         err.contains("shutterspeed 0.0123 s is not offered"),
         "{err}"
     );
+}
+
+/// The camera vanishes mid-run: its connection closes when the second
+/// capture is asked for. libgphoto2 reports an unspecified error, the run
+/// pauses naming the camera, and a resume opens the camera afresh through
+/// libgphoto2 and completes the run with every frame the camera's file.
+#[test]
+fn a_camera_that_vanishes_mid_run_pauses_it_and_a_resume_reconnects() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let (_server, _, direct) = virtex_through_libgphoto2(tmp.path(), 0.1);
+    let profile = tmp.path().join("through-relay.toml");
+    edit(&direct, &profile, |t| {
+        let transport = device(t, "camera")
+            .get_mut("transport")
+            .and_then(|t| t.as_table_mut())
+            .expect("the camera's transport");
+        let port: u16 = transport
+            .get("port")
+            .and_then(|p| p.as_str())
+            .and_then(|p| p.rsplit(':').next())
+            .and_then(|p| p.parse().ok())
+            .expect("a ptpip: port");
+        let relay = hostile_relay(port, 2, Misbehaviour::HangUp);
+        transport.insert(
+            "port".into(),
+            format!("ptpip:127.0.0.1:{relay}:{relay}").into(),
+        );
+    });
+    let run = tmp.path().join("run");
+    let o = capture(&profile, &run);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(3), "{stderr}");
+    assert!(
+        stderr.contains("camera: device fault: capturing"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("--resume"), "{stderr}");
+    let o = rigd()
+        .args(["run", "--resume"])
+        .arg(&run)
+        .args(["--progress", "none"])
+        .output()
+        .expect("rigd run --resume");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let m = assert_complete_run(&run, 3);
+    for f in &m.frames {
+        let bytes = std::fs::read(run.join(&f.file)).expect("frame");
+        assert!(bytes.starts_with(b"II*\0"), "frame {} is no DNG", f.index);
+    }
 }

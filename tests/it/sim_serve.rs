@@ -83,12 +83,21 @@ fn served_msra_rig_answers_a_modbus_client_and_completes_a_run() {
     assert_eq!(m.profile, "msra-btf-mdf-sim-served");
 }
 
+/// What the relay does instead of passing on the `nth` InitiateCapture.
+#[derive(Clone, Copy)]
+pub(crate) enum Misbehaviour {
+    /// Answers with a packet of type 99, which no PTP/IP packet has.
+    Garbage,
+    /// Closes both ends of the connection, as a camera that vanished.
+    HangUp,
+}
+
 /// A TCP relay in front of the served camera at `upstream`. On the
-/// command connection it reads the initiator's packets, and the first
-/// time the initiator asks for the `nth` InitiateCapture it withholds the
-/// request and answers with a packet of type 99, which no PTP/IP packet
-/// has; everything else, and every later connection, is relayed as it is.
-fn hostile_relay(upstream: u16, nth: usize) -> u16 {
+/// command connection it reads the initiator's packets, and when the
+/// initiator asks for the `nth` InitiateCapture (counted over every
+/// connection) it withholds the request and misbehaves; everything else
+/// is relayed as it is.
+pub(crate) fn hostile_relay(upstream: u16, nth: usize, misbehaviour: Misbehaviour) -> u16 {
     use std::io::{Read, Write};
     use std::net::{Shutdown, TcpListener, TcpStream};
     use std::sync::atomic::{AtomicUsize, Ordering};
@@ -134,8 +143,13 @@ fn hostile_relay(upstream: u16, nth: usize) -> u16 {
                     let capture = ty == OPERATION_REQUEST
                         && body.get(4..6) == Some(&INITIATE_CAPTURE.to_le_bytes()[..]);
                     if capture && captures.fetch_add(1, Ordering::SeqCst) + 1 == nth {
-                        let _ = initiator.write_all(&[8, 0, 0, 0, 99, 0, 0, 0]);
-                        continue;
+                        match misbehaviour {
+                            Misbehaviour::Garbage => {
+                                let _ = initiator.write_all(&[8, 0, 0, 0, 99, 0, 0, 0]);
+                                continue;
+                            }
+                            Misbehaviour::HangUp => break,
+                        }
                     }
                     if to_camera.write_all(&header).is_err() || to_camera.write_all(&body).is_err()
                     {
@@ -163,7 +177,7 @@ fn a_malformed_ptpip_packet_pauses_the_run_with_the_reason_and_resume_completes(
         20.0,
     );
     let port = served_ptpip_port(&lines);
-    let relay = hostile_relay(port, 2);
+    let relay = hostile_relay(port, 2, Misbehaviour::Garbage);
     let profile = tmp.path().join("through-relay.toml");
     edit(&served, &profile, |t| {
         let transport = device(t, "camera")

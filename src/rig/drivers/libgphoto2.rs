@@ -37,8 +37,11 @@ pub struct LibGphoto2Opener {
 /// engine asks again, but on the same session: it is still storing the
 /// last frame, not lost. Corrupted data is a `BadFrame` to retake. An
 /// unknown model or bad parameters are set-up errors (`NotReady`: the
-/// profile must change). Anything else the camera refused is a
-/// `DeviceFault`.
+/// profile must change). Anything else is a `DeviceFault` that also drops
+/// the session: libgphoto2's ptp2 driver reports a PTP/IP connection that
+/// closed mid-call as a bare "Unspecified error", and a session kept after
+/// it would fail every call until rigd restarts, while opening the camera
+/// afresh costs a second.
 fn error(what: &str, e: &::gphoto2::Error) -> Gphoto2Error {
     use ::gphoto2::error::ErrorKind as G;
     let message = format!("{what}: {e}");
@@ -60,7 +63,7 @@ fn error(what: &str, e: &::gphoto2::Error) -> Gphoto2Error {
         G::ModelNotFound | G::BadParameters | G::PathNotAbsolute => {
             Gphoto2Error::keeping_session(ErrorKind::NotReady, message)
         }
-        _ => Gphoto2Error::keeping_session(ErrorKind::DeviceFault, message),
+        _ => Gphoto2Error::new(ErrorKind::DeviceFault, message),
     }
 }
 
