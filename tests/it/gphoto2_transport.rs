@@ -10,7 +10,7 @@ use crate::common;
 use std::path::{Path, PathBuf};
 
 use crate::bring_up::{device, edit, line_of, rig_check};
-use crate::sim_serve::{hostile_relay, Misbehaviour};
+use crate::sim_serve::{hostile_relay, paused_naming_then_resumed, Misbehaviour};
 use common::{assert_complete_run, repo_file, rigd, serve_sim, served_ptpip_port};
 
 /// The VirTex rig served by `rigd sim serve`, and the profile it printed
@@ -164,21 +164,7 @@ fn a_camera_that_vanishes_mid_run_pauses_it_and_a_resume_reconnects() {
     });
     let run = tmp.path().join("run");
     let o = capture(&profile, &run);
-    let stderr = String::from_utf8_lossy(&o.stderr);
-    assert_eq!(o.status.code(), Some(3), "{stderr}");
-    assert!(
-        stderr.contains("camera: device fault: capturing"),
-        "{stderr}"
-    );
-    assert!(stderr.contains("--resume"), "{stderr}");
-    let o = rigd()
-        .args(["run", "--resume"])
-        .arg(&run)
-        .args(["--progress", "none"])
-        .output()
-        .expect("rigd run --resume");
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let m = assert_complete_run(&run, 3);
+    let m = paused_naming_then_resumed(&o, &["camera: device fault: capturing"], &run, 3);
     for f in &m.frames {
         let bytes = std::fs::read(run.join(&f.file)).expect("frame");
         assert!(bytes.starts_with(b"II*\0"), "frame {} is no DNG", f.index);

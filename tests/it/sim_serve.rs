@@ -198,20 +198,29 @@ fn a_malformed_ptpip_packet_pauses_the_run_with_the_reason_and_resume_completes(
         .arg(&run)
         .output()
         .expect("rigd run");
+    paused_naming_then_resumed(&o, &["camera", "packet type 99"], &run, 3);
+}
+
+/// Asserts that `rigd run` paused (exit 3) saying each of `parts` and how
+/// to resume; then resumes the run and asserts it completes with `frames`
+/// frames.
+pub(crate) fn paused_naming_then_resumed(
+    o: &std::process::Output,
+    parts: &[&str],
+    run: &std::path::Path,
+    frames: usize,
+) -> rigd::store::Manifest {
     let stderr = String::from_utf8_lossy(&o.stderr);
     assert_eq!(o.status.code(), Some(3), "{stderr}");
-    assert!(
-        stderr.contains("camera") && stderr.contains("packet type 99"),
-        "{stderr}"
-    );
-    assert!(stderr.contains("--resume"), "{stderr}");
-
+    for part in parts.iter().chain(&["--resume"]) {
+        assert!(stderr.contains(part), "{part}\n{stderr}");
+    }
     let o = rigd()
         .args(["run", "--resume"])
-        .arg(&run)
+        .arg(run)
         .args(["--progress", "none"])
         .output()
         .expect("rigd run --resume");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    assert_complete_run(&run, 3);
+    assert_complete_run(run, frames)
 }
