@@ -427,12 +427,7 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         .send_keys("felt-browser")
         .await
         .expect("sample");
-    c.find(Locator::Id("plan"))
-        .await
-        .expect("#plan")
-        .select_by_value("__custom")
-        .await
-        .expect("choose custom directions");
+    select_value(c, "plan", "__custom").await;
     let dirs = c
         .find(Locator::Id("custom-dirs"))
         .await
@@ -680,12 +675,7 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
     .await;
     // Manual control with the rig free: home and jog the rail, switch the
     // lamp, take a test frame into the preview.
-    c.find(Locator::Id("manual-axis"))
-        .await
-        .expect("#manual-axis")
-        .select_by_value("rail")
-        .await
-        .expect("choose the rail");
+    select_value(c, "manual-axis", "rail").await;
     click_id(c, "manual-home").await;
     manual_says(c, "the rail homed", |t| t == "rail homed at 90.00°").await;
     click_id(c, "manual-plus").await;
@@ -716,12 +706,7 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
         t.starts_with("holder-check: conflict: move to a pose first")
     })
     .await;
-    c.find(Locator::Id("manual-axis"))
-        .await
-        .expect("#manual-axis")
-        .select_by_value("arm")
-        .await
-        .expect("choose the arm");
+    select_value(c, "manual-axis", "arm").await;
     click_id(c, "manual-home").await;
     manual_says(c, "the arm homed", |t| t.starts_with("arm homed at ")).await;
     for (id, dir) in [("manual-light", "30,0"), ("manual-view", "0,0")] {
@@ -948,6 +933,27 @@ async fn click_css(c: &Client, css: &str, what: &str) {
                 tokio::time::sleep(Duration::from_millis(50)).await;
             }
             Err(e) => panic!("click {what} ({css}): {e}"),
+        }
+    }
+}
+
+/// Chooses `value` in the select with id `id`. The dashboard rebuilds a
+/// list's options when what they show changes (a plan solved and sized),
+/// so an option found a moment ago may be gone before the click: then the
+/// select is found again.
+async fn select_value(c: &Client, id: &str, value: &str) {
+    let deadline = Instant::now() + Duration::from_secs(10);
+    loop {
+        let select = c
+            .find(Locator::Id(id))
+            .await
+            .unwrap_or_else(|e| panic!("#{id}: {e}"));
+        match select.select_by_value(value).await {
+            Ok(()) => return,
+            Err(e) if e.is_stale_element_reference() && Instant::now() < deadline => {
+                tokio::time::sleep(Duration::from_millis(50)).await;
+            }
+            Err(e) => panic!("choose {value} in #{id}: {e}"),
         }
     }
 }
