@@ -16,6 +16,7 @@ use crate::rig::drivers::ptpip::PtpIpPipe;
 use crate::rig::drivers::usb::{NusbPipe, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Rig};
 use rigd_core::Clock;
+use rigd_proto::ptp::ip::{FailReason, IpError};
 
 /// A serial port (a USB-serial adapter, an RS-485 dongle, a pty).
 pub struct SerialOpener {
@@ -105,7 +106,10 @@ impl PipeOpener for PtpIpOpener {
     async fn open(&self) -> Result<BoxPipe, UsbError> {
         let pipe = PtpIpPipe::connect(&self.host, self.port)
             .await
-            .map_err(|e| UsbError::Io(e.to_string()))?;
+            .map_err(|e| match e {
+                IpError::Refused(FailReason::Busy) => UsbError::Busy(e.to_string()),
+                e => UsbError::Io(e.to_string()),
+            })?;
         tracing::info!(camera = %pipe.camera().name, "PTP/IP session open");
         Ok(Box::new(pipe))
     }

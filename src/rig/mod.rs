@@ -157,23 +157,46 @@ async fn open_stream(
     }
 }
 
+/// How long a camera that says it is busy is given before it is asked
+/// again, within [`OPEN_TIMEOUT`].
+const BUSY_RETRY: Duration = Duration::from_millis(250);
+
+/// Opens a camera's link. A camera still held by a session that has just
+/// ended (its initiator closed the connection, and the camera has not yet
+/// seen it go) answers "busy": it is asked again until [`OPEN_TIMEOUT`].
 async fn open_pipe(
     clock: &Clock,
     device: &str,
     opener: &dyn PipeOpener,
 ) -> Result<BoxPipe, DeviceError> {
-    match clock.deadline(OPEN_TIMEOUT, opener.open()).await {
+    let mut busy = None;
+    let opening = async {
+        loop {
+            match opener.open().await {
+                Err(UsbError::Busy(why)) => {
+                    busy = Some(why);
+                    clock.sleep(BUSY_RETRY).await;
+                }
+                other => return other,
+            }
+        }
+    };
+    let cannot_open = format!("cannot open {}", opener.describe());
+    match clock.deadline(OPEN_TIMEOUT, opening).await {
         Ok(Ok(p)) => Ok(p),
-        Ok(Err(e)) => Err(link_error(
-            device,
-            &format!("cannot open {}", opener.describe()),
-            e,
-        )),
-        Err(_) => Err(DeviceError::new(
-            device,
-            ErrorKind::Timeout,
-            format!("opening {} took over {OPEN_TIMEOUT:?}", opener.describe()),
-        )),
+        Ok(Err(e)) => Err(link_error(device, &cannot_open, e)),
+        Err(_) => Err(match busy {
+            Some(why) => link_error(
+                device,
+                &cannot_open,
+                format!("{why}, for over {OPEN_TIMEOUT:?}"),
+            ),
+            None => DeviceError::new(
+                device,
+                ErrorKind::Timeout,
+                format!("opening {} took over {OPEN_TIMEOUT:?}", opener.describe()),
+            ),
+        }),
     }
 }
 
@@ -730,5 +753,66 @@ impl EmergencyStop for BusStop {
         all_off(&bus.clock, &bus.bus, coils, Duration::from_secs(1))
             .await
             .map_err(|e| e.into_device(&bus.name))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    use super::*;
+    use crate::rig::drivers::usb::memory_pair;
+
+    /// A camera that answers "busy" to its first `busy_for` openings.
+    struct BusyCamera {
+        busy_for: usize,
+        opens: AtomicUsize,
+    }
+
+    #[async_trait]
+    impl PipeOpener for BusyCamera {
+        fn describe(&self) -> String {
+            "PTP/IP camera at 127.0.0.1:15740".into()
+        }
+
+        async fn open(&self) -> Result<BoxPipe, UsbError> {
+            if self.opens.fetch_add(1, Ordering::SeqCst) < self.busy_for {
+                return Err(UsbError::Busy(
+                    "the camera refused the PTP/IP connection: busy with another initiator".into(),
+                ));
+            }
+            let (host, _device) = memory_pair();
+            Ok(Box::new(host))
+        }
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_camera_busy_with_an_ended_session_is_asked_again_until_the_open_timeout() {
+        let clock = Clock::virtual_time();
+        let soon = BusyCamera {
+            busy_for: 3,
+            opens: AtomicUsize::new(0),
+        };
+        let started = clock.now();
+        assert!(open_pipe(&clock, "camera", &soon).await.is_ok());
+        assert_eq!(soon.opens.load(Ordering::SeqCst), 4);
+        assert_eq!(clock.now() - started, 3 * BUSY_RETRY);
+
+        let held = BusyCamera {
+            busy_for: usize::MAX,
+            opens: AtomicUsize::new(0),
+        };
+        let started = clock.now();
+        let e = open_pipe(&clock, "camera", &held)
+            .await
+            .err()
+            .expect("a camera busy for good is not opened");
+        assert_eq!(e.kind, ErrorKind::Disconnected);
+        assert!(
+            e.message
+                .contains("busy with another initiator, for over 10s"),
+            "{e}"
+        );
+        assert!(clock.now() - started <= OPEN_TIMEOUT + BUSY_RETRY);
     }
 }

@@ -33,6 +33,10 @@ pub enum UsbError {
     /// The device has no Still Image interface with the endpoints PTP needs.
     #[error("no Still Image interface with bulk-in, bulk-out and interrupt-in endpoints")]
     NoStillImageInterface,
+    /// The camera is held by another session for now (a PTP/IP camera's
+    /// Init Fail "busy"): opening again shortly may succeed.
+    #[error("{0}")]
+    Busy(String),
 }
 
 /// The channels a PTP camera talks over, in the shape of its USB

@@ -891,15 +891,18 @@ async fn pump_initiator<C, E>(
     let (probe_tx, mut probe_rx) = mpsc::unbounded_channel::<()>();
     let send = async {
         loop {
+            // A waiting probe is answered before the next operation goes out,
+            // so the camera's liveness check never waits behind a transfer.
             let (cmd, data) = tokio::select! {
-                op = operations.recv() => match op {
-                    Some(op) => op,
-                    None => return Err(IpError::Closed),
-                },
+                biased;
                 Some(()) = probe_rx.recv() => {
                     write_packet(&mut wr, &Packet::ProbeResponse).await?;
                     continue;
                 }
+                op = operations.recv() => match op {
+                    Some(op) => op,
+                    None => return Err(IpError::Closed),
+                },
             };
             let container = Container::decode(&cmd).map_err(malformed)?;
             if container.kind != ContainerKind::Command {
