@@ -11,6 +11,7 @@ use clap::{Args, Subcommand};
 use serde::Serialize;
 
 use rigd::rig::camera_file::{self, CameraImage, Encoding, Facts};
+use rigd_process::demosaic::DEFAULT_METHOD;
 use rigd_process::image_io::{write_png, Image, PngDepth};
 
 use super::exit::bad_input;
@@ -233,8 +234,8 @@ fn write_outputs(dir: &Path, img: &CameraImage, report: &FrameReport) -> Result<
 }
 
 /// The image as a person would see it: a mosaic white-balanced by the
-/// camera's as-shot multipliers, demosaiced (bilinear, as processing
-/// does), turned to linear sRGB by the camera's colour matrix and sRGB
+/// camera's as-shot multipliers, demosaiced as processing does
+/// ([`DEFAULT_METHOD`]), turned to linear sRGB by the camera's colour matrix and sRGB
 /// encoded; a rendered file as it is.
 fn preview(img: &CameraImage) -> Result<Image, String> {
     let (w, h) = (img.width as usize, img.height as usize);
@@ -274,8 +275,8 @@ fn preview(img: &CameraImage) -> Result<Image, String> {
         .enumerate()
         .map(|(i, v)| v * wb[cfa.channel_at(i % w, i / w)])
         .collect();
-    let planes =
-        rigd_process::demosaic::bilinear(&balanced, w, h, cfa).map_err(|e| e.to_string())?;
+    let planes = rigd_process::demosaic::demosaic(&balanced, w, h, cfa, DEFAULT_METHOD)
+        .map_err(|e| e.to_string())?;
     let matrix = img
         .facts
         .xyz_to_camera

@@ -103,8 +103,8 @@ impl RunFrames {
     }
 
     /// One frame's red, green and blue planes, linear in [0, 1], with its
-    /// width and height: a Bayer mosaic demosaiced (bilinear, as
-    /// [`Self::image`] reads it), an RGB file as it is. `None` for a
+    /// width and height: a Bayer mosaic demosaiced by
+    /// [`demosaic::DEFAULT_METHOD`], an RGB file as it is. `None` for a
     /// monochrome camera's frame.
     pub fn colour_planes(&self, entry: &FrameEntry) -> Result<Option<ColourPlanes>, ProcessError> {
         let linear = self.linear(entry)?;
@@ -327,9 +327,9 @@ pub const CLIPPED_LEVEL: f32 = 0.995;
 
 /// The pixels of a frame the sensor clipped: where a sample reached
 /// [`CLIPPED_LEVEL`] in any channel, and for a Bayer mosaic every pixel
-/// whose demosaiced value reads a clipped photosite (its 3 × 3
-/// neighbourhood). What a clipped pixel shows is a lower bound, not a
-/// measurement.
+/// whose demosaiced value reads a clipped photosite (within
+/// [`demosaic::Method::reach`] of it). What a clipped pixel shows is a
+/// lower bound, not a measurement.
 #[derive(Debug, Clone)]
 pub struct Clipped {
     /// 1 where clipped, 0 elsewhere, one channel at the frame's size.
@@ -353,7 +353,7 @@ impl Linear {
     fn clipped(&self) -> Option<Clipped> {
         let (img, channels, spread) = match self {
             Linear::Grey(img) => (img, 1, 0),
-            Linear::Mosaic(img, _) => (img, 1, 1),
+            Linear::Mosaic(img, _) => (img, 1, demosaic::DEFAULT_METHOD.reach()),
             Linear::Rgb(img) => (img, 3, 0),
         };
         // Most frames clip nothing: no mask is made for them.
@@ -430,7 +430,13 @@ impl Linear {
             Linear::Mosaic(img, cfa) => Some(ColourPlanes {
                 width: img.width,
                 height: img.height,
-                rgb: demosaic::bilinear(&img.data, img.width, img.height, cfa)?,
+                rgb: demosaic::demosaic(
+                    &img.data,
+                    img.width,
+                    img.height,
+                    cfa,
+                    demosaic::DEFAULT_METHOD,
+                )?,
             }),
             Linear::Rgb(img) => {
                 let plane = |c: usize| img.data.iter().skip(c).step_by(3).copied().collect();
@@ -497,35 +503,38 @@ mod tests {
 
     #[test]
     fn clipped_pixels_are_those_at_the_white_level_and_a_mosaic_s_neighbours() {
+        let (w, h) = (10, 9);
         let grey = |data: Vec<f32>| Image {
-            width: 4,
-            height: 3,
+            width: w,
+            height: h,
             channels: 1,
             data,
         };
-        let mut frame = vec![0.5f32; 12];
+        let mut frame = vec![0.5f32; w * h];
         assert!(Linear::Grey(grey(frame.clone())).clipped().is_none());
         // Just under the white level is measured; at it, clipped.
-        frame[5] = CLIPPED_LEVEL - 1e-4;
+        let centre = 4 * w + 5;
+        frame[centre] = CLIPPED_LEVEL - 1e-4;
         assert!(Linear::Grey(grey(frame.clone())).clipped().is_none());
-        frame[5] = 1.0;
+        frame[centre] = 1.0;
         let c = Linear::Grey(grey(frame.clone()))
             .clipped()
             .expect("clipped");
         assert_eq!(c.pixels, 1);
-        assert_eq!(c.mask.data[5], 1.0);
-        // Through a demosaic, the photosite's 3 × 3 neighbourhood, cut at
-        // the frame's edge.
+        assert_eq!(c.mask.data[centre], 1.0);
+        // Through a demosaic, every pixel within its reach of the
+        // photosite, cut at the frame's edge.
+        let reach = demosaic::DEFAULT_METHOD.reach();
         let c = Linear::Mosaic(grey(frame.clone()), Cfa::Rggb)
             .clipped()
             .expect("clipped");
-        assert_eq!(c.pixels, 9);
-        frame[5] = 0.5;
+        assert_eq!(c.pixels, (2 * reach + 1).pow(2));
+        frame[centre] = 0.5;
         frame[0] = 1.0;
         let c = Linear::Mosaic(grey(frame), Cfa::Rggb)
             .clipped()
             .expect("clipped");
-        assert_eq!(c.pixels, 4);
+        assert_eq!(c.pixels, (reach + 1).pow(2));
         // RGB: any channel.
         let mut rgb = Image::new(2, 1, 3);
         rgb.data = vec![0.2, 0.3, 0.4, 0.2, 0.999, 0.4];

@@ -418,12 +418,15 @@ fn a_bayer_camera_gives_rgb_normtextures_and_an_rgb_btf_near_the_true_one() {
         // Rust-dyed: the truth is red, and so is what was measured.
         let [tr, _, tb] = [0, 1, 2].map(|k| c.truth_rms_by_channel[k]);
         assert!(tr > 2.0 * tb, "{c:?}");
-        // Each channel is as close to its truth as the grey BTF is to its
-        // own, within the colour pipeline's own errors (demosaic, noise in
-        // the weaker channels, the correction).
-        for r in &relative {
+        // Red and green come within 1.5 times the grey BTF's error
+        // (measured 1.02–1.14 times with the AHD demosaic; 2.1 and 1.2
+        // times bilinearly). Blue, a third of red in this dye and the
+        // weakest channel of the sensor, carries more of the noise and of
+        // the colour correction's error (measured 1.6–2.1 times).
+        let bound = [1.5, 1.5, 2.5];
+        for (r, b) in relative.iter().zip(bound) {
             assert!(
-                r.is_finite() && *r < 9.0 * grey_relative,
+                r.is_finite() && *r < b * grey_relative,
                 "{relative:?} vs grey {grey_relative}"
             );
         }
@@ -529,4 +532,173 @@ fn rgb_normtextures_store_as_float_and_half_npy_and_compress() {
         assert!(mean(0) > 1.5 * mean(2), "{bits}: {} {}", mean(0), mean(2));
         run_ok(&["process", "btf", "--components", "2", arg]);
     }
+}
+
+/// A Bayer frame of `scene` on the Bonn rig at `size` (light θ 45° φ 30°,
+/// frontal view) as the camera records it, with the full-RGB truth of the
+/// same frame, both in [0, 1] of full scale, and the pixels inside the
+/// central 80 % of the sample window (`x0..x1`, `y0..y1`).
+struct BayerShot {
+    mosaic: Vec<f32>,
+    truth: [Vec<f32>; 3],
+    width: usize,
+    height: usize,
+    window: [usize; 4],
+}
+
+fn bayer_shot(scene: &str, size: [u32; 2]) -> BayerShot {
+    use rigd_core::Cfa;
+    use rigd_sim::scene::{Scene, Shot};
+    let profile = rigd::model::profile::Profile::from_file(&repo_file(
+        "rig-profiles/bonn-gonioreflectometer.toml",
+    ))
+    .expect("profile");
+    let scene = Scene::load_on(scene, &profile.holder).expect("scene");
+    let geometry =
+        rigd::kinematics::camera::camera_geometry(&profile, "camera", size).expect("camera");
+    let shot = |cfa: Cfa| Shot {
+        light: Direction::new(45.0, 30.0).to_vector(),
+        view: Direction::new(0.0, 0.0).to_vector(),
+        width: size[0],
+        height: size[1],
+        bit_depth: geometry.bit_depth,
+        focal_px: Some(geometry.focal_px),
+        camera_distance_m: geometry.distance_m,
+        lamp_distance_m: geometry.lamp_distance_m,
+        seed: 7,
+        cfa: Some(cfa),
+        ..Shot::default()
+    };
+    let full = f32::from(u16::MAX >> (16 - geometry.bit_depth));
+    let (width, height) = (size[0] as usize, size[1] as usize);
+    // At each pixel the four Bayer tiles see red, blue and green twice:
+    // rendered without noise, they give its whole colour.
+    let mut truth = [0, 1, 2].map(|_| vec![0.0f32; width * height]);
+    for cfa in [Cfa::Rggb, Cfa::Grbg, Cfa::Gbrg, Cfa::Bggr] {
+        let (linear, _) = scene.render_linear(&shot(cfa));
+        for (i, v) in linear.iter().enumerate() {
+            truth[cfa.channel_at(i % width, i / width)][i] = v / full;
+        }
+    }
+    let rendered = scene.render(&shot(Cfa::Rggb));
+    let mosaic = rendered
+        .pixels
+        .iter()
+        .map(|&p| f32::from(p) / full)
+        .collect();
+    let half = profile.holder.sample_mm.map(|mm| 0.4 * mm * 1e-3);
+    let corners: Vec<[f64; 2]> = [[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]
+        .iter()
+        .map(|[sx, sy]| {
+            scene
+                .plate_pixel(&shot(Cfa::Rggb), [sx * half[0], sy * half[1]])
+                .expect("the sample is in view")
+        })
+        .collect();
+    let span = |k: usize, n: usize| {
+        let lo = corners.iter().map(|c| c[k]).fold(f64::MAX, f64::min);
+        let hi = corners.iter().map(|c| c[k]).fold(f64::MIN, f64::max);
+        (lo.ceil().max(0.0) as usize, (hi.floor() as usize).min(n))
+    };
+    let ((x0, x1), (y0, y1)) = (span(0, width), span(1, height));
+    assert!(
+        x1 > x0 + 16 && y1 > y0 + 16,
+        "the window {x0}..{x1} × {y0}..{y1}"
+    );
+    BayerShot {
+        mosaic,
+        truth,
+        width,
+        height,
+        window: [x0, x1, y0, y1],
+    }
+}
+
+/// PSNR in dB of each channel of `planes` against the shot's truth inside
+/// its window, full scale the peak.
+fn psnr(shot: &BayerShot, planes: &[Vec<f32>; 3]) -> [f64; 3] {
+    let [x0, x1, y0, y1] = shot.window;
+    [0, 1, 2].map(|c| {
+        let mut sum = 0.0f64;
+        for y in y0..y1 {
+            for x in x0..x1 {
+                let i = y * shot.width + x;
+                sum += f64::from(planes[c][i] - shot.truth[c][i]).powi(2);
+            }
+        }
+        let mse = sum / ((x1 - x0) * (y1 - y0)) as f64;
+        -10.0 * mse.log10()
+    })
+}
+
+/// Which demosaic the colour steps use is chosen here: every method on the
+/// Bonn rig's Bayer frames of two real-looking textiles (corduroy's wales
+/// are 5 pixels apart at 320 × 240, knitted wool's stitches finer still),
+/// against the full-RGB truth of the same frames, at the default frame
+/// size and at twice it. Prints the table `docs/processing.md` keeps
+/// (`cargo test --test it colour::demosaic -- --nocapture`), and holds
+/// [`rigd_process::demosaic::DEFAULT_METHOD`] to the best PSNR averaged
+/// over the channels and both textiles, at each size: no method is best on
+/// both textiles alone.
+#[test]
+fn demosaic_methods_against_the_full_rgb_truth() {
+    use rigd_process::demosaic::{demosaic, Method, DEFAULT_METHOD};
+    const SCENES: [&str; 2] = ["corduroy", "knitted-wool"];
+    println!("| scene | frame | method | red dB | green dB | blue dB | mean dB |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut worse = Vec::new();
+    for size in [[320, 240], [640, 480]] {
+        let mut mean_of = [0.0f64; Method::ALL.len()];
+        for scene in SCENES {
+            let shot = bayer_shot(scene, size);
+            for (k, method) in Method::ALL.into_iter().enumerate() {
+                let planes = demosaic(
+                    &shot.mosaic,
+                    shot.width,
+                    shot.height,
+                    rigd_core::Cfa::Rggb,
+                    method,
+                )
+                .expect("demosaic");
+                let db = psnr(&shot, &planes);
+                let mean = db.iter().sum::<f64>() / 3.0;
+                println!(
+                    "| {scene} | {} × {} | {} | {:.2} | {:.2} | {:.2} | {mean:.2} |",
+                    size[0],
+                    size[1],
+                    method.name(),
+                    db[0],
+                    db[1],
+                    db[2]
+                );
+                assert!(db.iter().all(|d| d.is_finite()), "{method:?}: {db:?}");
+                mean_of[k] += mean / SCENES.len() as f64;
+            }
+        }
+        let default = Method::ALL
+            .iter()
+            .position(|m| *m == DEFAULT_METHOD)
+            .expect("the default is a method");
+        for (k, method) in Method::ALL.iter().enumerate() {
+            println!(
+                "{} × {}, both textiles: {} {:.2} dB",
+                size[0],
+                size[1],
+                method.name(),
+                mean_of[k]
+            );
+            if mean_of[k] > mean_of[default] + 0.05 {
+                worse.push(format!(
+                    "{} × {}: {} scores {:.2} dB, {} {:.2} dB",
+                    size[0],
+                    size[1],
+                    DEFAULT_METHOD.name(),
+                    mean_of[default],
+                    method.name(),
+                    mean_of[k]
+                ));
+            }
+        }
+    }
+    assert!(worse.is_empty(), "{worse:#?}");
 }
