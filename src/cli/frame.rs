@@ -235,8 +235,8 @@ fn write_outputs(dir: &Path, img: &CameraImage, report: &FrameReport) -> Result<
 
 /// The image as a person would see it: a mosaic white-balanced by the
 /// camera's as-shot multipliers, demosaiced as processing does
-/// ([`DEFAULT_METHOD`]), turned to linear sRGB by the camera's colour matrix and sRGB
-/// encoded; a rendered file as it is.
+/// ([`DEFAULT_METHOD`]), turned to linear sRGB by the camera's colour
+/// matrix and sRGB encoded; a rendered file as it is.
 fn preview(img: &CameraImage) -> Result<Image, String> {
     let (w, h) = (img.width as usize, img.height as usize);
     let linear = img.linear();

@@ -14,7 +14,8 @@
 //! [`demosaic`] offers the better methods of the `demosaic` crate besides
 //! it ([`Method`]); which one the colour steps use, [`DEFAULT_METHOD`], was
 //! chosen by measuring them against the simulator's full-RGB truth (the
-//! table and its command are in `docs/processing.md`, "Demosaicing").
+//! table and its command are in `docs/processing.md`, "Demosaicing,
+//! measured").
 //!
 //! The steps that work on grey read a Bayer frame through [`luminance`]:
 //! (R + 2G + B) / 4 of the bilinear pixel. That is the mean of a 2×2
@@ -103,7 +104,7 @@ impl Method {
 }
 
 /// The method the colour steps demosaic with: the best by the measurement
-/// in `docs/processing.md`, "Demosaicing".
+/// in `docs/processing.md`, "Demosaicing, measured".
 pub const DEFAULT_METHOD: Method = Method::AdaptiveHomogeneityDirected;
 
 /// Pixels added on each side before the crate's methods run: their 5 × 5
