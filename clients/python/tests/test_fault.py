@@ -18,10 +18,13 @@ def test_follow_events_exits_on_fault_and_wait_stops(fault_daemon: Daemon, fault
     settle(fault_client)
     follower = subprocess.Popen(
         [sys.executable, str(ROOT / "examples" / "follow_events.py"), "--url", fault_daemon.url,
-         "--data", str(fault_daemon.data), "--timeout", str(FIRST_RUN_TIMEOUT + 30)],
+         "--data", str(fault_daemon.data), "--timeout", str(FIRST_RUN_TIMEOUT + 30),
+         # From the first kept event: a follower that connects after the run
+         # has started (a busy machine) still sees its fault. This daemon has
+         # run nothing before, so no earlier fault is replayed.
+         "--last-event-id", "0"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        time.sleep(0.5)  # let it connect: it follows live events only
         slow = Client(fault_daemon.url, data_dir=fault_daemon.data, timeout=FIRST_RUN_TIMEOUT)
         run = slow.start_run("faulty", "lamps")  # 3 images: the 2nd transfer faults
         view = fault_client.wait(run, timeout=30)
