@@ -6,6 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Result;
 use clap::Subcommand;
+use rigd::model::exposure::ExposurePolicy;
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::plan::Order;
 use rigd::schedule::timing::{parse_exposure_s, Timing};
@@ -37,6 +38,12 @@ pub enum PlanCmd {
         /// nested loops).
         #[arg(long, value_enum, default_value_t = Order::Optimised)]
         order: Order,
+        /// Exposures per step, as `rigd run --exposure-policy` takes them
+        /// (default: the profile's `[exposure_policy]`): `brackets:…`
+        /// multiplies the time and data of every step; `auto` is estimated
+        /// as if nothing clipped.
+        #[arg(long, value_name = "POLICY")]
+        exposure_policy: Option<ExposurePolicy>,
     },
 }
 
@@ -49,18 +56,30 @@ pub fn run(cmd: PlanCmd) -> Result<ExitCode> {
             json,
             exposure,
             order,
-        } => show(&plan, &profile, json, exposure, order)?,
+            exposure_policy,
+        } => show(&plan, &profile, json, exposure, order, exposure_policy)?,
     }
     Ok(ExitCode::SUCCESS)
 }
 
-fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Order) -> Result<()> {
+fn show(
+    plan: &str,
+    profile: &str,
+    json: bool,
+    exposure: Option<f64>,
+    order: Order,
+    policy: Option<ExposurePolicy>,
+) -> Result<()> {
     let profile = rigd::plan::load_profile(profile)?;
     if let Some(e) = exposure {
         profile
             .check_exposure_override(e)
             .map_err(|why| super::exit::bad_input(format!("--exposure {why}")))?;
     }
+    let policy = policy.unwrap_or_else(|| profile.exposure_policy.clone());
+    profile
+        .check_exposure_policy(&policy, exposure)
+        .map_err(|(key, why)| super::exit::bad_input(format!("exposure_policy.{key}: {why}")))?;
     let solver = rigd::kinematics::Solver::new(&profile)?;
     let offer = rigd::schedule::rig_offer(&profile, &solver);
     let mut resolved = rigd::plan::resolve(plan, &offer)?;
@@ -68,9 +87,11 @@ fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Ord
         resolved.order = order;
     }
     let (schedule, report) = rigd::schedule::build_with_report(&profile, &solver, &resolved);
-    let estimate = Timing::new(&profile, exposure).estimate_s(&schedule, |_| false);
+    let estimate = Timing::new(&profile, exposure)
+        .with_exposure_policy(&policy)
+        .estimate_s(&schedule, |_| false);
     let infeasible = schedule.infeasible().count();
-    let volume = rigd::schedule::volume::data_volume(&profile, &schedule);
+    let volume = rigd::schedule::volume::data_volume(&profile, &schedule, &policy);
     if json {
         let steps: Vec<_> = schedule.steps().collect();
         let out = serde_json::json!({
@@ -157,5 +178,13 @@ fn show(plan: &str, profile: &str, json: bool, exposure: Option<f64>, order: Ord
         human_bytes(volume.raw_bytes),
         human_bytes(volume.largest_image_bytes)
     );
+    if !policy.is_single() {
+        let assumed = if policy.auto().is_some() {
+            "; time and data as if no step clipped (each that does is taken again shorter, up to max_extra times)"
+        } else {
+            ""
+        };
+        println!("exposure policy: {policy}{assumed}");
+    }
     Ok(())
 }

@@ -9,6 +9,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use rigd::engine::launch::{self, NewRun};
 use rigd::engine::{Outcome, PausePolicy};
+use rigd::model::exposure::ExposurePolicy;
 use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
 use rigd::model::text::sanitize;
@@ -64,6 +65,15 @@ pub struct RunArgs {
     /// camera's `timing.exposure_range_s` (default: the profile's).
     #[arg(long, allow_negative_numbers = true, value_parser = parse_exposure_s)]
     pub exposure: Option<f64>,
+    /// Exposures per step: single (one), brackets:T1,T2,… (the same series
+    /// at every step, seconds, longest first) or
+    /// auto[:threshold=S,factor=F,max_extra=N] (again F times shorter, up
+    /// to N times, where a frame clips more than S of the sample's pixels;
+    /// defaults 0.001, 4, 3) [default: the profile's [exposure_policy],
+    /// else single]. Processing merges a step's exposures
+    /// (`docs/processing.md`, "Exposure brackets").
+    #[arg(long)]
+    pub exposure_policy: Option<ExposurePolicy>,
     /// Trigger order: optimised (the shortest physical time under the
     /// motion model), slots (the shortest with each view's triggers
     /// together, so view slots complete early) or naive (the plan's nested
@@ -207,6 +217,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     operator: args.operator.clone(),
                     notes: args.notes.clone(),
                     exposure_s: args.exposure,
+                    exposure_policy: args.exposure_policy.clone(),
                     frame_size: args.frame_size,
                     out,
                     simulated,

@@ -10,6 +10,7 @@ use rigd_core::Clock;
 
 use crate::engine::{Engine, EngineHandle, PausePolicy};
 use crate::kinematics::{KinematicsError, Solver};
+use crate::model::exposure::ExposurePolicy;
 use crate::model::profile::{Profile, ProfileError};
 use crate::plan::Order;
 use crate::plan::{self, Plan, PlanError};
@@ -67,6 +68,10 @@ pub struct NewRun {
     /// Exposure of every camera in seconds (positive, checked); None: each
     /// camera's exposure from the profile (laser plans: the plan's).
     pub exposure_s: Option<f64>,
+    /// The exposures each step takes; None: the profile's
+    /// (`[exposure_policy]`, one exposure if it has none). A laser sweep
+    /// takes one exposure per frame whatever the policy.
+    pub exposure_policy: Option<ExposurePolicy>,
     /// Simulated frames' `[width, height]` in pixels; None: the profile's
     /// simulator size. Ignored on hardware.
     pub frame_size: Option<[u32; 2]>,
@@ -136,6 +141,11 @@ fn check_request(req: &NewRun) -> Result<(), RunError> {
         req.profile
             .check_exposure_override(e)
             .map_err(|why| RunError::Invalid(format!("exposure {why}")))?;
+    }
+    if let Some(policy) = &req.exposure_policy {
+        req.profile
+            .check_exposure_policy(policy, req.exposure_s)
+            .map_err(|(key, why)| RunError::Invalid(format!("exposure_policy.{key}: {why}")))?;
     }
     crate::model::text::check_name(&req.sample)
         .map_err(|why| RunError::Invalid(format!("the sample name {why}")))?;
@@ -264,6 +274,9 @@ async fn create(
         operator: req.operator,
         notes: req.notes,
         exposure_s: req.exposure_s,
+        exposure_policy: req
+            .exposure_policy
+            .unwrap_or_else(|| req.profile.exposure_policy.clone()),
         frame_size: req
             .simulated
             .then(|| req.frame_size.unwrap_or(req.profile.sim.frame_size)),
@@ -424,7 +437,8 @@ fn assemble(
     let profile = meta.profile.clone();
     let done = &recovery.done;
     let estimate_s = {
-        let timing = Timing::new(&profile, meta.exposure_s);
+        let timing =
+            Timing::new(&profile, meta.exposure_s).with_exposure_policy(&meta.exposure_policy);
         let trigger_done = |t: usize| {
             schedule.triggers[t]
                 .images

@@ -8,6 +8,7 @@
 //! that can be retaken) are retried first. A frame counts as taken once its
 //! journal line is fsynced, so a resumed run repeats and loses nothing.
 
+pub mod bracket;
 pub mod command;
 pub mod estop;
 pub mod launch;
@@ -28,6 +29,7 @@ use command::{check_command, Command};
 pub use estop::{EStop, StopAck, StopReport};
 
 use crate::kinematics::Setpoints;
+use crate::model::exposure::ExposurePolicy;
 use crate::model::profile::Profile;
 use crate::rig::hal::{
     Arm, Axis, Camera, DeviceError, ErrorKind, Fixture, Frame, Lamp, LaserLine, Rig,
@@ -251,6 +253,13 @@ pub struct Engine {
     /// again until it is, so `state.json` never goes on saying what the
     /// run no longer is.
     unrecorded: Option<StateRecord>,
+    /// Triggers whose first exposure clipped too much under the `auto`
+    /// exposure policy: their frames, written but not journaled, wait for
+    /// the shorter exposures, taken when the rig is back at the trigger.
+    held: BTreeMap<usize, Vec<FrameEntry>>,
+    /// The exposure each camera is known to be set to: a bracketed run sets
+    /// it before an exposure only where it differs. Forgotten on any fault.
+    exposure_set: BTreeMap<String, f64>,
 }
 
 /// Physical seconds between two attempts at writing a state record the
@@ -334,6 +343,8 @@ impl Engine {
             plate_known: !laser_plan,
             storage_fault: None,
             unrecorded: None,
+            held: BTreeMap::new(),
+            exposure_set: BTreeMap::new(),
         };
         (
             engine,
@@ -537,6 +548,10 @@ impl Engine {
                         None => Ok(None),
                     }
                 };
+                let hold = self.meta.exposure_policy.auto().map(|a| HoldRule {
+                    profile: &self.profile,
+                    threshold: a.threshold,
+                });
                 let fin = async {
                     match &finishing {
                         Some(p) => finish(
@@ -547,6 +562,7 @@ impl Engine {
                             cameras,
                             p,
                             self.meta.exposure_s,
+                            hold,
                         )
                         .await
                         .map(Some),
@@ -556,19 +572,19 @@ impl Engine {
                 tokio::join!(go, fin)
             };
             match finished {
-                Ok(Some(entries)) => {
+                Ok(Some(Finished::Held(entries))) => {
+                    // The rig is at the next trigger (or on its way): that
+                    // one is exposed first, then the rig comes back here.
                     let trig = finishing.as_ref().map_or(0, |p| p.trigger);
-                    let images = entries.iter().map(|e| e.index).collect();
-                    for e in entries {
-                        self.done.insert(e.index, e);
+                    self.held.insert(trig, entries);
+                    let at = usize::from(!queue.is_empty() && moved.is_ok());
+                    if !queue.contains(&trig) {
+                        queue.insert(at.min(queue.len()), trig);
                     }
-                    let (done, total) = (self.done.len(), self.schedule.images.len());
-                    self.emit(EventKind::Step {
-                        trigger: trig,
-                        images,
-                        frames_done: done,
-                        frames_total: total,
-                    });
+                }
+                Ok(Some(Finished::Journaled(entries))) => {
+                    let trig = finishing.as_ref().map_or(0, |p| p.trigger);
+                    self.step_done(trig, entries);
                 }
                 Ok(None) => {}
                 Err(fault) => {
@@ -611,9 +627,40 @@ impl Engine {
             self.settled = target;
             let t_s = self.t();
             let cams = self.cameras_of(i);
+            if self.bracketed(i) {
+                match self.bracket_step(i, t_s, reached).await {
+                    Ok(()) => {
+                        queue.pop_front();
+                    }
+                    Err(fault) => match self.handle_fault(fault, i, &mut attempts).await? {
+                        Flow::Continue => continue,
+                        Flow::Stop => return Ok(self.outcome()),
+                    },
+                }
+                continue;
+            }
             let exposed = {
                 let timing = Timing::new(&self.profile, self.meta.exposure_s);
-                expose(&self.clock, &timing, &mut self.rig.cameras, &cams).await
+                let at_base = if self.meta.exposure_policy.is_single() {
+                    Ok(())
+                } else {
+                    // A bracket may have left a camera at a shorter exposure.
+                    let want: Vec<(String, f64)> = cams
+                        .iter()
+                        .map(|c| (c.clone(), timing.exposure_s(c)))
+                        .collect();
+                    set_exposures(
+                        &self.clock,
+                        &mut self.rig.cameras,
+                        &mut self.exposure_set,
+                        &want,
+                    )
+                    .await
+                };
+                match at_base {
+                    Ok(()) => expose(&self.clock, &timing, &mut self.rig.cameras, &cams).await,
+                    Err(fault) => Err(fault),
+                }
             };
             match exposed {
                 Ok(()) => {
@@ -630,6 +677,151 @@ impl Engine {
                 },
             }
         }
+    }
+
+    /// Whether trigger `i` takes its exposures at its pose, one after the
+    /// other: every step of a `brackets` run, and an `auto` step whose
+    /// first exposure clipped. A laser sweep never does.
+    fn bracketed(&self, i: usize) -> bool {
+        self.schedule.triggers[i].sweep.is_none()
+            && (self.held.contains_key(&i)
+                || matches!(self.meta.exposure_policy, ExposurePolicy::Brackets { .. }))
+    }
+
+    /// Takes trigger `i`'s exposures at its pose, each transferred before
+    /// the next: a `brackets` run's series, or an `auto` step's shorter
+    /// exposures after its held first one, each `factor` times shorter
+    /// until the sample clips no more than the threshold (or `max_extra`
+    /// are taken). Then every exposure of every image is journaled at once:
+    /// a step is never half-taken.
+    async fn bracket_step(
+        &mut self,
+        i: usize,
+        t_s: f64,
+        reached: Setpoints,
+    ) -> Result<(), StepFault> {
+        let cams = self.cameras_of(i);
+        let timing = Timing::new(&self.profile, self.meta.exposure_s);
+        let held = self.held.get(&i).cloned();
+        // Each exposure's time, per camera.
+        let series: Vec<BTreeMap<String, f64>> = match (&self.meta.exposure_policy, &held) {
+            (ExposurePolicy::Auto(a), Some(_)) => (1..=a.max_extra)
+                .map(|k| {
+                    cams.iter()
+                        .map(|c| (c.clone(), a.extra_exposure_s(timing.exposure_s(c), k)))
+                        .collect()
+                })
+                .collect(),
+            (policy, _) => policy
+                .first_exposures(0.0)
+                .into_iter()
+                .map(|t| cams.iter().map(|c| (c.clone(), t)).collect())
+                .collect(),
+        };
+        let threshold = self.meta.exposure_policy.auto().map(|a| a.threshold);
+        let pending = Pending {
+            trigger: i,
+            t_s,
+            reached,
+        };
+        let mut entries = held;
+        for times in series {
+            let want: Vec<(String, f64)> = times.iter().map(|(c, t)| (c.clone(), *t)).collect();
+            set_exposures(
+                &self.clock,
+                &mut self.rig.cameras,
+                &mut self.exposure_set,
+                &want,
+            )
+            .await?;
+            expose(&self.clock, &timing, &mut self.rig.cameras, &cams).await?;
+            let mut frames = transfer(
+                &self.clock,
+                &timing,
+                &self.schedule,
+                &mut self.rig.cameras,
+                i,
+            )
+            .await?;
+            let rule = threshold.map(|threshold| HoldRule {
+                profile: &self.profile,
+                threshold,
+            });
+            let clipped = rule.is_some_and(|rule| {
+                self.schedule.triggers[i].images.iter().any(|&n| {
+                    let img = &self.schedule.images[n];
+                    frames.get(&img.camera).is_some_and(|frame| {
+                        let window = bracket::sample_window(
+                            rule.profile,
+                            &img.camera,
+                            [frame.width, frame.height],
+                            img.achieved_view,
+                        );
+                        bracket::clipped_share(frame, window.as_ref()) > rule.threshold
+                    })
+                })
+            });
+            entries = Some(match entries.take() {
+                None => {
+                    let work = step_entries(&self.schedule, &pending, frames, &times)?;
+                    in_store(&self.store, move |dir| {
+                        let root = dir.root().to_path_buf();
+                        work.into_iter()
+                            .map(|(entry, frame)| RunDir::write_frame(&root, entry, &frame))
+                            .collect()
+                    })
+                    .await?
+                }
+                Some(mut so_far) => {
+                    for entry in &so_far {
+                        if !frames.contains_key(&entry.camera) {
+                            return Err(DeviceError::new(
+                                &entry.camera,
+                                ErrorKind::BadFrame,
+                                "camera delivered no frame",
+                            )
+                            .into());
+                        }
+                    }
+                    in_store(&self.store, move |dir| {
+                        let root = dir.root().to_path_buf();
+                        for entry in &mut so_far {
+                            if let Some(frame) = frames.remove(&entry.camera) {
+                                let t = times.get(&entry.camera).copied().unwrap_or(0.0);
+                                let k = entry.brackets.len() + 1;
+                                RunDir::write_bracket(&root, entry, k, t, &frame)?;
+                            }
+                        }
+                        Ok(so_far)
+                    })
+                    .await?
+                }
+            });
+            if rule.is_some() && !clipped {
+                break;
+            }
+        }
+        let entries = entries.unwrap_or_default();
+        let journal = entries.clone();
+        in_store(&self.store, move |dir| dir.append_journal(&journal)).await?;
+        self.held.remove(&i);
+        self.step_done(i, entries);
+        Ok(())
+    }
+
+    /// Records a journaled step's images as taken and tells the listeners.
+    fn step_done(&mut self, trigger: usize, entries: Vec<FrameEntry>) {
+        let images = entries.iter().map(|e| e.index).collect();
+        for e in entries {
+            self.done.insert(e.index, e);
+        }
+        let (done, total) = (self.done.len(), self.schedule.images.len());
+        self.emit(EventKind::Step {
+            trigger,
+            images,
+            frames_done: done,
+            frames_total: total,
+        });
     }
 
     fn cameras_of(&self, trigger: usize) -> Vec<String> {
@@ -806,19 +998,12 @@ impl Engine {
                 &mut self.rig.cameras,
                 &pending,
                 self.meta.exposure_s,
+                None,
             )
             .await?;
-            let images = entries.iter().map(|e| e.index).collect();
-            for e in entries {
-                self.done.insert(e.index, e);
-            }
-            let (done, total) = (self.done.len(), self.schedule.images.len());
-            self.emit(EventKind::Step {
-                trigger,
-                images,
-                frames_done: done,
-                frames_total: total,
-            });
+            // A sweep's frames are never held: it takes one exposure each.
+            let (Finished::Journaled(entries) | Finished::Held(entries)) = entries;
+            self.step_done(trigger, entries);
         }
         Ok(())
     }
@@ -827,6 +1012,7 @@ impl Engine {
     /// up the first trigger's lamp. Returns where the rig stands.
     async fn prepare(&mut self, first: Option<usize>) -> Result<Setpoints, StepFault> {
         self.settled = None;
+        self.exposure_set.clear();
         let clock = &self.clock;
         let Rig {
             axes,
@@ -889,6 +1075,8 @@ impl Engine {
         trigger: usize,
         attempts: &mut HashMap<usize, u32>,
     ) -> Result<Flow, EngineError> {
+        // Whatever failed, a camera's exposure is no longer known.
+        self.exposure_set.clear();
         let n = attempts.entry(trigger).or_insert(0);
         *n += 1;
         let attempt = *n;
@@ -1007,6 +1195,10 @@ impl Engine {
         // Whatever happens next, frames already exposed are kept.
         if let Some(p) = pending.take() {
             let timing = Timing::new(&self.profile, self.meta.exposure_s);
+            let hold = self.meta.exposure_policy.auto().map(|a| HoldRule {
+                profile: &self.profile,
+                threshold: a.threshold,
+            });
             let r = finish(
                 &self.clock,
                 &timing,
@@ -1015,13 +1207,18 @@ impl Engine {
                 &mut self.rig.cameras,
                 &p,
                 self.meta.exposure_s,
+                hold,
             )
             .await;
             match r {
-                Ok(entries) => {
+                Ok(Finished::Journaled(entries)) => {
                     for e in entries {
                         self.done.insert(e.index, e);
                     }
+                }
+                Ok(Finished::Held(entries)) => {
+                    self.held.insert(p.trigger, entries);
+                    queue.push_front(p.trigger);
                 }
                 Err(_) => queue.push_front(p.trigger),
             }
@@ -1346,7 +1543,27 @@ async fn expose(
     Ok(())
 }
 
-/// Transfers a trigger's frames, checks them, writes them and journals them.
+/// What the `auto` exposure policy holds back: a step whose frame clips
+/// more than `threshold` of the sample's pixels (where `profile`'s pose
+/// puts the sample) waits, unjournaled, for shorter exposures.
+#[derive(Clone, Copy)]
+struct HoldRule<'a> {
+    profile: &'a Profile,
+    threshold: f64,
+}
+
+/// What became of a trigger's frames once transferred and written.
+enum Finished {
+    /// Journaled: the images are taken.
+    Journaled(Vec<FrameEntry>),
+    /// Written but not journaled: the sample clipped, so the rig comes
+    /// back for shorter exposures ([`HoldRule`]).
+    Held(Vec<FrameEntry>),
+}
+
+/// Transfers a trigger's frames, checks them, writes them and journals
+/// them; under a [`HoldRule`] a step that clipped is written and held.
+#[allow(clippy::too_many_arguments)]
 async fn finish(
     clock: &Clock,
     timing: &Timing<'_>,
@@ -1355,8 +1572,55 @@ async fn finish(
     cameras: &mut BTreeMap<String, Box<dyn Camera>>,
     p: &Pending,
     exposure_override: Option<f64>,
-) -> Result<Vec<FrameEntry>, StepFault> {
-    let trig = &schedule.triggers[p.trigger];
+    hold: Option<HoldRule<'_>>,
+) -> Result<Finished, StepFault> {
+    let frames = transfer(clock, timing, schedule, cameras, p.trigger).await?;
+    let exposures: BTreeMap<String, f64> = frames
+        .keys()
+        .map(|c| {
+            (
+                c.clone(),
+                exposure_override.unwrap_or_else(|| timing.exposure_s(c)),
+            )
+        })
+        .collect();
+    let work = step_entries(schedule, p, frames, &exposures)?;
+    let held = hold.is_some_and(|rule| {
+        work.iter().any(|(entry, frame)| {
+            let window = bracket::sample_window(
+                rule.profile,
+                &entry.camera,
+                [frame.width, frame.height],
+                entry.achieved_view,
+            );
+            bracket::clipped_share(frame, window.as_ref()) > rule.threshold
+        })
+    });
+    in_store(store, move |dir| {
+        let root = dir.root().to_path_buf();
+        let mut entries = Vec::with_capacity(work.len());
+        for (entry, frame) in work {
+            entries.push(RunDir::write_frame(&root, entry, &frame)?);
+        }
+        if held {
+            return Ok(Finished::Held(entries));
+        }
+        dir.append_journal(&entries)?;
+        Ok(Finished::Journaled(entries))
+    })
+    .await
+}
+
+/// Transfers the frames of trigger `trigger` from its cameras, each
+/// checked, by camera.
+async fn transfer(
+    clock: &Clock,
+    timing: &Timing<'_>,
+    schedule: &Schedule,
+    cameras: &mut BTreeMap<String, Box<dyn Camera>>,
+    trigger: usize,
+) -> Result<HashMap<String, Frame>, StepFault> {
+    let trig = &schedule.triggers[trigger];
     let which: Vec<&str> = trig
         .images
         .iter()
@@ -1377,6 +1641,18 @@ async fn finish(
         frame.validate(&name)?;
         frames.insert(name, frame);
     }
+    Ok(frames)
+}
+
+/// The journal entries of a trigger's images, each with its frame, not yet
+/// written: `exposures` gives each camera's exposure time.
+fn step_entries(
+    schedule: &Schedule,
+    p: &Pending,
+    mut frames: HashMap<String, Frame>,
+    exposures: &BTreeMap<String, f64>,
+) -> Result<Vec<(FrameEntry, Frame)>, StepFault> {
+    let trig = &schedule.triggers[p.trigger];
     let mut work = Vec::new();
     for &i in &trig.images {
         let img = &schedule.images[i];
@@ -1398,7 +1674,7 @@ async fn finish(
             achieved_light: img.achieved_light,
             achieved_view: img.achieved_view,
             camera: img.camera.clone(),
-            exposure_s: exposure_override.unwrap_or_else(|| timing.exposure_s(&img.camera)),
+            exposure_s: exposures.get(&img.camera).copied().unwrap_or(0.0),
             t_s: p.t_s,
             positions: p.reached.clone(),
             width: 0,
@@ -1416,41 +1692,51 @@ async fn finish(
                 l
             }),
             device: None,
+            brackets: Vec::new(),
         };
         work.push((entry, frame));
     }
+    Ok(work)
+}
+
+/// Runs `work` on the run directory off the async runtime: encoding and
+/// fsync are blocking work, and on a paused runtime tokio does not advance
+/// virtual time while it runs. A failure is a storage fault, never retried.
+async fn in_store<T: Send + 'static>(
+    store: &Arc<Mutex<RunDir>>,
+    work: impl FnOnce(&mut RunDir) -> Result<T, StoreError> + Send + 'static,
+) -> Result<T, StepFault> {
     let store = store.clone();
     let root = lock_store(&store).root().to_path_buf();
-    // Encoding and fsync are blocking work; on a paused runtime, tokio does
-    // not advance virtual time while it runs.
-    let written = tokio::task::spawn_blocking(move || -> Result<Vec<FrameEntry>, StoreError> {
-        let mut dir = lock_store(&store);
-        let root = dir.root().to_path_buf();
-        let mut entries = Vec::with_capacity(work.len());
-        for (entry, frame) in work {
-            entries.push(RunDir::write_frame(&root, entry, &frame)?);
-        }
-        dir.append_journal(&entries)?;
-        Ok(entries)
+    let done = tokio::task::spawn_blocking(move || work(&mut lock_store(&store))).await;
+    let why = match done {
+        Ok(Ok(value)) => return Ok(value),
+        Ok(Err(e)) => storage_fault_reason(&root, &e),
+        Err(e) => format!("writer task failed: {e}"),
+    };
+    Err(StepFault {
+        error: DeviceError::new(STORAGE_DEVICE, ErrorKind::Storage, why),
+        retryable: false,
     })
-    .await;
-    match written {
-        Ok(Ok(entries)) => Ok(entries),
-        Ok(Err(e)) => Err(StepFault {
-            error: DeviceError::new(
-                STORAGE_DEVICE,
-                ErrorKind::Storage,
-                storage_fault_reason(&root, &e),
-            ),
-            retryable: false,
-        }),
-        Err(e) => Err(StepFault {
-            error: DeviceError::new(
-                STORAGE_DEVICE,
-                ErrorKind::Storage,
-                format!("writer task failed: {e}"),
-            ),
-            retryable: false,
-        }),
+}
+
+/// Sets each camera of `want` to its exposure time where `known` does not
+/// already say it is; a camera whose call fails is no longer known.
+async fn set_exposures(
+    clock: &Clock,
+    cameras: &mut BTreeMap<String, Box<dyn Camera>>,
+    known: &mut BTreeMap<String, f64>,
+    want: &[(String, f64)],
+) -> Result<(), StepFault> {
+    for (name, t) in want {
+        if known.get(name) == Some(t) {
+            continue;
+        }
+        known.remove(name);
+        if let Some(c) = cameras.get_mut(name) {
+            deadline(clock, name, DEADLINE_SLACK_S, c.set_exposure(*t)).await?;
+            known.insert(name.clone(), *t);
+        }
     }
+    Ok(())
 }

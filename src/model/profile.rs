@@ -11,6 +11,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use super::exposure::ExposurePolicy;
 use rigd_core::geometry::Direction;
 use rigd_core::holder::HolderSpec;
 
@@ -60,6 +61,11 @@ pub struct Profile {
     /// run's frames by the plate they show; the standard plate if left out.
     #[serde(default)]
     pub holder: HolderSpec,
+    /// The exposures each step takes (`[exposure_policy]`, `policy =
+    /// "single"`, `"brackets"` or `"auto"`); a run's own policy overrides
+    /// it. One exposure per step if left out.
+    #[serde(default, skip_serializing_if = "ExposurePolicy::is_single")]
+    pub exposure_policy: ExposurePolicy,
     /// Settings of the simulated rig.
     #[serde(default)]
     pub sim: SimSettings,
@@ -415,22 +421,7 @@ pub struct Intrinsics {
     pub cfa: Option<rigd_core::Cfa>,
 }
 
-/// The longest exposure rigd accepts, seconds, on any camera.
-pub const MAX_EXPOSURE_S: f64 = 3600.0;
-
-/// The one rule for an exposure time someone asks for: a finite number of
-/// seconds, more than 0 and at most [`MAX_EXPOSURE_S`]. The error says
-/// what was expected; callers prefix the option's name.
-pub fn check_exposure_s(exposure_s: f64) -> Result<f64, String> {
-    if exposure_s.is_finite() && exposure_s > 0.0 && exposure_s <= MAX_EXPOSURE_S {
-        Ok(exposure_s)
-    } else {
-        Err(format!(
-            "{}: expected a positive number of seconds up to {MAX_EXPOSURE_S}",
-            crate::model::text::short_number(exposure_s)
-        ))
-    }
-}
+pub use super::exposure::{check_exposure_s, MAX_EXPOSURE_S};
 
 /// The largest sensor side a camera may have, pixels.
 pub const MAX_SENSOR_SIDE: u32 = 65_535;
@@ -794,6 +785,53 @@ impl Profile {
         Ok(())
     }
 
+    /// Whether every camera can take the exposures of `policy`, its base
+    /// exposure being `exposure_override` if given, else the camera's own:
+    /// the policy's own rules ([`ExposurePolicy::check`]), then each
+    /// bracket, and `auto`'s shortest exposure, within every camera's
+    /// `timing.exposure_range_s`. `Err` names the policy's key and why.
+    pub fn check_exposure_policy(
+        &self,
+        policy: &ExposurePolicy,
+        exposure_override: Option<f64>,
+    ) -> Result<(), (String, String)> {
+        policy.check().map_err(|e| (e.key.to_string(), e.message))?;
+        for name in self.camera_names() {
+            match policy {
+                ExposurePolicy::Single {} => {}
+                ExposurePolicy::Brackets { exposures_s } => {
+                    for &t in exposures_s {
+                        self.check_camera_exposure(&name, t)
+                            .map_err(|why| ("exposures_s".to_string(), why))?;
+                    }
+                }
+                ExposurePolicy::Auto(a) => {
+                    let base = exposure_override.unwrap_or_else(|| {
+                        self.devices
+                            .get(&name)
+                            .and_then(|d| d.timing)
+                            .map_or(0.0, |t| t.exposure_s)
+                    });
+                    if base > 0.0 {
+                        self.check_camera_exposure(&name, a.shortest_s(base))
+                            .map_err(|why| {
+                                (
+                                    "max_extra".to_string(),
+                                    format!(
+                                        "{} further exposures {} times shorter than {} s reach {why}",
+                                        a.max_extra,
+                                        crate::model::text::short_number(a.factor),
+                                        crate::model::text::short_number(base)
+                                    ),
+                                )
+                            })?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// Whether camera `name` can expose for `exposure_s` seconds: within
     /// [`check_exposure_s`] and its `timing.exposure_range_s`.
     pub fn check_camera_exposure(&self, name: &str, exposure_s: f64) -> Result<(), String> {
@@ -863,6 +901,8 @@ impl Profile {
         crate::model::text::check_name(&self.name)
             .map_err(|why| ("name".to_string(), format!("the rig's name {why}")))?;
         self.holder.check().map_err(|e| (e.key, e.message))?;
+        self.check_exposure_policy(&self.exposure_policy, None)
+            .map_err(|(key, why)| (format!("exposure_policy.{key}"), why))?;
         for (name, dev) in &self.devices {
             check_device_name(name)?;
             dev.validate(&format!("devices.{name}"))?;

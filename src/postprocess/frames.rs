@@ -35,11 +35,11 @@ pub struct RunFrames {
 }
 
 /// Reads frames checked against the SHA-256 their journal lines recorded,
-/// and remembers which passed, by image index: the checksum and the file as
-/// it was then. A frame read again (the registration reads some twice) from
+/// and remembers which passed, by file: the checksum and the file as it
+/// was then. A frame read again (the registration reads some twice) from
 /// the very same file is not hashed again.
 #[derive(Default)]
-struct CheckedReads(Mutex<HashMap<usize, (String, FileStamp)>>);
+struct CheckedReads(Mutex<HashMap<PathBuf, (String, FileStamp)>>);
 
 /// What identifies a file's content without reading it: a file replaced
 /// (renamed over) has another inode, one written in place another change
@@ -86,7 +86,7 @@ impl RunFrames {
 
     /// One frame as linear values in [0, 1].
     pub fn image(&self, entry: &FrameEntry) -> Result<Image, ProcessError> {
-        let linear = self.linear(entry)?;
+        let (linear, _) = self.linear(entry)?;
         linear.grey().map_err(|e| self.frame_error(entry, e))
     }
 
@@ -96,8 +96,8 @@ impl RunFrames {
         &self,
         entry: &FrameEntry,
     ) -> Result<(Image, Option<Clipped>), ProcessError> {
-        let linear = self.linear(entry)?;
-        let clipped = linear.clipped();
+        let (linear, level) = self.linear(entry)?;
+        let clipped = linear.clipped(level);
         let image = linear.grey().map_err(|e| self.frame_error(entry, e))?;
         Ok((image, clipped))
     }
@@ -107,7 +107,7 @@ impl RunFrames {
     /// [`demosaic::DEFAULT_METHOD`], an RGB file as it is. `None` for a
     /// monochrome camera's frame.
     pub fn colour_planes(&self, entry: &FrameEntry) -> Result<Option<ColourPlanes>, ProcessError> {
-        let linear = self.linear(entry)?;
+        let (linear, _) = self.linear(entry)?;
         linear.planes().map_err(|e| self.frame_error(entry, e))
     }
 
@@ -131,8 +131,8 @@ impl RunFrames {
         entry: &FrameEntry,
         calibration: &rigd_process::colour::ColourCalibration,
     ) -> Result<Option<(Image, Option<Clipped>)>, ProcessError> {
-        let linear = self.linear(entry)?;
-        let clipped = linear.clipped();
+        let (linear, level) = self.linear(entry)?;
+        let clipped = linear.clipped(level);
         let Some(planes) = linear.planes().map_err(|e| self.frame_error(entry, e))? else {
             return Ok(None);
         };
@@ -154,12 +154,39 @@ impl RunFrames {
         }
     }
 
-    /// The frame's samples, linear in [0, 1], as the camera recorded them;
-    /// a frame whose bytes do not hash to its journal line's SHA-256 is
-    /// [`ProcessError::Damaged`], whatever it would decode to.
-    fn linear(&self, entry: &FrameEntry) -> Result<Linear, ProcessError> {
-        let path = self.root.join(&entry.file);
-        let bytes = self.checked.read(entry, &path)?;
+    /// The frame's samples, linear, 1 = full scale of its first exposure,
+    /// and the level at or above which a sample is clipped: as the camera
+    /// recorded them, or its exposures merged ([`rigd_process::hdr`]) when
+    /// the step took several. A file whose bytes do not hash to the
+    /// SHA-256 its journal line recorded is [`ProcessError::Damaged`],
+    /// whatever it would decode to.
+    fn linear(&self, entry: &FrameEntry) -> Result<(Linear, f32), ProcessError> {
+        let first = self.linear_file(entry, &entry.file, &entry.sha256)?;
+        if entry.brackets.is_empty() {
+            return Ok((first, CLIPPED_LEVEL));
+        }
+        let mut exposures = vec![(first, entry.exposure_s)];
+        for b in &entry.brackets {
+            exposures.push((self.linear_file(entry, &b.file, &b.sha256)?, b.exposure_s));
+        }
+        merge_linear(exposures, entry.exposure_s).map_err(|message| ProcessError::Frame {
+            path: self.root.join(&entry.file),
+            message: format!(
+                "merging its {} exposures: {message}",
+                entry.brackets.len() + 1
+            ),
+        })
+    }
+
+    /// One file of a frame's, checked against `sha256` and decoded.
+    fn linear_file(
+        &self,
+        entry: &FrameEntry,
+        file: &str,
+        sha256: &str,
+    ) -> Result<Linear, ProcessError> {
+        let path = self.root.join(file);
+        let bytes = self.checked.read(entry.index, sha256, &path)?;
         let frame_err = |message: String| ProcessError::Frame {
             path: path.clone(),
             message,
@@ -255,7 +282,7 @@ impl CheckedReads {
     /// journal line recorded (the hash is of the bytes read for decoding:
     /// no second read). The stamp is taken from the handle the bytes are
     /// read through, so it describes the file they came from.
-    fn read(&self, entry: &FrameEntry, path: &Path) -> Result<Vec<u8>, ProcessError> {
+    fn read(&self, index: usize, sha256: &str, path: &Path) -> Result<Vec<u8>, ProcessError> {
         use std::io::Read;
         let io_err = |e: std::io::Error| ProcessError::Frame {
             path: path.to_path_buf(),
@@ -267,21 +294,21 @@ impl CheckedReads {
         file.read_to_end(&mut bytes).map_err(io_err)?;
         // Written to while it was read: the stamp says nothing of these bytes.
         let settled = file.metadata().ok().map(|m| FileStamp::of(&m)) == Some(stamp);
-        let known = |(sha, seen): &(String, FileStamp)| *sha == entry.sha256 && *seen == stamp;
-        if settled && lock(&self.0).get(&entry.index).is_some_and(known) {
+        let known = |(sha, seen): &(String, FileStamp)| sha == sha256 && *seen == stamp;
+        if settled && lock(&self.0).get(path).is_some_and(known) {
             return Ok(bytes);
         }
         let found = sha256_hex(&bytes);
-        if found != entry.sha256 {
+        if found != sha256 {
             return Err(ProcessError::Damaged {
                 path: path.to_path_buf(),
-                index: entry.index,
-                expected: entry.sha256.clone(),
+                index,
+                expected: sha256.to_string(),
                 found,
             });
         }
         if settled {
-            lock(&self.0).insert(entry.index, (found, stamp));
+            lock(&self.0).insert(path.to_path_buf(), (found, stamp));
         }
         Ok(bytes)
     }
@@ -320,10 +347,7 @@ impl ColourPlanes {
     }
 }
 
-/// A sample at or above this fraction of full scale is clipped: the
-/// sensor's white level, less what rounding and a decoder's black
-/// subtraction move it by.
-pub const CLIPPED_LEVEL: f32 = 0.995;
+pub use rigd_core::pixel_format::CLIPPED_LEVEL;
 
 /// The pixels of a frame the sensor clipped: where a sample reached
 /// [`CLIPPED_LEVEL`] in any channel, and for a Bayer mosaic every pixel
@@ -348,22 +372,78 @@ enum Linear {
     Rgb(Image),
 }
 
+/// The level at or above which a sample of `entry`'s frame, as
+/// [`RunFrames`] reads it, is clipped: [`CLIPPED_LEVEL`], scaled by the
+/// first exposure over the shortest when its step took several.
+pub fn clipped_level(entry: &FrameEntry) -> f32 {
+    let shortest = entry
+        .exposures_s()
+        .into_iter()
+        .fold(entry.exposure_s, f64::min);
+    rigd_process::hdr::clipped_level(entry.exposure_s, shortest)
+}
+
+/// A step's exposures (each with its time, seconds) merged into one frame
+/// scaled to `reference_s`, with the level at or above which a merged
+/// sample is clipped. Every exposure must be the same kind of frame, of
+/// the same size.
+fn merge_linear(exposures: Vec<(Linear, f64)>, reference_s: f64) -> Result<(Linear, f32), String> {
+    let parts = |l: &Linear| match l {
+        Linear::Grey(img) => (img.width, img.height, img.channels, None, false),
+        Linear::Mosaic(img, cfa) => (img.width, img.height, img.channels, Some(*cfa), false),
+        Linear::Rgb(img) => (img.width, img.height, img.channels, None, true),
+    };
+    fn image(l: &Linear) -> &[f32] {
+        match l {
+            Linear::Grey(img) | Linear::Mosaic(img, _) | Linear::Rgb(img) => &img.data,
+        }
+    }
+    let Some((first, _)) = exposures.first() else {
+        return Err("no exposure".into());
+    };
+    let shape = parts(first);
+    if let Some(k) = exposures.iter().position(|(l, _)| parts(l) != shape) {
+        let (w, h, c, _, _) = parts(&exposures[k].0);
+        return Err(format!(
+            "exposure {} is a {w}×{h} frame of {c} channel(s) or another filter array, unlike the first ({}×{}, {})",
+            k + 1,
+            shape.0,
+            shape.1,
+            shape.2
+        ));
+    }
+    let list: Vec<rigd_process::hdr::Exposure<'_>> = exposures
+        .iter()
+        .map(|(l, t)| rigd_process::hdr::Exposure {
+            samples: image(l),
+            time_s: *t,
+        })
+        .collect();
+    let merged = rigd_process::hdr::merge(&list, reference_s).map_err(|e| e.to_string())?;
+    let (mut out, _) = exposures.into_iter().next().ok_or("no exposure")?;
+    match &mut out {
+        Linear::Grey(img) | Linear::Mosaic(img, _) | Linear::Rgb(img) => img.data = merged.samples,
+    }
+    Ok((out, merged.clipped_level))
+}
+
 impl Linear {
-    /// The clipped pixels; `None` when there are none.
-    fn clipped(&self) -> Option<Clipped> {
+    /// The clipped pixels: those with a sample at or above `level` (with a
+    /// mosaic's neighbours that read one); `None` when there are none.
+    fn clipped(&self, level: f32) -> Option<Clipped> {
         let (img, channels, spread) = match self {
             Linear::Grey(img) => (img, 1, 0),
             Linear::Mosaic(img, _) => (img, 1, demosaic::DEFAULT_METHOD.reach()),
             Linear::Rgb(img) => (img, 3, 0),
         };
         // Most frames clip nothing: no mask is made for them.
-        if !img.data.iter().any(|&v| v >= CLIPPED_LEVEL) {
+        if !img.data.iter().any(|&v| v >= level) {
             return None;
         }
         let (w, h) = (img.width, img.height);
         let mut mask = Image::new(w, h, 1);
         for (i, px) in img.data.chunks_exact(channels).enumerate() {
-            if px.iter().any(|&v| v >= CLIPPED_LEVEL) {
+            if px.iter().any(|&v| v >= level) {
                 let (x, y) = (i % w, i / w);
                 for yy in y.saturating_sub(spread)..(y + spread + 1).min(h) {
                     for xx in x.saturating_sub(spread)..(x + spread + 1).min(w) {
@@ -511,14 +591,18 @@ mod tests {
             data,
         };
         let mut frame = vec![0.5f32; w * h];
-        assert!(Linear::Grey(grey(frame.clone())).clipped().is_none());
+        assert!(Linear::Grey(grey(frame.clone()))
+            .clipped(CLIPPED_LEVEL)
+            .is_none());
         // Just under the white level is measured; at it, clipped.
         let centre = 4 * w + 5;
         frame[centre] = CLIPPED_LEVEL - 1e-4;
-        assert!(Linear::Grey(grey(frame.clone())).clipped().is_none());
+        assert!(Linear::Grey(grey(frame.clone()))
+            .clipped(CLIPPED_LEVEL)
+            .is_none());
         frame[centre] = 1.0;
         let c = Linear::Grey(grey(frame.clone()))
-            .clipped()
+            .clipped(CLIPPED_LEVEL)
             .expect("clipped");
         assert_eq!(c.pixels, 1);
         assert_eq!(c.mask.data[centre], 1.0);
@@ -526,19 +610,19 @@ mod tests {
         // photosite, cut at the frame's edge.
         let reach = demosaic::DEFAULT_METHOD.reach();
         let c = Linear::Mosaic(grey(frame.clone()), Cfa::Rggb)
-            .clipped()
+            .clipped(CLIPPED_LEVEL)
             .expect("clipped");
         assert_eq!(c.pixels, (2 * reach + 1).pow(2));
         frame[centre] = 0.5;
         frame[0] = 1.0;
         let c = Linear::Mosaic(grey(frame), Cfa::Rggb)
-            .clipped()
+            .clipped(CLIPPED_LEVEL)
             .expect("clipped");
         assert_eq!(c.pixels, (reach + 1).pow(2));
         // RGB: any channel.
         let mut rgb = Image::new(2, 1, 3);
         rgb.data = vec![0.2, 0.3, 0.4, 0.2, 0.999, 0.4];
-        let c = Linear::Rgb(rgb).clipped().expect("clipped");
+        let c = Linear::Rgb(rgb).clipped(CLIPPED_LEVEL).expect("clipped");
         assert_eq!(c.mask.data, vec![0.0, 1.0]);
     }
 
@@ -556,24 +640,33 @@ mod tests {
         let reads = CheckedReads::default();
         let damaged =
             |r: Result<Vec<u8>, ProcessError>| matches!(r, Err(ProcessError::Damaged { .. }));
-        assert_eq!(reads.read(&ea, &a).ok().as_deref(), Some(&b"frame a"[..]));
-        assert_eq!(reads.read(&eb, &b).ok().as_deref(), Some(&b"frame b"[..]));
+        assert_eq!(
+            reads.read(ea.index, &ea.sha256, &a).ok().as_deref(),
+            Some(&b"frame a"[..])
+        );
+        assert_eq!(
+            reads.read(eb.index, &eb.sha256, &b).ok().as_deref(),
+            Some(&b"frame b"[..])
+        );
         // Read again from the same files: not hashed again, the same bytes.
-        assert_eq!(reads.read(&ea, &a).ok().as_deref(), Some(&b"frame a"[..]));
+        assert_eq!(
+            reads.read(ea.index, &ea.sha256, &a).ok().as_deref(),
+            Some(&b"frame a"[..])
+        );
         // Swapped (renamed over each other): both fail, though checked before.
         let t = dir.path().join("t");
         for (from, to) in [(&a, &t), (&b, &a), (&t, &b)] {
             std::fs::rename(from, to).expect("rename");
         }
-        assert!(damaged(reads.read(&ea, &a)));
-        assert!(damaged(reads.read(&eb, &b)));
+        assert!(damaged(reads.read(ea.index, &ea.sha256, &a)));
+        assert!(damaged(reads.read(eb.index, &eb.sha256, &b)));
         // Written in place after it was checked (file times tick in
         // jiffies, hence the pause): damaged.
         std::fs::write(&a, b"frame a").expect("write");
-        assert!(reads.read(&ea, &a).is_ok());
+        assert!(reads.read(ea.index, &ea.sha256, &a).is_ok());
         std::thread::sleep(std::time::Duration::from_millis(20));
         std::fs::write(&a, b"frame A").expect("write");
-        assert!(damaged(reads.read(&ea, &a)));
+        assert!(damaged(reads.read(ea.index, &ea.sha256, &a)));
     }
 
     #[test]

@@ -5,6 +5,7 @@
 //! the trigger order minimises it, and the engine's pipeline follows it.
 
 use crate::kinematics::Setpoints;
+use crate::model::exposure::ExposurePolicy;
 use crate::model::profile::{DeviceKind, Profile};
 use crate::schedule::Schedule;
 
@@ -29,6 +30,9 @@ pub const PLATE_CHANGE_S: f64 = 30.0;
 pub struct Timing<'a> {
     profile: &'a Profile,
     exposure_override_s: Option<f64>,
+    /// A `brackets` run's series: every step takes these exposures at its
+    /// pose, each transferred before the next.
+    brackets_s: Option<Vec<f64>>,
 }
 
 impl<'a> Timing<'a> {
@@ -38,7 +42,20 @@ impl<'a> Timing<'a> {
         Timing {
             profile,
             exposure_override_s,
+            brackets_s: None,
         }
+    }
+
+    /// The model of a run under `policy`: a `brackets` run's steps take
+    /// their whole series, each exposure read out and transferred before
+    /// the next. An `auto` run is estimated as if nothing clipped (a lower
+    /// bound): what it retakes depends on the sample.
+    pub fn with_exposure_policy(mut self, policy: &ExposurePolicy) -> Timing<'a> {
+        self.brackets_s = match policy {
+            ExposurePolicy::Brackets { exposures_s } => Some(exposures_s.clone()),
+            _ => None,
+        };
+        self
     }
 
     /// Set-points right after homing: every axis and joint at its home.
@@ -136,16 +153,28 @@ impl<'a> Timing<'a> {
     pub fn expose_s(&self, cameras: &[&str]) -> f64 {
         cameras
             .iter()
-            .map(|c| {
-                let readout = self
-                    .profile
-                    .devices
-                    .get(*c)
-                    .and_then(|d| d.timing)
-                    .map_or(0.0, |t| t.readout_s);
-                self.exposure_s(c) + readout
-            })
+            .map(|c| self.exposure_s(c) + self.readout_s(c))
             .fold(0.0, f64::max)
+    }
+
+    fn readout_s(&self, camera: &str) -> f64 {
+        self.profile
+            .devices
+            .get(camera)
+            .and_then(|d| d.timing)
+            .map_or(0.0, |t| t.readout_s)
+    }
+
+    /// A bracketed step's exposures at its pose: each exposure of the
+    /// series read out and transferred (by the slowest camera) before the
+    /// next is taken.
+    fn bracket_series_s(&self, series: &[f64], cameras: &[&str]) -> f64 {
+        let readout = cameras
+            .iter()
+            .map(|c| self.readout_s(c))
+            .fold(0.0, f64::max);
+        let transfer = self.transfer_s(cameras);
+        series.iter().map(|t| t + readout + transfer).sum()
     }
 
     /// Transfer time of the slowest camera of a trigger.
@@ -200,8 +229,16 @@ impl<'a> Timing<'a> {
             let prep = self
                 .motion_s(&pos, &trig.setpoints)
                 .max(self.lamp_change_s(&pos.lamp, &trig.setpoints.lamp));
-            total += prep.max(pending_transfer) + self.expose_s(&cams);
-            pending_transfer = self.transfer_s(&cams);
+            match (&self.brackets_s, trig.sweep) {
+                (Some(series), None) => {
+                    total += prep.max(pending_transfer) + self.bracket_series_s(series, &cams);
+                    pending_transfer = 0.0;
+                }
+                _ => {
+                    total += prep.max(pending_transfer) + self.expose_s(&cams);
+                    pending_transfer = self.transfer_s(&cams);
+                }
+            }
             pos = trig.setpoints.clone();
         }
         total + pending_transfer

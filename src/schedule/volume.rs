@@ -7,6 +7,7 @@
 use serde::Serialize;
 
 use super::Schedule;
+use crate::model::exposure::ExposurePolicy;
 use crate::model::profile::Profile;
 
 /// The raw data of a schedule.
@@ -36,15 +37,24 @@ pub fn image_bytes(profile: &Profile, camera: &str) -> u64 {
         })
 }
 
-/// The raw data `schedule` produces on `profile`'s cameras.
-pub fn data_volume(profile: &Profile, schedule: &Schedule) -> DataVolume {
+/// The raw data `schedule` produces on `profile`'s cameras under an
+/// exposure policy: a `brackets` run stores every exposure of every image
+/// (a laser sweep's frames take one); an `auto` run is counted as if
+/// nothing clipped.
+pub fn data_volume(profile: &Profile, schedule: &Schedule, policy: &ExposurePolicy) -> DataVolume {
     let mut volume = DataVolume {
         raw_bytes: 0,
         largest_image_bytes: 0,
     };
+    let series = policy.first_exposures(0.0).len() as u64;
     for img in &schedule.images {
         let bytes = image_bytes(profile, &img.camera);
-        volume.raw_bytes += bytes;
+        let exposures = if schedule.triggers[img.trigger].sweep.is_some() {
+            1
+        } else {
+            series
+        };
+        volume.raw_bytes += bytes * exposures;
         volume.largest_image_bytes = volume.largest_image_bytes.max(bytes);
     }
     volume
@@ -61,7 +71,7 @@ mod tests {
         let offer = super::super::rig_offer(&profile, &solver);
         let plan = crate::plan::resolve("h2", &offer).expect("h2");
         let schedule = super::super::build(&profile, &solver, &plan);
-        let v = data_volume(&profile, &schedule);
+        let v = data_volume(&profile, &schedule, &ExposurePolicy::default());
         let camera = &schedule.images[0].camera;
         let intr = profile.devices[camera].intrinsics.expect("intrinsics");
         let frame = u64::from(intr.resolution[0]) * u64::from(intr.resolution[1]) * 2;

@@ -286,6 +286,9 @@ mod tests {
                 operator: None,
                 notes: Some("n".into()),
                 exposure_s: Some(0.5),
+                exposure_policy: Some(crate::model::exposure::ExposurePolicy::Brackets {
+                    exposures_s: vec![0.5, 0.1],
+                }),
                 frame_size: Some([8, 8]),
                 order: Some(crate::plan::Order::Naive),
                 process: None,
@@ -320,6 +323,7 @@ mod tests {
             operator: None,
             notes: None,
             exposure_s: None,
+            exposure_policy: Default::default(),
             frame_size: None,
             simulated: true,
             sim_scene: None,

@@ -278,6 +278,13 @@ impl Daemon {
                 .check_exposure_override(e)
                 .map_err(|why| SupervisorError::invalid(format!("`exposure_s` {why}")))?;
         }
+        if let Some(policy) = &req.exposure_policy {
+            self.profile
+                .check_exposure_policy(policy, req.exposure_s)
+                .map_err(|(key, why)| {
+                    SupervisorError::invalid(format!("`exposure_policy.{key}`: {why}"))
+                })?;
+        }
         if let Some([w, h]) = req.frame_size {
             if !(1..=4096).contains(&w) || !(1..=4096).contains(&h) {
                 return Err(SupervisorError::invalid(
@@ -448,6 +455,7 @@ impl Daemon {
             operator: req.operator.clone(),
             notes: req.notes.clone(),
             exposure_s: req.exposure_s,
+            exposure_policy: req.exposure_policy.clone(),
             frame_size: req.frame_size,
             out: root.clone(),
             simulated: self.config.sim,

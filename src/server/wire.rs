@@ -110,6 +110,15 @@ pub struct RunRequest {
     /// Exposure for every camera, seconds (default: the profile's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub exposure_s: Option<f64>,
+    /// The exposures each step takes (default: the profile's
+    /// `[exposure_policy]`, else one): `{"policy": "single"}`,
+    /// `{"policy": "brackets", "exposures_s": [T1, T2, …]}` (longest
+    /// first, each within every camera's range), or `{"policy": "auto",
+    /// "threshold": S, "factor": F, "max_extra": N}` (each optional),
+    /// which exposes again `factor` times shorter, up to `max_extra` times,
+    /// where a frame clips more than `threshold` of the sample's pixels.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub exposure_policy: Option<crate::model::exposure::ExposurePolicy>,
     /// Simulated frame size `[width, height]`, each 1..=4096 (default: the profile's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame_size: Option<[u32; 2]>,

@@ -43,6 +43,7 @@ use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
 use crate::kinematics::Setpoints;
+use crate::model::exposure::ExposurePolicy;
 use crate::model::profile::Profile;
 use crate::model::run_state::{IllegalTransition, RunState};
 use crate::plan::Plan;
@@ -153,6 +154,9 @@ pub struct RunMeta {
     /// Exposure override for every camera; the profile's own if None.
     #[serde(default)]
     pub exposure_s: Option<f64>,
+    /// The exposures each step takes: the request's, else the profile's.
+    #[serde(default, skip_serializing_if = "ExposurePolicy::is_single")]
+    pub exposure_policy: ExposurePolicy,
     /// Frame size of the simulated cameras (None on real hardware).
     #[serde(default)]
     pub frame_size: Option<[u32; 2]>,
@@ -220,6 +224,43 @@ pub struct FrameEntry {
     /// that report them (GenICam); absent otherwise.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub device: Option<crate::rig::hal::DeviceFrameInfo>,
+    /// The further exposures of the same image, in the order taken (each
+    /// shorter than `exposure_s`), when the run's exposure policy took
+    /// more than one; empty otherwise. The image's exposures are one
+    /// journal line, so a step is never half-taken.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub brackets: Vec<BracketFrame>,
+}
+
+/// A further exposure of a journaled image ([`FrameEntry::brackets`]).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BracketFrame {
+    /// Path relative to the run directory: `frames/NNNNNN.eK.EXT`, K
+    /// counting the image's exposures from 1.
+    pub file: String,
+    /// SHA-256 of the file, lowercase hex.
+    pub sha256: String,
+    /// Exposure time in seconds.
+    pub exposure_s: f64,
+}
+
+impl FrameEntry {
+    /// Every file of the image with its SHA-256: the first exposure, then
+    /// the brackets.
+    pub fn files(&self) -> impl Iterator<Item = (&str, &str)> {
+        std::iter::once((self.file.as_str(), self.sha256.as_str())).chain(
+            self.brackets
+                .iter()
+                .map(|b| (b.file.as_str(), b.sha256.as_str())),
+        )
+    }
+
+    /// Every exposure of the image, seconds, in the order taken.
+    pub fn exposures_s(&self) -> Vec<f64> {
+        std::iter::once(self.exposure_s)
+            .chain(self.brackets.iter().map(|b| b.exposure_s))
+            .collect()
+    }
 }
 
 /// The run's last known state, replaced atomically on every change.
@@ -360,6 +401,12 @@ pub fn frame_file_with(index: usize, ext: &str) -> String {
     format!("{FRAMES_DIR}/{index:06}.{ext}")
 }
 
+/// Relative path of image `index`'s further exposure `k` (from 1) stored
+/// with extension `ext` ([`BracketFrame::file`]).
+pub fn bracket_file_with(index: usize, k: usize, ext: &str) -> String {
+    format!("{FRAMES_DIR}/{index:06}.e{k}.{ext}")
+}
+
 impl RunDir {
     /// Creates a new run directory. Refuses a folder that already holds a
     /// run or anything else.
@@ -423,12 +470,14 @@ impl RunDir {
                 recovery.physical_s = recovery.physical_s.max(line.entry.t_s);
             }
             let mut keep = scan.last_of_each();
-            // Verify every frame the journal vouches for.
+            // Verify every frame the journal vouches for, every exposure of it.
             keep.retain(|&index, &mut k| {
                 let e = &scan.lines[k].entry;
-                let ok = fs::read(root.join(&e.file))
-                    .map(|b| sha256_hex(&b) == e.sha256)
-                    .unwrap_or(false);
+                let ok = e.files().all(|(file, sha)| {
+                    fs::read(root.join(file))
+                        .map(|b| sha256_hex(&b) == sha)
+                        .unwrap_or(false)
+                });
                 if !ok {
                     recovery.retake.push(index);
                 }
@@ -489,7 +538,40 @@ impl RunDir {
     ) -> Result<FrameEntry, StoreError> {
         let ext = frame.original.as_ref().map_or("png", |o| o.extension);
         let rel = frame_file_with(entry.index, ext);
-        let path = root.join(&rel);
+        entry.sha256 = Self::write_frame_file(root, &rel, frame)?;
+        entry.file = rel;
+        entry.width = frame.width;
+        entry.height = frame.height;
+        entry.bit_depth = frame.bit_depth;
+        entry.device = frame.device.clone();
+        Ok(entry)
+    }
+
+    /// Writes a further exposure `k` (from 1) of the image `entry` holds,
+    /// and adds it to the entry's brackets (its journal line, once
+    /// appended, vouches for it).
+    pub fn write_bracket(
+        root: &Path,
+        entry: &mut FrameEntry,
+        k: usize,
+        exposure_s: f64,
+        frame: &Frame,
+    ) -> Result<(), StoreError> {
+        let ext = frame.original.as_ref().map_or("png", |o| o.extension);
+        let file = bracket_file_with(entry.index, k, ext);
+        let sha256 = Self::write_frame_file(root, &file, frame)?;
+        entry.brackets.push(BracketFrame {
+            file,
+            sha256,
+            exposure_s,
+        });
+        Ok(())
+    }
+
+    /// Writes a frame's file at `rel` (the camera's own bytes, else a PNG
+    /// of its samples); returns the file's SHA-256.
+    fn write_frame_file(root: &Path, rel: &str, frame: &Frame) -> Result<String, StoreError> {
+        let path = root.join(rel);
         let encoded;
         let bytes = match &frame.original {
             Some(original) => &original.bytes,
@@ -504,13 +586,7 @@ impl RunDir {
         // Not synced here: the journal line, which is, carries the frame's
         // SHA-256, so a frame a crash lost or cut is known and taken again.
         rigd_core::atomic::write_unsynced(&path, bytes)?;
-        entry.file = rel;
-        entry.sha256 = sha256_hex(bytes);
-        entry.width = frame.width;
-        entry.height = frame.height;
-        entry.bit_depth = frame.bit_depth;
-        entry.device = frame.device.clone();
-        Ok(entry)
+        Ok(sha256_hex(bytes))
     }
 
     /// Appends entries to the journal and fsyncs it: once this returns, the
@@ -1048,6 +1124,7 @@ mod tests {
             bit_depth: 0,
             laser: None,
             device: None,
+            brackets: Vec::new(),
         }
     }
 
@@ -1089,6 +1166,7 @@ mod tests {
             operator: None,
             notes: None,
             exposure_s: None,
+            exposure_policy: Default::default(),
             frame_size: None,
             simulated: true,
             sim_scene: None,

@@ -432,7 +432,9 @@ pub fn run(
             setting: case.name.clone(),
             images: Some(s.images.len()),
             physical_s: Some(physical_s),
-            bytes: Some(crate::schedule::volume::data_volume(profile, &s).raw_bytes),
+            bytes: Some(
+                crate::schedule::volume::data_volume(profile, &s, &Default::default()).raw_bytes,
+            ),
             error: Some(measured.error),
             spread: measured.spread,
             compute_s: Some(compress_s),
@@ -604,6 +606,7 @@ fn capture(profile: Profile, plan: &str, out: &Path) -> Result<f64, ProcessError
             operator: None,
             notes: None,
             exposure_s: None,
+            exposure_policy: None,
             frame_size: None,
             out: out.to_path_buf(),
             simulated: true,

@@ -32,7 +32,8 @@ pub fn repo_file(rel: &str) -> PathBuf {
 }
 
 /// Checks a finished run: a completed manifest with every image exactly
-/// once, every checksum matching its file, and a journal with no index twice.
+/// once, every checksum matching its file (a bracketed image's every
+/// exposure), and a journal with no index twice.
 pub fn assert_complete_run(dir: &Path, expected_frames: usize) -> Manifest {
     let bytes = std::fs::read(dir.join(MANIFEST_FILE)).expect("manifest.json");
     let m: Manifest = serde_json::from_slice(&bytes).expect("manifest parses");
@@ -50,9 +51,9 @@ pub fn assert_complete_run(dir: &Path, expected_frames: usize) -> Manifest {
         indices.iter().next_back().copied(),
         Some(expected_frames - 1)
     );
-    for f in &m.frames {
-        let data = std::fs::read(dir.join(&f.file)).unwrap_or_else(|e| panic!("{}: {e}", f.file));
-        assert_eq!(sha256_hex(&data), f.sha256, "checksum of {}", f.file);
+    for (file, sha256) in m.frames.iter().flat_map(|f| f.files()) {
+        let data = std::fs::read(dir.join(file)).unwrap_or_else(|e| panic!("{file}: {e}"));
+        assert_eq!(sha256_hex(&data), sha256, "checksum of {file}");
     }
     // The journal's own lines, not the reader's view of them (which takes
     // one entry per image): exactly one line per image, none torn.

@@ -4,7 +4,9 @@
 //! clipped pixel, writes their mask and names the frame and its
 //! directions; the BTF compression fills them from the slot's
 //! neighbouring lights and says how many; a matte sample under the same
-//! lights clips nothing.
+//! lights clips nothing. With `--exposure-policy auto` the frames that clip
+//! are taken again shorter and merged, so the highlight is measured above
+//! full scale instead of clipped, and a matte sample costs no extra time.
 
 use std::path::Path;
 
@@ -18,7 +20,12 @@ fn arg(p: &Path) -> String {
 /// its mirror direction, and from θ 60° φ 150°, and rectifies it; what
 /// the rectify printed.
 fn capture_and_rectify(dir: &Path, scene: &str) -> (std::path::PathBuf, String) {
-    let run = dir.join(scene);
+    capture_and_rectify_with(dir, scene, "single")
+}
+
+/// [`capture_and_rectify`] under an exposure policy, into `dir/scene.policy`.
+fn capture_and_rectify_with(dir: &Path, scene: &str, policy: &str) -> (std::path::PathBuf, String) {
+    let run = dir.join(format!("{scene}.{policy}"));
     let plan = dir.join("plan.json");
     std::fs::write(
         &plan,
@@ -41,6 +48,8 @@ fn capture_and_rectify(dir: &Path, scene: &str) -> (std::path::PathBuf, String) 
         &arg(&plan),
         "--progress",
         "none",
+        "--exposure-policy",
+        policy,
         "--out",
         &arg(&run),
     ]);
@@ -182,4 +191,117 @@ fn texels_that_read_a_clipped_pixel_are_counted_masked_and_reported() {
     assert!(!index.contains("clipped_mask"), "{index}");
     assert!(index.contains("\"frames_clipped\": 0"), "{index}");
     assert!(!printed.contains("clipped:"), "{printed}");
+}
+
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).expect("readable")).expect("json")
+}
+
+fn physical_s(run: &Path) -> f64 {
+    json(&run.join("state.json"))["physical_s"]
+        .as_f64()
+        .expect("physical_s")
+}
+
+#[test]
+fn auto_exposure_measures_the_highlight_where_a_single_exposure_clips() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (single, _) = capture_and_rectify(dir.path(), "leather");
+    let (auto, printed) = capture_and_rectify_with(dir.path(), "leather", "auto");
+
+    // Every frame of this plan clips at the profile's 0.25 s, so each took
+    // a second exposure four times shorter, with its own file and hash.
+    let journal = std::fs::read_to_string(auto.join("journal.ndjson")).expect("journal");
+    let lines: Vec<serde_json::Value> = journal
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("line"))
+        .collect();
+    assert_eq!(lines.len(), 6);
+    for line in &lines {
+        let brackets = line["brackets"].as_array().expect("brackets");
+        assert_eq!(brackets.len(), 1, "{line}");
+        assert_eq!(brackets[0]["exposure_s"].as_f64(), Some(0.0625), "{line}");
+        let file = brackets[0]["file"].as_str().expect("file");
+        let bytes = std::fs::read(auto.join(file)).expect("the bracket's file");
+        assert_eq!(
+            brackets[0]["sha256"].as_str(),
+            Some(rigd::store::sha256_hex(&bytes).as_str())
+        );
+    }
+
+    // Merged, no texel reads a clipped pixel, and the textures are floats
+    // that say which exposures they came from.
+    let single_index = json(&single.join("processed/normtextures/index.json"));
+    let auto_index = json(&auto.join("processed/normtextures/index.json"));
+    assert_eq!(auto_index["encoding"], "npy-f32", "{printed}");
+    assert_eq!(auto_index["summary"]["clipped_texels"].as_u64(), Some(0));
+    assert!(!printed.contains("clipped:"), "{printed}");
+    let single_frames = single_index["frames"].as_array().expect("frames");
+    let auto_frames = auto_index["frames"].as_array().expect("frames");
+    assert_eq!(single_frames.len(), auto_frames.len());
+
+    // Where the single exposure did not clip, the merged value is the
+    // single one (up to the 8-bit rounding of its PNG); where it clipped,
+    // the merge reads more than the clipped pixel let it, and the
+    // highlight reaches past what a single exposure can hold (1).
+    let (mut above, mut clipped_total, mut ratios) = (0usize, 0usize, Vec::new());
+    let mut brightest = 0.0f32;
+    for (one, merged) in single_frames.iter().zip(auto_frames) {
+        assert_eq!(one["index"], merged["index"]);
+        let exposures: Vec<f64> = merged["exposures_s"]
+            .as_array()
+            .expect("exposures_s")
+            .iter()
+            .filter_map(serde_json::Value::as_f64)
+            .collect();
+        assert_eq!(exposures, vec![0.25, 0.0625]);
+        assert!(merged["clipped_mask"].is_null(), "{merged}");
+        let textures = |run: &Path| run.join("processed/normtextures");
+        let png = rigd_process::image_io::load_png(
+            &textures(&single).join(one["file"].as_str().expect("file")),
+        )
+        .expect("single's texture");
+        let npy = rigd_process::npy::read_f32(
+            &textures(&auto).join(merged["file"].as_str().expect("file")),
+        )
+        .expect("auto's texture");
+        assert_eq!(png.data.len(), npy.data.len());
+        let mask = one["clipped_mask"]
+            .as_str()
+            .map(|m| rigd_process::image_io::load_png(&textures(&single).join(m)).expect("mask"));
+        for (i, (&low, &high)) in png.data.iter().zip(&npy.data).enumerate() {
+            let was_clipped = mask.as_ref().is_some_and(|m| m.data[i] > 0.5);
+            if was_clipped {
+                clipped_total += 1;
+                above += usize::from(high > low * 1.05);
+                brightest = brightest.max(high);
+            } else if (0.1..0.9).contains(&low) {
+                ratios.push(high / low);
+            }
+        }
+    }
+    assert!(clipped_total > 0 && ratios.len() > 1000);
+    assert!(
+        above * 2 > clipped_total && brightest > 1.5,
+        "{above} of {clipped_total} once-clipped texels read 5 % more merged; brightest {brightest}"
+    );
+    ratios.sort_by(f32::total_cmp);
+    let median = ratios[ratios.len() / 2];
+    let (p05, p95) = (ratios[ratios.len() / 20], ratios[ratios.len() * 19 / 20]);
+    assert!(
+        (0.98..1.02).contains(&median) && p05 > 0.95 && p95 < 1.06,
+        "merged over single where single did not clip: median {median}, p05 {p05}, p95 {p95}"
+    );
+
+    // A matte sample never clips: no second exposure, no extra time.
+    let (matte_single, _) = capture_and_rectify(dir.path(), "flat-calibration");
+    let (matte_auto, _) = capture_and_rectify_with(dir.path(), "flat-calibration", "auto");
+    let journal = std::fs::read_to_string(matte_auto.join("journal.ndjson")).expect("journal");
+    assert_eq!(journal.lines().count(), 6);
+    assert!(!journal.contains("brackets"), "{journal}");
+    let (once, auto_time) = (physical_s(&matte_single), physical_s(&matte_auto));
+    assert!(
+        auto_time <= once * 1.02,
+        "auto {auto_time} s against single {once} s on a matte sample"
+    );
 }

@@ -96,6 +96,41 @@ async fn the_daemon_reports_the_rigs_physical_time_at_any_speed_and_load() {
         (cli - estimate).abs() <= 1e-6 * estimate,
         "command line {cli} s, estimate {estimate} s"
     );
+    // Brackets take every exposure at the pose, each transferred before the
+    // next: the estimate says so (up to the camera's exposure changes,
+    // which the model leaves out).
+    let brackets = "brackets:0.25,0.0625";
+    let shown = run_ok(&[
+        "plan",
+        "show",
+        plan,
+        "--json",
+        "--exposure-policy",
+        brackets,
+    ]);
+    let shown: Value = serde_json::from_slice(&shown.stdout).expect("json");
+    let bracket_estimate = shown["estimated_physical_s"].as_f64().expect("estimate");
+    let bracket_run = dir.path().join("brackets");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--plan",
+        plan,
+        "--frame-size",
+        "32x24",
+        "--exposure-policy",
+        brackets,
+        "--progress",
+        "none",
+        "--out",
+        bracket_run.to_str().expect("utf8"),
+    ]);
+    let bracketed = manifest_physical_s(&bracket_run);
+    assert!(
+        bracket_estimate > estimate * 1.5
+            && (bracketed - bracket_estimate).abs() <= 1e-3 * bracket_estimate,
+        "bracketed {bracketed} s, estimate {bracket_estimate} s (single {estimate} s)"
+    );
 
     // The daemon, paced to the wall clock: the same physical time, idle and
     // with both cores busy, at 200x and 1000x.

@@ -754,6 +754,7 @@ async fn a_run_completes_only_with_every_image_in_its_journal() {
             operator: None,
             notes: None,
             exposure_s: None,
+            exposure_policy: None,
             frame_size: Some([16, 16]),
             out: out.clone(),
             simulated: true,

@@ -213,3 +213,76 @@ fn a_completed_run_cannot_be_resumed_again() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("already completed"), "{stderr}");
 }
+
+#[test]
+fn a_bracketed_run_faulted_between_exposures_and_killed_resumes_whole() {
+    let seed = seed();
+    eprintln!("RIGD_TEST_SEED={seed}");
+    let mut rng = Lcg(seed);
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("run");
+    let d = dir.to_str().expect("utf8");
+    let total = 6561;
+    // The fourth exposure is image 1's second: the camera faults between
+    // the two exposures of one image.
+    let out = rigd()
+        .args([
+            "run",
+            "--sim",
+            "--plan",
+            "h1",
+            "--frame-size",
+            "24x16",
+            "--exposure-policy",
+            "brackets:0.25,0.0625",
+            "--sim-fault",
+            "camera:expose:4:alarm=shutter jammed",
+            "--progress",
+            "none",
+            "--out",
+            d,
+        ])
+        .output()
+        .expect("rigd run");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{stderr}");
+    assert!(stderr.contains("paused"), "{stderr}");
+    // Image 1's first exposure is on disk, but without its second the image
+    // is not taken: no line names it.
+    let (entries, _) = read_journal(&dir.join(JOURNAL_FILE)).expect("journal");
+    assert_eq!(entries.iter().map(|e| e.index).collect::<Vec<_>>(), [0]);
+    assert_eq!(entries[0].brackets.len(), 1);
+    assert!(dir.join("frames/000001.dng").exists());
+    assert!(!dir.join("frames/000001.e1.dng").exists());
+
+    // Resumed, and killed at random points.
+    let mut kills = 0;
+    for round in 0..3 {
+        let at = ((round as f64 + rng.next_f64()) / 4.0 * total as f64) as usize;
+        let delay = Duration::from_micros((rng.next_f64() * 3000.0) as u64);
+        if kill_after(
+            &["run", "--resume", d, "--progress", "none"],
+            &dir,
+            at,
+            delay,
+        ) {
+            kills += 1;
+        }
+    }
+    assert!(kills >= 2, "only {kills} sessions were killed mid-run");
+    // A second exposure damaged on disk is found and its image retaken.
+    let (entries, _) = read_journal(&dir.join(JOURNAL_FILE)).expect("journal");
+    let victim = &entries[7].brackets[0];
+    std::fs::write(dir.join(&victim.file), b"not the frame").expect("damage");
+    let out = rigd()
+        .args(["run", "--resume", d, "--progress", "log"])
+        .output()
+        .expect("resume");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(stderr.contains("retaking 1 frame"), "{stderr}");
+    let m = assert_complete_run(&dir, total);
+    for f in &m.frames {
+        assert_eq!(f.exposures_s(), [0.25, 0.0625], "image {}", f.index);
+    }
+}

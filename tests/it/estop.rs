@@ -37,6 +37,7 @@ async fn emergency_stop_mid_run_pauses_and_resume_rehomes_and_completes() {
         operator: None,
         notes: None,
         exposure_s: None,
+        exposure_policy: None,
         frame_size: Some([8, 8]),
         out: out.clone(),
         simulated: true,

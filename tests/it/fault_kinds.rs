@@ -28,6 +28,7 @@ async fn run_with_fault(rule: &str) -> Vec<String> {
         operator: None,
         notes: None,
         exposure_s: None,
+        exposure_policy: None,
         frame_size: Some([8, 8]),
         out: out.clone(),
         simulated: true,

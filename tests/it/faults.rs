@@ -26,6 +26,7 @@ fn new_run(out: &std::path::Path, plan: &str) -> NewRun {
         operator: None,
         notes: None,
         exposure_s: None,
+        exposure_policy: None,
         frame_size: Some([16, 16]),
         out: out.to_path_buf(),
         simulated: true,

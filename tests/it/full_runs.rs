@@ -176,6 +176,7 @@ async fn msra_grid_capture(
             operator: None,
             notes: None,
             exposure_s: None,
+            exposure_policy: None,
             frame_size: Some([1, 1]),
             out: out.clone(),
             simulated: true,

@@ -207,6 +207,56 @@ fn exposures_beyond_the_camera_s_range_are_refused() {
         e.contains("devices.camera.timing.exposure_s") && e.contains("[0.001, 2]"),
         "{e}"
     );
+
+    // Exposure policies: brackets that are not decreasing or leave the
+    // camera's range, an `auto` threshold outside (0, 1), a factor of at
+    // most 1, and retakes that reach below the range; each names its key.
+    let run = |policy: &str| {
+        vec![
+            "run".to_string(),
+            "--sim".into(),
+            "--profile".into(),
+            s(&profile).into(),
+            "--plan".into(),
+            s(&plan).into(),
+            "--exposure-policy".into(),
+            policy.into(),
+            "--out".into(),
+            s(&out).into(),
+        ]
+    };
+    for (policy, wanted) in [
+        ("brackets:0.1,0.2", "exposures_s: 0.1 s then 0.2 s"),
+        (
+            "brackets:5,1",
+            "exposure_policy.exposures_s: 5 s: camera `camera` exposes 0.001 … 2 s",
+        ),
+        ("auto:threshold=0", "threshold: 0"),
+        ("auto:threshold=1.5", "threshold: 1.5"),
+        ("auto:factor=1", "factor: 1"),
+        ("auto:factor=0.5", "factor: 0.5"),
+        (
+            "auto:factor=10,max_extra=3",
+            "exposure_policy.max_extra: 3 further exposures 10 times shorter than 0.25 s",
+        ),
+        ("sometimes", "expected single, brackets"),
+    ] {
+        let args = run(policy);
+        let args: Vec<&str> = args.iter().map(String::as_str).collect();
+        let e = fails_with(2, &args);
+        assert!(e.contains(wanted), "{policy}: {e}");
+    }
+    assert!(!out.exists());
+    let in_profile = write(
+        tmp.path(),
+        "policy.toml",
+        &format!("{ranged}\n[exposure_policy]\npolicy = \"brackets\"\nexposures_s = [0.5, 0.5]\n"),
+    );
+    let e = fails_with(2, &["profile", "check", s(&in_profile)]);
+    assert!(
+        e.contains("exposure_policy.exposures_s") && e.contains("strictly decreasing"),
+        "{e}"
+    );
 }
 
 /// `rigd process …` refuses every numeric option the daemon's jobs refuse,

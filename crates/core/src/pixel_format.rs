@@ -10,6 +10,12 @@
 use std::fmt;
 use std::str::FromStr;
 
+/// A sample at or above this fraction of full scale is clipped: the
+/// sensor's white level, less what rounding and a decoder's black
+/// subtraction move it by. What a clipped sample shows is a lower bound,
+/// not a measurement.
+pub const CLIPPED_LEVEL: f32 = 0.995;
+
 /// The 2×2 tile of a Bayer colour filter array, read left to right, top to
 /// bottom from the frame's first pixel (PFNC: `BayerRG` starts with red).
 ///

@@ -9,6 +9,7 @@ pub mod colour;
 pub mod demosaic;
 pub mod directions;
 pub mod export;
+pub mod hdr;
 pub mod image_io;
 pub mod mdf;
 pub mod mesh;

@@ -61,6 +61,18 @@ impl TextureBits {
 }
 
 impl RectifyConfig {
+    /// The settings a run's frames are rectified with. A run whose steps
+    /// take several exposures has highlights above its first exposure's
+    /// full scale, which an 8-bit texture of the top bits would clip:
+    /// its textures are float instead (a shift asked for is kept).
+    pub fn for_run(&self, meta: &crate::store::RunMeta) -> RectifyConfig {
+        let mut cfg = *self;
+        if cfg.bits == TextureBits::Top8 && !meta.exposure_policy.is_single() {
+            cfg.bits = TextureBits::Float;
+        }
+        cfg
+    }
+
     /// The one check of these sizes, for `rigd process rectify`, `rigd run
     /// --process` and the daemon's jobs alike, before any frame is read:
     /// the error names the option and its range.
@@ -179,6 +191,11 @@ pub struct FrameRegistration {
     /// relative to the normtextures folder; None when none is.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub clipped_mask: Option<String>,
+    /// The frame's exposures, seconds, in the order taken, when its step
+    /// took more than one (merged into its texture, scaled to the first);
+    /// absent for one.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub exposures_s: Vec<f64>,
 }
 
 fn is_zero(n: &usize) -> bool {
@@ -242,6 +259,7 @@ impl FrameRegistration {
             clipped_texels: 0,
             clipped_share: None,
             clipped_mask: None,
+            exposures_s: Vec::new(),
         }
     }
 }

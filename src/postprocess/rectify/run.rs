@@ -32,6 +32,7 @@ pub fn rectify_run(
     use rayon::prelude::*;
     use rigd_process::rectify as rect;
     check_config(cfg)?;
+    let cfg = &cfg.for_run(&run.meta);
     let (holder, layout) = holder_layout(&run.meta)?;
     let out_dir = crate::store::processed::normtextures_dir(&run.root);
     crate::postprocess::create_dir(&out_dir)?;

@@ -99,6 +99,9 @@ pub(super) struct FrameImages {
     pub(super) lamp_level: Option<f64>,
     /// The pixels the sensor clipped; `None`: none.
     pub(super) clipped: Option<crate::postprocess::frames::Clipped>,
+    /// A texel at or above this is at full scale: the clipping level,
+    /// scaled as the merge of a step's exposures scales the frame.
+    full_scale: f32,
 }
 
 impl FrameImages {
@@ -183,6 +186,7 @@ impl Rectifier<'_> {
                 rgb_grey: None,
                 lamp_level: None,
                 clipped,
+                full_scale: crate::postprocess::frames::clipped_level(entry),
             });
         };
         let Some((rgb, clipped)) = self.run.corrected_and_clipped(entry, colour)? else {
@@ -200,6 +204,7 @@ impl Rectifier<'_> {
             rgb_grey: Some(grey),
             lamp_level: None,
             clipped,
+            full_scale: crate::postprocess::frames::clipped_level(entry),
         })
     }
 
@@ -263,7 +268,7 @@ impl Rectifier<'_> {
             .texture
             .data
             .iter()
-            .filter(|&&v| v >= crate::postprocess::frames::CLIPPED_LEVEL)
+            .filter(|&&v| v >= images.full_scale)
             .count() as f64
             / full.texture.data.len().max(1) as f64;
         if saturated > SATURATED_FRACTION {
@@ -386,6 +391,9 @@ impl Rectifier<'_> {
             }
         };
         out.rec.lamp_level = images.lamp_level;
+        if !entry.brackets.is_empty() {
+            out.rec.exposures_s = entry.exposures_s();
+        }
         // Whether it is black is decided against its neighbours, later.
         let image = images.grey();
         out.p99 = percentile_f32(&image.data, 0.99);

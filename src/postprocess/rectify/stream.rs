@@ -65,6 +65,7 @@ impl RectifyStream {
     pub fn new(root: &Path, cfg: RectifyConfig) -> Result<RectifyStream, ProcessError> {
         check_config(&cfg)?;
         let meta = crate::store::read_meta(root)?;
+        let cfg = cfg.for_run(&meta);
         let (holder, layout) = holder_layout(&meta)?;
         let mut plan_lights = Vec::new();
         for pair in &meta.plan.pairs {

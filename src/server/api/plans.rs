@@ -15,8 +15,11 @@ use crate::server::supervisor::Daemon;
 use crate::server::wire::*;
 
 fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
-    let est = Timing::new(&d.profile, None).estimate_s(schedule, |_| false);
-    let volume = crate::schedule::volume::data_volume(&d.profile, schedule);
+    let policy = &d.profile.exposure_policy;
+    let est = Timing::new(&d.profile, None)
+        .with_exposure_policy(policy)
+        .estimate_s(schedule, |_| false);
+    let volume = crate::schedule::volume::data_volume(&d.profile, schedule, policy);
     PlanSummary {
         name: name.into(),
         ready: true,
