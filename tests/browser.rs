@@ -420,6 +420,35 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
     )
     .await;
 
+    // The form offers the exposure policies with what each costs: brackets
+    // take longer than the profile's single exposure.
+    let estimate = "return document.getElementById('plan-info').textContent";
+    let single = wait_js(c, "h1's estimate", 10, estimate, |v| {
+        v.as_str().is_some_and(|t| t.contains("about"))
+    })
+    .await;
+    let bracketed = wait_js(
+        c,
+        "h1's estimate under brackets",
+        10,
+        "const s = document.getElementById('exposure-policy');
+         const o = [...s.options].find((o) => o.textContent.startsWith('brackets'));
+         if (!o) return null;
+         s.value = o.value;
+         s.dispatchEvent(new Event('change'));
+         return [document.getElementById('plan-info').textContent, s.options.length];",
+        |v| v[1].as_u64() == Some(4),
+    )
+    .await;
+    assert_ne!(bracketed[0], single, "{bracketed} {single}");
+    js(
+        c,
+        "const s = document.getElementById('exposure-policy');
+         s.selectedIndex = 0;
+         s.dispatchEvent(new Event('change'));",
+    )
+    .await;
+
     // A small custom run.
     c.find(Locator::Id("sample"))
         .await

@@ -69,7 +69,7 @@ pub struct RunArgs {
     /// at every step, seconds, longest first) or
     /// auto[:threshold=S,factor=F,max_extra=N] (again F times shorter, up
     /// to N times, where a frame clips more than S of the sample's pixels;
-    /// defaults 0.001, 4, 3) [default: the profile's [exposure_policy],
+    /// defaults 0.00001, 4, 3) [default: the profile's [exposure_policy],
     /// else single]. Processing merges a step's exposures
     /// (`docs/processing.md`, "Exposure brackets").
     #[arg(long)]

@@ -39,10 +39,16 @@ pub fn sample_window(
     ])
 }
 
-/// The share of `window`'s pixels (the whole frame without one) whose
-/// value is clipped: at or above [`CLIPPED_LEVEL`] of the frame's full
-/// scale. A window that holds no pixel centre (the sample seen edge-on)
-/// clips nothing.
+/// How far beyond the sample window a clipped pixel still reaches the
+/// sample's texels, pixels: a Bayer demosaic reads up to 3 pixels around
+/// (AHD), and the resampling one more. A window seen near grazing is only
+/// a few pixels tall, so its edges matter.
+pub const WINDOW_MARGIN_PX: f64 = 4.0;
+
+/// The share of `window`'s pixels (the whole frame without one), taken
+/// with a margin of [`WINDOW_MARGIN_PX`], whose value is clipped: at or
+/// above [`CLIPPED_LEVEL`] of the frame's full scale. A window wholly off
+/// the frame clips nothing.
 pub fn clipped_share(frame: &Frame, window: Option<&[[f64; 2]; 4]>) -> f64 {
     let (w, h) = (frame.width as usize, frame.height as usize);
     if w == 0 || h == 0 || frame.pixels.len() != w * h {
@@ -56,8 +62,10 @@ pub fn clipped_share(frame: &Frame, window: Option<&[[f64; 2]; 4]>) -> f64 {
         return n as f64 / frame.pixels.len() as f64;
     };
     // The quadrilateral's bounding box, clamped to the frame.
-    let xs = quad.map(|p| p[0]);
-    let ys = quad.map(|p| p[1]);
+    let xs = quad.map(|p| p[0] - WINDOW_MARGIN_PX);
+    let ys = quad.map(|p| p[1] - WINDOW_MARGIN_PX);
+    let xs_far = quad.map(|p| p[0] + WINDOW_MARGIN_PX);
+    let ys_far = quad.map(|p| p[1] + WINDOW_MARGIN_PX);
     let lo = |v: [f64; 4], n: usize| {
         (v.iter()
             .copied()
@@ -74,11 +82,12 @@ pub fn clipped_share(frame: &Frame, window: Option<&[[f64; 2]; 4]>) -> f64 {
             .max(0.0) as usize)
             .min(n)
     };
-    let (x0, x1, y0, y1) = (lo(xs, w), hi(xs, w), lo(ys, h), hi(ys, h));
+    let (x0, x1, y0, y1) = (lo(xs, w), hi(xs_far, w), lo(ys, h), hi(ys_far, h));
+    let margin = WINDOW_MARGIN_PX;
     let (mut inside, mut hit) = (0usize, 0usize);
     for y in y0..y1 {
         for x in x0..x1 {
-            if contains(quad, [x as f64 + 0.5, y as f64 + 0.5]) {
+            if near(quad, [x as f64 + 0.5, y as f64 + 0.5], margin) {
                 inside += 1;
                 if clipped(frame.pixels[y * w + x]) {
                     hit += 1;
@@ -94,12 +103,25 @@ pub fn clipped_share(frame: &Frame, window: Option<&[[f64; 2]; 4]>) -> f64 {
 }
 
 /// Whether point `p` lies inside the convex quadrilateral `quad` (either
-/// winding).
-fn contains(quad: &[[f64; 2]; 4], p: [f64; 2]) -> bool {
+/// winding, possibly degenerate) or within `margin` of its edges.
+fn near(quad: &[[f64; 2]; 4], p: [f64; 2], margin: f64) -> bool {
     let side =
         |a: [f64; 2], b: [f64; 2]| (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]);
     let sides: Vec<f64> = (0..4).map(|i| side(quad[i], quad[(i + 1) % 4])).collect();
-    sides.iter().all(|&s| s >= 0.0) || sides.iter().all(|&s| s <= 0.0)
+    let inside = sides.iter().all(|&s| s >= 0.0) || sides.iter().all(|&s| s <= 0.0);
+    inside || (0..4).any(|i| segment_distance(quad[i], quad[(i + 1) % 4], p) <= margin)
+}
+
+/// The distance from `p` to the segment from `a` to `b`.
+fn segment_distance(a: [f64; 2], b: [f64; 2], p: [f64; 2]) -> f64 {
+    let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
+    let length2 = dx * dx + dy * dy;
+    let t = if length2 > 0.0 {
+        (((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / length2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    (p[0] - a[0] - t * dx).hypot(p[1] - a[1] - t * dy)
 }
 
 #[cfg(test)]
@@ -119,19 +141,31 @@ mod tests {
 
     #[test]
     fn only_the_sample_window_s_clipped_pixels_count() {
-        // 10×10, the window the centre 4×4; one clipped pixel inside, two
-        // outside (a white marker beside the sample).
-        let mut pixels = vec![100u16; 100];
-        pixels[5 * 10 + 5] = 4095;
+        // 30×30, the window the centre 4×4 (13 … 17) and its margin: 12×12
+        // pixel centres, rounded corners left out.
+        let window = [[13.0, 13.0], [17.0, 13.0], [17.0, 17.0], [13.0, 17.0]];
+        let inside = (0..900)
+            .filter(|i| near(&window, [(i % 30) as f64 + 0.5, (i / 30) as f64 + 0.5], 4.0))
+            .count();
+        assert!((4 * 4 + 4 * 4 * 4..=12 * 12).contains(&inside), "{inside}");
+        // Two white markers far beside the sample cost nothing.
+        let mut pixels = vec![100u16; 900];
         pixels[0] = 4095;
-        pixels[99] = 4094;
-        let f = frame(10, 10, pixels);
-        let window = [[3.0, 3.0], [7.0, 3.0], [7.0, 7.0], [3.0, 7.0]];
-        assert_eq!(clipped_share(&f, Some(&window)), 1.0 / 16.0);
-        assert_eq!(clipped_share(&f, None), 3.0 / 100.0);
+        pixels[899] = 4094;
+        let f = frame(30, 30, pixels.clone());
+        assert_eq!(clipped_share(&f, Some(&window)), 0.0);
+        assert_eq!(clipped_share(&f, None), 2.0 / 900.0);
+        // One inside counts, and so does one 2 pixels outside the edge,
+        // which a demosaic reads into the sample's texels.
+        pixels[15 * 30 + 15] = 4095;
+        let f = frame(30, 30, pixels.clone());
+        assert_eq!(clipped_share(&f, Some(&window)), 1.0 / inside as f64);
+        pixels[15 * 30 + 19] = 4095;
+        let f = frame(30, 30, pixels);
+        assert_eq!(clipped_share(&f, Some(&window)), 2.0 / inside as f64);
         // Wound the other way round: the same window.
-        let reversed = [[3.0, 3.0], [3.0, 7.0], [7.0, 7.0], [7.0, 3.0]];
-        assert_eq!(clipped_share(&f, Some(&reversed)), 1.0 / 16.0);
+        let reversed = [[13.0, 13.0], [13.0, 17.0], [17.0, 17.0], [17.0, 13.0]];
+        assert_eq!(clipped_share(&f, Some(&reversed)), 2.0 / inside as f64);
         // Below the level (99.5 % of 4095 is 4074.5): not clipped.
         let mut pixels = vec![4074u16; 100];
         pixels[55] = 4075;
@@ -139,12 +173,14 @@ mod tests {
     }
 
     #[test]
-    fn a_window_off_the_frame_or_edge_on_clips_nothing() {
+    fn a_window_off_the_frame_clips_nothing_and_one_edge_on_still_reads_its_pixels() {
         let f = frame(4, 4, vec![4095; 16]);
-        let off = [[10.0, 10.0], [12.0, 10.0], [12.0, 12.0], [10.0, 12.0]];
+        let off = [[20.0, 20.0], [22.0, 20.0], [22.0, 22.0], [20.0, 22.0]];
         assert_eq!(clipped_share(&f, Some(&off)), 0.0);
+        // Seen edge-on (grazing), the sample is a line whose texels read
+        // the pixels around it.
         let edge_on = [[0.0, 2.0], [4.0, 2.0], [4.0, 2.0], [0.0, 2.0]];
-        assert_eq!(clipped_share(&f, Some(&edge_on)), 0.0);
+        assert_eq!(clipped_share(&f, Some(&edge_on)), 1.0);
         assert_eq!(clipped_share(&frame(0, 0, vec![]), None), 0.0);
     }
 

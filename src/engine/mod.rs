@@ -704,15 +704,17 @@ impl Engine {
         let timing = Timing::new(&self.profile, self.meta.exposure_s);
         let held = self.held.get(&i).cloned();
         // Each exposure's time, per camera.
-        let series: Vec<BTreeMap<String, f64>> = match (&self.meta.exposure_policy, &held) {
-            (ExposurePolicy::Auto(a), Some(_)) => (1..=a.max_extra)
+        let series: Vec<BTreeMap<String, f64>> = match (self.meta.exposure_policy.auto(), &held) {
+            (Some(a), Some(_)) => (1..=a.max_extra)
                 .map(|k| {
                     cams.iter()
                         .map(|c| (c.clone(), a.extra_exposure_s(timing.exposure_s(c), k)))
                         .collect()
                 })
                 .collect(),
-            (policy, _) => policy
+            _ => self
+                .meta
+                .exposure_policy
                 .first_exposures(0.0)
                 .into_iter()
                 .map(|t| cams.iter().map(|c| (c.clone(), t)).collect())
@@ -750,15 +752,9 @@ impl Engine {
             let clipped = rule.is_some_and(|rule| {
                 self.schedule.triggers[i].images.iter().any(|&n| {
                     let img = &self.schedule.images[n];
-                    frames.get(&img.camera).is_some_and(|frame| {
-                        let window = bracket::sample_window(
-                            rule.profile,
-                            &img.camera,
-                            [frame.width, frame.height],
-                            img.achieved_view,
-                        );
-                        bracket::clipped_share(frame, window.as_ref()) > rule.threshold
-                    })
+                    frames
+                        .get(&img.camera)
+                        .is_some_and(|frame| rule.clips(&img.camera, img.achieved_view, frame))
                 })
             });
             entries = Some(match entries.take() {
@@ -1552,6 +1548,16 @@ struct HoldRule<'a> {
     threshold: f64,
 }
 
+impl HoldRule<'_> {
+    /// Whether `frame`, from `camera` at `view`, clips more of the sample
+    /// than the rule allows.
+    fn clips(&self, camera: &str, view: rigd_core::Direction, frame: &Frame) -> bool {
+        let window =
+            bracket::sample_window(self.profile, camera, [frame.width, frame.height], view);
+        bracket::clipped_share(frame, window.as_ref()) > self.threshold
+    }
+}
+
 /// What became of a trigger's frames once transferred and written.
 enum Finished {
     /// Journaled: the images are taken.
@@ -1586,15 +1592,8 @@ async fn finish(
         .collect();
     let work = step_entries(schedule, p, frames, &exposures)?;
     let held = hold.is_some_and(|rule| {
-        work.iter().any(|(entry, frame)| {
-            let window = bracket::sample_window(
-                rule.profile,
-                &entry.camera,
-                [frame.width, frame.height],
-                entry.achieved_view,
-            );
-            bracket::clipped_share(frame, window.as_ref()) > rule.threshold
-        })
+        work.iter()
+            .any(|(entry, frame)| rule.clips(&entry.camera, entry.achieved_view, frame))
     });
     in_store(store, move |dir| {
         let root = dir.root().to_path_buf();

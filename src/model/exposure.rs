@@ -12,9 +12,11 @@ use serde::{Deserialize, Serialize};
 use super::text::short_number;
 
 /// Share of the sample's pixels that may clip before `auto` shoots again
-/// shorter, unless a run says otherwise: about 40 pixels of a 320×240
-/// frame's sample, so an isolated hot pixel does not cost a retake.
-pub const DEFAULT_AUTO_THRESHOLD: f64 = 0.001;
+/// shorter, unless a run says otherwise: less than one pixel of a 320×240
+/// frame's sample (about 40,000 pixels), so any clipped pixel there is
+/// taken again, while a 6-megapixel frame's sample (about 3.6 million)
+/// tolerates a few dozen stuck pixels, which no shorter exposure mends.
+pub const DEFAULT_AUTO_THRESHOLD: f64 = 0.000_01;
 /// How much shorter each further exposure of `auto` is, unless a run says
 /// otherwise: two stops, so three retakes cover six stops of highlight.
 pub const DEFAULT_AUTO_FACTOR: f64 = 4.0;
@@ -59,7 +61,31 @@ pub enum ExposurePolicy {
     /// The run's exposure first; where that frame clips more than
     /// `threshold` of the sample's pixels, again `factor` times shorter,
     /// up to `max_extra` times, until the highlight fits.
-    Auto(AutoExposure),
+    // Fields inline rather than a newtype of `AutoExposure`: a tagged
+    // newtype is described as `allOf` with a closed object, which no
+    // value with the tag can match.
+    Auto {
+        /// Share of the sample's pixels, in (0, 1), that may clip before a
+        /// shorter exposure is taken.
+        #[serde(default = "default_threshold")]
+        threshold: f64,
+        /// How many times shorter each further exposure is; more than 1.
+        #[serde(default = "default_factor")]
+        factor: f64,
+        /// The most further exposures at one step, 1 to 7.
+        #[serde(default = "default_max_extra")]
+        max_extra: u32,
+    },
+}
+
+impl From<AutoExposure> for ExposurePolicy {
+    fn from(a: AutoExposure) -> Self {
+        ExposurePolicy::Auto {
+            threshold: a.threshold,
+            factor: a.factor,
+            max_extra: a.max_extra,
+        }
+    }
 }
 
 impl Default for ExposurePolicy {
@@ -69,18 +95,14 @@ impl Default for ExposurePolicy {
 }
 
 /// The settings of [`ExposurePolicy::Auto`].
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AutoExposure {
     /// Share of the sample's pixels, in (0, 1), that may clip before a
     /// shorter exposure is taken.
-    #[serde(default = "default_threshold")]
     pub threshold: f64,
     /// How many times shorter each further exposure is; more than 1.
-    #[serde(default = "default_factor")]
     pub factor: f64,
     /// The most further exposures at one step, 1 to 7.
-    #[serde(default = "default_max_extra")]
     pub max_extra: u32,
 }
 
@@ -146,7 +168,7 @@ impl ExposurePolicy {
                 }
                 Ok(())
             }
-            ExposurePolicy::Auto(a) => a.check(),
+            ExposurePolicy::Auto { .. } => self.auto().map_or(Ok(()), |a| a.check()),
         }
     }
 
@@ -160,9 +182,17 @@ impl ExposurePolicy {
     }
 
     /// The settings of `auto`; None for the other policies.
-    pub fn auto(&self) -> Option<&AutoExposure> {
-        match self {
-            ExposurePolicy::Auto(a) => Some(a),
+    pub fn auto(&self) -> Option<AutoExposure> {
+        match *self {
+            ExposurePolicy::Auto {
+                threshold,
+                factor,
+                max_extra,
+            } => Some(AutoExposure {
+                threshold,
+                factor,
+                max_extra,
+            }),
             _ => None,
         }
     }
@@ -170,6 +200,28 @@ impl ExposurePolicy {
     /// Whether every step takes exactly one exposure at the run's exposure.
     pub fn is_single(&self) -> bool {
         matches!(self, ExposurePolicy::Single {})
+    }
+
+    /// The policies an operator chooses among for a base exposure of
+    /// `base_s`: `single`, `auto` with its defaults, and brackets of 2 and
+    /// 3 exposures, each [`DEFAULT_AUTO_FACTOR`] times shorter than the
+    /// one before (two stops apart, as `auto` steps).
+    pub fn choices(base_s: f64) -> Vec<ExposurePolicy> {
+        let series = |n: i32| {
+            (0..n)
+                .map(|k| base_s / DEFAULT_AUTO_FACTOR.powi(k))
+                .collect::<Vec<f64>>()
+        };
+        vec![
+            ExposurePolicy::Single {},
+            AutoExposure::default().into(),
+            ExposurePolicy::Brackets {
+                exposures_s: series(2),
+            },
+            ExposurePolicy::Brackets {
+                exposures_s: series(3),
+            },
+        ]
     }
 }
 
@@ -223,12 +275,15 @@ impl fmt::Display for ExposurePolicy {
                 let list: Vec<String> = exposures_s.iter().map(|t| short_number(*t)).collect();
                 write!(f, "brackets:{}", list.join(","))
             }
-            ExposurePolicy::Auto(a) => write!(
+            ExposurePolicy::Auto {
+                threshold,
+                factor,
+                max_extra,
+            } => write!(
                 f,
-                "auto:threshold={},factor={},max_extra={}",
-                short_number(a.threshold),
-                short_number(a.factor),
-                a.max_extra
+                "auto:threshold={},factor={},max_extra={max_extra}",
+                short_number(*threshold),
+                short_number(*factor),
             ),
         }
     }
@@ -286,7 +341,7 @@ impl FromStr for ExposurePolicy {
                         }
                     }
                 }
-                ExposurePolicy::Auto(a)
+                a.into()
             }
             _ => {
                 return Err(format!(
@@ -317,7 +372,7 @@ mod tests {
             assert_eq!(p.to_string().parse::<ExposurePolicy>().unwrap(), p);
         }
         let a: ExposurePolicy = "auto".parse().unwrap();
-        assert_eq!(a, ExposurePolicy::Auto(AutoExposure::default()));
+        assert_eq!(a, ExposurePolicy::from(AutoExposure::default()));
         let a: ExposurePolicy = "auto:factor=2".parse().unwrap();
         assert_eq!(a.auto().unwrap().factor, 2.0);
         assert_eq!(a.auto().unwrap().max_extra, DEFAULT_AUTO_MAX_EXTRA);

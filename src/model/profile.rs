@@ -805,7 +805,8 @@ impl Profile {
                             .map_err(|why| ("exposures_s".to_string(), why))?;
                     }
                 }
-                ExposurePolicy::Auto(a) => {
+                ExposurePolicy::Auto { .. } => {
+                    let Some(a) = policy.auto() else { continue };
                     let base = exposure_override.unwrap_or_else(|| {
                         self.devices
                             .get(&name)

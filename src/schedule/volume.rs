@@ -78,5 +78,16 @@ mod tests {
         assert!(intr.bit_depth > 8);
         assert_eq!(v.largest_image_bytes, frame);
         assert_eq!(v.raw_bytes, 6561 * frame);
+        // Brackets store every exposure; `auto` is counted as if nothing
+        // clipped.
+        let brackets: ExposurePolicy = "brackets:0.25,0.0625,0.015625".parse().expect("policy");
+        let v = data_volume(&profile, &schedule, &brackets);
+        assert_eq!(v.raw_bytes, 3 * 6561 * frame);
+        assert_eq!(v.largest_image_bytes, frame);
+        let auto: ExposurePolicy = "auto".parse().expect("policy");
+        assert_eq!(
+            data_volume(&profile, &schedule, &auto).raw_bytes,
+            6561 * frame
+        );
     }
 }

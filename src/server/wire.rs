@@ -372,6 +372,32 @@ pub struct PlanSummary {
     pub raw_bytes: u64,
     /// The largest single image, bytes.
     pub image_bytes: u64,
+    /// What the plan costs under each exposure policy the start form
+    /// offers: the profile's own first, then `single`, `auto` and brackets
+    /// of 2 and 3 exposures two stops apart from the first camera's
+    /// exposure, each that every camera can expose. Empty while the plan
+    /// is not solved.
+    pub exposure_estimates: Vec<PolicyEstimate>,
+}
+
+/// A plan's cost under one exposure policy.
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct PolicyEstimate {
+    /// The policy, as `exposure_policy` in a run request takes it.
+    pub policy: crate::model::exposure::ExposurePolicy,
+    /// Whether it is the profile's own `[exposure_policy]` (what a run
+    /// without `exposure_policy` takes).
+    pub profile_default: bool,
+    /// Estimated physical capture time, seconds.
+    pub estimated_physical_s: f64,
+    /// The same in wall seconds at the daemon's simulation speed.
+    pub estimated_wall_s: f64,
+    /// Raw sensor data, bytes, every exposure counted.
+    pub raw_bytes: u64,
+    /// True for `auto`: the time and data are those of a run in which no
+    /// step clipped, and every step that does costs a further exposure
+    /// (and its transfer) up to `max_extra` times.
+    pub lower_bound: bool,
 }
 
 /// `GET /api/v1/plans`.

@@ -133,6 +133,32 @@ async fn rig_and_plans() {
     let image = h1["image_bytes"].as_u64().expect("image bytes");
     assert!(image > 1_000_000, "{h1}");
     assert_eq!(h1["raw_bytes"].as_u64(), Some(6561 * image));
+    // What it costs under each exposure policy: the profile's own (single)
+    // first and as above, brackets of 2 and 3 exposures more in time and
+    // data, `auto` as a lower bound.
+    let costs = h1["exposure_estimates"].as_array().expect("estimates");
+    let named: Vec<String> = costs
+        .iter()
+        .map(|e| {
+            let p = &e["policy"];
+            format!(
+                "{}{}",
+                p["policy"].as_str().expect("policy"),
+                p["exposures_s"].as_array().map_or(0, Vec::len)
+            )
+        })
+        .collect();
+    assert_eq!(named, ["single0", "auto0", "brackets2", "brackets3"]);
+    assert_eq!(costs[0]["profile_default"], true);
+    assert_eq!(costs[0]["estimated_physical_s"].as_f64(), Some(est));
+    assert_eq!(costs[1]["estimated_physical_s"].as_f64(), Some(est));
+    assert_eq!(costs[1]["lower_bound"], true);
+    let (two, three) = (
+        costs[2]["estimated_physical_s"].as_f64().expect("two"),
+        costs[3]["estimated_physical_s"].as_f64().expect("three"),
+    );
+    assert!(est * 1.5 < two && two < three, "{est} {two} {three}");
+    assert_eq!(costs[3]["raw_bytes"].as_u64(), Some(3 * 6561 * image));
     let grid = plans
         .iter()
         .find(|p| p["name"] == "grid12x8")

@@ -50,7 +50,7 @@ names in a request are looked up, never used as paths (docs/api.md, \"Security\"
         peers::abort_peer
     ),
     components(schemas(
-        ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PlanDetail, PlanStep, Dir,
+        ErrorBody, Health, RigView, DeviceView, PlanList, PlanSummary, PolicyEstimate, PlanDetail, PlanStep, Dir,
         RunRequest, PlanSpec, InlinePlan, PairDto, RunView, PaceView, RunList, CommandAck, RunSteps, RunStep,
         QueueItem, QueueView, Enqueued, EstopAnswer, DaemonEvent, super::events::SseMessage,
         crate::rig::check::RigCheck, crate::rig::check::DeviceCheck, manual::DeviceRequest,

@@ -7,12 +7,47 @@ use axum::extract::State;
 use axum::Json;
 
 use super::AppState;
+use crate::model::exposure::ExposurePolicy;
 use crate::plan::BUILTIN_PLANS;
 use crate::schedule::timing::Timing;
 use crate::schedule::Schedule;
 use crate::server::error::{ApiError, ApiPath, ErrorBody};
 use crate::server::supervisor::Daemon;
 use crate::server::wire::*;
+
+/// What `schedule` costs under the profile's own exposure policy and each
+/// of [`ExposurePolicy::choices`] that every camera can expose.
+fn exposure_estimates(d: &Daemon, schedule: &Schedule) -> Vec<PolicyEstimate> {
+    let own = &d.profile.exposure_policy;
+    let base_s = d
+        .profile
+        .camera_names()
+        .first()
+        .map_or(0.0, |c| Timing::new(&d.profile, None).exposure_s(c));
+    let mut policies = vec![own.clone()];
+    for p in ExposurePolicy::choices(base_s) {
+        if !policies.contains(&p) && d.profile.check_exposure_policy(&p, None).is_ok() {
+            policies.push(p);
+        }
+    }
+    policies
+        .into_iter()
+        .map(|policy| {
+            let physical = Timing::new(&d.profile, None)
+                .with_exposure_policy(&policy)
+                .estimate_s(schedule, |_| false);
+            PolicyEstimate {
+                profile_default: &policy == own,
+                estimated_physical_s: physical,
+                estimated_wall_s: physical / d.speed(),
+                raw_bytes: crate::schedule::volume::data_volume(&d.profile, schedule, &policy)
+                    .raw_bytes,
+                lower_bound: policy.auto().is_some(),
+                policy,
+            }
+        })
+        .collect()
+}
 
 fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
     let policy = &d.profile.exposure_policy;
@@ -32,6 +67,7 @@ fn summary(d: &Daemon, name: &str, schedule: &Schedule) -> PlanSummary {
         estimated_wall_s: est / d.speed(),
         raw_bytes: volume.raw_bytes,
         image_bytes: volume.largest_image_bytes,
+        exposure_estimates: exposure_estimates(d, schedule),
     }
 }
 
@@ -48,6 +84,7 @@ fn unsized_summary(name: &str, ready: bool, error: Option<String>) -> PlanSummar
         estimated_wall_s: 0.0,
         raw_bytes: 0,
         image_bytes: 0,
+        exposure_estimates: Vec::new(),
     }
 }
 

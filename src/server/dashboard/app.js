@@ -709,12 +709,42 @@ function renderPlans() {
   planChanged();
 }
 
+/** How the start form names an exposure policy. */
+function policyLabel(e) {
+  const p = e.policy;
+  const label =
+    p.policy === "brackets"
+      ? `brackets ${p.exposures_s.map((t) => Number(t.toPrecision(4))).join(", ")} s`
+      : p.policy === "auto"
+        ? "auto: again shorter where the sample clips"
+        : "single";
+  return e.profile_default ? `${label} (profile default)` : label;
+}
+
+/** The exposure policies the plans offer (the same for every plan of the
+ * rig), kept when a custom plan is chosen; the operator's choice stays. */
+function renderPolicies(estimates) {
+  const sel = $("exposure-policy");
+  const prev = sel.value;
+  const values = estimates.map((e) => JSON.stringify(e.policy));
+  if ([...sel.options].map((o) => o.value).join("\n") !== values.join("\n")) {
+    sel.replaceChildren(...estimates.map((e, i) => text("option", policyLabel(e), { value: values[i] })));
+  }
+  if (values.includes(prev)) sel.value = prev;
+}
+
 function planChanged() {
   const v = $("plan").value;
   $("custom-field").hidden = v !== "__custom";
   const p = state.plans.find((x) => x.name === v);
+  const estimates = (p && p.exposure_estimates) || [];
+  const anyPlan = state.plans.find((x) => x.exposure_estimates && x.exposure_estimates.length);
+  renderPolicies(estimates.length ? estimates : anyPlan ? anyPlan.exposure_estimates : []);
+  const chosen = estimates.find((e) => JSON.stringify(e.policy) === $("exposure-policy").value);
+  const cost = chosen || p;
+  const atLeast = chosen && chosen.lower_bound ? "at least " : "about ";
   $("plan-info").textContent = p
-    ? `${p.steps_total} images, ${p.infeasible_total} infeasible; about ${fmtDuration(p.estimated_physical_s)} physical (${fmtDuration(p.estimated_wall_s)} at this simulation speed); ${fmtBytes(p.raw_bytes)} raw, ${fmtBytes(p.image_bytes)} an image`
+    ? `${p.steps_total} images, ${p.infeasible_total} infeasible; ${atLeast}${fmtDuration(cost.estimated_physical_s)} physical (${fmtDuration(cost.estimated_wall_s)} at this simulation speed); ${fmtBytes(cost.raw_bytes)} raw, ${fmtBytes(p.image_bytes)} an image`
     : v === "__custom"
       ? "Every direction is used as light and as view."
       : "";
@@ -1182,6 +1212,8 @@ function runRequest() {
   if (notes) req.notes = notes;
   const exp = $("exposure").value.trim();
   if (exp) req.exposure_s = Number(exp);
+  const policy = $("exposure-policy").value;
+  if (policy) req.exposure_policy = JSON.parse(policy);
   const w = $("frame-w").value.trim();
   const h = $("frame-h").value.trim();
   if (w || h) {
@@ -1458,6 +1490,7 @@ function setup() {
     state.planChosen = true;
     planChanged();
   });
+  $("exposure-policy").addEventListener("change", planChanged);
   $("pause").addEventListener("click", () => command("pause"));
   $("resume").addEventListener("click", () => command("resume"));
   $("abort").addEventListener("click", () => command("abort"));
