@@ -36,7 +36,17 @@ struct Bases {
 fn bases() -> &'static Bases {
     static BASES: OnceLock<Bases> = OnceLock::new();
     BASES.get_or_init(|| {
-        let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("corruption-bases");
+        // One folder per test process: the test runner may run these
+        // tests in several processes at once. Folders of processes that
+        // have ended are removed.
+        let all = Path::new(env!("CARGO_TARGET_TMPDIR")).join("corruption-bases");
+        for entry in std::fs::read_dir(&all).into_iter().flatten().flatten() {
+            let pid = entry.file_name();
+            if !Path::new("/proc").join(&pid).exists() {
+                let _ = std::fs::remove_dir_all(entry.path());
+            }
+        }
+        let dir = all.join(std::process::id().to_string());
         let _ = std::fs::remove_dir_all(&dir);
         std::fs::create_dir_all(&dir).expect("base folder");
         let plan = dir.join("nine.json");
