@@ -132,16 +132,23 @@ fi
 # a new path recompiles rigd's crates in full (about 7 minutes on two cores).
 # As root, the clone is bind-mounted at one fixed path and built there, so
 # the next clone recompiles only what changed. Without the right to mount
-# (or while another run holds that path) it is built where it is.
+# (or while another live run holds that path) it is built where it is. A
+# mount left by a run that was killed is taken over: the pid file tells a
+# live run's mount from a dead one's.
 stable_src=/var/cache/rigd/src
 mounted=""
 if [ "${CARGO_TARGET_DIR:-}" = "$build_cache" ] && [ "$(id -u)" -eq 0 ] \
-    && [ "$PWD" != "$stable_src" ] && mkdir -p "$stable_src" \
-    && ! mountpoint -q "$stable_src" \
-    && mount --bind "$PWD" "$stable_src" 2>/dev/null; then
-    mounted="$stable_src"
-    cd "$stable_src"
-    echo "== building this clone as $stable_src (a bind mount, removed at exit)"
+    && [ "$PWD" != "$stable_src" ] && mkdir -p "$stable_src"; then
+    holder="$(cat "$stable_src.pid" 2>/dev/null || true)"
+    if mountpoint -q "$stable_src" && ! { [ -n "$holder" ] && kill -0 "$holder" 2>/dev/null; }; then
+        umount --lazy "$stable_src" || true
+    fi
+    if ! mountpoint -q "$stable_src" && mount --bind "$PWD" "$stable_src" 2>/dev/null; then
+        echo "$$" > "$stable_src.pid"
+        mounted="$stable_src"
+        cd "$stable_src"
+        echo "== building this clone as $stable_src (a bind mount, removed at exit)"
+    fi
 fi
 log=""
 cleanup() {
@@ -151,6 +158,7 @@ cleanup() {
     if [ -n "$mounted" ]; then
         cd /
         umount --lazy "$mounted" || true
+        rm -f "$mounted.pid"
     fi
 }
 trap cleanup EXIT
