@@ -107,7 +107,7 @@ pub fn clipped_share(frame: &Frame, window: Option<&[[f64; 2]; 4]>) -> f64 {
 fn near(quad: &[[f64; 2]; 4], p: [f64; 2], margin: f64) -> bool {
     let side =
         |a: [f64; 2], b: [f64; 2]| (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]);
-    let sides: Vec<f64> = (0..4).map(|i| side(quad[i], quad[(i + 1) % 4])).collect();
+    let sides: [f64; 4] = std::array::from_fn(|i| side(quad[i], quad[(i + 1) % 4]));
     let inside = sides.iter().all(|&s| s >= 0.0) || sides.iter().all(|&s| s <= 0.0);
     inside || (0..4).any(|i| segment_distance(quad[i], quad[(i + 1) % 4], p) <= margin)
 }
