@@ -68,9 +68,11 @@ enum Cmd {
     Export(dataset::ExportArgs),
     /// What accuracy costs in time on this rig and material: sampling plans
     /// (H2, H1, ring subsets, grids, a dense reference) against held-out BTF
-    /// error, PCA components, and the simulator's effects against render
-    /// time; prints the table and writes tradeoff.csv, tradeoff.json and
-    /// tradeoff.svg (error against physical time) into --out.
+    /// error, PCA components, the simulator's effects against render time,
+    /// the laser's sources, photometric stereo's lights, and the exposure
+    /// policies against held-out error near the mirror direction; prints
+    /// the table and writes tradeoff.csv, tradeoff.json and tradeoff.svg (a
+    /// panel per family) into --out.
     #[cfg(feature = "sim")]
     Tradeoff(tradeoff::TradeoffArgs),
     /// Read textures in an export format (ours or a database's) into

@@ -161,8 +161,6 @@ pub fn true_texture_channels(
     channels: usize,
 ) -> Vec<f32> {
     use rayon::prelude::*;
-    const SUB: usize = 4;
-    let [hx, hy] = scene.sample_half;
     let (l, v) = (light.to_vector(), view.to_vector());
     let channels = if channels == 3 { 3 } else { 1 };
     let mut out = vec![0f32; size * size * channels];
@@ -171,24 +169,104 @@ pub fn true_texture_channels(
         .for_each(|(j, row)| {
             for (k, texel) in row.iter_mut().enumerate() {
                 let (i, c) = (k / channels, k % channels);
-                let mut sum = 0.0;
-                for sj in 0..SUB {
-                    let y =
-                        hy - (j as f64 + (sj as f64 + 0.5) / SUB as f64) / size as f64 * 2.0 * hy;
-                    for si in 0..SUB {
-                        let x = -hx
-                            + (i as f64 + (si as f64 + 0.5) / SUB as f64) / size as f64 * 2.0 * hx;
-                        sum += if channels == 3 {
+                let sum: f64 = texel_points(scene, size, j, i)
+                    .map(|(x, y)| {
+                        if channels == 3 {
                             scene.true_btf_channel(x, y, l, v, c)
                         } else {
                             scene.true_btf(x, y, l, v, Default::default())
-                        };
-                    }
-                }
-                *texel = (rigd_sim::scene::WHITE_LEVEL * sum / (SUB * SUB) as f64) as f32;
+                        }
+                    })
+                    .sum();
+                *texel = (rigd_sim::scene::WHITE_LEVEL * sum / TEXEL_SAMPLES as f64) as f32;
             }
         });
     out
+}
+
+/// Samples per side of a texel in the truth: 4 × 4.
+const TEXEL_SUB: usize = 4;
+/// Samples per texel.
+const TEXEL_SAMPLES: usize = TEXEL_SUB * TEXEL_SUB;
+
+/// The sample-plane points (metres) the truth averages for texel (row `j`,
+/// column `i`) of a `size`² normtexture: a 4 × 4 grid over its area.
+fn texel_points(
+    scene: &Scene,
+    size: usize,
+    j: usize,
+    i: usize,
+) -> impl Iterator<Item = (f64, f64)> {
+    let [hx, hy] = scene.sample_half;
+    let n = TEXEL_SUB as f64;
+    (0..TEXEL_SAMPLES).map(move |s| {
+        let (sj, si) = ((s / TEXEL_SUB) as f64, (s % TEXEL_SUB) as f64);
+        let y = hy - (j as f64 + (sj + 0.5) / n) / size as f64 * 2.0 * hy;
+        let x = -hx + (i as f64 + (si + 0.5) / n) / size as f64 * 2.0 * hx;
+        (x, y)
+    })
+}
+
+/// A grey normtexture as a camera with a finite full scale records it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExposedTexture {
+    /// Each texel the mean of its samples, each sample held at the full
+    /// scale: what a clipped pixel reads.
+    pub texels: Vec<f32>,
+    /// Texels with at least one sample at the full scale.
+    pub clipped_texels: usize,
+    /// Share of all samples at the full scale.
+    pub clipped_share: f64,
+}
+
+/// [`true_texture`] as recorded with each of `full_scales`, in one pass:
+/// the full scale in the truth's units, where a white Lambertian sample
+/// lit frontally reads [`rigd_sim::scene::WHITE_LEVEL`], so 1 is the
+/// sensor's full scale at the profile's exposure and `f` that of an
+/// exposure `f` times shorter. Noise, vignetting and the lamp's fall-off
+/// are left out: a sample clips exactly where its radiance reaches the
+/// full scale.
+pub fn exposed_textures(
+    scene: &Scene,
+    size: usize,
+    light: Direction,
+    view: Direction,
+    full_scales: &[f64],
+) -> Vec<ExposedTexture> {
+    use rayon::prelude::*;
+    let (l, v) = (light.to_vector(), view.to_vector());
+    let scales = full_scales.len();
+    // Per texel and full scale: the clipped sum and the clipped samples.
+    let per_texel: Vec<Vec<(f64, usize)>> = (0..size * size)
+        .into_par_iter()
+        .map(|t| {
+            let mut acc = vec![(0.0, 0usize); scales];
+            for (x, y) in texel_points(scene, size, t / size, t % size) {
+                let value =
+                    rigd_sim::scene::WHITE_LEVEL * scene.true_btf(x, y, l, v, Default::default());
+                for (a, &full) in acc.iter_mut().zip(full_scales) {
+                    a.0 += value.min(full);
+                    a.1 += usize::from(value >= full);
+                }
+            }
+            acc
+        })
+        .collect();
+    (0..scales)
+        .map(|k| {
+            let texels = per_texel
+                .iter()
+                .map(|acc| (acc[k].0 / TEXEL_SAMPLES as f64) as f32)
+                .collect();
+            let clipped: Vec<usize> = per_texel.iter().map(|acc| acc[k].1).collect();
+            ExposedTexture {
+                texels,
+                clipped_texels: clipped.iter().filter(|&&n| n > 0).count(),
+                clipped_share: clipped.iter().sum::<usize>() as f64
+                    / (TEXEL_SAMPLES * size * size).max(1) as f64,
+            }
+        })
+        .collect()
 }
 
 /// Compares the run's compressed BTF (`processed/btf/`) at each (light,

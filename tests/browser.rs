@@ -1622,6 +1622,11 @@ async fn view_and_compare(
             "Which effects matter?",
             "frame change without it, %",
         ),
+        (
+            "exposure",
+            "Which exposures?",
+            "held-out error within 10° of the mirror, %",
+        ),
     ] {
         assert_eq!(
             texts.iter().filter(|t| t.starts_with(title)).count(),

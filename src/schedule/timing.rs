@@ -5,7 +5,7 @@
 //! the trigger order minimises it, and the engine's pipeline follows it.
 
 use crate::kinematics::Setpoints;
-use crate::model::exposure::ExposurePolicy;
+use crate::model::exposure::{AutoExposure, ExposurePolicy};
 use crate::model::profile::{DeviceKind, Profile};
 use crate::schedule::Schedule;
 
@@ -33,6 +33,8 @@ pub struct Timing<'a> {
     /// A `brackets` run's series: every step takes these exposures at its
     /// pose, each transferred before the next.
     brackets_s: Option<Vec<f64>>,
+    /// An `auto` run's settings: what a held step's further exposures take.
+    auto: Option<AutoExposure>,
 }
 
 impl<'a> Timing<'a> {
@@ -43,18 +45,21 @@ impl<'a> Timing<'a> {
             profile,
             exposure_override_s,
             brackets_s: None,
+            auto: None,
         }
     }
 
     /// The model of a run under `policy`: a `brackets` run's steps take
     /// their whole series, each exposure read out and transferred before
-    /// the next. An `auto` run is estimated as if nothing clipped (a lower
-    /// bound): what it retakes depends on the sample.
+    /// the next. What an `auto` run retakes depends on the sample:
+    /// [`Timing::estimate_s`] counts it as if nothing clipped (a lower
+    /// bound), [`Timing::estimate_with_retakes_s`] with what clipped.
     pub fn with_exposure_policy(mut self, policy: &ExposurePolicy) -> Timing<'a> {
         self.brackets_s = match policy {
             ExposurePolicy::Brackets { exposures_s } => Some(exposures_s.clone()),
             _ => None,
         };
+        self.auto = policy.auto();
         self
     }
 
@@ -189,36 +194,78 @@ impl<'a> Timing<'a> {
     /// Physical time of a schedule, leaving out the triggers `skip` names:
     /// first the first lamp's warm-up; then per trigger, motion and lamp
     /// changes run in parallel and overlap the previous transfer, while
-    /// exposure and readout stand alone; last the final transfer.
+    /// exposure and readout stand alone; last the final transfer. An `auto`
+    /// run counts as if nothing clipped (a lower bound).
     pub fn estimate_s(&self, schedule: &Schedule, skip: impl Fn(usize) -> bool) -> f64 {
+        self.estimate_with_retakes_s(schedule, skip, |_| 0)
+    }
+
+    /// [`Timing::estimate_s`] of an `auto` run whose trigger `t` takes
+    /// `retakes(t)` further exposures (0 where its first did not clip), as
+    /// the engine takes them: the clipping is seen once the frame is
+    /// transferred, while the rig moves on; so the rig exposes the next
+    /// trigger, comes back, and takes the further exposures at the held
+    /// one's pose, each read out and transferred before the next.
+    pub fn estimate_with_retakes_s(
+        &self,
+        schedule: &Schedule,
+        skip: impl Fn(usize) -> bool,
+        retakes: impl Fn(usize) -> u32,
+    ) -> f64 {
         let mut pos = self.home_setpoints();
-        let mut pending_transfer = 0.0;
-        let mut remaining = schedule
+        let mut queue: std::collections::VecDeque<usize> = schedule
             .triggers
             .iter()
             .filter(|t| !skip(t.index))
-            .peekable();
+            .map(|t| t.index)
+            .collect();
         // Preparing: homing, then the first lamp switched on and warmed up,
         // before anything moves.
-        let mut total = match remaining.peek() {
-            Some(first) => {
-                pos.lamp = first.setpoints.lamp.clone();
+        let mut total = match queue.front() {
+            Some(&first) => {
+                pos.lamp = schedule.triggers[first].setpoints.lamp.clone();
                 self.prepare_s(&pos.lamp)
             }
             None => 0.0,
         };
-        let mut sweep = None;
-        for trig in remaining {
-            let cams: Vec<&str> = trig
+        let cameras = |t: usize| -> Vec<&str> {
+            schedule.triggers[t]
                 .images
                 .iter()
                 .map(|&i| schedule.images[i].camera.as_str())
-                .collect();
+                .collect()
+        };
+        let auto = self.auto.filter(|_| self.brackets_s.is_none());
+        // A laser sweep's frames take one exposure each.
+        let retaken =
+            |t: usize| auto.is_some() && schedule.triggers[t].sweep.is_none() && retakes(t) > 0;
+        // The trigger whose frames are still being transferred, and the
+        // triggers waiting to be taken again at their pose.
+        let mut pending: Option<usize> = None;
+        let mut held: Vec<usize> = Vec::new();
+        let mut sweep = None;
+        loop {
+            let next = queue.front().copied();
+            let transfer = pending.map_or(0.0, |p| self.transfer_s(&cameras(p)));
+            let Some(i) = next else {
+                total += transfer;
+                match pending.take() {
+                    Some(p) if retaken(p) => {
+                        held.push(p);
+                        queue.push_back(p);
+                        continue;
+                    }
+                    _ => break,
+                }
+            };
+            let trig = &schedule.triggers[i];
+            let cams = cameras(i);
             if let (Some(s), Some(laser)) = (trig.sweep, &schedule.laser) {
                 if sweep == Some(s) {
                     // Inside a sweep the axis runs on and frames follow at video rate.
                     total += 1.0 / laser.plan.frame_hz;
                     pos = trig.setpoints.clone();
+                    queue.pop_front();
                     continue;
                 }
             }
@@ -229,18 +276,44 @@ impl<'a> Timing<'a> {
             let prep = self
                 .motion_s(&pos, &trig.setpoints)
                 .max(self.lamp_change_s(&pos.lamp, &trig.setpoints.lamp));
-            match (&self.brackets_s, trig.sweep) {
-                (Some(series), None) => {
-                    total += prep.max(pending_transfer) + self.bracket_series_s(series, &cams);
-                    pending_transfer = 0.0;
-                }
-                _ => {
-                    total += prep.max(pending_transfer) + self.expose_s(&cams);
-                    pending_transfer = self.transfer_s(&cams);
+            // Added with the step's own exposures in one sum, as the
+            // trigger order's tour adds them, so both agree to the bit.
+            let wait = prep.max(transfer);
+            pos = trig.setpoints.clone();
+            if let Some(p) = pending.take() {
+                if retaken(p) && !queue.contains(&p) {
+                    held.push(p);
+                    queue.insert(1.min(queue.len()), p);
                 }
             }
-            pos = trig.setpoints.clone();
+            queue.pop_front();
+            if let Some(at) = held.iter().position(|&h| h == i) {
+                held.swap_remove(at);
+                let transfer = self.transfer_s(&cams);
+                let further: f64 = auto.map_or(0.0, |a| {
+                    (1..=retakes(i).min(a.max_extra))
+                        .map(|k| {
+                            let expose = cams
+                                .iter()
+                                .map(|c| {
+                                    a.extra_exposure_s(self.exposure_s(c), k) + self.readout_s(c)
+                                })
+                                .fold(0.0, f64::max);
+                            expose + transfer
+                        })
+                        .sum()
+                });
+                total += wait + further;
+                continue;
+            }
+            match (&self.brackets_s, trig.sweep) {
+                (Some(series), None) => total += wait + self.bracket_series_s(series, &cams),
+                _ => {
+                    total += wait + self.expose_s(&cams);
+                    pending = Some(i);
+                }
+            }
         }
-        total + pending_transfer
+        total
     }
 }

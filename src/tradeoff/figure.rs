@@ -52,9 +52,19 @@ struct PanelSpec {
     x_of: fn(&Row) -> Option<f64>,
     /// The row's error in the axis' unit (relative errors as percent).
     y_scale: f64,
+    /// The error the panel plots, and its standard error, before scaling.
+    y_of: fn(&Row) -> Option<ErrorWithSpread>,
 }
 
-const PANELS: [PanelSpec; 5] = [
+/// An error and its standard error, as a panel plots them.
+type ErrorWithSpread = (f64, Option<f64>);
+
+/// A row's own error and spread: what most panels plot.
+fn own_error(r: &Row) -> Option<ErrorWithSpread> {
+    Some((r.error?, r.spread))
+}
+
+const PANELS: [PanelSpec; 6] = [
     PanelSpec {
         family: "plans",
         title: "How many directions? Error vs capture time",
@@ -62,6 +72,7 @@ const PANELS: [PanelSpec; 5] = [
         y_desc: "held-out error, %",
         x_of: |r| r.physical_s.map(|s| s / 3600.0),
         y_scale: 100.0,
+        y_of: own_error,
     },
     PanelSpec {
         family: "pca",
@@ -70,6 +81,7 @@ const PANELS: [PanelSpec; 5] = [
         y_desc: "held-out error, %",
         x_of: |r| r.bytes.map(|b| b as f64 / 1e6),
         y_scale: 100.0,
+        y_of: own_error,
     },
     PanelSpec {
         family: "laser",
@@ -78,6 +90,7 @@ const PANELS: [PanelSpec; 5] = [
         y_desc: "depth error on common pixels, mm",
         x_of: |r| r.physical_s.map(|s| s / 60.0),
         y_scale: 1.0,
+        y_of: own_error,
     },
     PanelSpec {
         family: "photometric stereo",
@@ -86,6 +99,7 @@ const PANELS: [PanelSpec; 5] = [
         y_desc: "mean normal error, °",
         x_of: |r| r.physical_s.map(|s| s / 60.0),
         y_scale: 1.0,
+        y_of: own_error,
     },
     PanelSpec {
         family: "fidelity",
@@ -94,6 +108,16 @@ const PANELS: [PanelSpec; 5] = [
         y_desc: "frame change without it, %",
         x_of: |r| r.compute_s,
         y_scale: 100.0,
+        y_of: own_error,
+    },
+    PanelSpec {
+        family: super::exposure::FAMILY,
+        title: "Which exposures? Error near the mirror vs capture time",
+        x_desc: "physical capture time, h",
+        y_desc: "held-out error within 10° of the mirror, %",
+        x_of: |r| r.physical_s.map(|s| s / 3600.0),
+        y_scale: 100.0,
+        y_of: |r| r.near_mirror.map(|m| (m.error, m.spread)),
     },
 ];
 
@@ -165,12 +189,13 @@ pub struct FigurePoint {
 
 /// The frontier and dominated colours.
 const GREY: RGBColor = RGBColor(170, 170, 170);
-const COLOURS: [RGBColor; 5] = [
+const COLOURS: [RGBColor; 6] = [
     RGBColor(31, 119, 180),
     RGBColor(214, 39, 40),
     RGBColor(44, 160, 44),
     RGBColor(148, 103, 189),
     RGBColor(140, 86, 75),
+    RGBColor(255, 127, 14),
 ];
 
 /// Whether `row` is the plan `marked` names (`grid12x8` names
@@ -350,12 +375,13 @@ fn plotted(report: &Report, spec: &PanelSpec, marked: Option<&str>) -> Vec<Plott
         .filter(|(_, r)| r.family == spec.family)
         .filter_map(|(k, r)| {
             let cost = (spec.x_of)(r)?;
-            let error = r.error? * spec.y_scale;
+            let (error, spread) = (spec.y_of)(r)?;
+            let error = error * spec.y_scale;
             (cost.is_finite() && cost > 0.0 && error.is_finite()).then(|| Plotted {
                 row: k,
                 cost,
                 error,
-                spread: r.spread.map(|s| s * spec.y_scale).filter(|s| s.is_finite()),
+                spread: spread.map(|s| s * spec.y_scale).filter(|s| s.is_finite()),
                 frontier: false,
                 marked: is_marked(r, marked),
                 check: r.setting.ends_with(CAMERA_CHAIN_SUFFIX),

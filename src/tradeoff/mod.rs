@@ -68,6 +68,7 @@ impl Default for TradeoffConfig {
 }
 
 pub mod choice;
+pub mod exposure;
 pub mod figure;
 
 /// One row of the table.
@@ -108,6 +109,14 @@ pub struct Row {
     /// the dashboard puts into the start form when the point is clicked.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub directions: Option<Vec<Direction>>,
+    /// The held-out error within 10° of the mirror direction, with its
+    /// standard error (exposure family).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub near_mirror: Option<exposure::NearMirror>,
+    /// The share of the captured texels still clipped, 0 … 1 (exposure
+    /// family).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clipped_share: Option<f64>,
     /// The plan's name where the daemon knows it by name (`h1`, `h2`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub plan: Option<String>,
@@ -416,6 +425,8 @@ pub fn run(
 
     // Plans.
     let mut h2_grid = None;
+    // The named plans' schedules, for the exposure family.
+    let mut named: Vec<(&'static str, Schedule)> = Vec::new();
     for case in plan_cases(profile, &solver)? {
         progress(&format!("plan {}", case.name));
         let s = schedule::build(profile, &solver, &case.plan);
@@ -443,6 +454,9 @@ pub fn run(
             plan: case.spec.map(str::to_string),
             ..Row::default()
         });
+        if let Some(spec) = case.spec {
+            named.push((spec, s.clone()));
+        }
         if case.name == "h2" {
             // The PCA family reuses H2's textures.
             h2_grid = Some((g, textures, physical_s, s.images.len()));
@@ -485,6 +499,11 @@ pub fn run(
         }
     }
 
+    let built: Vec<(&str, &Schedule)> = named.iter().map(|(n, s)| (*n, s)).collect();
+    rows.extend(exposure::family(
+        profile, &scene, &solver, cfg, &truths, &built, progress,
+    )?);
+
     // Simulator fidelity.
     progress("fidelity");
     rows.extend(fidelity(&scene, cfg.render_size));
@@ -506,6 +525,7 @@ pub fn run(
             format!("plans, camera chain: the 3-ring plan captured by the simulated camera ({}×{} frames, every effect of the scene), registered by its markers (rectify to {}² float textures) and compressed; the gap to the texture-space row of the same plan is what that shortcut changes; time: the simulated run's physical duration", CHAIN_FRAME[0], CHAIN_FRAME[1], cfg.texture),
             "error: RMS over held-out (light, view) pairs relative to the truth's RMS".into(),
             "spread: one standard error of `error`: the jackknife over the held-out pairs (plans, pca), the standard error over 16 × 16-pixel tiles (laser, photometric stereo); fidelity has one frame and no spread".into(),
+            format!("exposure: the policies an operator chooses among, on the profile's default plan (H1 where that is not every light with every view), in texture space: each sample of the true texture held at the sensor's full scale (white at {} of it at the profile's exposure), a series merged to the true value clipped at its shortest exposure's full scale (noise, vignetting and the lamp's fall-off left out); auto takes a step again, {}× shorter, while more than its threshold of the samples clip, and its time follows the engine's order (expose the next step, come back); near_mirror: the held-out error over {} pairs whose view lies within {}° of the light's mirror direction; clipped_share: the captured texels with a sample still at full scale", rigd_sim::scene::WHITE_LEVEL, crate::model::exposure::DEFAULT_AUTO_FACTOR, cfg.held_out, exposure::NEAR_MIRROR_DEG),
             "fidelity: error is the frame's RMS change with the effect off, relative to the frame's RMS".into(),
             "laser: one 26-source scan on the MSRA rig (cam3 at 40°, 160×120 frames, 1.5 mm steps) processed with subsets of its sources; time: motion-model estimate of a plan with that many sources; error: mean depth error in mm over the sample pixels every subset measures, so the subsets are compared on the same pixels (none when they share fewer than 50 pixels or 1 % of the sample); coverage: the share of the sample's pixels the subset itself measures, with its error over them in detail".into(),
             "photometric stereo: simulated VirTex captures (128×96 frames); time: the simulated run's physical duration; error: mean normal error in degrees over the sample pixels every layout solves; coverage: the share the layout itself solves".into(),
@@ -929,11 +949,11 @@ fn write_outputs(out: &Path, report: &Report, marked: Option<&str>) -> Result<()
     rigd_core::atomic::write(&out.join("tradeoff.json"), &json).map_err(StoreError::from)?;
     let opt = |v: Option<f64>| v.map(|x| format!("{x}")).unwrap_or_default();
     let mut csv = String::from(
-        "family,setting,images,physical_s,bytes,error,spread,unit,coverage,compute_s,detail\n",
+        "family,setting,images,physical_s,bytes,error,spread,unit,coverage,compute_s,near_mirror_error,near_mirror_spread,clipped_share,detail\n",
     );
     for r in &report.rows {
         csv.push_str(&format!(
-            "{},\"{}\",{},{},{},{},{},{},{},{},\"{}\"\n",
+            "{},\"{}\",{},{},{},{},{},{},{},{},{},{},{},\"{}\"\n",
             r.family,
             r.setting.replace('"', "'"),
             r.images.map(|x| x.to_string()).unwrap_or_default(),
@@ -944,6 +964,9 @@ fn write_outputs(out: &Path, report: &Report, marked: Option<&str>) -> Result<()
             r.unit,
             opt(r.coverage),
             opt(r.compute_s),
+            opt(r.near_mirror.map(|m| m.error)),
+            opt(r.near_mirror.and_then(|m| m.spread)),
+            opt(r.clipped_share),
             r.detail.clone().unwrap_or_default().replace('"', "'")
         ));
     }
@@ -963,20 +986,27 @@ pub fn svg(report: &Report, marked: Option<&str>) -> String {
 /// The knee of each family's curve, in a sentence ([`choice::knee`]):
 /// plans against physical time, PCA components against bytes,
 /// photometric stereo and the laser scan against physical time (the laser
-/// errors are over the pixels every subset measures, so they compare).
+/// errors are over the pixels every subset measures, so they compare), and
+/// the exposure policies' error near the mirror direction against physical
+/// time.
 pub fn summary(rows: &[Row]) -> Vec<String> {
-    let curve = |family: &str, cost: &dyn Fn(&Row) -> Option<f64>| -> Vec<choice::CurvePoint> {
+    let curve_of = |family: &str,
+                    cost: &dyn Fn(&Row) -> Option<f64>,
+                    error: &dyn Fn(&Row) -> Option<f64>|
+     -> Vec<choice::CurvePoint> {
         rows.iter()
             .filter(|r| r.family == family && !r.setting.ends_with(CAMERA_CHAIN_SUFFIX))
             .filter_map(|r| {
                 Some(choice::CurvePoint {
                     label: r.setting.clone(),
                     cost: cost(r)?,
-                    error: r.error?,
+                    error: error(r)?,
                 })
             })
             .collect()
     };
+    let curve =
+        |family: &str, cost: &dyn Fn(&Row) -> Option<f64>| curve_of(family, cost, &|r| r.error);
     let hours = |s: f64| {
         if s >= 3600.0 {
             format!("{:.1} h", s / 3600.0)
@@ -1009,6 +1039,17 @@ pub fn summary(rows: &[Row]) -> Vec<String> {
                 &hours,
                 &degrees,
                 &degrees,
+            ),
+        ),
+        (
+            "Which exposures? Near the mirror direction,",
+            choice::knee(
+                &curve_of(exposure::FAMILY, &physical, &|r| {
+                    r.near_mirror.map(|m| m.error)
+                }),
+                &hours,
+                &percent,
+                &points,
             ),
         ),
         (

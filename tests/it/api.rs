@@ -1371,9 +1371,16 @@ async fn the_daemon_computes_and_serves_the_tradeoff_report() {
         .collect();
     assert_eq!(
         families,
-        ["fidelity", "laser", "pca", "photometric stereo", "plans"]
-            .into_iter()
-            .collect()
+        [
+            "exposure",
+            "fidelity",
+            "laser",
+            "pca",
+            "photometric stereo",
+            "plans"
+        ]
+        .into_iter()
+        .collect()
     );
     let points = f["points"].as_array().expect("points");
     assert!(points.len() > 20, "{}", points.len());

@@ -229,6 +229,35 @@ fn auto_exposure_measures_the_highlight_where_a_single_exposure_clips() {
         );
     }
 
+    // The time model replays the engine's order (expose the next step, come
+    // back, take the further exposures): with the retakes the journal
+    // lists, it gives the run's physical time; without, a lower bound.
+    let meta = rigd::store::read_meta(&auto).expect("meta");
+    let solver = rigd::kinematics::Solver::new(&meta.profile).expect("solver");
+    let schedule = rigd::schedule::build(&meta.profile, &solver, &meta.plan);
+    let retakes: std::collections::HashMap<usize, u32> = lines
+        .iter()
+        .map(|l| {
+            let trigger = l["trigger"].as_u64().expect("trigger") as usize;
+            (trigger, l["brackets"].as_array().map_or(0, Vec::len) as u32)
+        })
+        .collect();
+    let timing = rigd::schedule::timing::Timing::new(&meta.profile, meta.exposure_s)
+        .with_exposure_policy(&meta.exposure_policy);
+    let replayed = timing.estimate_with_retakes_s(&schedule, |_| false, |t| retakes[&t]);
+    // The manifest's duration ends with the last frame, as the model does
+    // (state.json's also counts switching the rig off).
+    let ran = json(&auto.join("manifest.json"))["physical_duration_s"]
+        .as_f64()
+        .expect("physical_duration_s");
+    let bound = timing.estimate_s(&schedule, |_| false);
+    assert!(
+        // Each of the 6 further exposures takes at least its exposure,
+        // readout and transfer.
+        (ran - replayed).abs() <= 1e-3 * ran && ran - bound >= 6.0 * (0.0625 + 1.0 + 4.0),
+        "auto ran {ran} s; replayed {replayed} s; lower bound {bound} s"
+    );
+
     // Merged, no texel reads a clipped pixel, and the textures are floats
     // that say which exposures they came from.
     let single_index = json(&single.join("processed/normtextures/index.json"));

@@ -102,6 +102,35 @@ fn a_virtex_capture_through_libgphoto2_stores_the_camera_s_files() {
         assert!(a == b, "frame {} differs", f.index);
         assert!(a.starts_with(b"II*\0"), "not a DNG");
     }
+
+    // The exposure set through libgphoto2's `shutterspeed` is the one the
+    // camera exposes: half the time, half the signal above black in every
+    // frame (the lamps and the sample are the same).
+    let half_dir = tmp.path().join("half");
+    std::fs::create_dir_all(&half_dir).expect("mkdir");
+    let (_half_server, _, half_profile) = virtex_through_libgphoto2(&half_dir, 0.05);
+    let half = tmp.path().join("gphoto2-half");
+    let o = capture(&half_profile, &half);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let h = assert_complete_run(&half, 3);
+    let signal = |run: &Path, file: &str| {
+        let bytes = std::fs::read(run.join(file)).expect("frame");
+        let image = rigd::rig::camera_file::decode_here(&bytes).expect("the camera DNG decodes");
+        let sum: f64 = image
+            .samples
+            .iter()
+            .map(|&v| (f64::from(v) - f64::from(image.black)).max(0.0))
+            .sum();
+        sum / image.samples.len().max(1) as f64
+    };
+    for (full, short) in m.frames.iter().zip(&h.frames) {
+        let ratio = signal(&half, &short.file) / signal(&through_gphoto2, &full.file);
+        assert!(
+            (0.45..0.55).contains(&ratio),
+            "frame {}: 0.05 s over 0.1 s reads {ratio}",
+            full.index
+        );
+    }
 }
 
 /// An exposure the camera lists no `shutterspeed` for is refused at

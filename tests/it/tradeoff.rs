@@ -149,6 +149,31 @@ fn the_tradeoff_table_is_written_and_ordered() {
             .len(),
         19
     );
+    // Exposure policies on the default plan: each with its time, data,
+    // clipped share and error near the mirror, with its standard error.
+    let exposure: Vec<&serde_json::Value> =
+        rows.iter().filter(|r| r["family"] == "exposure").collect();
+    assert_eq!(exposure.len(), 4, "{exposure:?}");
+    assert_eq!(exposure[0]["setting"], "single");
+    assert_eq!(exposure[0]["physical_s"], find("plans", "h1")["physical_s"]);
+    for r in &exposure {
+        let share = r["clipped_share"].as_f64().expect("clipped_share");
+        assert!((0.0..=1.0).contains(&share), "{r}");
+        let near = r["near_mirror"]["error"]
+            .as_f64()
+            .expect("near-mirror error");
+        assert!(near.is_finite() && near > 0.0, "{r}");
+        assert!(r["near_mirror"]["spread"].as_f64().is_some(), "{r}");
+        assert!(r["physical_s"].as_f64() >= exposure[0]["physical_s"].as_f64());
+    }
+    assert!(svg.contains("Which exposures?"));
+    let csv = std::fs::read_to_string(dir.path().join("tradeoff.csv")).unwrap();
+    assert!(csv
+        .lines()
+        .next()
+        .unwrap()
+        .contains("near_mirror_error,near_mirror_spread,clipped_share"));
+
     // Photometric stereo: twelve lights, robust, beat three.
     let three = find("photometric stereo", "3 lights");
     let twelve = find("photometric stereo", "12 lights, robust");
@@ -171,6 +196,7 @@ fn the_tradeoff_table_is_written_and_ordered() {
         "How many components? ",
         "How many lights? ",
         "How many laser sources? ",
+        "Which exposures? ",
     ] {
         let line = summary
             .iter()

@@ -537,6 +537,10 @@ function showTradeoffTip(plot, svg, pt, row, panel) {
   const lines = [
     `${panel.family}: ${row.setting}`,
     `error ${fmtRowError(row)}`,
+    row.near_mirror != null
+      ? `within 10° of the mirror ${fmtRowError({ ...row, error: row.near_mirror.error, spread: row.near_mirror.spread })}`
+      : null,
+    row.clipped_share != null ? `${(100 * row.clipped_share).toFixed(2)} % of texels clipped` : null,
     row.physical_s != null ? `physical time ${fmtDuration(row.physical_s)}` : null,
     row.images != null ? `${row.images} images` : null,
     row.bytes != null ? `${fmtBytes(row.bytes)}${panel.family === "pca" ? " compressed" : " raw"}` : null,
