@@ -15,11 +15,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use axum::body::Bytes;
-use axum::http::{header, Method, Request, StatusCode};
-use http_body_util::{BodyExt, Full, Limited};
-use hyper_util::client::legacy::connect::HttpConnector;
-use hyper_util::client::legacy::Client;
-use hyper_util::rt::TokioExecutor;
+use axum::http::{header, Method, StatusCode};
 use serde::{Deserialize, Serialize};
 use tokio::sync::{watch, Notify};
 use utoipa::ToSchema;
@@ -170,7 +166,7 @@ struct Slot {
     wake: Notify,
 }
 
-type HttpClient = Client<HttpConnector, Full<Bytes>>;
+type HttpClient = reqwest::Client;
 
 /// The peers of this daemon and what each last answered.
 pub struct Peers {
@@ -244,13 +240,15 @@ pub enum ForwardError {
 impl Peers {
     /// The peers, not yet watched ([`start`] begins the polling).
     pub fn new(peers: &[Peer]) -> Peers {
-        let mut http = HttpConnector::new();
-        http.set_connect_timeout(Some(REQUEST_TIMEOUT));
-        http.set_nodelay(true);
-        let client = Client::builder(TokioExecutor::new())
+        // Without a TLS back end the builder has nothing that can fail; the
+        // plain client is the same but for the timeouts and the pool.
+        let client = reqwest::Client::builder()
+            .connect_timeout(REQUEST_TIMEOUT)
+            .tcp_nodelay(true)
             .pool_idle_timeout(Duration::from_secs(30))
             .pool_max_idle_per_host(2)
-            .build(http);
+            .build()
+            .unwrap_or_default();
         Peers {
             slots: peers
                 .iter()
@@ -518,33 +516,38 @@ async fn call(
     method: Method,
     path: &str,
 ) -> Result<(StatusCode, Bytes), CallError> {
-    let request = Request::builder()
-        .method(method)
-        .uri(format!("{}{path}", peer.url))
+    let request = client
+        .request(method, format!("{}{path}", peer.url))
         .header(header::AUTHORIZATION, format!("Bearer {}", peer.token()))
         .header(header::ACCEPT, "application/json")
         .header(
             header::USER_AGENT,
             concat!("rigd/", env!("CARGO_PKG_VERSION")),
-        )
-        .body(Full::new(Bytes::new()))
-        .map_err(|e| CallError::Unreachable(format!("cannot make the request: {e}")))?;
+        );
     let exchange = async {
-        let response = client.request(request).await.map_err(|e| {
+        let mut response = request.send().await.map_err(|e| {
             let root = root_cause(&e);
-            CallError::Unreachable(if e.is_connect() {
+            CallError::Unreachable(if e.is_builder() {
+                format!("cannot make the request: {root}")
+            } else if e.is_connect() {
                 format!("cannot connect: {root}")
             } else {
                 format!("the connection failed: {root}")
             })
         })?;
         let status = response.status();
-        let body = Limited::new(response.into_body(), MAX_ANSWER)
-            .collect()
-            .await
-            .map_err(|e| CallError::Unreachable(format!("the answer broke off: {e}")))?
-            .to_bytes();
-        Ok((status, body))
+        let mut body = Vec::new();
+        while let Some(chunk) = response.chunk().await.map_err(|e| {
+            CallError::Unreachable(format!("the answer broke off: {}", root_cause(&e)))
+        })? {
+            if body.len() + chunk.len() > MAX_ANSWER {
+                return Err(CallError::Unreachable(format!(
+                    "the answer broke off: longer than {MAX_ANSWER} bytes"
+                )));
+            }
+            body.extend_from_slice(&chunk);
+        }
+        Ok((status, Bytes::from(body)))
     };
     tokio::time::timeout(REQUEST_TIMEOUT, exchange)
         .await
@@ -626,6 +629,68 @@ mod tests {
         assert_eq!(
             peers.forward("nope", PeerCommand::Abort).await,
             Err(ForwardError::UnknownPeer("nope".into()))
+        );
+    }
+
+    /// A peer on a loopback port whose every connection gets `answer`
+    /// (after the request is read), written slowly enough to be endless.
+    async fn hostile_peer(answer: &'static [u8], endless: bool) -> Peer {
+        use tokio::io::{AsyncReadExt, AsyncWriteExt};
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+            .await
+            .expect("bind");
+        let port = listener.local_addr().expect("addr").port();
+        tokio::spawn(async move {
+            while let Ok((mut conn, _)) = listener.accept().await {
+                tokio::spawn(async move {
+                    let mut buf = [0u8; 4096];
+                    let _ = conn.read(&mut buf).await;
+                    if conn.write_all(answer).await.is_err() {
+                        return;
+                    }
+                    let chunk = [b'x'; 64 * 1024];
+                    while endless && conn.write_all(&chunk).await.is_ok() {}
+                    // A silent peer holds the connection open.
+                    tokio::time::sleep(Duration::from_secs(30)).await;
+                });
+            }
+        });
+        Peer::new(
+            "hostile",
+            &format!("http://127.0.0.1:{port}"),
+            "0123456789abcdef",
+        )
+        .expect("peer")
+    }
+
+    #[tokio::test]
+    async fn an_endless_answer_is_cut_at_its_bound_and_a_silent_peer_at_the_deadline() {
+        let peer = hostile_peer(
+            b"HTTP/1.1 200 OK\r\ncontent-type: application/json\r\n\r\n",
+            true,
+        )
+        .await;
+        let peers = Peers::new(std::slice::from_ref(&peer));
+        let err = call(&peers.client, &peer, Method::GET, "/api/v1/rig")
+            .await
+            .expect_err("an answer without end");
+        assert_eq!(
+            err,
+            CallError::Unreachable(format!(
+                "the answer broke off: longer than {MAX_ANSWER} bytes"
+            ))
+        );
+
+        let silent = hostile_peer(b"", false).await;
+        let started = Instant::now();
+        let err = call(&peers.client, &silent, Method::GET, "/api/v1/rig")
+            .await
+            .expect_err("no answer");
+        assert_eq!(err, CallError::Timeout);
+        let took = started.elapsed();
+        assert!(
+            took >= REQUEST_TIMEOUT && took < REQUEST_TIMEOUT + Duration::from_secs(2),
+            "{took:?}"
         );
     }
 }
