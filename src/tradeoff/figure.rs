@@ -143,7 +143,8 @@ pub struct Figure {
 /// One panel of the figure.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct Panel {
-    /// The family (`plans`, `pca`, `laser`, `photometric stereo`, `fidelity`).
+    /// The family (`plans`, `pca`, `laser`, `photometric stereo`, `fidelity`,
+    /// `exposure`).
     pub family: String,
     /// Its title: the question it answers.
     pub title: String,

@@ -24,6 +24,9 @@
 //!   scene, and the scan time of a plan with that many sources.
 //! - **photometric stereo**: simulated VirTex captures with 3, 6 and 12
 //!   lamps: mean normal error against the scene, and the capture time.
+//! - **exposure**: `single`, `auto` and 2- and 3-exposure brackets on the
+//!   default plan ([`exposure`]): time, data, clipped texels, and the
+//!   held-out error overall and within 10° of the mirror direction.
 
 use std::path::Path;
 use std::time::Instant;
@@ -74,8 +77,8 @@ pub mod figure;
 /// One row of the table.
 #[derive(Debug, Clone, Default, Serialize, Deserialize)]
 pub struct Row {
-    /// The family the row belongs to: `plans`, `pca`, `fidelity`, `laser`
-    /// or `photometric stereo`.
+    /// The family the row belongs to: `plans`, `pca`, `exposure`,
+    /// `fidelity`, `laser` or `photometric stereo`.
     pub family: String,
     /// What varies within the family (a plan's name, `C = 8`, an effect
     /// left out, a source count).
@@ -86,18 +89,19 @@ pub struct Row {
     pub physical_s: Option<f64>,
     /// Raw sensor bytes of the capture, or the compressed BTF's bytes.
     pub bytes: Option<u64>,
-    /// RMS error relative to the truth's RMS (plans, pca), or the RMS
-    /// change of the frame relative to its RMS (fidelity).
+    /// RMS error relative to the truth's RMS (plans, pca, exposure), or
+    /// the RMS change of the frame relative to its RMS (fidelity).
     pub error: Option<f64>,
     /// Wall time of the computation (compression, render), seconds.
     pub compute_s: Option<f64>,
-    /// What `error` is: `relative` (plans, pca, fidelity), `mm` (laser:
-    /// mean depth error), `degrees` (photometric stereo: mean normal error).
+    /// What `error` is: `relative` (plans, pca, exposure, fidelity), `mm`
+    /// (laser: mean depth error), `degrees` (photometric stereo: mean
+    /// normal error).
     pub unit: String,
     /// One standard error of `error`, in its unit: the jackknife over the
-    /// held-out pairs (plans, pca), or over 16 × 16-pixel tiles (laser,
-    /// photometric stereo). None where there is nothing to resample
-    /// (fidelity: one frame).
+    /// held-out pairs (plans, pca, exposure), or over 16 × 16-pixel tiles
+    /// (laser, photometric stereo). None where there is nothing to
+    /// resample (fidelity: one frame).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub spread: Option<f64>,
     /// The share of the sample the setting itself measures, 0 … 1, where
