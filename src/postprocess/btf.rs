@@ -27,7 +27,8 @@ pub struct BtfReport {
     pub per_slot: Vec<SlotSummary>,
     /// Wall-clock time the compression took, seconds.
     pub compress_s: f64,
-    /// Size of `processed/btf/` on disk, bytes.
+    /// Size of the BTF's files in `processed/btf/` (`btf.json` and the
+    /// slots; not this report), bytes.
     pub bytes: u64,
     /// View slots taken as compressed ahead, during the capture or as the
     /// tasks of a cluster's job array ([`compress_slot_ahead`]), rather
@@ -151,10 +152,16 @@ pub fn btf_run(
             vals.iter().sum::<f64>() / vals.len().max(1) as f64
         })
         .collect();
+    // The BTF's own files: not this report (an earlier one may be there)
+    // and not the folder entries.
     let bytes = std::fs::read_dir(&dir)
         .map(|entries| {
             entries
-                .filter_map(|e| e.ok()?.metadata().ok())
+                .filter_map(|e| {
+                    let e = e.ok()?;
+                    (e.file_name() != "report.json").then_some(e.metadata().ok()?)
+                })
+                .filter(|m| m.is_file())
                 .map(|m| m.len())
                 .sum()
         })

@@ -152,6 +152,18 @@ fn texels_that_read_a_clipped_pixel_are_counted_masked_and_reported() {
         &std::fs::read(run.join("processed/btf/report.json")).expect("btf report"),
     )
     .expect("json");
+    // The report's size is the BTF's files, not the report an earlier
+    // compression left beside them: compressing again says the same.
+    run_ok(&["process", "btf", "--components", "3", &arg(&run)]);
+    let again = json(&run.join("processed/btf/report.json"));
+    let files: u64 = std::fs::read_dir(run.join("processed/btf"))
+        .expect("btf folder")
+        .map(|e| e.expect("entry"))
+        .filter(|e| e.file_name() != "report.json")
+        .map(|e| e.metadata().expect("metadata").len())
+        .sum();
+    assert_eq!(again["bytes"].as_u64(), Some(files), "{again}");
+    assert_eq!(report["bytes"], again["bytes"]);
     let (filled, left) = (
         report["clipped"]["filled"].as_u64().expect("filled"),
         report["clipped"]["left"].as_u64().expect("left"),
