@@ -202,6 +202,40 @@ fn a_virtex_capture_takes_its_frames_from_aravis_fake_camera() {
     sorted.sort_unstable();
     sorted.dedup();
     assert_eq!(sorted.len(), 3, "three distinct camera frames: {ids:?}");
+
+    // The exposure the driver sets is the one the camera takes. Aravis's
+    // fake camera draws its ramp `(x + y + frame id) mod 255` times
+    // `1 + gain + log10(exposure / 10 ms)`: one level a column at 10 ms,
+    // 0.70 at 5 ms (neither clips at 255).
+    for (exposure_s, slope) in [(0.01, 1.0), (0.005, 1.0 + 0.5f64.log10())] {
+        let at = tmp.path().join(format!("virtex-{exposure_s}.toml"));
+        edit(&profile, &at, |t| {
+            let timing = device(t, "camera")
+                .get_mut("timing")
+                .and_then(|v| v.as_table_mut())
+                .expect("[devices.camera.timing]");
+            timing.insert("exposure_s".into(), exposure_s.into());
+        });
+        let run = tmp.path().join(format!("run-{exposure_s}"));
+        let o = capture(&at, &run);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        for f in &assert_complete_run(&run, 3).frames {
+            let png = std::fs::read(run.join(&f.file)).expect("frame file");
+            let (w, _, px) = rigd::rig::hal::decode_png(&png).expect("PNG");
+            // Steps along a row, leaving out where the ramp wraps.
+            let steps: Vec<f64> = px
+                .chunks(w as usize)
+                .flat_map(|row| row.windows(2))
+                .map(|p| f64::from(p[1]) - f64::from(p[0]))
+                .filter(|d| (0.0..=2.0).contains(d))
+                .collect();
+            let measured = steps.iter().sum::<f64>() / steps.len().max(1) as f64;
+            assert!(
+                (measured - slope).abs() < 0.05,
+                "{exposure_s} s: the ramp rises {measured} a column, expected {slope}"
+            );
+        }
+    }
 }
 
 /// A Bayer camera's frames are stored as their raw mosaic, labelled with
