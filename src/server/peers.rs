@@ -633,7 +633,8 @@ mod tests {
     }
 
     /// A peer on a loopback port whose every connection gets `answer`
-    /// (after the request is read), written slowly enough to be endless.
+    /// once the request is read, then, if `endless`, bytes without end, and
+    /// is held open.
     async fn hostile_peer(answer: &'static [u8], endless: bool) -> Peer {
         use tokio::io::{AsyncReadExt, AsyncWriteExt};
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
