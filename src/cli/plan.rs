@@ -41,9 +41,16 @@ pub enum PlanCmd {
         /// Exposures per step, as `rigd run --exposure-policy` takes them
         /// (default: the profile's `[exposure_policy]`): `brackets:…`
         /// multiplies the time and data of every step; `auto` is estimated
-        /// as if nothing clipped.
+        /// as if nothing clipped, or with `--scene` from what that scene is
+        /// expected to clip.
         #[arg(long, value_name = "POLICY")]
         exposure_policy: Option<ExposurePolicy>,
+        /// With `auto`: the simulated scene (`rigd sim scenes`) whose
+        /// expected clipping the estimate counts, by the trade-off report's
+        /// texture-space model (8² texels; docs/tradeoff.md, exposure).
+        #[cfg(feature = "sim")]
+        #[arg(long, value_name = "NAME")]
+        scene: Option<String>,
     },
 }
 
@@ -57,7 +64,21 @@ pub fn run(cmd: PlanCmd) -> Result<ExitCode> {
             exposure,
             order,
             exposure_policy,
-        } => show(&plan, &profile, json, exposure, order, exposure_policy)?,
+            #[cfg(feature = "sim")]
+            scene,
+        } => {
+            #[cfg(not(feature = "sim"))]
+            let scene = None;
+            show(
+                &plan,
+                &profile,
+                json,
+                exposure,
+                order,
+                exposure_policy,
+                scene,
+            )?
+        }
     }
     Ok(ExitCode::SUCCESS)
 }
@@ -69,6 +90,7 @@ fn show(
     exposure: Option<f64>,
     order: Order,
     policy: Option<ExposurePolicy>,
+    scene: Option<String>,
 ) -> Result<()> {
     let profile = rigd::plan::load_profile(profile)?;
     if let Some(e) = exposure {
@@ -87,9 +109,27 @@ fn show(
         resolved.order = order;
     }
     let (schedule, report) = rigd::schedule::build_with_report(&profile, &solver, &resolved);
-    let estimate = Timing::new(&profile, exposure)
-        .with_exposure_policy(&policy)
-        .estimate_s(&schedule, |_| false);
+    let timing = Timing::new(&profile, exposure).with_exposure_policy(&policy);
+    let retakes = match (policy.auto(), scene) {
+        (Some(auto), Some(scene)) => Some(expected_retakes(
+            &profile, &schedule, auto, exposure, &scene,
+        )?),
+        (None, Some(_)) => {
+            return Err(super::exit::bad_input(
+                "--scene: only an `auto` exposure policy depends on the scene",
+            ))
+        }
+        _ => None,
+    };
+    let estimate = match &retakes {
+        Some(r) => {
+            timing.estimate_with_retakes_s(&schedule, |_| false, |t| r.get(t).copied().unwrap_or(0))
+        }
+        None => timing.estimate_s(&schedule, |_| false),
+    };
+    let retaken = retakes
+        .as_ref()
+        .map(|r| r.iter().filter(|&&k| k > 0).count());
     let infeasible = schedule.infeasible().count();
     let volume = rigd::schedule::volume::data_volume(&profile, &schedule, &policy);
     if json {
@@ -101,6 +141,7 @@ fn show(
             "triggers_total": schedule.triggers.len(),
             "infeasible_total": infeasible,
             "estimated_physical_s": estimate,
+            "expected_retaken_triggers": retaken,
             "raw_bytes": volume.raw_bytes,
             "image_bytes": volume.largest_image_bytes,
             "order": resolved.order,
@@ -179,12 +220,53 @@ fn show(
         human_bytes(volume.largest_image_bytes)
     );
     if !policy.is_single() {
-        let assumed = if policy.auto().is_some() {
-            "; time and data as if no step clipped (each that does is taken again shorter, up to max_extra times)"
-        } else {
-            ""
+        let assumed = match (policy.auto(), retaken) {
+            (Some(_), Some(n)) => format!(
+                "; the scene is expected to clip at {n} of {} triggers, each taken again shorter (counted in the time; the data counts first exposures only)",
+                schedule.triggers.len()
+            ),
+            (Some(_), None) => "; time and data as if no step clipped (each that does is taken again shorter, up to max_extra times; --scene counts what a simulated scene clips)".into(),
+            (None, _) => String::new(),
         };
         println!("exposure policy: {policy}{assumed}");
     }
     Ok(())
+}
+
+/// The further exposures `auto` is expected to take at each trigger on the
+/// simulated `scene`, at the run's exposure.
+#[cfg(feature = "sim")]
+fn expected_retakes(
+    profile: &rigd::model::profile::Profile,
+    schedule: &rigd::schedule::Schedule,
+    auto: rigd::model::exposure::AutoExposure,
+    exposure: Option<f64>,
+    scene: &str,
+) -> Result<Vec<u32>> {
+    let loaded = rigd_sim::scene::Scene::load_on(scene, &profile.holder)
+        .map_err(|e| super::exit::bad_input(format!("--scene {scene}: {e}")))?;
+    let nominal = schedule.images.first().map_or(0.0, |img| {
+        Timing::new(profile, None).exposure_s(&img.camera)
+    });
+    let relative = match exposure {
+        Some(e) if nominal > 0.0 => e / nominal,
+        _ => 1.0,
+    };
+    Ok(rigd::tradeoff::exposure::expected_retakes(
+        &loaded, schedule, auto, relative, 8,
+    ))
+}
+
+/// Without the simulator there is no scene to clip.
+#[cfg(not(feature = "sim"))]
+fn expected_retakes(
+    _: &rigd::model::profile::Profile,
+    _: &rigd::schedule::Schedule,
+    _: rigd::model::exposure::AutoExposure,
+    _: Option<f64>,
+    scene: &str,
+) -> Result<Vec<u32>> {
+    Err(super::exit::bad_input(format!(
+        "--scene {scene}: this rigd was built without the simulator"
+    )))
 }

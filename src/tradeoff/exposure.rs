@@ -21,7 +21,7 @@ use rigd_sim::scene::Scene;
 
 use super::{compress, held_out_error, Measured, Row, TradeoffConfig};
 use crate::kinematics::Solver;
-use crate::model::exposure::ExposurePolicy;
+use crate::model::exposure::{AutoExposure, ExposurePolicy};
 use crate::model::profile::Profile;
 use crate::postprocess::ProcessError;
 use crate::schedule::timing::Timing;
@@ -179,11 +179,47 @@ pub(super) fn rows(
     Ok(out)
 }
 
+/// The further exposures `auto` is expected to take at each trigger of
+/// `s` on `scene`, by the family's texture-space model at `size`² texels:
+/// a step is taken again while more than the threshold of its samples
+/// clip. `relative_exposure` is the run's exposure over the profile's (1
+/// at the profile's): a longer exposure clips sooner.
+pub fn expected_retakes(
+    scene: &Scene,
+    s: &Schedule,
+    auto: AutoExposure,
+    relative_exposure: f64,
+    size: usize,
+) -> Vec<u32> {
+    let policy = ExposurePolicy::from(auto);
+    let scales = full_scales(std::slice::from_ref(&policy), 1.0);
+    let relative = if relative_exposure > 0.0 && relative_exposure.is_finite() {
+        relative_exposure
+    } else {
+        1.0
+    };
+    let recorded: Vec<f64> = scales.iter().map(|f| f / relative).collect();
+    let exposed: Vec<Vec<ExposedTexture>> = s
+        .images
+        .par_iter()
+        .map(|img| {
+            exposed_textures(
+                scene,
+                size,
+                img.achieved_light,
+                img.achieved_view,
+                &recorded,
+            )
+        })
+        .collect();
+    levels_of(&policy, s, &exposed, &scales, 1.0).1
+}
+
 /// A policy as `rigd run --exposure-policy` takes it, `auto` with its
 /// defaults as plain `auto`.
 fn setting_of(policy: &ExposurePolicy) -> String {
     match policy.auto() {
-        Some(a) if a == crate::model::exposure::AutoExposure::default() => "auto".into(),
+        Some(a) if a == AutoExposure::default() => "auto".into(),
         _ => policy.to_string(),
     }
 }

@@ -270,6 +270,49 @@ fn auto_exposure_measures_the_highlight_where_a_single_exposure_clips() {
         "auto ran {ran} s; replayed {replayed} s; lower bound {bound} s"
     );
 
+    // `plan show --scene` expects what the scene clips: every step of this
+    // plan on leather, none on the matte sample (then the lower bound).
+    let expected = |scene: &str| {
+        let out = run_ok(&[
+            "plan",
+            "show",
+            &arg(&dir.path().join("plan.json")),
+            "--profile",
+            &arg(&repo_file("rig-profiles/bonn-gonioreflectometer.toml")),
+            "--exposure-policy",
+            "auto",
+            "--scene",
+            scene,
+            "--json",
+        ]);
+        let shown: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
+        (
+            shown["estimated_physical_s"].as_f64().expect("estimate"),
+            shown["expected_retaken_triggers"].as_u64(),
+        )
+    };
+    let (leather_s, leather_n) = expected("leather");
+    assert_eq!(leather_n, Some(6));
+    assert!(
+        (leather_s - ran).abs() <= 1e-3 * ran,
+        "plan show expects {leather_s} s, the run took {ran} s"
+    );
+    let (matte_s, matte_n) = expected("flat-calibration");
+    assert_eq!(matte_n, Some(0));
+    assert!((matte_s - bound).abs() < 1e-6, "{matte_s} against {bound}");
+    // An unknown scene, or a scene for a policy it cannot change: bad input.
+    for (policy, scene) in [("auto", "no-such-scene"), ("single", "leather")] {
+        let o = crate::common::rigd()
+            .args(["plan", "show"])
+            .arg(dir.path().join("plan.json"))
+            .arg("--profile")
+            .arg(repo_file("rig-profiles/bonn-gonioreflectometer.toml"))
+            .args(["--exposure-policy", policy, "--scene", scene])
+            .output()
+            .expect("rigd plan show");
+        assert_eq!(o.status.code(), Some(2), "{policy} {scene}: {o:?}");
+    }
+
     // Merged, no texel reads a clipped pixel, and the textures are floats
     // that say which exposures they came from.
     let single_index = json(&single.join("processed/normtextures/index.json"));
