@@ -239,18 +239,19 @@ impl<'a> Timing<'a> {
         // A laser sweep's frames take one exposure each.
         let retaken =
             |t: usize| auto.is_some() && schedule.triggers[t].sweep.is_none() && retakes(t) > 0;
-        // The trigger whose frames are still being transferred, and the
-        // triggers waiting to be taken again at their pose.
-        let mut pending: Option<usize> = None;
+        // The trigger whose frames are still being transferred (with its
+        // transfer time), and the triggers waiting to be taken again at
+        // their pose.
+        let mut pending: Option<(usize, f64)> = None;
         let mut held: Vec<usize> = Vec::new();
         let mut sweep = None;
         loop {
             let next = queue.front().copied();
-            let transfer = pending.map_or(0.0, |p| self.transfer_s(&cameras(p)));
+            let transfer = pending.map_or(0.0, |(_, t)| t);
             let Some(i) = next else {
                 total += transfer;
                 match pending.take() {
-                    Some(p) if retaken(p) => {
+                    Some((p, _)) if retaken(p) => {
                         held.push(p);
                         queue.push_back(p);
                         continue;
@@ -280,7 +281,7 @@ impl<'a> Timing<'a> {
             // trigger order's tour adds them, so both agree to the bit.
             let wait = prep.max(transfer);
             pos = trig.setpoints.clone();
-            if let Some(p) = pending.take() {
+            if let Some((p, _)) = pending.take() {
                 if retaken(p) && !queue.contains(&p) {
                     held.push(p);
                     queue.insert(1.min(queue.len()), p);
@@ -310,7 +311,7 @@ impl<'a> Timing<'a> {
                 (Some(series), None) => total += wait + self.bracket_series_s(series, &cams),
                 _ => {
                     total += wait + self.expose_s(&cams);
-                    pending = Some(i);
+                    pending = Some((i, self.transfer_s(&cams)));
                 }
             }
         }

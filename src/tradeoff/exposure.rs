@@ -100,20 +100,7 @@ pub(super) fn rows(
         .par_iter()
         .map(|&(l, v)| (l, v, true_texture(scene, cfg.texture, l, v)))
         .collect();
-    // Each image as recorded at every full scale, in capture order.
-    let exposed: Vec<Vec<ExposedTexture>> = s
-        .images
-        .par_iter()
-        .map(|img| {
-            exposed_textures(
-                scene,
-                cfg.texture,
-                img.achieved_light,
-                img.achieved_view,
-                &scales,
-            )
-        })
-        .collect();
+    let exposed = exposed_images(scene, s, cfg.texture, &scales);
     let cell = |img: &crate::schedule::ImageStep| -> Option<(usize, usize)> {
         Some((
             g.views.iter().position(|d| *d == img.view)?,
@@ -199,8 +186,19 @@ pub fn expected_retakes(
         1.0
     };
     let recorded: Vec<f64> = scales.iter().map(|f| f / relative).collect();
-    let exposed: Vec<Vec<ExposedTexture>> = s
-        .images
+    let exposed = exposed_images(scene, s, size, &recorded);
+    levels_of(&policy, s, &exposed, &scales, 1.0).1
+}
+
+/// Each image of `s` as recorded at every one of `full_scales`
+/// ([`exposed_textures`]), in capture order.
+fn exposed_images(
+    scene: &Scene,
+    s: &Schedule,
+    size: usize,
+    full_scales: &[f64],
+) -> Vec<Vec<ExposedTexture>> {
+    s.images
         .par_iter()
         .map(|img| {
             exposed_textures(
@@ -208,11 +206,10 @@ pub fn expected_retakes(
                 size,
                 img.achieved_light,
                 img.achieved_view,
-                &recorded,
+                full_scales,
             )
         })
-        .collect();
-    levels_of(&policy, s, &exposed, &scales, 1.0).1
+        .collect()
 }
 
 /// A policy as `rigd run --exposure-policy` takes it, `auto` with its
