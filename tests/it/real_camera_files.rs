@@ -1,11 +1,13 @@
-//! Real cameras' files. The repository carries real cameras' files cut
-//! short (`tests/data/camera-files`, whose README names each file's camera,
-//! source and licence): LibRaw refuses each, and `rigd frame decode` must
-//! refuse each with exit 2, naming the format and what is wrong. A lab's
-//! whole files, in the folder `RIGD_RAW_SAMPLES` names, are decoded as
-//! `rigd frame decode` decodes them, in the decoder child, and their values
-//! compared with LibRaw's (`unprocessed_raw`, Debian's `libraw-bin`) over
-//! the active area; a file LibRaw cannot open must be refused by rigd too.
+//! Real cameras' files (`tests/data/camera-files`, whose README names each
+//! file's camera, source and licence).
+//! - Whole files, in `whole/`: each is decoded as `rigd frame decode`
+//!   decodes it, in the decoder child, and every value of its active area
+//!   must equal LibRaw's (`unprocessed_raw`, Debian's `libraw-bin`).
+//! - Files cut short: LibRaw refuses each, and `rigd frame decode` must
+//!   refuse each with exit 2, naming the format and what is wrong.
+//! - A lab's own files, in the folder `RIGD_RAW_SAMPLES` names, are compared
+//!   the same way; there a file LibRaw cannot open must be refused by rigd
+//!   too.
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
@@ -67,13 +69,22 @@ fn real_cameras_files_cut_short_are_refused_naming_their_format() {
         assert!(!said.contains("panicked"), "{said}");
     }
     if let Some(lab) = std::env::var_os("RIGD_RAW_SAMPLES") {
-        read_as_libraw_reads_them(Path::new(&lab));
+        read_as_libraw_reads_them(Path::new(&lab), false);
     }
 }
 
-/// Every file in `dir` decodes to LibRaw's values, or is refused as LibRaw
-/// refuses it.
-fn read_as_libraw_reads_them(dir: &Path) {
+#[test]
+fn real_cameras_whole_files_decode_to_libraws_values() {
+    let makes = read_as_libraw_reads_them(
+        &crate::common::repo_file("tests/data/camera-files/whole"),
+        true,
+    );
+    assert_eq!(makes.len(), 2, "{makes:?}");
+}
+
+/// Every file in `dir` decodes to LibRaw's values, or (unless `must_decode`)
+/// is refused as LibRaw refuses it. Returns the makes decoded.
+fn read_as_libraw_reads_them(dir: &Path, must_decode: bool) -> std::collections::BTreeSet<String> {
     let files = files_in(dir);
     assert!(!files.is_empty(), "no files in {}", dir.display());
     let decoder = Decoder::command(
@@ -118,7 +129,9 @@ fn read_as_libraw_reads_them(dir: &Path) {
                 );
                 makes.insert(img.facts.make.clone());
             }
-            Err(e @ (CameraFileError::Unsupported { .. } | CameraFileError::Unknown(_))) => {
+            Err(e @ (CameraFileError::Unsupported { .. } | CameraFileError::Unknown(_)))
+                if !must_decode =>
+            {
                 assert!(
                     !libraw_opens(file),
                     "{name}: LibRaw opens what rigd refuses ({e})"
@@ -129,4 +142,5 @@ fn read_as_libraw_reads_them(dir: &Path) {
         }
     }
     eprintln!("real camera files: {} files, makes {makes:?}", files.len());
+    makes
 }
