@@ -1161,6 +1161,92 @@ fn mean_of(px: &[u8]) -> f64 {
     px.iter().map(|&v| f64::from(v)).sum::<f64>() / px.len() as f64
 }
 
+/// The step across a tile edge of the flat sample seen from straight above,
+/// and the texture's own steps between neighbouring pixels, in levels.
+#[derive(Debug)]
+struct TileSeam {
+    /// Whether the steps are between columns (across the vertical tile
+    /// edge) or rows.
+    across_columns: bool,
+    /// Mean step over the three pixel pairs that straddle the tile edge.
+    edge: f64,
+    /// Mean step over the sample's other neighbouring pixel pairs.
+    texture: f64,
+}
+
+/// The seam measure of [`TileSeam`] on RGB pixels (`size` × `size`, rows
+/// from the top) whose sample covers `covered`. The tiles meet at the
+/// middle of the covered square. The measure is taken across the edge
+/// along which the texture is smoother: a corduroy's wales are steps of
+/// their own across the other edge, and a seam shows only where the
+/// texture is smooth across it. The sample's outermost two pixels, where
+/// it meets the background, are left out.
+fn tile_seam(px: &[u8], covered: &[bool], size: usize) -> TileSeam {
+    let at = |x: usize, y: usize| covered[y * size + x];
+    let xs: Vec<usize> = (0..size).filter(|&x| (0..size).any(|y| at(x, y))).collect();
+    let ys: Vec<usize> = (0..size).filter(|&y| (0..size).any(|x| at(x, y))).collect();
+    let (x0, x1) = (xs[0] + 2, xs[xs.len() - 1] - 2);
+    let (y0, y1) = (ys[0] + 2, ys[ys.len() - 1] - 2);
+    let value = |x: usize, y: usize, c: usize| f64::from(px[3 * (y * size + x) + c]);
+    let step = |(xa, ya): (usize, usize), (xb, yb): (usize, usize)| {
+        (0..3)
+            .map(|c| (value(xb, yb, c) - value(xa, ya, c)).abs())
+            .sum::<f64>()
+            / 3.0
+    };
+    let measure = |across_columns: bool| {
+        // Step k is between line k and k + 1 (columns or rows).
+        let (lo, hi, along) = if across_columns {
+            (x0, x1, y0..=y1)
+        } else {
+            (y0, y1, x0..=x1)
+        };
+        let steps: Vec<(usize, f64)> = (lo..hi)
+            .map(|k| {
+                let total: f64 = along
+                    .clone()
+                    .map(|j| {
+                        if across_columns {
+                            step((k, j), (k + 1, j))
+                        } else {
+                            step((j, k), (j, k + 1))
+                        }
+                    })
+                    .sum();
+                (k, total / along.clone().count() as f64)
+            })
+            .collect();
+        // The edge lies between lines middle − 1 and middle.
+        let middle = (lo + hi).div_ceil(2);
+        let near = |k: usize| k + 2 >= middle && k <= middle;
+        let mean = |v: Vec<f64>| v.iter().sum::<f64>() / v.len() as f64;
+        TileSeam {
+            across_columns,
+            edge: mean(
+                steps
+                    .iter()
+                    .filter(|(k, _)| near(*k))
+                    .map(|s| s.1)
+                    .collect(),
+            ),
+            texture: mean(
+                steps
+                    .iter()
+                    .filter(|(k, _)| !near(*k))
+                    .map(|s| s.1)
+                    .collect(),
+            ),
+        }
+    };
+    let (columns, rows) = (measure(true), measure(false));
+    eprintln!("tile seam across columns {columns:?}, across rows {rows:?}");
+    if columns.texture <= rows.texture {
+        columns
+    } else {
+        rows
+    }
+}
+
 /// Sets the viewer to a mesh, light and view and returns its pixels.
 async fn show_case(c: &Client, mesh: &str, light: (f64, f64), view: (f64, f64)) -> Vec<u8> {
     js(
@@ -1223,19 +1309,21 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
     let mut procs = Procs { children: vec![] };
     let port = free_port();
     let base = format!("http://127.0.0.1:{port}");
-    // The Bonn rig, simulated, photographing the rust-dyed corduroy with
-    // its DCS 760 as the Bayer camera it is: rectification measures the
-    // colour on the holder's patches, and the BTF is RGB.
+    // The Bonn rig, simulated as its embedded profile has it: the
+    // rust-dyed corduroy photographed by the DCS 760, a Bayer camera. Its
+    // holder here carries colour patches, so rectification measures the
+    // colour on them, and the BTF is RGB.
     let profile = data.path().join("bonn-corduroy.toml");
     let toml = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/rig-profiles/bonn-gonioreflectometer.toml"
     ))
     .expect("Bonn profile")
-    .replace("[sim]\n", "[sim]\nscene = \"corduroy\"\n")
-    .replace("bit_depth = 12 }", "bit_depth = 12, cfa = \"RGGB\" }")
         + "\n[holder]\ncolour_patches = true\n";
-    assert!(toml.contains("cfa = \"RGGB\""), "the camera line changed");
+    assert!(
+        toml.contains("cfa = \"RGGB\"") && toml.contains("scene = \"corduroy\""),
+        "the embedded Bonn profile is the colour camera on corduroy"
+    );
     std::fs::write(&profile, toml).expect("write the profile");
     spawn_daemon(
         &mut procs,
@@ -1412,6 +1500,26 @@ async fn view_and_compare(
         }
     }
     eprintln!("viewer vs reference: worst RMS {worst:.2} levels (bound {VIEWER_RMS_BOUND})");
+    // The flat sample from straight above tiles the material 2 × 2: its
+    // tiles meet in a cross through the centre. The daemon's processing
+    // blends the textures' edges, so no seam shows there.
+    let (got, want) = viewer_case(c, run, "flat", (0.0, 0.0), (0.0, 0.0)).await;
+    assert_near_reference(
+        &got,
+        &want.pixels,
+        "viewer vs reference, tiles from above",
+        out,
+        "viewer-tiles",
+    );
+    let seam = tile_seam(&got, &want.covered, VIEWER_SIZE);
+    eprintln!("tile seam: {seam:?}");
+    assert!(
+        seam.edge <= seam.texture,
+        "the tiles meet in a seam: a step of {:.2} levels across the {} tile edge against the texture's own {:.2}",
+        seam.edge,
+        if seam.across_columns { "vertical" } else { "horizontal" },
+        seam.texture
+    );
     let index: Value = serde_json::from_slice(
         &std::fs::read(run.join("processed/normtextures/index.json")).expect("index.json"),
     )

@@ -271,7 +271,9 @@ pub struct RectifyArgs {
     pub bits: String,
     /// Linear edge blending (Sattler et al., §3.2): the ROI is scaled to
     /// final + N texels and the extra band blended into the opposite edges,
-    /// so the textures tile without seams. 0 = none.
+    /// so the textures tile without seams. 0 = none: here every texel stays
+    /// as measured unless asked; the daemon's processing blends a quarter of
+    /// --final by default, which tiles in the viewer without a seam.
     #[arg(long, default_value_t = 0)]
     pub blend: usize,
     #[command(flatten)]
@@ -583,7 +585,7 @@ fn rectify(args: RectifyArgs) -> Result<()> {
         final_size: args.final_size,
         roi: args.roi,
         bits: args.bits.clone(),
-        blend: args.blend,
+        blend: Some(args.blend),
     };
     // The daemon's check of the same options, so both refuse alike.
     let cfg = options.config().map_err(|e| bad_input(format!("--{e}")))?;

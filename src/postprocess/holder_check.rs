@@ -639,8 +639,21 @@ mod tests {
 
     #[test]
     fn a_test_frame_is_demosaiced_where_its_camera_has_a_filter_array() {
-        let mono = profile("bonn-gonioreflectometer");
-        let bayer = profile("bonn-colorchecker");
+        let bayer = profile("bonn-gonioreflectometer");
+        let mono = Profile::parse(
+            &std::fs::read_to_string(
+                std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join("rig-profiles/bonn-gonioreflectometer.toml"),
+            )
+            .expect("profile")
+            .replace(", cfa = \"RGGB\"", ""),
+            "monochrome Bonn",
+        )
+        .expect("monochrome profile");
+        assert!(mono.devices["camera"]
+            .intrinsics
+            .as_ref()
+            .is_some_and(|i| i.cfa.is_none()));
         // The camera names no format: the profile's camera says.
         let grey = frame_image(&mosaic(None), &mono, "camera").expect("grey");
         assert_eq!(grey.channels, 1);

@@ -86,8 +86,9 @@ pub struct RectifyOptions {
     /// `top`, a shift `0` … `8`, `float` or `half` (see `rigd process
     /// rectify --help`).
     pub bits: String,
-    /// Edge blend in final texels (0 = none).
-    pub blend: usize,
+    /// Edge blend in final texels (0 = none); absent or null: a quarter of
+    /// `final`, the band that removes the tile seam in the viewer.
+    pub blend: Option<usize>,
 }
 
 impl Default for RectifyOptions {
@@ -97,10 +98,18 @@ impl Default for RectifyOptions {
             final_size: 128,
             roi: 1.0,
             bits: "top".into(),
-            blend: 0,
+            blend: None,
         }
     }
 }
+
+/// The default edge blend is `final / DEFAULT_BLEND_DIVISOR` texels. The
+/// viewer tiles the textures 2 × 2 on its flat sample: without a blend the
+/// tiles meet in a step five to seven times the texture's own neighbour
+/// steps; an eighth brings it level with them, a quarter to 0.74–0.86 of
+/// them, and a half is worse again, its wide mix flattening the texture
+/// (`docs/processing.md`, "Tiling without a seam").
+pub const DEFAULT_BLEND_DIVISOR: usize = 4;
 
 impl RectifyOptions {
     /// The rectification's configuration, or why these options are wrong
@@ -112,7 +121,9 @@ impl RectifyOptions {
             size: self.size,
             roi: self.roi,
             final_size: self.final_size,
-            blend: self.blend,
+            blend: self
+                .blend
+                .unwrap_or(self.final_size / DEFAULT_BLEND_DIVISOR),
             bits,
         };
         cfg.check()?;
@@ -667,7 +678,7 @@ mod tests {
         assert!(serde_json::from_str::<ProcessOptions>(r#"{"rectify": {"sise": 3}}"#).is_err());
         assert!(serde_json::from_str::<ProcessOptions>(r#"{"steps": ["sharpen"]}"#).is_err());
         let bad = RectifyOptions {
-            blend: 128,
+            blend: Some(128),
             ..Default::default()
         };
         assert!(bad.config().is_err());

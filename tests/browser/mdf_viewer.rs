@@ -39,7 +39,7 @@ fn rigd(args: &[&str]) -> String {
     stdout
 }
 
-/// An embedded profile with the corduroy scene and `edit` applied.
+/// An embedded profile with `edits` applied.
 fn profile(dir: &Path, name: &str, edits: &[(&str, &str)]) -> String {
     let mut text = std::fs::read_to_string(crate::common::repo_file(&format!(
         "rig-profiles/{name}.toml"
@@ -63,11 +63,7 @@ fn capture(data: &Path, work: &Path) -> std::path::PathBuf {
     let btf_s = btf.to_str().expect("utf-8");
     let plan = work.join("viewer-plan.json");
     std::fs::write(&plan, viewer_plan().to_string()).expect("plan");
-    let bonn = profile(
-        work,
-        "bonn-gonioreflectometer",
-        &[("[sim]\n", "[sim]\nscene = \"corduroy\"\n")],
-    );
+    let bonn = profile(work, "bonn-gonioreflectometer", &[]);
     rigd(&[
         "run",
         "--sim",

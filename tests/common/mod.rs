@@ -31,6 +31,26 @@ pub fn repo_file(rel: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(rel)
 }
 
+/// The embedded Bonn profile as a monochrome camera on the flat
+/// calibration scene at 320×240, written into `dir`: for tests whose
+/// numbers are a grey camera's on that scene (the embedded profile's camera
+/// is the DCS 760's Bayer sensor, on corduroy at 640×480).
+pub fn bonn_monochrome(dir: &Path) -> PathBuf {
+    let mut text = std::fs::read_to_string(repo_file("rig-profiles/bonn-gonioreflectometer.toml"))
+        .expect("the Bonn profile");
+    for (from, to) in [
+        (", cfa = \"RGGB\"", ""),
+        ("frame_size = [640, 480]", "frame_size = [320, 240]"),
+        ("scene = \"corduroy\"\n", ""),
+    ] {
+        assert!(text.contains(from), "the Bonn profile has no `{from}`");
+        text = text.replace(from, to);
+    }
+    let path = dir.join("bonn-monochrome.toml");
+    std::fs::write(&path, text).expect("write the profile");
+    path
+}
+
 /// Checks a finished run: a completed manifest with every image exactly
 /// once, every checksum matching its file (a bracketed image's every
 /// exposure), and a journal with no index twice.

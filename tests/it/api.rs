@@ -1142,10 +1142,10 @@ async fn sim_render_returns_a_frame_with_its_effects() {
     let (w, h, pixels) = rigd::rig::hal::decode_png(&png).expect("a PNG");
     assert_eq!((w, h), (64, 48));
     assert!(pixels.iter().any(|&p| p > 0));
-    // The flat default scene pays for nothing.
+    // The flat calibration scene pays for nothing.
     let resp = s
         .client
-        .get(s.url("/api/v1/sim/render?size=32x32"))
+        .get(s.url("/api/v1/sim/render?scene=flat-calibration&size=32x32"))
         .send()
         .await
         .expect("request");

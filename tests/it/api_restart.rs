@@ -312,11 +312,14 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
 }
 
 /// Processes the copy `reference` of a run from the command line in one go
-/// (`rectify --size 512 --final 64`, `btf --components 8`) and checks that
-/// the daemon's BTF of `run` is byte for byte the same.
+/// (`rectify --size 512 --final 64 --blend 16`, the daemon's default blend of
+/// a quarter of the final size; `btf --components 8`) and checks that the
+/// daemon's BTF of `run` is byte for byte the same.
 fn assert_same_btf_as_cli(run: &Path, reference: &Path) {
     for args in [
-        vec!["process", "rectify", "--size", "512", "--final", "64"],
+        vec![
+            "process", "rectify", "--size", "512", "--final", "64", "--blend", "16",
+        ],
         vec!["process", "btf", "--components", "8"],
     ] {
         let o = common::rigd()

@@ -38,10 +38,11 @@ fn plan(dir: &Path) -> std::path::PathBuf {
 fn held_out_reconstruction_error_against_the_true_btf() {
     let dir = tempfile::tempdir().unwrap();
     let run = dir.path().join("run");
+    let profile = crate::common::bonn_monochrome(dir.path());
     let status = rigd()
+        .args(["run", "--sim", "--profile"])
+        .arg(&profile)
         .args([
-            "run",
-            "--sim",
             "--scene",
             "ps-target",
             "--frame-size",

@@ -34,7 +34,7 @@ fn capture_and_rectify_with(dir: &Path, scene: &str, policy: &str) -> (std::path
             "views": [{"theta_deg": 34, "phi_deg": 60}, {"theta_deg": 60, "phi_deg": 150}]}"#,
     )
     .expect("plan");
-    let profile = repo_file("rig-profiles/bonn-gonioreflectometer.toml");
+    let profile = crate::common::bonn_monochrome(dir);
     run_ok(&[
         "run",
         "--sim",

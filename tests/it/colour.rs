@@ -253,13 +253,14 @@ fn bonn_corduroy(dir: &Path, cfa: Option<&str>) -> PathBuf {
         &profile,
         |t| {
             with_reference_patches(t);
-            if let Some(cfa) = cfa {
-                device(t, "camera")
-                    .get_mut("intrinsics")
-                    .and_then(|i| i.as_table_mut())
-                    .expect("intrinsics")
-                    .insert("cfa".into(), cfa.into());
-            }
+            let intrinsics = device(t, "camera")
+                .get_mut("intrinsics")
+                .and_then(|i| i.as_table_mut())
+                .expect("intrinsics");
+            match cfa {
+                Some(cfa) => intrinsics.insert("cfa".into(), cfa.into()),
+                None => intrinsics.remove("cfa"),
+            };
         },
     );
     let run = dir.join(format!("run-{}", cfa.unwrap_or("mono")));

@@ -147,7 +147,7 @@ async fn manual_control_moves_switches_and_shoots_and_yields_to_a_run() {
     assert_eq!(frame["camera"], "camera");
     assert_eq!(
         (frame["width"].as_u64(), frame["height"].as_u64()),
-        (Some(320), Some(240)),
+        (Some(640), Some(480)),
         "the profile's [sim] frame_size"
     );
     assert!(frame["max"].as_u64() > Some(0), "a lit frame: {frame}");
@@ -342,10 +342,13 @@ async fn the_holder_check_needs_a_pose_and_names_the_markers_it_misses() {
     assert_eq!(check["profile"], "bonn-gonioreflectometer");
     assert_eq!(
         check["size"],
-        json!([320, 240]),
+        json!([640, 480]),
         "the profile's [sim] frame_size"
     );
-    assert_eq!(check["channels"], 1);
+    assert_eq!(
+        check["channels"], 3,
+        "the DCS 760's Bayer frame, demosaiced"
+    );
     assert_eq!(check["patches"], json!([]));
     assert_eq!(check["whites"], json!([]));
     // The frame is the last test frame.

@@ -702,9 +702,12 @@ fn grazing_marker_fits_that_contradict_the_pose_are_replaced() {
     )
     .unwrap();
     let run = dir.path().join("grazing");
+    let profile = common::bonn_monochrome(dir.path());
     common::run_ok(&[
         "run",
         "--sim",
+        "--profile",
+        profile.to_str().unwrap(),
         "--frame-size",
         "320x240",
         "--sample",
