@@ -779,13 +779,15 @@ async fn operate(c: &Client, ctx: &Ctx<'_>, procs: &mut Procs) {
     );
     assert_eq!(
         result[2],
-        json!(0),
-        "the standard plate has no patches: {result}"
+        json!(6),
+        "the standard plate's six colour patches, a row each: {result}"
     );
     assert!(
         result[3]
             .as_str()
-            .is_some_and(|t| t.contains("no colour patches or white areas")),
+            .is_some_and(|t| ["white", "red", "green", "grey", "blue", "yellow"]
+                .iter()
+                .all(|p| t.contains(p))),
         "{result}"
     );
     let holder_png = c
@@ -1310,19 +1312,24 @@ async fn viewer_relights_a_processed_run_like_the_reference_renderer() {
     let port = free_port();
     let base = format!("http://127.0.0.1:{port}");
     // The Bonn rig, simulated as its embedded profile has it: the
-    // rust-dyed corduroy photographed by the DCS 760, a Bayer camera. Its
-    // holder here carries colour patches, so rectification measures the
-    // colour on them, and the BTF is RGB.
+    // rust-dyed corduroy photographed by the DCS 760, a Bayer camera, on a
+    // holder with colour patches, so rectification measures the colour on
+    // them, and the BTF is RGB.
     let profile = data.path().join("bonn-corduroy.toml");
     let toml = std::fs::read_to_string(concat!(
         env!("CARGO_MANIFEST_DIR"),
         "/rig-profiles/bonn-gonioreflectometer.toml"
     ))
-    .expect("Bonn profile")
-        + "\n[holder]\ncolour_patches = true\n";
+    .expect("Bonn profile");
     assert!(
-        toml.contains("cfa = \"RGGB\"") && toml.contains("scene = \"corduroy\""),
-        "the embedded Bonn profile is the colour camera on corduroy"
+        [
+            "cfa = \"RGGB\"",
+            "scene = \"corduroy\"",
+            "colour_patches = true"
+        ]
+        .iter()
+        .all(|line| toml.contains(line)),
+        "the embedded Bonn profile is the colour camera on corduroy, with patches"
     );
     std::fs::write(&profile, toml).expect("write the profile");
     spawn_daemon(

@@ -63,7 +63,16 @@ fn capture(data: &Path, work: &Path) -> std::path::PathBuf {
     let btf_s = btf.to_str().expect("utf-8");
     let plan = work.join("viewer-plan.json");
     std::fs::write(&plan, viewer_plan().to_string()).expect("plan");
-    let bonn = profile(work, "bonn-gonioreflectometer", &[]);
+    // A monochrome camera: what this test measures is the mesostructure's
+    // silhouettes and shadows, as on a grey BTF.
+    let bonn = profile(
+        work,
+        "bonn-gonioreflectometer",
+        &[
+            (", cfa = \"RGGB\"", ""),
+            ("[holder]\ncolour_patches = true\n", ""),
+        ],
+    );
     rigd(&[
         "run",
         "--sim",

@@ -32,9 +32,10 @@ pub fn repo_file(rel: &str) -> PathBuf {
 }
 
 /// The embedded Bonn profile as a monochrome camera on the flat
-/// calibration scene at 320×240, written into `dir`: for tests whose
-/// numbers are a grey camera's on that scene (the embedded profile's camera
-/// is the DCS 760's Bayer sensor, on corduroy at 640×480).
+/// calibration scene at 320×240, its plate without colour patches, written
+/// into `dir`: for tests whose numbers are a grey camera's on that scene
+/// (the embedded profile's camera is the DCS 760's Bayer sensor, on
+/// corduroy at 640×480, with patches to measure its colour on).
 pub fn bonn_monochrome(dir: &Path) -> PathBuf {
     let mut text = std::fs::read_to_string(repo_file("rig-profiles/bonn-gonioreflectometer.toml"))
         .expect("the Bonn profile");
@@ -42,6 +43,7 @@ pub fn bonn_monochrome(dir: &Path) -> PathBuf {
         (", cfa = \"RGGB\"", ""),
         ("frame_size = [640, 480]", "frame_size = [320, 240]"),
         ("scene = \"corduroy\"\n", ""),
+        ("[holder]\ncolour_patches = true\n", ""),
     ] {
         assert!(text.contains(from), "the Bonn profile has no `{from}`");
         text = text.replace(from, to);

@@ -21,11 +21,21 @@ struct Daemon {
 }
 
 fn spawn(data: &Path, speed: f64) -> Daemon {
-    let mut child = common::rigd()
+    spawn_on(data, speed, None)
+}
+
+/// [`spawn`] on the simulated rig of `profile`, the embedded one if `None`.
+fn spawn_on(data: &Path, speed: f64, profile: Option<&Path>) -> Daemon {
+    let mut command = common::rigd();
+    command
         .args(["serve", "--listen", "127.0.0.1:0", "--sim-speed"])
         .arg(speed.to_string())
         .arg("--data")
-        .arg(data)
+        .arg(data);
+    if let Some(profile) = profile {
+        command.arg("--sim").arg("--profile").arg(profile);
+    }
+    let mut child = command
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -368,9 +378,13 @@ fn done_before(summary: &str) -> usize {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
     let dir = tempfile::tempdir().expect("tempdir");
+    // A monochrome camera: a colour run calibrated on its own patches is
+    // registered only after the capture, once its most frontal frames are
+    // known (`docs/processing.md`, "During the capture").
+    let monochrome = common::bonn_monochrome(dir.path());
     // Slow enough (about 0.2 s per frame) that frames are registered
     // while the capture runs, even on a loaded machine.
-    let mut d = spawn(dir.path(), 25.0);
+    let mut d = spawn_on(dir.path(), 25.0, Some(&monochrome));
     // `slots`: each view's triggers together, so view slots complete and
     // are compressed during the capture (on this small plan the order
     // costs 3.8 %, more than a run would take by itself).
@@ -396,7 +410,7 @@ async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
         .count();
     assert!(kept >= 8, "{kept} first passes kept");
 
-    let d = spawn(dir.path(), 25.0);
+    let d = spawn_on(dir.path(), 25.0, Some(&monochrome));
     let (status, v) = d.post(&format!("/api/v1/runs/{id}/resume"), None).await;
     assert_eq!(status, 200, "{v}");
     let v = d

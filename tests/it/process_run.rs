@@ -24,12 +24,14 @@ fn plan(dir: &Path) -> PathBuf {
     p
 }
 
+/// A capture of corduroy by the Bonn rig's camera taken as monochrome, on
+/// the plate without colour patches (grey textures and fits).
 fn capture(dir: &Path, size: &str) -> PathBuf {
     let run = dir.join(format!("run-{size}"));
     let status = rigd()
+        .args(["run", "--sim", "--profile"])
+        .arg(common::bonn_monochrome(dir))
         .args([
-            "run",
-            "--sim",
             "--scene",
             "corduroy",
             "--frame-size",
