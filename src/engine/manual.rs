@@ -14,7 +14,7 @@ use serde::Serialize;
 use super::estop::EStop;
 use super::{deadline, goto, Lights, Movers, DEADLINE_SLACK_S, HOMING_DEADLINE_S};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{DeviceKind, Profile};
+use crate::model::profile::{Device, DeviceKind, Profile};
 use crate::rig::hal::{DeviceError, Frame, Rig};
 use crate::schedule::timing::Timing;
 
@@ -159,7 +159,7 @@ impl ManualRig {
         self.profile
             .devices
             .get(device)
-            .map(|d| d.kind)
+            .map(|d| d.kind())
             .ok_or_else(|| {
                 let names: Vec<&str> = self.profile.devices.keys().map(String::as_str).collect();
                 ManualError::BadInput(format!(
@@ -218,11 +218,11 @@ impl ManualRig {
     /// before anything is sent. Returns the position the axis reports.
     pub async fn jog(&mut self, device: &str, jog: Jog) -> Result<f64, ManualError> {
         let kind = self.kind_of(device)?;
-        let dev = &self.profile.devices[device];
-        let (Some(limits), DeviceKind::Axis) = (dev.limits, kind) else {
+        let Some(axis) = self.profile.devices[device].as_axis() else {
             return Err(Self::wrong_kind(device, kind, "an axis"));
         };
-        let motion = rigd_core::Trapezoid::from(dev.motion_or_default());
+        let limits = axis.limits;
+        let motion = rigd_core::Trapezoid::from(axis.motion);
         let step = match jog {
             Jog::By(d) | Jog::To(d) => d,
         };
@@ -345,7 +345,7 @@ impl ManualRig {
     /// Switches a lamp or the laser, confirmed by the coil's read-back.
     pub async fn switch(&mut self, device: &str, on: bool) -> Result<(), ManualError> {
         let clock = self.clock.clone();
-        let switch_s = self.profile.devices.get(device).and_then(|d| d.switch_s);
+        let switch_s = self.profile.devices.get(device).and_then(|d| d.switch_s());
         let budget = switch_s.unwrap_or(0.0) + DEADLINE_SLACK_S;
         match self.kind_of(device)? {
             DeviceKind::Lamp => {
@@ -398,8 +398,8 @@ impl ManualRig {
             self.profile
                 .devices
                 .get(&name)
-                .and_then(|d| d.timing)
-                .map(|t| t.exposure_s)
+                .and_then(Device::as_camera)
+                .map(|c| c.timing.exposure_s)
         });
         let timing = Timing::new(&self.profile, exposure_s);
         let expose_budget = timing.expose_s(&[name.as_str()]) + DEADLINE_SLACK_S;

@@ -65,7 +65,7 @@ impl ArcsSolver {
             .map(|name| {
                 profile
                     .device(name)
-                    .and_then(|d| d.elevation_deg)
+                    .and_then(|d| d.elevation_deg())
                     .filter(|e| e.is_finite())
                     .map(|e| (name.clone(), e))
                     .ok_or_else(|| {
@@ -78,7 +78,7 @@ impl ArcsSolver {
             .map(|name| {
                 let d = profile
                     .device(name)
-                    .and_then(|d| d.direction)
+                    .and_then(|d| d.direction())
                     .ok_or_else(|| {
                         KinematicsError::BadProfile(format!("camera `{name}` has no direction"))
                     })?;

@@ -23,7 +23,7 @@ pub struct CameraGeometry {
 /// A camera's geometry for frames of `size`; None if it is not a camera
 /// with intrinsics.
 pub fn camera_geometry(profile: &Profile, camera: &str, size: [u32; 2]) -> Option<CameraGeometry> {
-    let i = profile.devices.get(camera)?.intrinsics?;
+    let i = profile.devices.get(camera)?.as_camera()?.intrinsics;
     Some(CameraGeometry {
         focal_px: i.focal_px * profile.sim.zoom * f64::from(size[0])
             / f64::from(i.resolution[0].max(1)),
@@ -35,7 +35,7 @@ pub fn camera_geometry(profile: &Profile, camera: &str, size: [u32; 2]) -> Optio
 
 /// How far a camera stands from the sample centre.
 pub fn camera_distance(profile: &Profile, camera: &str) -> Option<f64> {
-    let own = profile.devices.get(camera).and_then(|d| d.distance_m);
+    let own = profile.devices.get(camera).and_then(|d| d.distance_m());
     own.or(match &profile.rig {
         RigGeometry::Gonioreflectometer { rail_radius_m, .. } => Some(*rail_radius_m),
         _ => None,
@@ -48,7 +48,7 @@ pub fn lamp_distances(profile: &Profile) -> BTreeMap<String, f64> {
         .lamp_names()
         .into_iter()
         .filter_map(|lamp| {
-            let own = profile.devices.get(&lamp).and_then(|d| d.distance_m);
+            let own = profile.devices.get(&lamp).and_then(|d| d.distance_m());
             let d = own.or(match &profile.rig {
                 RigGeometry::Gonioreflectometer {
                     lamp_distance_m, ..

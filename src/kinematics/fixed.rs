@@ -38,7 +38,7 @@ impl FixedSolver {
         let direction = |name: &str| {
             profile
                 .device(name)
-                .and_then(|d| d.direction)
+                .and_then(|d| d.direction())
                 .filter(|d| d.theta_deg.is_finite() && d.phi_deg.is_finite())
                 .map(|d| tidy(d.theta_deg, d.phi_deg))
                 .ok_or_else(|| {

@@ -83,9 +83,9 @@ impl GonioSolver {
             .device(arm)
             .ok_or_else(|| KinematicsError::BadProfile(format!("no device `{arm}`")))?;
         let joints: Vec<JointSpec> = arm_dev
+            .as_arm()
+            .ok_or_else(|| KinematicsError::BadProfile(format!("`{arm}` is not an arm")))?
             .joints
-            .as_ref()
-            .ok_or_else(|| KinematicsError::BadProfile(format!("arm `{arm}` has no joints")))?
             .iter()
             .map(|j| JointSpec {
                 name: j.name.clone(),

@@ -224,10 +224,10 @@ pub(crate) fn axis_limits(profile: &Profile, name: &str) -> Result<(Limits, f64)
     let dev = profile
         .device(name)
         .ok_or_else(|| KinematicsError::BadProfile(format!("no device `{name}`")))?;
-    let limits = dev
-        .limits
-        .ok_or_else(|| KinematicsError::BadProfile(format!("axis `{name}` has no limits")))?;
-    Ok((limits, dev.home_deg.unwrap_or(0.0)))
+    let axis = dev
+        .as_axis()
+        .ok_or_else(|| KinematicsError::BadProfile(format!("`{name}` is not an axis")))?;
+    Ok((axis.limits, axis.home_deg.unwrap_or(0.0)))
 }
 
 /// Reads one axis from set-points, refusing a missing or non-finite value.

@@ -2,6 +2,7 @@
 //! where a run stands. Directions and vectors are `rigd_core::geometry`,
 //! shared with the simulator and the processing crate.
 
+pub mod device;
 pub mod exposure;
 pub mod profile;
 pub mod run_state;

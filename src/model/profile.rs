@@ -6,14 +6,20 @@
 //! at the terminal before anything moves.
 
 use std::collections::BTreeMap;
-use std::fmt;
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
 use super::exposure::ExposurePolicy;
-use rigd_core::geometry::Direction;
 use rigd_core::holder::HolderSpec;
+
+pub use super::device::{
+    ArmDevice, ArmProtocol, AxisDevice, AxisProtocol, CameraDevice, CameraProtocol, CameraTiming,
+    Device, DeviceKind, GenicamSettings, Gphoto2Settings, Intrinsics, Joint, LampDevice,
+    LaserDevice, Limits, Motion, PtpSettings, RelayProtocol, Transport, DEFAULT_ARM_HOMING_S,
+    GPHOTO2_SHUTTER_WIDGET, MAX_BAUD, MAX_SENSOR_PIXELS, MAX_SENSOR_SIDE,
+};
+pub use super::exposure::{check_exposure_s, MAX_EXPOSURE_S};
 
 /// The profiles of the three rigs of the source documents, embedded so the
 /// daemon runs on a fresh machine without any file.
@@ -141,451 +147,6 @@ pub enum RigGeometry {
 
 fn default_lamp_tolerance() -> f64 {
     0.5
-}
-
-/// What a device is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum DeviceKind {
-    /// One rotary axis in degrees (rail, turntable, arc, tilt); needs
-    /// `limits` and `motion`.
-    Axis,
-    /// A robot arm; needs `joints`.
-    Arm,
-    /// A lamp switched by a relay coil; needs `warm_up_s`.
-    Lamp,
-    /// A camera; needs `intrinsics` and `timing`.
-    Camera,
-    /// A laser line unit switched by a relay coil.
-    Laser,
-}
-
-impl DeviceKind {
-    /// "an axis", "a lamp": for messages.
-    pub fn with_article(self) -> String {
-        let article = if self == DeviceKind::Axis || self == DeviceKind::Arm {
-            "an"
-        } else {
-            "a"
-        };
-        format!("{article} {self}")
-    }
-}
-
-impl fmt::Display for DeviceKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let s = match self {
-            DeviceKind::Axis => "axis",
-            DeviceKind::Arm => "arm",
-            DeviceKind::Lamp => "lamp",
-            DeviceKind::Camera => "camera",
-            DeviceKind::Laser => "laser",
-        };
-        f.write_str(s)
-    }
-}
-
-/// One device. Which optional tables are required depends on `kind`; the
-/// validator names any that are missing.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Device {
-    /// What the device is (`axis`, `arm`, `lamp`, `camera`, `laser`), which
-    /// decides the tables it needs.
-    pub kind: DeviceKind,
-    /// How the daemon reaches it: `{ type = "serial" | "modbus_rtu" |
-    /// "modbus_tcp" | "usb" | "ptpip" | "genicam" | "gphoto2", ... }`.
-    pub transport: Transport,
-    /// Wire protocol: `grbl`, `modbus`, `acl`, `ptp`, `genicam` or
-    /// `gphoto2` (libgphoto2 picks the camera's own protocol).
-    pub protocol: String,
-    /// Axis soft limits, in degrees.
-    #[serde(default)]
-    pub limits: Option<Limits>,
-    /// Axis motion model.
-    #[serde(default)]
-    pub motion: Option<Motion>,
-    /// Where an axis stands after homing, in degrees.
-    #[serde(default)]
-    pub home_deg: Option<f64>,
-    /// Axis: whether the controller homes it (GRBL `$H`, which needs `$22=1`
-    /// and a home switch). With `false` rigd never homes it: the operator
-    /// sets the axis at its 0° mark and zeroes the controller there, and
-    /// rigd takes the machine position as it is. Default `true`.
-    #[serde(default)]
-    pub homing: Option<bool>,
-    /// Arm: how long its homing cycle (the controller's `HOME`) takes, in
-    /// seconds. Every run starts by homing, so the estimate counts it, and
-    /// the simulated controller takes exactly this long. Default
-    /// [`DEFAULT_ARM_HOMING_S`].
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub homing_s: Option<f64>,
-    /// Axis: write the controller settings the profile implies at connect
-    /// (GRBL `$22`, `$20`, `$110`, `$120`, `$130`, `$100`), then read them
-    /// back. Without it, a controller whose settings differ is refused
-    /// with the lines that would fix it. Default `false`.
-    #[serde(default)]
-    pub configure: Option<bool>,
-    /// Axis: motor steps per degree (GRBL `$100`), compared with the
-    /// controller (and written with `configure`) when given.
-    #[serde(default)]
-    pub steps_per_deg: Option<f64>,
-    /// Arm joints, in the order the arm's protocol expects them.
-    #[serde(default)]
-    pub joints: Option<Vec<Joint>>,
-    /// Fixed lamp or camera direction, seen from the sample centre, in the world frame.
-    #[serde(default)]
-    pub direction: Option<Direction>,
-    /// Elevation (θ) of a lamp on a light arc.
-    #[serde(default)]
-    pub elevation_deg: Option<f64>,
-    /// Distance from the sample centre.
-    #[serde(default)]
-    pub distance_m: Option<f64>,
-    /// Lamp: time from switch-on to stable output.
-    #[serde(default)]
-    pub warm_up_s: Option<f64>,
-    /// Lamp: time a switch takes to settle (relay plus filament).
-    #[serde(default)]
-    pub switch_s: Option<f64>,
-    /// Lamp or laser: the Modbus coil of its relay.
-    #[serde(default)]
-    pub coil: Option<u16>,
-    /// Camera: sensor resolution, focal length and bit depth (required).
-    #[serde(default)]
-    pub intrinsics: Option<Intrinsics>,
-    /// Camera: exposure, readout and transfer time per frame (required).
-    #[serde(default)]
-    pub timing: Option<CameraTiming>,
-    /// GenICam camera: the features rigd sets at connect.
-    #[serde(default)]
-    pub genicam: Option<GenicamSettings>,
-    /// PTP camera: the device properties rigd sets at connect.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub ptp: Option<PtpSettings>,
-    /// Camera through libgphoto2: the configuration widgets rigd sets at
-    /// connect.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub gphoto2: Option<Gphoto2Settings>,
-}
-
-/// The libgphoto2 configuration of a camera on `transport = { type =
-/// "gphoto2" }`, set at every connect. The exposure time is the
-/// `shutterspeed` widget, from `timing.exposure_s` (or the run's
-/// exposure), so it is not among these.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Gphoto2Settings {
-    /// Widget name → value, as `gphoto2 --get-config NAME` lists them
-    /// (`iso = "100"`, `imageformat = "RAW"`). A value the camera does not
-    /// offer is refused at connect, naming what it offers.
-    #[serde(default)]
-    pub settings: std::collections::BTreeMap<String, String>,
-}
-
-/// The libgphoto2 widget that holds the exposure time.
-pub const GPHOTO2_SHUTTER_WIDGET: &str = "shutterspeed";
-
-/// The PTP device properties of a camera on `protocol = "ptp"`, set at
-/// every connect (ExposureTime comes from `timing.exposure_s` or the run's
-/// exposure, at every exposure).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct PtpSettings {
-    /// ExposureIndex, the ISO sensitivity (1 to 65535); absent: the
-    /// camera's own. A measurement keeps it fixed, so set it.
-    #[serde(default)]
-    pub exposure_index: Option<u16>,
-}
-
-/// The GenICam features of a camera on `transport = { type = "genicam" }`,
-/// set by their SFNC names at every connect. `Width` and `Height` come from
-/// `intrinsics.resolution`, `ExposureTime` from `timing.exposure_s` (or the
-/// run's exposure).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct GenicamSettings {
-    /// `PixelFormat`, unpacked: `Mono8` … `Mono16`, `BayerRG8` …
-    /// `BayerBG16`. Its bit depth must be `intrinsics.bit_depth`. Default:
-    /// the monochrome format of that depth.
-    #[serde(default)]
-    pub pixel_format: Option<String>,
-    /// `Gain` in dB; absent: the camera's own.
-    #[serde(default)]
-    pub gain_db: Option<f64>,
-    /// `TriggerSource` of the frame-start trigger: `Software` (default,
-    /// rigd fires it for each exposure) or a line (`Line0`, …) that an
-    /// external trigger drives.
-    #[serde(default)]
-    pub trigger_source: Option<String>,
-}
-
-impl GenicamSettings {
-    /// The pixel format asked of a camera of `bit_depth` bits.
-    pub fn pixel_format_for(
-        settings: Option<&GenicamSettings>,
-        bit_depth: u8,
-    ) -> Result<rigd_core::PixelFormat, rigd_core::pixel_format::UnknownPixelFormat> {
-        match settings.and_then(|g| g.pixel_format.as_deref()) {
-            Some(name) => name.parse(),
-            None => Ok(rigd_core::PixelFormat::mono_for_depth(bit_depth)),
-        }
-    }
-
-    /// The trigger source, `Software` unless set.
-    pub fn trigger_source_of(settings: Option<&GenicamSettings>) -> String {
-        settings
-            .and_then(|g| g.trigger_source.clone())
-            .unwrap_or_else(|| "Software".into())
-    }
-}
-
-/// Soft limits of an axis or joint.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Limits {
-    /// Lowest allowed position, in degrees.
-    pub min: f64,
-    /// Highest allowed position, in degrees; must exceed `min`.
-    pub max: f64,
-}
-
-impl Limits {
-    /// Whether `x` (degrees) lies within the limits, with 1e-9° of slack so
-    /// a value on a limit up to rounding counts as inside.
-    pub fn contains(&self, x: f64) -> bool {
-        x >= self.min - 1e-9 && x <= self.max + 1e-9
-    }
-}
-
-/// Trapezoidal motion model of one axis (units: degrees, seconds).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Motion {
-    /// Top speed, in degrees/s.
-    pub max_velocity: f64,
-    /// Acceleration and deceleration, in degrees/s².
-    pub acceleration: f64,
-    /// Time the axis needs to settle after a move before a frame may be
-    /// exposed, in seconds.
-    pub settle_s: f64,
-}
-
-impl From<Motion> for rigd_core::Trapezoid {
-    fn from(m: Motion) -> rigd_core::Trapezoid {
-        rigd_core::Trapezoid {
-            max_velocity: m.max_velocity,
-            acceleration: m.acceleration,
-            settle_s: m.settle_s,
-        }
-    }
-}
-
-/// One joint of an arm.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Joint {
-    /// The joint's name; the gonioreflectometer's solver finds its wrist
-    /// joints by the names `roll`, `pitch` and `twist`.
-    pub name: String,
-    /// Soft limits of the joint, in degrees.
-    pub limits: Limits,
-    /// Trapezoidal motion model of the joint (degrees, seconds).
-    pub motion: Motion,
-    /// Where the joint stands after homing, in degrees (0 if absent).
-    #[serde(default)]
-    pub home_deg: f64,
-    /// Encoder counts per degree, as the arm's controller counts.
-    #[serde(default = "default_counts_per_deg")]
-    pub counts_per_deg: f64,
-}
-
-fn default_counts_per_deg() -> f64 {
-    100.0
-}
-
-/// Camera intrinsics.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Intrinsics {
-    /// Sensor size in pixels, `[width, height]`.
-    pub resolution: [u32; 2],
-    /// Focal length in pixels of the full-resolution sensor.
-    pub focal_px: f64,
-    /// Bits per pixel sample of the raw frames, 8 to 16.
-    pub bit_depth: u8,
-    /// The sensor's colour filter array, `"RGGB"`, `"GRBG"`, `"GBRG"` or
-    /// `"BGGR"`, read from the frame's first pixel; absent for a
-    /// monochrome sensor. A raw frame with another layout is refused.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub cfa: Option<rigd_core::Cfa>,
-}
-
-pub use super::exposure::{check_exposure_s, MAX_EXPOSURE_S};
-
-/// The largest sensor side a camera may have, pixels.
-pub const MAX_SENSOR_SIDE: u32 = 65_535;
-/// The most pixels a camera's sensor may have: 2²⁸, 512 MiB a frame at
-/// 16 bits, twice the largest sensors sold.
-pub const MAX_SENSOR_PIXELS: u64 = 1 << 28;
-/// The fastest serial line a profile may name, baud.
-pub const MAX_BAUD: u32 = 12_000_000;
-
-/// What one frame costs the camera, in seconds.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CameraTiming {
-    /// Exposure time, in seconds (positive, within `exposure_range_s`);
-    /// `--exposure` overrides it.
-    pub exposure_s: f64,
-    /// The shortest and longest exposure the camera can set, seconds
-    /// (its data sheet); absent: anything above 0 up to
-    /// [`MAX_EXPOSURE_S`]. `exposure_s` and every run's `--exposure` must
-    /// lie within it.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub exposure_range_s: Option<[f64; 2]>,
-    /// Sensor readout after the exposure, in seconds; the rig does not move
-    /// meanwhile.
-    pub readout_s: f64,
-    /// Moving the frame to the host, in seconds; it overlaps the next
-    /// trigger's moves.
-    pub transfer_s: f64,
-}
-
-/// How the daemon reaches a device.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
-pub enum Transport {
-    /// A serial line: GRBL axes and ACL arms speak their text protocol on it;
-    /// a lamp or laser on it speaks Modbus RTU.
-    Serial {
-        /// The serial device, e.g. `/dev/ttyUSB0`.
-        port: String,
-        /// Line speed in baud (GRBL: 115200).
-        baud: u32,
-    },
-    /// A relay module speaking Modbus RTU on a serial line (RS-485).
-    ModbusRtu {
-        /// The serial device, e.g. `/dev/ttyUSB2`.
-        port: String,
-        /// Line speed in baud.
-        baud: u32,
-        /// The relay module's Modbus unit (slave) address, 1 if absent.
-        #[serde(default = "default_unit")]
-        unit: u8,
-        /// Whether the module has rigd's status input registers (IR 0 ready
-        /// bits, IR 1 fault bits). `false` for a coil-only relay module as
-        /// sold: lamp readiness is then timed by rigd from `warm_up_s`, and
-        /// only FC01, FC05 and FC0F go on the wire. Every device on one
-        /// module must agree. Default `true`.
-        #[serde(default = "default_true")]
-        status_registers: bool,
-    },
-    /// A relay module speaking Modbus TCP.
-    ModbusTcp {
-        /// The module's (or gateway's) host name or IP address.
-        host: String,
-        /// TCP port, usually 502.
-        port: u16,
-        /// The Modbus unit identifier of the requests, 1 if absent.
-        #[serde(default = "default_unit")]
-        unit: u8,
-        /// Whether the module has rigd's status input registers (IR 0 ready
-        /// bits, IR 1 fault bits). `false` for a coil-only relay module as
-        /// sold: lamp readiness is then timed by rigd from `warm_up_s`, and
-        /// only FC01, FC05 and FC0F go on the wire. Every device on one
-        /// module must agree. Default `true`.
-        #[serde(default = "default_true")]
-        status_registers: bool,
-    },
-    /// A PTP (USB Still Image) camera on USB.
-    Usb {
-        /// The camera's USB vendor id (`0x040a`).
-        vendor_id: u16,
-        /// The camera's USB product id.
-        product_id: u16,
-        /// The USB serial number that picks one of several identical
-        /// cameras; absent: the first that matches the ids.
-        #[serde(default)]
-        serial: Option<String>,
-    },
-    /// A PTP camera on the network, over PTP/IP (CIPA DC-005): its command
-    /// and event connections on one port (how `rigd sim serve` offers its
-    /// simulated cameras, too).
-    #[serde(rename = "ptpip")]
-    PtpIp {
-        /// The camera's host name or IP address.
-        host: String,
-        /// TCP port, 15740 (PTP/IP's own) if absent.
-        #[serde(default = "default_ptpip_port")]
-        port: u16,
-    },
-    /// A GenICam camera (GigE Vision or USB3 Vision) reached through
-    /// Aravis; needs a rigd built with the `genicam` feature.
-    Genicam {
-        /// What Aravis opens: the camera's IP address, or its device id
-        /// (`Vendor-Model-Serial`, as `arv-tool-0.8` lists it).
-        id: String,
-    },
-    /// A camera reached through libgphoto2 (USB or PTP/IP, any make
-    /// libgphoto2 drives); needs a rigd built with the `gphoto2` feature.
-    /// With neither field, libgphoto2 autodetects and exactly one camera
-    /// must be found.
-    Gphoto2 {
-        /// libgphoto2's port: `usb:BUS,DEV`, or `ptpip:HOST:CMDPORT:EVENTPORT`
-        /// for a network camera (`gphoto2 --auto-detect` lists them);
-        /// absent: the one camera autodetected (with `model`, the one of
-        /// that model).
-        #[serde(default)]
-        port: Option<String>,
-        /// libgphoto2's model name (`gphoto2 --list-cameras`), which picks
-        /// its driver; `PTP/IP Camera` for a generic PTP/IP camera. Absent:
-        /// the model autodetected on the port.
-        #[serde(default)]
-        model: Option<String>,
-    },
-}
-
-fn default_unit() -> u8 {
-    1
-}
-
-fn default_ptpip_port() -> u16 {
-    rigd_proto::ptp::ip::DEFAULT_PORT
-}
-
-impl Transport {
-    /// The relay module a lamp or laser on this transport is wired to, as
-    /// `modbus-rtu:PORT#UNIT` or `modbus-tcp:HOST:PORT#UNIT` (a module on a
-    /// plain serial line speaks RTU as unit 1); None for other transports.
-    /// Devices with the same module share its bus and its emergency stop.
-    pub fn modbus_module(&self) -> Option<String> {
-        match self {
-            Transport::ModbusRtu { port, unit, .. } => Some(format!("modbus-rtu:{port}#{unit}")),
-            Transport::ModbusTcp {
-                host, port, unit, ..
-            } => Some(format!("modbus-tcp:{host}:{port}#{unit}")),
-            Transport::Serial { port, .. } => Some(format!("modbus-rtu:{port}#1")),
-            Transport::Usb { .. }
-            | Transport::PtpIp { .. }
-            | Transport::Genicam { .. }
-            | Transport::Gphoto2 { .. } => None,
-        }
-    }
-
-    /// Whether a relay module on this transport has the ready and fault
-    /// input registers (always true for a transport that is no module).
-    pub fn status_registers(&self) -> bool {
-        match self {
-            Transport::ModbusRtu {
-                status_registers, ..
-            }
-            | Transport::ModbusTcp {
-                status_registers, ..
-            } => *status_registers,
-            _ => true,
-        }
-    }
 }
 
 /// Settings of the simulated rig.
@@ -753,7 +314,7 @@ impl Profile {
         })?;
         // One azimuth for every later step, as a plan's directions have.
         for dev in profile.devices.values_mut() {
-            if let Some(d) = &mut dev.direction {
+            if let Some(d) = dev.direction_mut() {
                 d.phi_deg = crate::model::text::normalise_phi(d.phi_deg).unwrap_or(d.phi_deg);
             }
         }
@@ -810,8 +371,8 @@ impl Profile {
                     let base = exposure_override.unwrap_or_else(|| {
                         self.devices
                             .get(&name)
-                            .and_then(|d| d.timing)
-                            .map_or(0.0, |t| t.exposure_s)
+                            .and_then(Device::as_camera)
+                            .map_or(0.0, |c| c.timing.exposure_s)
                     });
                     if base > 0.0 {
                         self.check_camera_exposure(&name, a.shortest_s(base))
@@ -840,8 +401,8 @@ impl Profile {
         let Some([low, high]) = self
             .devices
             .get(name)
-            .and_then(|d| d.timing)
-            .and_then(|t| t.exposure_range_s)
+            .and_then(Device::as_camera)
+            .and_then(|c| c.timing.exposure_range_s)
         else {
             return Ok(());
         };
@@ -921,11 +482,11 @@ impl Profile {
                         kind.with_article()
                     ),
                 )),
-                Some(d) if d.kind != kind => Err((
+                Some(d) if d.kind() != kind => Err((
                     key.to_string(),
                     format!(
                         "device `{name}` is {}, expected {}",
-                        d.kind.with_article(),
+                        d.kind().with_article(),
                         kind.with_article()
                     ),
                 )),
@@ -957,7 +518,7 @@ impl Profile {
                 want("rig.arm", arm, DeviceKind::Arm)?;
                 positive("rig.lamp_distance_m", *lamp_distance_m)?;
                 positive("rig.rail_radius_m", *rail_radius_m)?;
-                let joints = self.devices[arm].joints.as_ref().map_or(0, |j| j.len());
+                let joints = self.devices[arm].as_arm().map_or(0, |a| a.joints.len());
                 if joints != 3 {
                     return Err((
                         format!("devices.{arm}.joints"),
@@ -987,7 +548,7 @@ impl Profile {
                 listed_once("rig.cameras", cameras)?;
                 for (i, l) in lamps.iter().enumerate() {
                     want(&format!("rig.lamps[{i}]"), l, DeviceKind::Lamp)?;
-                    if self.devices[l].elevation_deg.is_none() {
+                    if self.devices[l].elevation_deg().is_none() {
                         return Err((
                             format!("devices.{l}.elevation_deg"),
                             "a lamp on a light arc needs its elevation in degrees".into(),
@@ -1072,7 +633,7 @@ impl Profile {
     pub fn axes_without_homing(&self) -> Vec<&str> {
         self.devices
             .iter()
-            .filter(|(_, d)| d.homing == Some(false))
+            .filter(|(_, d)| !d.homes())
             .map(|(name, _)| name.as_str())
             .collect()
     }
@@ -1083,15 +644,14 @@ impl Profile {
         let mut seen: BTreeMap<String, (&str, bool)> = BTreeMap::new();
         let mut coils: BTreeMap<(String, u16), &str> = BTreeMap::new();
         for (name, dev) in &self.devices {
-            if !matches!(dev.kind, DeviceKind::Lamp | DeviceKind::Laser) {
+            let Some(coil) = dev.coil() else {
                 continue;
-            }
-            let Some(module) = dev.transport.modbus_module() else {
+            };
+            let Some(module) = dev.transport().modbus_module() else {
                 continue;
             };
             // Two devices on one relay would switch together: the light
             // of one image would be both.
-            let coil = dev.coil.unwrap_or(0);
             if let Some(other) = coils.insert((module.clone(), coil), name) {
                 return Err((
                     format!("devices.{name}.coil"),
@@ -1100,7 +660,7 @@ impl Profile {
                     ),
                 ));
             }
-            let has = dev.transport.status_registers();
+            let has = dev.transport().status_registers();
             match seen.get(&module) {
                 Some(&(other, other_has)) if other_has != has => {
                     return Err((
@@ -1120,7 +680,7 @@ impl Profile {
     }
 
     fn need_direction(&self, name: &str) -> Result<(), (String, String)> {
-        match self.devices[name].direction {
+        match self.devices[name].direction() {
             Some(d) if d.theta_deg.is_finite() && d.phi_deg.is_finite() => Ok(()),
             _ => Err((
                 format!("devices.{name}.direction"),
@@ -1128,364 +688,6 @@ impl Profile {
                     .into(),
             )),
         }
-    }
-}
-
-/// How long an arm's homing cycle takes when its profile does not say.
-pub const DEFAULT_ARM_HOMING_S: f64 = 12.0;
-
-/// The longest homing cycle a profile may state, seconds.
-const MAX_HOMING_S: f64 = 3600.0;
-
-impl Device {
-    /// How long homing this device takes, seconds: an arm's `homing_s`;
-    /// 0 for every other kind (an axis's GRBL homing cycle lasts as long as
-    /// its travel back from where it stands, and a simulated controller
-    /// powers up at its home).
-    pub fn homing_time_s(&self) -> f64 {
-        match self.kind {
-            DeviceKind::Arm => self.homing_s.unwrap_or(DEFAULT_ARM_HOMING_S),
-            _ => 0.0,
-        }
-    }
-
-    fn validate(&self, key: &str) -> Result<(), (String, String)> {
-        let missing = |what: &str, expect: &str| {
-            Err((
-                format!("{key}.{what}"),
-                format!("{} needs `{what}` ({expect})", self.kind.with_article()),
-            ))
-        };
-        check_transport(&format!("{key}.transport"), &self.transport)?;
-        for (set, what) in [
-            (self.homing.is_some(), "homing"),
-            (self.configure.is_some(), "configure"),
-            (self.steps_per_deg.is_some(), "steps_per_deg"),
-        ] {
-            if set && self.kind != DeviceKind::Axis {
-                return Err((
-                    format!("{key}.{what}"),
-                    format!("`{what}` is for axes, not {}", self.kind.with_article()),
-                ));
-            }
-        }
-        if self.homing_s.is_some() && self.kind != DeviceKind::Arm {
-            return Err((
-                format!("{key}.homing_s"),
-                format!("`homing_s` is for arms, not {}", self.kind.with_article()),
-            ));
-        }
-        match self.kind {
-            DeviceKind::Axis => {
-                let Some(limits) = self.limits else {
-                    return missing("limits", "{min, max} in degrees");
-                };
-                check_limits(&format!("{key}.limits"), limits)?;
-                let Some(motion) = self.motion else {
-                    return missing("motion", "{max_velocity, acceleration, settle_s}");
-                };
-                check_motion(&format!("{key}.motion"), motion)?;
-                if let Some(steps) = self.steps_per_deg {
-                    if !(steps.is_finite() && steps > 0.0) {
-                        return Err((
-                            format!("{key}.steps_per_deg"),
-                            format!("expected a positive number, got {steps}"),
-                        ));
-                    }
-                    let rate = steps * motion.max_velocity;
-                    if rate > rigd_proto::grbl::MAX_STEP_RATE_HZ {
-                        return Err((
-                            format!("{key}.steps_per_deg"),
-                            format!(
-                                "{steps} steps/deg at motion.max_velocity {} deg/s is {rate:.0} steps/s; GRBL steps at most {:.0}/s (it refuses such settings with error:12)",
-                                motion.max_velocity,
-                                rigd_proto::grbl::MAX_STEP_RATE_HZ
-                            ),
-                        ));
-                    }
-                }
-                if self.homing == Some(false) && self.home_deg.is_some_and(|h| h != 0.0) {
-                    return Err((
-                        format!("{key}.home_deg"),
-                        "an axis without homing (`homing = false`) is zeroed at its 0° mark; leave `home_deg` out".into(),
-                    ));
-                }
-                if let Some(h) = self.home_deg {
-                    if !limits.contains(h) {
-                        return Err((
-                            format!("{key}.home_deg"),
-                            format!(
-                                "home {h} lies outside the limits [{}, {}]",
-                                limits.min, limits.max
-                            ),
-                        ));
-                    }
-                }
-            }
-            DeviceKind::Arm => {
-                let Some(joints) = &self.joints else {
-                    return missing("joints", "a list of {name, limits, motion}");
-                };
-                if let Some(h) = self.homing_s {
-                    if !(h.is_finite() && (0.0..=MAX_HOMING_S).contains(&h)) {
-                        return Err((
-                            format!("{key}.homing_s"),
-                            format!("expected 0 to {MAX_HOMING_S} seconds, got {h}"),
-                        ));
-                    }
-                }
-                for (i, j) in joints.iter().enumerate() {
-                    if let Err(why) = crate::model::text::check_name(&j.name) {
-                        return Err((format!("{key}.joints[{i}].name"), format!("the name {why}")));
-                    }
-                    if let Some(first) = joints[..i].iter().position(|o| o.name == j.name) {
-                        return Err((
-                            format!("{key}.joints[{i}].name"),
-                            format!(
-                                "`{}` is also joints[{first}]'s name; each joint needs its own",
-                                j.name
-                            ),
-                        ));
-                    }
-                    check_limits(&format!("{key}.joints[{i}].limits"), j.limits)?;
-                    check_motion(&format!("{key}.joints[{i}].motion"), j.motion)?;
-                    if !(j.counts_per_deg.is_finite() && j.counts_per_deg > 0.0) {
-                        return Err((
-                            format!("{key}.joints[{i}].counts_per_deg"),
-                            format!("expected a positive number, got {}", j.counts_per_deg),
-                        ));
-                    }
-                    if !j.limits.contains(j.home_deg) {
-                        return Err((
-                            format!("{key}.joints[{i}].home_deg"),
-                            format!("home {} lies outside the limits", j.home_deg),
-                        ));
-                    }
-                }
-            }
-            DeviceKind::Lamp => {
-                if self.warm_up_s.is_none() {
-                    return missing("warm_up_s", "seconds from switch-on to stable light");
-                }
-                non_negative(&format!("{key}.warm_up_s"), self.warm_up_s)?;
-                non_negative(&format!("{key}.switch_s"), self.switch_s)?;
-            }
-            DeviceKind::Camera => {
-                let Some(intr) = self.intrinsics else {
-                    return missing("intrinsics", "{resolution, focal_px, bit_depth}");
-                };
-                if !(8..=16).contains(&intr.bit_depth) {
-                    return Err((
-                        format!("{key}.intrinsics.bit_depth"),
-                        format!("expected 8 to 16 bits, got {}", intr.bit_depth),
-                    ));
-                }
-                let [w, h] = intr.resolution;
-                let side = 1..=MAX_SENSOR_SIDE;
-                if !(side.contains(&w) && side.contains(&h))
-                    || u64::from(w) * u64::from(h) > MAX_SENSOR_PIXELS
-                {
-                    return Err((
-                        format!("{key}.intrinsics.resolution"),
-                        format!(
-                            "{w}×{h}: expected [width, height] each 1 … {MAX_SENSOR_SIDE} pixels and at most {MAX_SENSOR_PIXELS} pixels in all"
-                        ),
-                    ));
-                }
-                if !(intr.focal_px.is_finite() && intr.focal_px > 0.0) {
-                    return Err((
-                        format!("{key}.intrinsics.focal_px"),
-                        format!(
-                            "expected a positive focal length in pixels, got {}",
-                            intr.focal_px
-                        ),
-                    ));
-                }
-                let Some(t) = self.timing else {
-                    return missing("timing", "{exposure_s, readout_s, transfer_s}");
-                };
-                if let Some([low, high]) = t.exposure_range_s {
-                    let usable = low.is_finite() && low > 0.0 && low < high;
-                    if !(usable && high <= MAX_EXPOSURE_S) {
-                        return Err((
-                            format!("{key}.timing.exposure_range_s"),
-                            format!(
-                                "expected [shortest, longest] seconds with 0 < shortest < longest ≤ {MAX_EXPOSURE_S}, got [{}, {}]",
-                                crate::model::text::short_number(low),
-                                crate::model::text::short_number(high)
-                            ),
-                        ));
-                    }
-                }
-                check_exposure_s(t.exposure_s)
-                    .map_err(|why| (format!("{key}.timing.exposure_s"), why))?;
-                let [low, high] = self.exposure_range_s();
-                if !(low..=high).contains(&t.exposure_s) {
-                    return Err((
-                        format!("{key}.timing.exposure_s"),
-                        format!(
-                            "{} s lies outside the camera's exposure_range_s [{low}, {high}]",
-                            t.exposure_s
-                        ),
-                    ));
-                }
-                non_negative(&format!("{key}.timing.readout_s"), Some(t.readout_s))?;
-                non_negative(&format!("{key}.timing.transfer_s"), Some(t.transfer_s))?;
-                self.validate_genicam(key, intr.bit_depth)?;
-            }
-            DeviceKind::Laser => {}
-        }
-        if let Some(d) = self.direction {
-            if !(0.0..=90.0).contains(&d.theta_deg) {
-                return Err((
-                    format!("{key}.direction.theta_deg"),
-                    format!("expected 0 to 90 degrees, got {}", d.theta_deg),
-                ));
-            }
-            crate::model::text::normalise_phi(d.phi_deg)
-                .map_err(|why| (format!("{key}.direction.phi_deg"), why))?;
-        }
-        Ok(())
-    }
-
-    /// A GenICam camera's transport, protocol and features agree, and its
-    /// pixel format is one rigd takes, of the sensor's bit depth.
-    fn validate_genicam(&self, key: &str, bit_depth: u8) -> Result<(), (String, String)> {
-        let on_genicam = matches!(self.transport, Transport::Genicam { .. });
-        if on_genicam != (self.protocol == "genicam") {
-            return Err((
-                format!("{key}.protocol"),
-                "a camera on `transport = { type = \"genicam\", id = ... }` speaks `protocol = \"genicam\"`, and only it does".into(),
-            ));
-        }
-        if let Some(ptp) = &self.ptp {
-            if self.protocol != "ptp" {
-                return Err((
-                    format!("{key}.ptp"),
-                    "is for cameras on `protocol = \"ptp\"`".into(),
-                ));
-            }
-            if ptp.exposure_index == Some(0) {
-                return Err((
-                    format!("{key}.ptp.exposure_index"),
-                    "expected an ISO sensitivity of 1 or more".into(),
-                ));
-            }
-        }
-        self.validate_gphoto2(key)?;
-        if self.genicam.is_some() && !on_genicam {
-            return Err((
-                format!("{key}.genicam"),
-                "is for cameras on `transport = { type = \"genicam\" }`".into(),
-            ));
-        }
-        if let Transport::Genicam { id } = &self.transport {
-            if id.trim().is_empty() {
-                return Err((
-                    format!("{key}.transport.id"),
-                    "expected the camera's IP address or Aravis device id".into(),
-                ));
-            }
-        }
-        let settings = self.genicam.as_ref();
-        let format = GenicamSettings::pixel_format_for(settings, bit_depth)
-            .map_err(|e| (format!("{key}.genicam.pixel_format"), e.to_string()))?;
-        if format.bit_depth() != bit_depth && on_genicam {
-            return Err((
-                format!("{key}.genicam.pixel_format"),
-                format!(
-                    "{format} has {} bits, but intrinsics.bit_depth is {bit_depth}",
-                    format.bit_depth()
-                ),
-            ));
-        }
-        // The pixel format decides a GenICam camera's filter array; the
-        // profile's `intrinsics.cfa`, where given, must say the same.
-        if let (true, Some(cfa)) = (on_genicam, self.intrinsics.and_then(|i| i.cfa)) {
-            if format.cfa() != Some(cfa) {
-                return Err((
-                    format!("{key}.genicam.pixel_format"),
-                    format!("{format} is not behind the {cfa} filter array `intrinsics.cfa` names"),
-                ));
-            }
-        }
-        if let Some(g) = settings.and_then(|g| g.gain_db) {
-            if !g.is_finite() {
-                return Err((
-                    format!("{key}.genicam.gain_db"),
-                    format!("expected a finite gain in dB, got {g}"),
-                ));
-            }
-        }
-        let source = GenicamSettings::trigger_source_of(settings);
-        if source != "Software" && !source.starts_with("Line") {
-            return Err((
-                format!("{key}.genicam.trigger_source"),
-                format!("expected `Software` or a line (`Line0`, …), got `{source}`"),
-            ));
-        }
-        Ok(())
-    }
-
-    /// A camera through libgphoto2 speaks `protocol = "gphoto2"`, and only
-    /// it has a `gphoto2` table, whose widgets are named and valued and
-    /// leave the exposure to `timing.exposure_s`.
-    fn validate_gphoto2(&self, key: &str) -> Result<(), (String, String)> {
-        let on_gphoto2 = matches!(self.transport, Transport::Gphoto2 { .. });
-        if on_gphoto2 != (self.protocol == "gphoto2") {
-            return Err((
-                format!("{key}.protocol"),
-                "a camera on `transport = { type = \"gphoto2\" }` speaks `protocol = \"gphoto2\"`, and only it does".into(),
-            ));
-        }
-        let Some(g) = &self.gphoto2 else {
-            return Ok(());
-        };
-        if !on_gphoto2 {
-            return Err((
-                format!("{key}.gphoto2"),
-                "is for cameras on `transport = { type = \"gphoto2\" }`".into(),
-            ));
-        }
-        for (name, value) in &g.settings {
-            let widget = format!("{key}.gphoto2.settings.{name}");
-            if name == GPHOTO2_SHUTTER_WIDGET {
-                return Err((
-                    widget,
-                    "the exposure time comes from `timing.exposure_s` (or the run's `--exposure`): remove it here".into(),
-                ));
-            }
-            if name.trim().is_empty() || name.contains('/') || name.chars().any(char::is_control) {
-                return Err((
-                    format!("{key}.gphoto2.settings"),
-                    "a widget's name, as `gphoto2 --list-config` lists it (without its path)"
-                        .into(),
-                ));
-            }
-            if value.chars().any(char::is_control) {
-                return Err((widget, "expected a value without control characters".into()));
-            }
-        }
-        Ok(())
-    }
-
-    /// The exposures this camera can set, `[shortest, longest]` seconds:
-    /// its profile's `timing.exposure_range_s`, else anything up to
-    /// [`MAX_EXPOSURE_S`] (the shortest then is the smallest positive
-    /// number, since 0 itself is refused).
-    pub fn exposure_range_s(&self) -> [f64; 2] {
-        self.timing
-            .and_then(|t| t.exposure_range_s)
-            .unwrap_or([f64::MIN_POSITIVE, MAX_EXPOSURE_S])
-    }
-
-    /// The motion model of an axis; validation guarantees it for axes.
-    pub fn motion_or_default(&self) -> Motion {
-        self.motion.unwrap_or(Motion {
-            max_velocity: 1.0,
-            acceleration: 1.0,
-            settle_s: 0.0,
-        })
     }
 }
 
@@ -1518,97 +720,6 @@ fn listed_once(key: &str, names: &[String]) -> Result<(), (String, String)> {
     Ok(())
 }
 
-/// A transport that can be reached at all: a line speed above 0 on a
-/// serial line, a port and host on TCP.
-fn check_transport(key: &str, transport: &Transport) -> Result<(), (String, String)> {
-    match transport {
-        Transport::Serial { port, baud } | Transport::ModbusRtu { port, baud, .. } => {
-            if port.trim().is_empty() {
-                return Err((
-                    format!("{key}.port"),
-                    "expected the serial device, e.g. /dev/ttyUSB0".into(),
-                ));
-            }
-            if !(1..=MAX_BAUD).contains(baud) {
-                return Err((
-                    format!("{key}.baud"),
-                    format!("{baud}: expected a line speed of 1 … {MAX_BAUD} baud, e.g. 115200"),
-                ));
-            }
-        }
-        Transport::ModbusTcp { host, port, .. } | Transport::PtpIp { host, port } => {
-            if host.trim().is_empty() {
-                return Err((
-                    format!("{key}.host"),
-                    "expected a host name or IP address".into(),
-                ));
-            }
-            if *port == 0 {
-                return Err((
-                    format!("{key}.port"),
-                    "0: expected a TCP port of 1 … 65535".into(),
-                ));
-            }
-        }
-        Transport::Gphoto2 { port, model } => {
-            for (field, value, expected) in [
-                (
-                    "port",
-                    port,
-                    "libgphoto2's port, e.g. `usb:001,004` or `ptpip:192.168.1.20:15740:15740`",
-                ),
-                (
-                    "model",
-                    model,
-                    "libgphoto2's model name, e.g. `PTP/IP Camera`",
-                ),
-            ] {
-                if value.as_ref().is_some_and(|v| v.trim().is_empty()) {
-                    return Err((
-                        format!("{key}.{field}"),
-                        format!("expected {expected}, or no `{field}` to autodetect"),
-                    ));
-                }
-            }
-        }
-        Transport::Usb { .. } | Transport::Genicam { .. } => {}
-    }
-    Ok(())
-}
-
-fn check_limits(key: &str, l: Limits) -> Result<(), (String, String)> {
-    if !(l.min.is_finite() && l.max.is_finite()) || l.min >= l.max {
-        return Err((
-            key.to_string(),
-            format!(
-                "expected min < max, got min = {}, max = {} (inverted or empty)",
-                l.min, l.max
-            ),
-        ));
-    }
-    Ok(())
-}
-
-fn check_motion(key: &str, m: Motion) -> Result<(), (String, String)> {
-    if !(m.max_velocity > 0.0 && m.acceleration > 0.0 && m.settle_s >= 0.0) {
-        return Err((
-            key.to_string(),
-            "expected max_velocity > 0, acceleration > 0 and settle_s >= 0".into(),
-        ));
-    }
-    Ok(())
-}
-
-fn non_negative(key: &str, v: Option<f64>) -> Result<(), (String, String)> {
-    match v {
-        Some(x) if !(x >= 0.0 && x.is_finite()) => Err((
-            key.to_string(),
-            format!("expected a non-negative number of seconds, got {x}"),
-        )),
-        _ => Ok(()),
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1626,8 +737,8 @@ mod tests {
         assert!(p
             .devices
             .values()
-            .filter(|d| d.kind == DeviceKind::Lamp)
-            .all(|d| !d.transport.status_registers()));
+            .filter(|d| d.kind() == DeviceKind::Lamp)
+            .all(|d| !d.transport().status_registers()));
 
         let one = text.replacen(rtu, &coil_only, 1);
         let e = Profile::parse(&one, "one.toml").expect_err("disagreement");
@@ -1695,7 +806,7 @@ mod tests {
             r#"gphoto2 = { settings = { iso = "100", imageformat = "RAW" } }"#,
         )
         .expect("port, model and widgets");
-        let cam = &p.devices["camera"];
+        let cam = p.devices["camera"].as_camera().expect("a camera");
         assert_eq!(
             cam.transport,
             Transport::Gphoto2 {
@@ -1719,7 +830,7 @@ mod tests {
                 "gphoto2",
                 "",
                 "devices.camera.protocol",
-                "and only it does",
+                "speaks `protocol = \"ptp\"`",
             ),
             (
                 r#"{ type = "gphoto2", port = " " }"#,
@@ -1783,7 +894,10 @@ mod tests {
         };
         let p = with(ptp("ptp = { exposure_index = 200 }")).expect("ISO 200");
         assert_eq!(
-            p.devices["camera"].ptp.and_then(|p| p.exposure_index),
+            p.devices["camera"]
+                .as_camera()
+                .and_then(|c| c.ptp)
+                .and_then(|p| p.exposure_index),
             Some(200)
         );
         let e = with(ptp("ptp = { exposure_index = 0 }")).expect_err("ISO 0");
@@ -1808,7 +922,7 @@ mod tests {
         };
         let p = with_cfa("RGGB", "BayerRG8").expect("the same tile");
         assert_eq!(
-            p.devices["camera"].intrinsics.and_then(|i| i.cfa),
+            p.devices["camera"].intrinsics().and_then(|i| i.cfa),
             Some(rigd_core::Cfa::Rggb)
         );
         for format in ["BayerBG8", "Mono8"] {
@@ -1821,7 +935,7 @@ mod tests {
     #[test]
     fn a_genicam_camera_names_a_pixel_format_of_its_depth_and_a_trigger() {
         let p = genicam_virtex("genicam", 12, "").expect("Mono12 by default");
-        let cam = &p.devices["camera"];
+        let cam = p.devices["camera"].as_camera().expect("a camera");
         assert_eq!(
             GenicamSettings::pixel_format_for(cam.genicam.as_ref(), 12).map(|f| f.to_string()),
             Ok("Mono12".into())

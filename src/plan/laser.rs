@@ -10,7 +10,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::model::profile::{Profile, RigGeometry};
+use crate::model::profile::{Device, Profile, RigGeometry};
 use rigd_core::geometry::{Direction, Vec3};
 
 /// The strip lands at most this many emitter radii from the centre; a
@@ -267,20 +267,21 @@ impl LaserRig {
             return None;
         };
         let dev = |n: &str| profile.devices.get(n);
-        let limits = |n: &str| dev(n).and_then(|d| d.limits).map(|l| (l.min, l.max));
+        let axis = |n: &str| dev(n).and_then(Device::as_axis);
+        let limits = |n: &str| axis(n).map(|a| (a.limits.min, a.limits.max));
         let laser_dev = dev(laser)?;
-        let theta = laser_dev.elevation_deg?;
+        let theta = laser_dev.elevation_deg()?;
         let cams = cameras
             .iter()
             .map(|c| {
                 dev(c)
-                    .and_then(|d| d.direction)
+                    .and_then(|d| d.direction())
                     .map(|d| (c.clone(), d.theta_deg))
             })
             .collect::<Option<Vec<_>>>()?;
         let frame_overhead_s = cameras
             .iter()
-            .filter_map(|c| dev(c).and_then(|d| d.timing))
+            .filter_map(|c| dev(c).and_then(Device::timing))
             .map(|t| t.readout_s + t.transfer_s)
             .fold(0.0, f64::max);
         Some(LaserRig {
@@ -290,13 +291,13 @@ impl LaserRig {
             light_arc: light_arc.clone(),
             geometry: LaserGeometry {
                 theta_deg: theta,
-                radius_m: laser_dev.distance_m.unwrap_or(*arc_radius_m),
+                radius_m: laser_dev.distance_m().unwrap_or(*arc_radius_m),
             },
             cameras: cams,
             tilt_limits: limits(tilt)?,
             arc_limits: limits(light_arc)?,
             turntable_limits: limits(turntable)?,
-            tilt_max_velocity: dev(tilt)?.motion_or_default().max_velocity,
+            tilt_max_velocity: axis(tilt)?.motion.max_velocity,
             frame_overhead_s,
         })
     }

@@ -493,7 +493,7 @@ pub fn read_frame(
     let intrinsics = name
         .as_deref()
         .and_then(|n| profile.devices.get(n))
-        .and_then(|d| d.intrinsics);
+        .and_then(|d| d.intrinsics());
     // The renderer writes grey frames; a rig's PNG of a colour camera
     // holds its mosaic.
     let cfa = if has_metadata {
@@ -527,7 +527,7 @@ pub fn frame_image(frame: &Frame, profile: &Profile, camera: &str) -> Result<Ima
         None => profile
             .devices
             .get(camera)
-            .and_then(|d| d.intrinsics)
+            .and_then(|d| d.intrinsics())
             .and_then(|i| i.cfa),
     };
     decode_samples(
@@ -651,7 +651,7 @@ mod tests {
         )
         .expect("monochrome profile");
         assert!(mono.devices["camera"]
-            .intrinsics
+            .intrinsics()
             .as_ref()
             .is_some_and(|i| i.cfa.is_none()));
         // The camera names no format: the profile's camera says.

@@ -130,7 +130,7 @@ fn fix_for(name: &str, e: &DeviceError) -> Option<String> {
 fn failed(name: &str, dev: &Device, e: &DeviceError) -> DeviceCheck {
     DeviceCheck {
         device: name.to_string(),
-        kind: dev.kind.to_string(),
+        kind: dev.kind().to_string(),
         usable: false,
         detail: e.message.clone(),
         fix: fix_for(name, e),
@@ -146,23 +146,23 @@ async fn check_coil(
     status_registers: bool,
     clock: &Clock,
 ) -> DeviceCheck {
-    let coil = dev.coil.unwrap_or(0);
+    let coil = dev.coil().unwrap_or(0);
     let mut cfg = ModbusConfig::new(name, coil, Duration::ZERO, Duration::ZERO);
     cfg.status_registers = status_registers;
     match probe_coil(cfg, clock.clone(), bus).await {
         Err(e) => failed(name, dev, &e.into_device(name)),
         Ok(p) => {
             let relay = if p.on { "on" } else { "off" };
-            let warm_up = dev.warm_up_s.unwrap_or(0.0);
+            let warm_up = dev.as_lamp().map_or(0.0, |l| l.warm_up_s);
             let (status, fault) = match p.status {
-                Some((_, fault)) if dev.kind == DeviceKind::Laser => {
+                Some((_, fault)) if dev.kind() == DeviceKind::Laser => {
                     ("module with status registers".to_string(), fault)
                 }
                 Some((ready, fault)) => (
                     format!("ready bit {}, fault bit {}", u8::from(ready), u8::from(fault)),
                     fault,
                 ),
-                None if dev.kind == DeviceKind::Lamp => (
+                None if dev.kind() == DeviceKind::Lamp => (
                     format!("coil-only module: rigd times the {warm_up} s warm-up from the coil's read-back"),
                     false,
                 ),
@@ -170,7 +170,7 @@ async fn check_coil(
             };
             DeviceCheck {
                 device: name.to_string(),
-                kind: dev.kind.to_string(),
+                kind: dev.kind().to_string(),
                 usable: !fault,
                 detail: format!("relay coil {coil} {relay}; {status}"),
                 fix: fault.then(|| {
@@ -201,7 +201,7 @@ pub async fn check_rig(
                 Ok((_connected, id)) => match id.unusable {
                     None => DeviceCheck {
                         device: name.clone(),
-                        kind: dev.kind.to_string(),
+                        kind: dev.kind().to_string(),
                         usable: true,
                         detail: id.about,
                         fix: None,
@@ -209,7 +209,7 @@ pub async fn check_rig(
                     },
                     Some((problem, fix)) => DeviceCheck {
                         device: name.clone(),
-                        kind: dev.kind.to_string(),
+                        kind: dev.kind().to_string(),
                         usable: false,
                         detail: format!("{}; {problem}", id.about),
                         fix: Some(fix),

@@ -121,7 +121,7 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
         .devices
         .iter()
         .map(|(name, dev)| {
-            let link = match (&dev.transport, dev.kind) {
+            let link = match (dev.transport(), dev.kind()) {
                 (
                     Transport::Usb {
                         vendor_id,
@@ -138,7 +138,7 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                 | (Transport::Serial { port, baud }, DeviceKind::Lamp | DeviceKind::Laser) => {
                     // A relay module on a plain serial line speaks RTU.
                     modbus_link(
-                        &dev.transport,
+                        dev.transport(),
                         Arc::new(SerialOpener {
                             port: port.clone(),
                             baud: *baud,
@@ -147,7 +147,7 @@ pub fn links(profile: &Profile) -> BTreeMap<String, Link> {
                     )
                 }
                 (Transport::ModbusTcp { host, port, .. }, _) => modbus_link(
-                    &dev.transport,
+                    dev.transport(),
                     Arc::new(TcpOpener {
                         host: host.clone(),
                         port: *port,

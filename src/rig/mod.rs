@@ -209,9 +209,10 @@ fn modbus_context(stream: ByteStream, framing: Framing, unit: u8) -> Context {
 
 /// The ACL joint set-up of an arm device.
 pub fn acl_joints(dev: &Device) -> Vec<AclJointConfig> {
-    dev.joints
+    dev.as_arm()
+        .map(|a| a.joints.as_slice())
+        .unwrap_or_default()
         .iter()
-        .flatten()
         .map(|j| AclJointConfig {
             name: j.name.clone(),
             limits: j.limits,
@@ -287,7 +288,7 @@ pub async fn build_rig(
                 "no link configured for this device",
             )
         })?;
-        match (dev.kind, link) {
+        match (dev.kind(), link) {
             (DeviceKind::Axis | DeviceKind::Arm, link @ Link::Line(_))
             | (DeviceKind::Camera, link @ (Link::Usb(_) | Link::Genicam(_) | Link::Gphoto2(_))) => {
                 wiring.push((name, Wiring::Own(dev, link)));
@@ -385,16 +386,16 @@ pub async fn build_rig(
                     failures.extend(bus_failures.remove(&bus));
                     continue;
                 };
-                let coil = dev.coil.unwrap_or(0);
+                let coil = dev.coil().unwrap_or(0);
                 shared.coils.fetch_max(coil + 1, Ordering::SeqCst);
                 let mut cfg = ModbusConfig::new(
                     name,
                     coil,
-                    Duration::from_secs_f64(dev.warm_up_s.unwrap_or(0.0)),
-                    Duration::from_secs_f64(dev.switch_s.unwrap_or(0.0)),
+                    Duration::from_secs_f64(dev.as_lamp().map_or(0.0, |l| l.warm_up_s)),
+                    Duration::from_secs_f64(dev.switch_s().unwrap_or(0.0)),
                 );
                 cfg.status_registers = shared.status_registers;
-                if dev.kind == DeviceKind::Lamp {
+                if dev.kind() == DeviceKind::Lamp {
                     let lamp = ModbusLamp::new(cfg, clock.clone(), shared.bus.clone());
                     rig.lamps.insert(
                         name.clone(),
@@ -442,9 +443,12 @@ pub async fn build_rig(
 /// the sensor layout its profile describes.
 fn ptp_config(name: &str, dev: &Device) -> PtpConfig {
     PtpConfig {
-        cfa: dev.intrinsics.and_then(|i| i.cfa),
+        cfa: dev.intrinsics().and_then(|i| i.cfa),
         cfa_key: format!("devices.{name}.intrinsics.cfa"),
-        exposure_index: dev.ptp.and_then(|p| p.exposure_index),
+        exposure_index: dev
+            .as_camera()
+            .and_then(|c| c.ptp)
+            .and_then(|p| p.exposure_index),
         ..PtpConfig::default()
     }
 }
@@ -455,20 +459,13 @@ pub(crate) async fn connect_device(
     link: Link,
     clock: &Clock,
 ) -> Result<(Connected, Identity), DeviceError> {
-    match (dev.kind, link) {
-        (DeviceKind::Axis, Link::Line(opener)) => {
-            let (Some(limits), Some(motion)) = (dev.limits, dev.motion) else {
-                return Err(DeviceError::new(
-                    name,
-                    ErrorKind::NotReady,
-                    "an axis needs limits and motion",
-                ));
-            };
+    match (dev, link) {
+        (Device::Axis(axis_dev), Link::Line(opener)) => {
             let stream = open_stream(clock, name, opener.as_ref()).await?;
-            let mut cfg = GrblConfig::new(name, limits, motion);
-            cfg.homing = dev.homing.unwrap_or(true);
-            cfg.configure = dev.configure.unwrap_or(false);
-            cfg.steps_per_deg = dev.steps_per_deg;
+            let mut cfg = GrblConfig::new(name, axis_dev.limits, axis_dev.motion);
+            cfg.homing = axis_dev.homing;
+            cfg.configure = axis_dev.configure;
+            cfg.steps_per_deg = axis_dev.steps_per_deg;
             let axis = GrblAxis::connect(stream, cfg, clock.clone()).await?;
             tracing::info!(device = %name, version = ?axis.version(), "GRBL axis connected");
             let identity = grbl_identity(&axis);
@@ -488,7 +485,7 @@ pub(crate) async fn connect_device(
                 identity,
             ))
         }
-        (DeviceKind::Arm, Link::Line(opener)) => {
+        (Device::Arm(_), Link::Line(opener)) => {
             let stream = open_stream(clock, name, opener.as_ref()).await?;
             let cfg = AclConfig::new(name, acl_joints(dev));
             let arm = AclArm::connect(stream, cfg, clock.clone()).await?;
@@ -516,7 +513,7 @@ pub(crate) async fn connect_device(
                 identity,
             ))
         }
-        (DeviceKind::Camera, Link::Usb(opener)) => {
+        (Device::Camera(_), Link::Usb(opener)) => {
             let pipe = open_pipe(clock, name, opener.as_ref()).await?;
             let config = PtpConfig {
                 decode_in: opener.decode_in(),
@@ -544,7 +541,7 @@ pub(crate) async fn connect_device(
                 identity,
             ))
         }
-        (DeviceKind::Camera, Link::Genicam(opener)) => {
+        (Device::Camera(_), Link::Genicam(opener)) => {
             let Some(cfg) = GenicamConfig::of(name, dev) else {
                 return Err(wrong_transport(name, dev));
             };
@@ -579,7 +576,7 @@ pub(crate) async fn connect_device(
             ));
             Ok((Connected::Camera(Box::new(cam)), identity))
         }
-        (DeviceKind::Camera, Link::Gphoto2(opener)) => {
+        (Device::Camera(_), Link::Gphoto2(opener)) => {
             let Some(cfg) = Gphoto2Config::of(name, dev) else {
                 return Err(wrong_transport(name, dev));
             };
@@ -668,8 +665,8 @@ fn wrong_transport(name: &str, dev: &Device) -> DeviceError {
         ErrorKind::NotReady,
         format!(
             "{} cannot use protocol `{}` over this transport",
-            dev.kind.with_article(),
-            dev.protocol
+            dev.kind().with_article(),
+            dev.protocol()
         ),
     )
 }

@@ -16,7 +16,7 @@ use tokio_serial::{SerialPort, SerialStream};
 use super::sim::{bus_key, firmware};
 use super::{Framing, Link};
 use crate::kinematics::Solver;
-use crate::model::profile::{Profile, Transport};
+use crate::model::profile::{CameraProtocol, Device, Profile, Transport};
 use crate::rig::hal::{DeviceError, ErrorKind};
 
 /// Where one device of the served rig can be reached.
@@ -141,28 +141,28 @@ pub async fn serve(
                     let _ = tokio::io::copy_bidirectional(&mut fw, &mut master).await;
                 });
                 keep.push(Arc::new(slave));
-                let baud = match dev.transport {
-                    Transport::Serial { baud, .. } => baud,
+                let baud = match dev.transport() {
+                    Transport::Serial { baud, .. } => *baud,
                     _ => 115_200,
                 };
-                dev.transport = Transport::Serial {
+                *dev.transport_mut() = Transport::Serial {
                     port: path.clone(),
                     baud,
                 };
                 endpoints.push(Endpoint {
                     device: name.clone(),
                     address: path,
-                    protocol: dev.protocol.to_uppercase(),
+                    protocol: dev.protocol().to_uppercase(),
                 });
             }
             Link::Modbus { unit, .. } => {
-                let key = bus_key(&dev.transport);
+                let key = bus_key(dev.transport());
                 if let Some(&port) = tcp_of_bus.get(&key) {
-                    dev.transport = Transport::ModbusTcp {
+                    *dev.transport_mut() = Transport::ModbusTcp {
                         host: "127.0.0.1".into(),
                         port,
                         unit: *unit,
-                        status_registers: dev.transport.status_registers(),
+                        status_registers: dev.transport().status_registers(),
                     };
                 }
             }
@@ -177,17 +177,17 @@ pub async fn serve(
                     name.clone(),
                     clock.clone(),
                 ));
-                dev.transport = Transport::PtpIp {
+                *dev.transport_mut() = Transport::PtpIp {
                     host: "127.0.0.1".into(),
                     port,
                 };
                 // The served camera is a PTP camera whatever the profile
                 // reached it by (libgphoto2, Aravis): the printed profile
                 // reaches it with rigd's own PTP driver.
-                if dev.protocol != "ptp" {
-                    dev.protocol = "ptp".into();
-                    dev.gphoto2 = None;
-                    dev.genicam = None;
+                if let Device::Camera(camera) = dev {
+                    camera.protocol = CameraProtocol::Ptp;
+                    camera.gphoto2 = None;
+                    camera.genicam = None;
                 }
                 endpoints.push(Endpoint {
                     device: name.clone(),

@@ -27,7 +27,7 @@ use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{DeviceKind, Profile, SimGrblSettings, Transport};
+use crate::model::profile::{Device, DeviceKind, Profile, SimGrblSettings, Transport};
 use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
@@ -190,12 +190,11 @@ pub(crate) fn firmware(
     let mut arm_home_deg = Vec::new();
 
     // Modbus modules first: cameras read their coils.
-    let mut by_bus: BTreeMap<String, Vec<(&String, &crate::model::profile::Device)>> =
-        BTreeMap::new();
+    let mut by_bus: BTreeMap<String, Vec<(&String, &Device)>> = BTreeMap::new();
     for (name, dev) in &profile.devices {
-        if matches!(dev.kind, DeviceKind::Lamp | DeviceKind::Laser) {
+        if matches!(dev.kind(), DeviceKind::Lamp | DeviceKind::Laser) {
             by_bus
-                .entry(bus_key(&dev.transport))
+                .entry(bus_key(dev.transport()))
                 .or_default()
                 .push((name, dev));
         }
@@ -203,11 +202,11 @@ pub(crate) fn firmware(
     for (key, devs) in by_bus {
         let lamps: Vec<_> = devs
             .iter()
-            .filter(|(_, d)| d.kind == DeviceKind::Lamp)
+            .filter(|(_, d)| d.kind() == DeviceKind::Lamp)
             .collect();
         let n = lamps
             .iter()
-            .map(|(_, d)| usize::from(d.coil.unwrap_or(0)) + 1)
+            .map(|(_, d)| usize::from(d.coil().unwrap_or(0)) + 1)
             .max()
             .unwrap_or(0);
         let mut specs: Vec<LampSpec> = (0..n)
@@ -219,19 +218,19 @@ pub(crate) fn firmware(
             .collect();
         let mut names = vec![None; n];
         for (name, d) in &lamps {
-            let k = usize::from(d.coil.unwrap_or(0));
+            let k = usize::from(d.coil().unwrap_or(0));
             specs[k] = LampSpec {
                 name: (*name).clone(),
-                warm_up_s: d.warm_up_s.unwrap_or(0.0),
-                switch_s: d.switch_s.unwrap_or(0.0),
+                warm_up_s: d.as_lamp().map_or(0.0, |l| l.warm_up_s),
+                switch_s: d.switch_s().unwrap_or(0.0),
             };
             names[k] = Some((*name).clone());
         }
-        let laser = devs.iter().find(|(_, d)| d.kind == DeviceKind::Laser);
+        let laser = devs.iter().find(|(_, d)| d.kind() == DeviceKind::Laser);
         if let Some((lname, ld)) = laser {
             // The world reports the laser's relay beside the lamps'.
             names.push(Some((*lname).clone()));
-            let coil = usize::from(ld.coil.unwrap_or(0));
+            let coil = usize::from(ld.coil().unwrap_or(0));
             if coil != n {
                 return Err(DeviceError::new(
                     lname,
@@ -240,9 +239,9 @@ pub(crate) fn firmware(
                 ));
             }
         }
-        let (framing, unit) = match devs[0].1.transport {
-            Transport::ModbusTcp { unit, .. } => (Framing::Tcp, unit),
-            Transport::ModbusRtu { unit, .. } => (Framing::Rtu, unit),
+        let (framing, unit) = match devs[0].1.transport() {
+            Transport::ModbusTcp { unit, .. } => (Framing::Tcp, *unit),
+            Transport::ModbusRtu { unit, .. } => (Framing::Rtu, *unit),
             _ => (Framing::Tcp, 1),
         };
         let module = ModbusModule::new(
@@ -250,8 +249,8 @@ pub(crate) fn firmware(
                 unit,
                 lamps: specs,
                 laser: laser.map(|(n, _)| (*n).clone()),
-                laser_switch_s: laser.and_then(|(_, d)| d.switch_s).unwrap_or(0.0),
-                status_registers: devs[0].1.transport.status_registers(),
+                laser_switch_s: laser.and_then(|(_, d)| d.switch_s()).unwrap_or(0.0),
+                status_registers: devs[0].1.transport().status_registers(),
                 write_multiple_coils: true,
             },
             clock.clone(),
@@ -269,8 +268,8 @@ pub(crate) fn firmware(
     }
 
     for dev in profile.devices.values() {
-        if dev.kind == DeviceKind::Arm {
-            arm_home_deg = dev.joints.iter().flatten().map(|j| j.home_deg).collect();
+        if let Some(arm) = dev.as_arm() {
+            arm_home_deg = arm.joints.iter().map(|j| j.home_deg).collect();
         }
     }
     let world = SimWorld {
@@ -283,18 +282,18 @@ pub(crate) fn firmware(
     tracing::info!("{}", scene.describe_effects());
 
     for (name, dev) in &profile.devices {
-        let link = match dev.kind {
-            DeviceKind::Axis => {
-                let home = dev.home_deg.unwrap_or(0.0);
-                let motion = Trapezoid::from(dev.motion_or_default());
+        let link = match dev {
+            Device::Axis(axis) => {
+                let home = axis.home_deg.unwrap_or(0.0);
+                let motion = Trapezoid::from(axis.motion);
                 let settings = match profile.sim.grbl_settings {
                     SimGrblSettings::Factory => Eeprom::factory(),
                     SimGrblSettings::Configured => {
-                        let travel = dev.limits.map_or(200.0, |l| l.max - l.min);
+                        let travel = axis.limits.max - axis.limits.min;
                         // A board set up for its axis: its rates, its
                         // travel, and homing if the axis homes.
-                        let e = Eeprom::configured(motion, dev.homing.unwrap_or(true), travel);
-                        if let Some(steps) = dev.steps_per_deg {
+                        let e = Eeprom::configured(motion, axis.homing, travel);
+                        if let Some(steps) = axis.steps_per_deg {
                             e.set(100, steps);
                         }
                         e
@@ -318,11 +317,10 @@ pub(crate) fn firmware(
                     opened: AtomicBool::new(false),
                 }))
             }
-            DeviceKind::Arm => {
-                let joints: Vec<AclJoint> = dev
+            Device::Arm(arm) => {
+                let joints: Vec<AclJoint> = arm
                     .joints
                     .iter()
-                    .flatten()
                     .map(|j| AclJoint {
                         counts_per_deg: j.counts_per_deg,
                         min_deg: j.limits.min - j.home_deg,
@@ -346,8 +344,8 @@ pub(crate) fn firmware(
                     opened: AtomicBool::new(false),
                 }))
             }
-            DeviceKind::Lamp | DeviceKind::Laser => {
-                let key = bus_key(&dev.transport);
+            Device::Lamp(_) | Device::Laser(_) => {
+                let key = bus_key(dev.transport());
                 let Some(m) = modules.get(&key) else {
                     continue;
                 };
@@ -360,16 +358,16 @@ pub(crate) fn firmware(
                     }),
                     framing: m.framing,
                     unit: m.unit,
-                    status_registers: dev.transport.status_registers(),
+                    status_registers: dev.transport().status_registers(),
                 }
             }
-            DeviceKind::Camera => {
-                let (Some(t), Some(geometry)) = (dev.timing, camera_geometry(profile, name, size))
-                else {
+            Device::Camera(camera) => {
+                let t = camera.timing;
+                let Some(geometry) = camera_geometry(profile, name, size) else {
                     return Err(DeviceError::new(
                         name,
                         ErrorKind::NotReady,
-                        "a camera needs timing and intrinsics",
+                        "a camera needs intrinsics",
                     ));
                 };
                 let opener = Arc::new(PtpOpener {
@@ -384,7 +382,7 @@ pub(crate) fn firmware(
                             readout_s: t.readout_s,
                             transfer_s: t.transfer_s,
                         },
-                        cfa: dev.intrinsics.and_then(|i| i.cfa),
+                        cfa: camera.intrinsics.cfa,
                     },
                     ctx: SimContext::new(clock.clone(), faults.clone()),
                     view: CameraView {
@@ -396,7 +394,7 @@ pub(crate) fn firmware(
                         lamp_distance_m: lamp_distances(profile),
                         laser: crate::plan::laser::LaserRig::of(profile),
                         holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
-                        cfa: dev.intrinsics.and_then(|i| i.cfa),
+                        cfa: camera.intrinsics.cfa,
                         lamp_drift: profile.sim.lamp_drift,
                         clock: clock.clone(),
                     },

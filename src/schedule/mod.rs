@@ -105,7 +105,7 @@ impl Schedule {
 pub fn rig_offer(profile: &Profile, solver: &Solver) -> RigOffer {
     let fixed_lamps = match &profile.rig {
         RigGeometry::FixedLamps { camera, lamps, .. } => {
-            let dir = |n: &String| profile.devices.get(n).and_then(|d| d.direction);
+            let dir = |n: &String| profile.devices.get(n).and_then(|d| d.direction());
             let lamp_dirs: Option<Vec<Direction>> = lamps.iter().map(dir).collect();
             lamp_dirs.zip(dir(camera))
         }

@@ -37,7 +37,7 @@ use rigd_core::geometry::Direction;
 use serde::Serialize;
 
 use crate::kinematics::Setpoints;
-use crate::model::profile::{DeviceKind, Profile};
+use crate::model::profile::{Device, Profile};
 use crate::plan::Order;
 use crate::schedule::timing::Timing;
 use crate::schedule::Schedule;
@@ -121,18 +121,19 @@ impl Costs {
         }
         let mut motion = Vec::new();
         for name in &axis_names {
-            let d = profile
+            let axis = profile
                 .devices
                 .get(*name)
+                .and_then(Device::as_axis)
                 .ok_or_else(|| format!("axis `{name}` is not in the profile"))?;
-            motion.push(rigd_core::Trapezoid::from(d.motion_or_default()));
+            motion.push(rigd_core::Trapezoid::from(axis.motion));
         }
         if joints > 0 {
             let arm = profile
                 .devices
                 .values()
-                .find(|d| d.kind == DeviceKind::Arm)
-                .and_then(|d| d.joints.as_ref())
+                .find_map(Device::as_arm)
+                .map(|a| &a.joints)
                 .ok_or_else(|| "arm set-points without an arm".to_string())?;
             if arm.len() != joints {
                 return Err("arm set-points do not match the arm's joints".into());

@@ -6,7 +6,7 @@
 
 use crate::kinematics::Setpoints;
 use crate::model::exposure::{AutoExposure, ExposurePolicy};
-use crate::model::profile::{DeviceKind, Profile};
+use crate::model::profile::{Device, DeviceKind, Profile};
 use crate::schedule::Schedule;
 
 pub use crate::model::profile::{check_exposure_s, MAX_EXPOSURE_S};
@@ -72,12 +72,12 @@ impl<'a> Timing<'a> {
             plate_mm: None,
         };
         for (name, d) in &self.profile.devices {
-            match d.kind {
-                DeviceKind::Axis => {
-                    s.axes.insert(name.clone(), d.home_deg.unwrap_or(0.0));
+            match d {
+                Device::Axis(axis) => {
+                    s.axes.insert(name.clone(), axis.home_deg.unwrap_or(0.0));
                 }
-                DeviceKind::Arm => {
-                    s.arm = Some(d.joints.iter().flatten().map(|j| j.home_deg).collect());
+                Device::Arm(arm) => {
+                    s.arm = Some(arm.joints.iter().map(|j| j.home_deg).collect());
                 }
                 _ => {}
             }
@@ -90,20 +90,13 @@ impl<'a> Timing<'a> {
         let mut t: f64 = 0.0;
         for (name, &target) in &to.axes {
             let start = from.axes.get(name).copied().unwrap_or(target);
-            if let Some(d) = self.profile.devices.get(name) {
-                t = t.max(
-                    rigd_core::Trapezoid::from(d.motion_or_default()).move_time(target - start),
-                );
+            if let Some(axis) = self.profile.devices.get(name).and_then(Device::as_axis) {
+                t = t.max(rigd_core::Trapezoid::from(axis.motion).move_time(target - start));
             }
         }
         if let (Some(a), Some(b)) = (&from.arm, &to.arm) {
-            if let Some(arm) = self
-                .profile
-                .devices
-                .values()
-                .find(|d| d.kind == DeviceKind::Arm)
-            {
-                for ((j, qa), qb) in arm.joints.iter().flatten().zip(a).zip(b) {
+            if let Some(arm) = self.profile.devices.values().find_map(Device::as_arm) {
+                for ((j, qa), qb) in arm.joints.iter().zip(a).zip(b) {
                     t = t.max(rigd_core::Trapezoid::from(j.motion).move_time(qb - qa));
                 }
             }
@@ -118,9 +111,9 @@ impl<'a> Timing<'a> {
             return 0.0;
         }
         let dev = |n: &str| self.profile.devices.get(n);
-        let off = dev(from).and_then(|d| d.switch_s).unwrap_or(0.0);
+        let off = dev(from).and_then(|d| d.switch_s()).unwrap_or(0.0);
         let on = dev(to)
-            .map(|d| d.switch_s.unwrap_or(0.0) + d.warm_up_s.unwrap_or(0.0))
+            .map(|d| d.switch_s().unwrap_or(0.0) + d.as_lamp().map_or(0.0, |l| l.warm_up_s))
             .unwrap_or(0.0);
         off + on
     }
@@ -132,7 +125,7 @@ impl<'a> Timing<'a> {
             .profile
             .devices
             .get(camera)
-            .and_then(|d| d.timing)
+            .and_then(|d| d.timing())
             .map_or(0.0, |t| t.exposure_s);
         self.exposure_override_s.unwrap_or(nominal)
     }
@@ -148,8 +141,8 @@ impl<'a> Timing<'a> {
             .map(|d| d.homing_time_s())
             .fold(0.0, f64::max);
         let lights_off: f64 = devices
-            .filter(|d| matches!(d.kind, DeviceKind::Lamp | DeviceKind::Laser))
-            .map(|d| d.switch_s.unwrap_or(0.0))
+            .filter(|d| matches!(d.kind(), DeviceKind::Lamp | DeviceKind::Laser))
+            .map(|d| d.switch_s().unwrap_or(0.0))
             .sum();
         homing + lights_off + self.lamp_change_s("", first_lamp)
     }
@@ -166,7 +159,7 @@ impl<'a> Timing<'a> {
         self.profile
             .devices
             .get(camera)
-            .and_then(|d| d.timing)
+            .and_then(|d| d.timing())
             .map_or(0.0, |t| t.readout_s)
     }
 
@@ -186,7 +179,7 @@ impl<'a> Timing<'a> {
     pub fn transfer_s(&self, cameras: &[&str]) -> f64 {
         cameras
             .iter()
-            .filter_map(|c| self.profile.devices.get(*c).and_then(|d| d.timing))
+            .filter_map(|c| self.profile.devices.get(*c).and_then(|d| d.timing()))
             .map(|t| t.transfer_s)
             .fold(0.0, f64::max)
     }

@@ -26,7 +26,7 @@ pub fn image_bytes(profile: &Profile, camera: &str) -> u64 {
     profile
         .devices
         .get(camera)
-        .and_then(|d| d.intrinsics)
+        .and_then(|d| d.intrinsics())
         .map_or(0, |i| {
             let pixels = u64::from(i.resolution[0]) * u64::from(i.resolution[1]);
             if i.bit_depth > 8 {
@@ -73,7 +73,7 @@ mod tests {
         let schedule = super::super::build(&profile, &solver, &plan);
         let v = data_volume(&profile, &schedule, &ExposurePolicy::default());
         let camera = &schedule.images[0].camera;
-        let intr = profile.devices[camera].intrinsics.expect("intrinsics");
+        let intr = profile.devices[camera].intrinsics().expect("intrinsics");
         let frame = u64::from(intr.resolution[0]) * u64::from(intr.resolution[1]) * 2;
         assert!(intr.bit_depth > 8);
         assert_eq!(v.largest_image_bytes, frame);

@@ -854,6 +854,7 @@ fn with_lamps(profile: &mut Profile, directions: &[Direction]) -> Result<(), Pro
     let template = lamps
         .first()
         .and_then(|l| profile.devices.get(l))
+        .and_then(crate::model::profile::Device::as_lamp)
         .cloned()
         .ok_or_else(|| ProcessError::Invalid("the rig has no lamp".into()))?;
     for old in lamps.drain(..) {
@@ -861,10 +862,12 @@ fn with_lamps(profile: &mut Profile, directions: &[Direction]) -> Result<(), Pro
     }
     for (k, d) in directions.iter().enumerate() {
         let name = format!("lamp{k}");
-        let mut dev = template.clone();
-        dev.direction = Some(*d);
-        dev.coil = Some(k as u16);
-        profile.devices.insert(name.clone(), dev);
+        let mut lamp = template.clone();
+        lamp.direction = Some(*d);
+        lamp.coil = k as u16;
+        profile
+            .devices
+            .insert(name.clone(), crate::model::profile::Device::Lamp(lamp));
         lamps.push(name);
     }
     Ok(())

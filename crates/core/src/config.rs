@@ -91,11 +91,14 @@ pub fn parse<T: DeserializeOwned>(
     format: Format,
 ) -> Result<T, ConfigError> {
     let text = strip_bom(text);
-    let error = |key: String, message: String| ConfigError {
-        file: file.to_string(),
-        key: if key == "." { String::new() } else { key },
-        // The parsers' messages can span lines; an operator's error is one.
-        message: message.trim().replace('\n', "; "),
+    let error = |key: String, message: String| {
+        let (key, message) = with_nested_path(key, &message);
+        ConfigError {
+            file: file.to_string(),
+            key: if key == "." { String::new() } else { key },
+            // The parsers' messages can span lines; an operator's error is one.
+            message: message.trim().replace('\n', "; "),
+        }
     };
     match format {
         Format::Toml => {
@@ -119,6 +122,36 @@ pub fn parse<T: DeserializeOwned>(
             Ok(value)
         }
     }
+}
+
+/// Marks the path inside a nested error's message; a control character,
+/// so that no parser's or validator's message starts with it.
+const NESTED: char = '\u{1f}';
+
+/// An error at `path` (`limits.min`, `joints[1].name`) inside a value that
+/// was read whole before it could be typed: a table whose type one of its
+/// keys decides. Such a value's inner keys are beyond the loader's path
+/// tracking, so the error carries them, and the loader appends them to the
+/// key it names.
+pub fn nested_error<E: serde::de::Error>(path: &str, message: impl fmt::Display) -> E {
+    E::custom(format_args!("{NESTED}{path}{NESTED}{message}"))
+}
+
+/// The key and message of an error: a nested error's path appended to
+/// `key`, and its message without the path.
+fn with_nested_path(key: String, message: &str) -> (String, String) {
+    let Some(rest) = message.strip_prefix(NESTED) else {
+        return (key, message.to_string());
+    };
+    let Some((path, message)) = rest.split_once(NESTED) else {
+        return (key, message.to_string());
+    };
+    let key = match key.as_str() {
+        "" | "." => path.to_string(),
+        _ if path.starts_with('[') => format!("{key}{path}"),
+        _ => format!("{key}.{path}"),
+    };
+    (key, message.to_string())
 }
 
 /// The 1-based line of byte `at` in `text`.
@@ -170,6 +203,33 @@ mod tests {
         assert_eq!(e.key, "axes[0].step");
         assert!(e.message.contains("`step`"), "{e}");
         assert!(e.to_string().starts_with("r.json: axes[0].step: "), "{e}");
+    }
+
+    /// A value read whole before it is typed reports the key inside it,
+    /// appended to the key the loader tracked, in TOML and in JSON.
+    #[test]
+    fn a_nested_error_s_path_extends_the_key() {
+        #[derive(Debug)]
+        struct Whole;
+        impl<'de> serde::Deserialize<'de> for Whole {
+            fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Whole, D::Error> {
+                let _ = <serde::de::IgnoredAny as serde::Deserialize>::deserialize(d)?;
+                Err(nested_error("limits[1].min", "expected a number"))
+            }
+        }
+        #[derive(Debug, serde::Deserialize)]
+        struct Outer {
+            #[allow(dead_code)]
+            axes: Vec<Whole>,
+        }
+        let e = parse::<Outer>("[[axes]]\nx = 1\n", "r.toml", Format::Toml).expect_err("nested");
+        assert_eq!(e.key, "axes[0].limits[1].min", "{e}");
+        assert!(e.message.starts_with("expected a number"), "{e}");
+        let e = parse::<Outer>("{\"axes\": [{}]}", "r.json", Format::Json).expect_err("nested");
+        assert_eq!(e.key, "axes[0].limits[1].min", "{e}");
+        let e = parse::<Whole>("x = 1", "r.toml", Format::Toml).expect_err("at the top");
+        assert_eq!(e.key, "limits[1].min", "{e}");
+        assert!(!e.to_string().contains(NESTED), "{e}");
     }
 
     #[test]

@@ -55,11 +55,12 @@ impl GenicamConfig {
     /// for other devices. Validation guarantees intrinsics, timing and a
     /// pixel format of the sensor's depth.
     pub fn of(name: &str, dev: &Device) -> Option<GenicamConfig> {
-        let Transport::Genicam { id } = &dev.transport else {
+        let camera = dev.as_camera()?;
+        let Transport::Genicam { id } = &camera.transport else {
             return None;
         };
-        let (intr, timing) = (dev.intrinsics?, dev.timing?);
-        let settings = dev.genicam.as_ref();
+        let (intr, timing) = (camera.intrinsics, camera.timing);
+        let settings = camera.genicam.as_ref();
         Some(GenicamConfig {
             name: name.to_string(),
             id: id.clone(),

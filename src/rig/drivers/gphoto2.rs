@@ -78,21 +78,22 @@ impl Gphoto2Config {
     /// The configuration of a camera device on a gphoto2 transport; None
     /// for other devices. Validation guarantees timing for cameras.
     pub fn of(name: &str, dev: &Device) -> Option<Gphoto2Config> {
-        let Transport::Gphoto2 { port, model } = &dev.transport else {
+        let camera = dev.as_camera()?;
+        let Transport::Gphoto2 { port, model } = &camera.transport else {
             return None;
         };
-        let timing = dev.timing?;
+        let timing = camera.timing;
         Some(Gphoto2Config {
             name: name.to_string(),
             port: port.clone(),
             model: model.clone(),
-            settings: dev
+            settings: camera
                 .gphoto2
                 .as_ref()
                 .map(|g| g.settings.clone())
                 .unwrap_or_default(),
             exposure_s: timing.exposure_s,
-            cfa: dev.intrinsics.and_then(|i| i.cfa),
+            cfa: camera.intrinsics.cfa,
             open_timeout: Duration::from_secs(30),
             call_timeout: Duration::from_secs(10),
             capture_slack: Duration::from_secs(30),

@@ -4,7 +4,7 @@ use axum::extract::State;
 use axum::Json;
 
 use super::AppState;
-use crate::model::profile::DeviceKind;
+use crate::model::profile::Device;
 use crate::model::run_state::RunState;
 use crate::rig::check::RigCheck;
 use crate::server::error::{ApiError, ErrorBody};
@@ -46,14 +46,14 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
     for (name, dev) in &d.profile.devices {
         let mut v = DeviceView {
             name: name.clone(),
-            kind: serde_json::to_value(dev.kind)
+            kind: serde_json::to_value(dev.kind())
                 .ok()
                 .and_then(|k| k.as_str().map(str::to_string))
                 .unwrap_or_default(),
-            protocol: dev.protocol.clone(),
+            protocol: dev.protocol().to_string(),
             connected: d.config.sim,
             homed: None,
-            homing: (dev.kind == DeviceKind::Axis).then(|| dev.homing.unwrap_or(true)),
+            homing: dev.as_axis().map(|a| a.homing),
             busy,
             fault: fault_for(name),
             position_deg: None,
@@ -61,17 +61,18 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
             on: None,
             camera: None,
         };
-        match dev.kind {
-            DeviceKind::Axis => {
+        match dev {
+            Device::Axis(_) => {
                 let p = world.as_ref().and_then(|w| w.axis(name));
                 v.homed = Some(p.is_some());
                 v.position_deg = p;
             }
-            DeviceKind::Arm => {
+            Device::Arm(arm) => {
                 let q = world.as_ref().and_then(|w| w.arm());
                 v.homed = Some(q.is_some());
-                if let (Some(q), Some(joints)) = (q, &dev.joints) {
-                    let m: serde_json::Map<String, serde_json::Value> = joints
+                if let Some(q) = q {
+                    let m: serde_json::Map<String, serde_json::Value> = arm
+                        .joints
                         .iter()
                         .zip(q)
                         .map(|(j, x)| (j.name.clone(), serde_json::json!(x)))
@@ -79,24 +80,24 @@ pub async fn rig(State(d): State<AppState>) -> Json<RigView> {
                     v.joints = Some(serde_json::Value::Object(m));
                 }
             }
-            DeviceKind::Lamp => {
+            Device::Lamp(_) => {
                 let on = world.as_ref().and_then(|w| w.lamp(name)).unwrap_or(false);
                 v.on = Some(on);
                 lamps.insert(name.clone(), serde_json::json!(on));
             }
-            DeviceKind::Camera => {
-                let timing = dev.timing.as_ref();
+            Device::Camera(camera) => {
+                let (intrinsics, timing) = (camera.intrinsics, camera.timing);
                 v.camera = Some(serde_json::json!({
-                    "resolution": dev.intrinsics.as_ref().map(|i| i.resolution),
-                    "bit_depth": dev.intrinsics.as_ref().map(|i| i.bit_depth),
-                    "focal_px": dev.intrinsics.as_ref().map(|i| i.focal_px),
-                    "exposure_s": exposure.or(timing.map(|t| t.exposure_s)),
-                    "readout_s": timing.map(|t| t.readout_s),
-                    "transfer_s": timing.map(|t| t.transfer_s),
+                    "resolution": intrinsics.resolution,
+                    "bit_depth": intrinsics.bit_depth,
+                    "focal_px": intrinsics.focal_px,
+                    "exposure_s": exposure.unwrap_or(timing.exposure_s),
+                    "readout_s": timing.readout_s,
+                    "transfer_s": timing.transfer_s,
                     "sim_frame_size": d.profile.sim.frame_size,
                 }));
             }
-            DeviceKind::Laser => {}
+            Device::Laser(_) => {}
         }
         devices.push(v);
     }
