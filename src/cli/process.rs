@@ -177,7 +177,7 @@ impl ExecutorArgs {
 fn on_slurm(
     exec: &ExecutorArgs,
     run: &std::path::Path,
-    step: rigd::postprocess::pipeline::Step,
+    step: rigd::postprocess::pipeline::ProcessStep,
     opts: &rigd::postprocess::pipeline::ProcessOptions,
 ) -> Result<String> {
     let config = exec.config()?;
@@ -196,8 +196,8 @@ pub struct PartArgs {
     /// The run directory (on the shared filesystem).
     pub run: PathBuf,
     /// The step: rectify, btf, fit, mdf or photometric-stereo.
-    #[arg(long, value_parser = rigd::postprocess::pipeline::Step::parse)]
-    pub step: rigd::postprocess::pipeline::Step,
+    #[arg(long, value_parser = rigd::postprocess::pipeline::ProcessStep::parse)]
+    pub step: rigd::postprocess::pipeline::ProcessStep,
     /// This task's part, 0 … parts − 1 (Slurm's SLURM_ARRAY_TASK_ID).
     #[arg(long)]
     pub part: usize,
@@ -467,7 +467,7 @@ fn parse_orbit(s: &str) -> Result<rigd_process::directions::Direction, String> {
 }
 
 fn photometric_stereo(args: PsArgs) -> Result<()> {
-    use rigd::postprocess::pipeline::{ProcessOptions, PsOptions, Step};
+    use rigd::postprocess::pipeline::{ProcessOptions, ProcessStep, PsOptions};
     use rigd_process::photometric_stereo as ps;
     PsOptions {
         robust: args.robust,
@@ -488,7 +488,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
             ));
         }
         let opts = ProcessOptions {
-            steps: vec![Step::PhotometricStereo],
+            steps: vec![ProcessStep::PhotometricStereo],
             photometric_stereo: PsOptions {
                 robust: args.robust,
                 max_condition: args.max_condition,
@@ -496,7 +496,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
             ..Default::default()
         };
         let started = Instant::now();
-        let summary = on_slurm(&args.exec, run, Step::PhotometricStereo, &opts)?;
+        let summary = on_slurm(&args.exec, run, ProcessStep::PhotometricStereo, &opts)?;
         println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
         return Ok(());
     }
@@ -579,7 +579,7 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
 }
 
 fn rectify(args: RectifyArgs) -> Result<()> {
-    use rigd::postprocess::pipeline::{ProcessOptions, RectifyOptions, Step};
+    use rigd::postprocess::pipeline::{ProcessOptions, ProcessStep, RectifyOptions};
     let options = RectifyOptions {
         size: args.size,
         final_size: args.final_size,
@@ -592,12 +592,12 @@ fn rectify(args: RectifyArgs) -> Result<()> {
     args.exec.config()?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
-            steps: vec![Step::Rectify],
+            steps: vec![ProcessStep::Rectify],
             rectify: options,
             ..Default::default()
         };
         let started = Instant::now();
-        let summary = on_slurm(&args.exec, &args.run, Step::Rectify, &opts)?;
+        let summary = on_slurm(&args.exec, &args.run, ProcessStep::Rectify, &opts)?;
         println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
         let index = rigd::postprocess::rectify::NormtextureIndex::read(&args.run)?;
         if let Some(summary) = &index.summary {
@@ -626,7 +626,7 @@ fn rectify(args: RectifyArgs) -> Result<()> {
 }
 
 fn btf(args: BtfArgs) -> Result<()> {
-    use rigd::postprocess::pipeline::{BtfOptions, ProcessOptions, Step};
+    use rigd::postprocess::pipeline::{BtfOptions, ProcessOptions, ProcessStep};
     let options = BtfOptions {
         components: args.components,
     };
@@ -644,12 +644,12 @@ fn btf(args: BtfArgs) -> Result<()> {
     args.exec.config()?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
-            steps: vec![Step::Btf],
+            steps: vec![ProcessStep::Btf],
             btf: options,
             ..Default::default()
         };
         let started = Instant::now();
-        let summary = on_slurm(&args.exec, &args.run, Step::Btf, &opts)?;
+        let summary = on_slurm(&args.exec, &args.run, ProcessStep::Btf, &opts)?;
         println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
         return Ok(());
     }
@@ -734,18 +734,18 @@ fn print_truth_error(
 }
 
 fn fit(args: FitArgs) -> Result<()> {
-    use rigd::postprocess::pipeline::{FitOptions, ProcessOptions, Step};
+    use rigd::postprocess::pipeline::{FitOptions, ProcessOptions, ProcessStep};
     let options = FitOptions { lobes: args.lobes };
     options.check().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
-            steps: vec![Step::Fit],
+            steps: vec![ProcessStep::Fit],
             fit: options,
             ..Default::default()
         };
         let started = Instant::now();
-        let summary = on_slurm(&args.exec, &args.run, Step::Fit, &opts)?;
+        let summary = on_slurm(&args.exec, &args.run, ProcessStep::Fit, &opts)?;
         println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
         return Ok(());
     }
@@ -765,7 +765,7 @@ fn fit(args: FitArgs) -> Result<()> {
 }
 
 fn mdf(args: MdfArgs) -> Result<()> {
-    use rigd::postprocess::pipeline::{MdfOptions, ProcessOptions, Step};
+    use rigd::postprocess::pipeline::{MdfOptions, ProcessOptions, ProcessStep};
     let options = MdfOptions {
         planes: args.planes,
         sources: args.sources,
@@ -777,12 +777,12 @@ fn mdf(args: MdfArgs) -> Result<()> {
     args.exec.config()?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
-            steps: vec![Step::Mdf],
+            steps: vec![ProcessStep::Mdf],
             mdf: options,
             ..Default::default()
         };
         let started = Instant::now();
-        let summary = on_slurm(&args.exec, &args.run, Step::Mdf, &opts)?;
+        let summary = on_slurm(&args.exec, &args.run, ProcessStep::Mdf, &opts)?;
         println!("{summary} ({:.1} s)", started.elapsed().as_secs_f64());
         return Ok(());
     }

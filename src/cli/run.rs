@@ -16,7 +16,7 @@ use rigd::model::text::sanitize;
 use rigd::plan::Order;
 use rigd::postprocess::pipeline::{
     background_pool, check_frame_size, run_step, stream_during_capture, CaptureProgress,
-    ProcessOptions, RunFacts, Step,
+    ProcessOptions, ProcessStep, RunFacts,
 };
 use rigd::postprocess::ProcessError;
 use rigd::rig::FaultRule;
@@ -231,7 +231,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     let options = processing_options(&args.process, &solved.1, size)?;
                     // Compressing view slots during the capture can favour
                     // an order left to the default.
-                    if args.order.is_none() && options.steps.contains(&Step::Btf) {
+                    if args.order.is_none() && options.steps.contains(&ProcessStep::Btf) {
                         let (chosen, choice) = launch::prefer_slots(&req.profile, solved);
                         solved = chosen;
                         if let Some(choice) = choice {
@@ -281,12 +281,12 @@ fn processing_options(
     for s in steps.iter().filter(|s| s.as_str() != "auto") {
         options
             .steps
-            .push(Step::parse(s).map_err(|e| bad_input(format!("--process: {e}")))?);
+            .push(ProcessStep::parse(s).map_err(|e| bad_input(format!("--process: {e}")))?);
     }
     let options = options
         .resolve(&RunFacts::of_plan(plan))
         .map_err(|e| bad_input(format!("--process: {e}")))?;
-    if let (true, Some(size)) = (options.steps.contains(&Step::Rectify), size) {
+    if let (true, Some(size)) = (options.steps.contains(&ProcessStep::Rectify), size) {
         check_frame_size(size).map_err(|e| bad_input(format!("--process: {e}")))?;
     }
     Ok(options)

@@ -384,7 +384,7 @@ pub fn btf_error(
     pairs: &[(Direction, Direction)],
     truths: &[Vec<f32>],
 ) -> Result<Vec<HeldOutError>, ProcessError> {
-    let store = rigd_process::btf::BtfStore::read(&crate::store::processed::btf_dir(run))
+    let store = rigd_process::btf::CompressedBtf::read(&crate::store::processed::btf_dir(run))
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     pairs
         .iter()

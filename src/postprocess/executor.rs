@@ -7,7 +7,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
-use super::pipeline::{ProcessOptions, Step, StepProgress};
+use super::pipeline::{ProcessOptions, ProcessStep, StepProgress};
 use super::slurm::{Cancel, Notes, SlurmConfig, SlurmError};
 
 /// Which executor runs the steps.
@@ -46,7 +46,7 @@ impl ProcessingConfig {
     pub fn run_step(
         &self,
         root: &Path,
-        step: Step,
+        step: ProcessStep,
         opts: &ProcessOptions,
         progress: StepProgress<'_>,
         notes: Notes<'_>,

@@ -9,7 +9,7 @@
 use std::ops::Range;
 use std::path::Path;
 
-use super::pipeline::{ProcessOptions, Step, StepProgress};
+use super::pipeline::{ProcessOptions, ProcessStep, StepProgress};
 use super::ProcessError;
 
 /// How much work a part gets.
@@ -53,22 +53,24 @@ impl Split {
 /// whole.
 pub fn split(
     root: &Path,
-    step: Step,
+    step: ProcessStep,
     opts: &ProcessOptions,
     sizes: PartSizes,
 ) -> Result<Split, ProcessError> {
     let units = match step {
-        Step::Rectify => super::frames::RunFrames::open(root)?.entries.len(),
-        Step::Btf | Step::Fit => super::rectify::NormtextureIndex::read(root)?.views.len(),
-        Step::Mdf => {
+        ProcessStep::Rectify => super::frames::RunFrames::open(root)?.entries.len(),
+        ProcessStep::Btf | ProcessStep::Fit => {
+            super::rectify::NormtextureIndex::read(root)?.views.len()
+        }
+        ProcessStep::Mdf => {
             let run = super::frames::RunFrames::open(root)?;
             super::mdf::mdf_view_count(&run, &opts.mdf.config())?
         }
-        Step::PhotometricStereo => return Ok(Split::Whole),
+        ProcessStep::PhotometricStereo => return Ok(Split::Whole),
     };
     let per_part = match step {
-        Step::Rectify => sizes.frames.max(1),
-        Step::Mdf => 1,
+        ProcessStep::Rectify => sizes.frames.max(1),
+        ProcessStep::Mdf => 1,
         _ => sizes.slots.max(1),
     };
     if units == 0 {
@@ -97,7 +99,7 @@ pub fn part_range(units: usize, parts: usize, part: usize) -> Range<usize> {
 /// ([`super::pipeline::run_step`]).
 pub fn run_part(
     root: &Path,
-    step: Step,
+    step: ProcessStep,
     opts: &ProcessOptions,
     split: Split,
     part: usize,
@@ -121,13 +123,13 @@ pub fn run_part(
     let range = part_range(units, parts, part);
     let what = format!("{} {}..{}", step.name(), range.start, range.end);
     let done = match step {
-        Step::Rectify => {
+        ProcessStep::Rectify => {
             let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
             let run = super::frames::RunFrames::open(root)?;
             let n = super::rectify::first_pass_range(&run, &cfg, range.clone(), progress)?;
             format!("{n} of {} frames registered", range.len())
         }
-        Step::Btf => {
+        ProcessStep::Btf => {
             let n = super::btf::compress_slots_part(
                 root,
                 range.clone(),
@@ -136,16 +138,16 @@ pub fn run_part(
             )?;
             format!("{n} of {} view slots compressed", range.len())
         }
-        Step::Fit => {
+        ProcessStep::Fit => {
             let n = super::fit::fit_slots_part(root, range.clone(), opts.fit.lobes, progress)?;
             format!("{n} of {} view slots fitted", range.len())
         }
-        Step::Mdf => {
+        ProcessStep::Mdf => {
             let run = super::frames::RunFrames::open(root)?;
             super::mdf::mdf_views_part(&run, &opts.mdf.config(), range.clone(), progress)?;
             format!("{} views merged", range.len())
         }
-        Step::PhotometricStereo => {
+        ProcessStep::PhotometricStereo => {
             return Err(ProcessError::Invalid(format!(
                 "{} does not split into parts",
                 step.name()

@@ -22,7 +22,7 @@ use super::ProcessError;
     Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Serialize, Deserialize, ToSchema,
 )]
 #[serde(rename_all = "kebab-case")]
-pub enum Step {
+pub enum ProcessStep {
     /// Register every frame and resample it to a frontal normtexture
     /// (`rigd process rectify`).
     Rectify,
@@ -38,26 +38,26 @@ pub enum Step {
     PhotometricStereo,
 }
 
-impl Step {
+impl ProcessStep {
     /// The step's name, as in the API and on the command line.
     pub fn name(self) -> &'static str {
         match self {
-            Step::Rectify => "rectify",
-            Step::Btf => "btf",
-            Step::Fit => "fit",
-            Step::Mdf => "mdf",
-            Step::PhotometricStereo => "photometric-stereo",
+            ProcessStep::Rectify => "rectify",
+            ProcessStep::Btf => "btf",
+            ProcessStep::Fit => "fit",
+            ProcessStep::Mdf => "mdf",
+            ProcessStep::PhotometricStereo => "photometric-stereo",
         }
     }
 
     /// Parses a step's name.
-    pub fn parse(s: &str) -> Result<Step, String> {
+    pub fn parse(s: &str) -> Result<ProcessStep, String> {
         [
-            Step::Rectify,
-            Step::Btf,
-            Step::Fit,
-            Step::Mdf,
-            Step::PhotometricStereo,
+            ProcessStep::Rectify,
+            ProcessStep::Btf,
+            ProcessStep::Fit,
+            ProcessStep::Mdf,
+            ProcessStep::PhotometricStereo,
         ]
         .into_iter()
         .find(|step| step.name() == s.trim())
@@ -68,7 +68,7 @@ impl Step {
 
     /// Reads the normtextures of `rectify`.
     pub fn needs_normtextures(self) -> bool {
-        matches!(self, Step::Btf | Step::Fit)
+        matches!(self, ProcessStep::Btf | ProcessStep::Fit)
     }
 }
 
@@ -270,7 +270,7 @@ pub struct ProcessOptions {
     /// The steps, run in the order rectify, btf, fit, mdf,
     /// photometric-stereo whatever order they are given in. Empty: chosen
     /// from the run (see [`default_steps`]).
-    pub steps: Vec<Step>,
+    pub steps: Vec<ProcessStep>,
     /// Options of `rectify`.
     pub rectify: RectifyOptions,
     /// Options of `btf`.
@@ -335,13 +335,13 @@ impl RunFacts {
 /// The steps a run gets when none are asked for: `mdf` for a laser plan,
 /// `photometric-stereo` when every frame has the same view (a camera
 /// looking down, as on the VirTex rig), otherwise `rectify` and `btf`.
-pub fn default_steps(facts: &RunFacts) -> Vec<Step> {
+pub fn default_steps(facts: &RunFacts) -> Vec<ProcessStep> {
     if facts.laser {
-        vec![Step::Mdf]
+        vec![ProcessStep::Mdf]
     } else if facts.one_view && facts.frames >= 3 {
-        vec![Step::PhotometricStereo]
+        vec![ProcessStep::PhotometricStereo]
     } else {
-        vec![Step::Rectify, Step::Btf]
+        vec![ProcessStep::Rectify, ProcessStep::Btf]
     }
 }
 
@@ -372,11 +372,13 @@ impl ProcessOptions {
         if self.steps.len() != asked {
             return Err("a step is named twice".into());
         }
-        if self.steps.contains(&Step::Rectify) {
+        if self.steps.contains(&ProcessStep::Rectify) {
             self.rectify.config().map_err(|e| format!("rectify.{e}"))?;
         }
         for step in &self.steps {
-            if step.needs_normtextures() && !facts.rectified && !self.steps.contains(&Step::Rectify)
+            if step.needs_normtextures()
+                && !facts.rectified
+                && !self.steps.contains(&ProcessStep::Rectify)
             {
                 return Err(format!(
                     "{} needs the run's normtextures: add the step `rectify`",
@@ -387,7 +389,7 @@ impl ProcessOptions {
         self.btf.check().map_err(|e| format!("btf.{e}"))?;
         self.fit.check().map_err(|e| format!("fit.{e}"))?;
         self.mdf.check().map_err(|e| format!("mdf.{e}"))?;
-        if self.steps.contains(&Step::Mdf) && !facts.laser {
+        if self.steps.contains(&ProcessStep::Mdf) && !facts.laser {
             return Err("mdf needs a run of a laser plan".into());
         }
         self.photometric_stereo
@@ -455,7 +457,7 @@ impl CaptureStream {
     /// The stream of `opts` over the run at `root`; None when it has no
     /// `rectify` step.
     pub fn new(root: &Path, opts: &ProcessOptions) -> Result<Option<CaptureStream>, ProcessError> {
-        if !opts.steps.contains(&Step::Rectify) {
+        if !opts.steps.contains(&ProcessStep::Rectify) {
             return Ok(None);
         }
         let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
@@ -464,7 +466,7 @@ impl CaptureStream {
             rectify: super::rectify::RectifyStream::new(root, cfg)?,
             btf_components: opts
                 .steps
-                .contains(&Step::Btf)
+                .contains(&ProcessStep::Btf)
                 .then_some(opts.btf.components),
             ahead: Default::default(),
         }))
@@ -543,12 +545,12 @@ pub type StepProgress<'a> = &'a (dyn Fn(usize, usize) + Sync);
 /// returns a one-line summary of what it wrote.
 pub fn run_step(
     root: &Path,
-    step: Step,
+    step: ProcessStep,
     opts: &ProcessOptions,
     progress: StepProgress<'_>,
 ) -> Result<String, ProcessError> {
     match step {
-        Step::Rectify => {
+        ProcessStep::Rectify => {
             let cfg = opts.rectify.config().map_err(ProcessError::Invalid)?;
             let run = RunFrames::open(root)?;
             let index = super::rectify::rectify_run(&run, &cfg, progress)?;
@@ -588,7 +590,7 @@ pub fn run_step(
                 }
             ))
         }
-        Step::Btf => {
+        ProcessStep::Btf => {
             let r = super::btf::btf_run(root, opts.btf.components, progress)?;
             Ok(format!(
                 "{} view slots × {} lights, C = {}: {:.1} MB{}",
@@ -606,7 +608,7 @@ pub fn run_step(
                 }
             ))
         }
-        Step::Fit => {
+        ProcessStep::Fit => {
             let rows = super::fit::fit_run(root, opts.fit.lobes, progress)?;
             Ok(rows
                 .iter()
@@ -614,7 +616,7 @@ pub fn run_step(
                 .collect::<Vec<_>>()
                 .join(", "))
         }
-        Step::Mdf => {
+        ProcessStep::Mdf => {
             let run = RunFrames::open(root)?;
             let r = super::mdf::mdf_run(&run, &opts.mdf.config(), progress)?;
             Ok(format!(
@@ -625,7 +627,7 @@ pub fn run_step(
                     .unwrap_or_default()
             ))
         }
-        Step::PhotometricStereo => {
+        ProcessStep::PhotometricStereo => {
             use rigd_process::photometric_stereo as ps;
             let run = RunFrames::open(root)?;
             let dataset = super::ps::ps_dataset_from_run(&run)?;
@@ -659,9 +661,9 @@ mod tests {
     #[test]
     fn steps_parse_and_name_each_other() {
         for s in ["rectify", "btf", "fit", "mdf", "photometric-stereo"] {
-            assert_eq!(Step::parse(s).map(Step::name), Ok(s));
+            assert_eq!(ProcessStep::parse(s).map(ProcessStep::name), Ok(s));
         }
-        assert!(Step::parse("sharpen").is_err());
+        assert!(ProcessStep::parse("sharpen").is_err());
     }
 
     #[test]

@@ -28,7 +28,7 @@ use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use super::parts::{self, Split};
-use super::pipeline::{ProcessOptions, Step, StepProgress};
+use super::pipeline::{ProcessOptions, ProcessStep, StepProgress};
 use super::ProcessError;
 
 /// Where a step's Slurm jobs keep their files, inside the run.
@@ -179,18 +179,23 @@ pub type Cancel<'a> = &'a (dyn Fn() -> bool + Sync);
 pub type Notes<'a> = &'a (dyn Fn(&str) + Sync);
 
 /// The folder of `step`'s Slurm jobs in the run at `root`.
-pub fn job_dir(root: &Path, step: Step) -> PathBuf {
+pub fn job_dir(root: &Path, step: ProcessStep) -> PathBuf {
     crate::store::processed::processed_dir(root)
         .join(SLURM_DIR)
         .join(step.name())
 }
 
-fn marker_path(root: &Path, step: Step, part: usize) -> PathBuf {
+fn marker_path(root: &Path, step: ProcessStep, part: usize) -> PathBuf {
     job_dir(root, step).join("done").join(format!("{part:05}"))
 }
 
 /// Marks part `part` of `step` complete (the last thing a task does).
-pub fn mark_done(root: &Path, step: Step, part: usize, summary: &str) -> Result<(), ProcessError> {
+pub fn mark_done(
+    root: &Path,
+    step: ProcessStep,
+    part: usize,
+    summary: &str,
+) -> Result<(), ProcessError> {
     let path = marker_path(root, step, part);
     if let Some(dir) = path.parent() {
         crate::postprocess::create_dir(dir)?;
@@ -199,7 +204,7 @@ pub fn mark_done(root: &Path, step: Step, part: usize, summary: &str) -> Result<
     Ok(())
 }
 
-fn done_parts(root: &Path, step: Step) -> BTreeSet<usize> {
+fn done_parts(root: &Path, step: ProcessStep) -> BTreeSet<usize> {
     std::fs::read_dir(job_dir(root, step).join("done"))
         .map(|entries| {
             entries
@@ -414,7 +419,7 @@ impl SlurmConfig {
     pub fn run_step(
         &self,
         root: &Path,
-        step: Step,
+        step: ProcessStep,
         opts: &ProcessOptions,
         progress: StepProgress<'_>,
         notes: Notes<'_>,

@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use rigd_process::btf::{BtfError, BtfHeader, BtfStore, TextureShape, HEADER_FILE};
+use rigd_process::btf::{BtfError, BtfHeader, CompressedBtf, TextureShape, HEADER_FILE};
 use rigd_process::directions::{DirectionError, DirectionTable};
 use rigd_process::mdf::{MdfTexture, MDF_TEXTURE_HEADER};
 use rigd_process::mesh::{Mesh, MeshKind};
@@ -100,7 +100,7 @@ pub fn processed_kind(run: &Path) -> Option<&'static str> {
 /// What a processed run holds for relighting.
 pub enum Material {
     /// The compressed BTF of `processed/btf/`.
-    Btf(BtfStore),
+    Btf(CompressedBtf),
     /// Albedo and normal maps of a photometric-stereo run.
     PhotometricStereo {
         /// The folder holding `albedo.npy` and `normals.npy`.
@@ -113,7 +113,7 @@ pub enum Material {
 pub fn open(run: &Path) -> Result<Material, ViewerError> {
     let btf = crate::store::processed::btf_dir(run);
     if btf.join(HEADER_FILE).is_file() {
-        return Ok(Material::Btf(BtfStore::read(&btf)?));
+        return Ok(Material::Btf(CompressedBtf::read(&btf)?));
     }
     let ps = crate::store::processed::ps_dir(run);
     if ps.join("normals.npy").is_file() && ps.join("albedo.npy").is_file() {

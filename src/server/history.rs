@@ -379,7 +379,7 @@ pub fn decode_cursor(history_id: &str, cursor: &str) -> Result<Position, QueryEr
                 .into(),
         ));
     }
-    if !super::persist::is_valid_id(id) {
+    if !super::data_dir::is_valid_id(id) {
         return Err(malformed("no run id"));
     }
     Ok(Position {

@@ -34,7 +34,7 @@ use super::wire::{JobState, ProcessJob, RunView, StepStatus};
 use crate::model::run_state::RunState;
 use crate::postprocess::executor::ProcessingConfig;
 use crate::postprocess::frames::RunFrames;
-use crate::postprocess::pipeline::{self, ProcessOptions, RunFacts, Step};
+use crate::postprocess::pipeline::{self, ProcessOptions, ProcessStep, RunFacts};
 use crate::postprocess::slurm::SlurmError;
 use crate::store::StoreError;
 use rigd_core::sync::lock;
@@ -319,7 +319,7 @@ pub fn submit(
     host.executor()
         .check(&root)
         .map_err(|e| SupervisorError::invalid(format!("processing on Slurm: {e}")))?;
-    if options.steps.contains(&Step::Rectify) {
+    if options.steps.contains(&ProcessStep::Rectify) {
         if let Some(size) = view.frame_size {
             pipeline::check_frame_size(size).map_err(SupervisorError::invalid)?;
         }
@@ -436,7 +436,7 @@ pub fn start_worker(host: Arc<dyn JobHost>) -> Result<(), String> {
                         && job
                             .steps
                             .iter()
-                            .any(|s| s.step == Step::Rectify && s.state != JobState::Done)
+                            .any(|s| s.step == ProcessStep::Rectify && s.state != JobState::Done)
                         && streams.due(&job.run)
                         && d.capturing(&job.run)
                 };

@@ -8,7 +8,7 @@
 //! - [`manual_session`]: manual control's rig, held between actions
 //! - [`peers`]: the other rigs' daemons (`--peers FILE`), watched
 //! - [`plan_cache`]: built-in plans, solved once in the background
-//! - [`persist`]: the queue file and the run history on disk
+//! - [`data_dir`]: the queue file and the run history on disk
 //! - [`api`]: the handlers and the OpenAPI description
 //! - [`wire`]: the API's JSON types
 //! - [`auth`]: the bearer token
@@ -18,6 +18,7 @@
 
 pub mod api;
 pub mod auth;
+pub mod data_dir;
 pub mod error;
 pub mod events;
 pub mod history;
@@ -25,7 +26,6 @@ pub mod http;
 pub mod jobs;
 pub mod manual_session;
 pub mod peers;
-pub mod persist;
 pub mod plan_cache;
 pub mod run_index;
 pub mod supervisor;

@@ -16,7 +16,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::persist::{is_valid_id, load_run};
+use super::data_dir::{is_valid_id, load_run};
 use super::wire::RunView;
 use crate::model::run_state::RunState;
 use crate::store::{JOURNAL_FILE, MANIFEST_FILE, RUN_FILE, STATE_FILE};

@@ -9,10 +9,10 @@ use std::time::Duration;
 use tokio::sync::{broadcast, watch};
 use tokio::task::JoinHandle;
 
+use super::data_dir::{self, RUNS_DIR};
 use super::error::SupervisorError;
 use super::events::EventHub;
 use super::history::RunHistory;
-use super::persist::{self, RUNS_DIR};
 use super::plan_cache::PlanCache;
 use super::wire::{PaceView, PlanSpec, QueueItem, RunRequest, RunView};
 use super::ServerConfig;
@@ -154,7 +154,7 @@ impl Daemon {
                 tracing::warn!("cannot write the run index: {e}");
             }
         }
-        inner.queue = persist::load_queue(&data_dir);
+        inner.queue = data_dir::load_queue(&data_dir);
         let jobs = super::jobs::Jobs::load(&runs_dir, inner.runs.keys());
         let (shutdown_tx, _) = watch::channel(false);
         let plans = PlanCache::new(
@@ -249,7 +249,7 @@ impl Daemon {
     /// The directory of run `id`; None unless `id` is a well-formed id of a
     /// known run, so no path is built from unchecked input.
     pub fn run_root(&self, id: &str) -> Option<PathBuf> {
-        if !persist::is_valid_id(id) || !self.inner().runs.contains_key(id) {
+        if !data_dir::is_valid_id(id) || !self.inner().runs.contains_key(id) {
             return None;
         }
         Some(self.runs_dir.join(id))
@@ -306,14 +306,14 @@ impl Daemon {
         plan: &plan::Plan,
         options: crate::postprocess::pipeline::ProcessOptions,
     ) -> Result<crate::postprocess::pipeline::ProcessOptions, SupervisorError> {
-        use crate::postprocess::pipeline::{check_frame_size, RunFacts, Step};
+        use crate::postprocess::pipeline::{check_frame_size, ProcessStep, RunFacts};
         let options = options
             .resolve(&RunFacts::of_plan(plan))
             .map_err(|e| SupervisorError::invalid(format!("`process`: {e}")))?;
         let size = req
             .frame_size
             .or(self.config.sim.then_some(self.profile.sim.frame_size));
-        if let (true, Some(size)) = (options.steps.contains(&Step::Rectify), size) {
+        if let (true, Some(size)) = (options.steps.contains(&ProcessStep::Rectify), size) {
             check_frame_size(size)
                 .map_err(|e| SupervisorError::invalid(format!("`process`: {e}")))?;
         }
@@ -425,7 +425,7 @@ impl Daemon {
                 Some(o) => self
                     .process_after_capture(&req, &plan, o.clone())?
                     .steps
-                    .contains(&crate::postprocess::pipeline::Step::Btf),
+                    .contains(&crate::postprocess::pipeline::ProcessStep::Btf),
                 None => false,
             };
         let _gate = self.start_gate.lock().await;
@@ -442,7 +442,7 @@ impl Daemon {
         self.manual.release().await;
         let id = {
             let inner = self.inner();
-            persist::new_run_id(&self.runs_dir, &req.sample, &plan.name, &|id| {
+            data_dir::new_run_id(&self.runs_dir, &req.sample, &plan.name, &|id| {
                 inner.runs.contains_key(id)
             })
         };
@@ -499,7 +499,7 @@ impl Daemon {
         // The run exists on disk from here on: whatever follows, the daemon
         // knows it (from what was prepared, not from a second read of its
         // files), never leaving a folder it answers 404 for.
-        let view = persist::view_of(&id, &prepared.meta, None, prepared.frames_done, None, None);
+        let view = data_dir::view_of(&id, &prepared.meta, None, prepared.frames_done, None, None);
         if let Some(options) = &req.process {
             // Checked in `validate`; queued before the engine starts, so
             // the job is on disk before the first frame.
@@ -657,7 +657,7 @@ impl Daemon {
                     EventKind::State { to, reason, .. } => {
                         v.state = *to;
                         v.reason = reason.clone();
-                        if let Some(r) = reason.as_ref().filter(|r| persist::is_error_reason(r)) {
+                        if let Some(r) = reason.as_ref().filter(|r| data_dir::is_error_reason(r)) {
                             v.last_error = Some(r.clone());
                         }
                     }
@@ -697,7 +697,7 @@ impl Daemon {
         result: Result<Result<Outcome, EngineError>, String>,
     ) {
         let root = self.runs_dir.join(id);
-        let reloaded = persist::load_run(&root, id, false).ok().map(|(v, _)| v);
+        let reloaded = data_dir::load_run(&root, id, false).ok().map(|(v, _)| v);
         let (shutting_down, view) = {
             let mut inner = self.inner();
             if inner.active.as_ref().is_some_and(|a| a.id == id) {
@@ -803,7 +803,7 @@ impl Daemon {
     }
 
     fn save_queue_locked(&self, inner: &Inner) {
-        if let Err(e) = persist::save_queue(&self.data_dir, &inner.queue) {
+        if let Err(e) = data_dir::save_queue(&self.data_dir, &inner.queue) {
             tracing::error!("cannot save the queue: {e}");
         }
     }
@@ -839,7 +839,7 @@ impl Daemon {
                 created_at: crate::store::now_rfc3339(),
             };
             inner.queue.push(item.clone());
-            persist::save_queue(&self.data_dir, &inner.queue)
+            data_dir::save_queue(&self.data_dir, &inner.queue)
                 .map_err(|e| SupervisorError::internal(format!("cannot save the queue: {e}")))?;
             item
         };
@@ -858,7 +858,7 @@ impl Daemon {
                 return Err(SupervisorError::not_found("no such queue item"));
             };
             inner.queue.remove(pos);
-            persist::save_queue(&self.data_dir, &inner.queue)
+            data_dir::save_queue(&self.data_dir, &inner.queue)
                 .map_err(|e| SupervisorError::internal(format!("cannot save the queue: {e}")))?;
         }
         self.publish_queue();

@@ -6,7 +6,7 @@ use utoipa::ToSchema;
 use rigd_core::geometry::Direction;
 
 use crate::model::run_state::RunState;
-use crate::postprocess::pipeline::{ProcessOptions, Step};
+use crate::postprocess::pipeline::{ProcessOptions, ProcessStep};
 
 /// A direction in the sample frame, degrees.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
@@ -570,7 +570,7 @@ pub enum JobState {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct StepStatus {
     /// The step.
-    pub step: Step,
+    pub step: ProcessStep,
     /// Where it is.
     pub state: JobState,
     /// Units done: frames (rectify), view slots (btf, fit), sweeps (mdf),

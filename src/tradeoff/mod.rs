@@ -32,7 +32,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use rayon::prelude::*;
-use rigd_process::btf::{compress_slot, BtfStore, BtfWriter, SlotPca, TextureShape};
+use rigd_process::btf::{compress_slot, BtfWriter, CompressedBtf, SlotPca, TextureShape};
 use rigd_process::directions::{Direction as PDir, DirectionTable};
 use rigd_sim::scene::{Effect, EffectSwitches, Scene, Shot};
 use serde::{Deserialize, Serialize};
@@ -322,7 +322,7 @@ fn compress(
     g: &Grid,
     size: usize,
     components: usize,
-) -> Result<(BtfStore, Vec<SlotPca>, f64), ProcessError> {
+) -> Result<(CompressedBtf, Vec<SlotPca>, f64), ProcessError> {
     let invalid = |e: rigd_process::btf::BtfError| ProcessError::Invalid(e.to_string());
     let shape = TextureShape::new(size, size, 1).map_err(invalid)?;
     let started = Instant::now();
@@ -335,7 +335,7 @@ fn compress(
         .collect::<Result<Vec<_>, _>>()?;
     let compress_s = started.elapsed().as_secs_f64();
     let (lights, views) = tables(g)?;
-    let store = BtfStore::new(shape, lights, views, slots.clone()).map_err(invalid)?;
+    let store = CompressedBtf::new(shape, lights, views, slots.clone()).map_err(invalid)?;
     Ok((store, slots, compress_s))
 }
 
@@ -349,7 +349,7 @@ struct Measured {
 /// RMS error of the store at the held-out pairs, relative to the truth's
 /// RMS, with its jackknife standard error over the pairs.
 fn held_out_error(
-    store: &BtfStore,
+    store: &CompressedBtf,
     truths: &[(Direction, Direction, Vec<f32>)],
 ) -> Result<Measured, ProcessError> {
     let mut per_pair = Vec::with_capacity(truths.len());
@@ -588,7 +588,7 @@ fn camera_chain(
     crate::postprocess::rectify::rectify_run(&frames, &rectify, &|_, _| {})?;
     crate::postprocess::btf::btf_run(&dir, cfg.components, &|_, _| {})?;
     let compute_s = started.elapsed().as_secs_f64();
-    let store = BtfStore::read(&crate::store::processed::btf_dir(&dir))
+    let store = CompressedBtf::read(&crate::store::processed::btf_dir(&dir))
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
     let measured = held_out_error(&store, truths)?;
     let _ = std::fs::remove_dir_all(&dir);

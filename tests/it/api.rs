@@ -1190,7 +1190,7 @@ async fn sim_render_returns_a_frame_with_its_effects() {
 
 /// A small compressed BTF written where `rigd process btf` writes.
 fn write_tiny_btf(run_dir: &std::path::Path) -> usize {
-    use rigd_process::btf::{compress_slot, BtfStore, TextureShape};
+    use rigd_process::btf::{compress_slot, CompressedBtf, TextureShape};
     use rigd_process::directions::{h1, Direction, DirectionTable};
     let shape = TextureShape::new(8, 8, 1).expect("shape");
     let lights = DirectionTable::new(h1()).expect("lights");
@@ -1211,7 +1211,7 @@ fn write_tiny_btf(run_dir: &std::path::Path) -> usize {
             compress_slot(&refs, shape, 3).expect("compress")
         })
         .collect();
-    let store = BtfStore::new(shape, lights, views, slots).expect("store");
+    let store = CompressedBtf::new(shape, lights, views, slots).expect("store");
     store
         .write(&rigd::store::processed::btf_dir(run_dir))
         .expect("write the BTF");

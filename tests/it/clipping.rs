@@ -173,7 +173,7 @@ fn texels_that_read_a_clipped_pixel_are_counted_masked_and_reported() {
         filled > 0 && printed.contains("clipped texels:"),
         "{printed}"
     );
-    let btf = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).expect("the BTF");
+    let btf = rigd_process::btf::CompressedBtf::read(&run.join("processed/btf")).expect("the BTF");
     let slot = mirror["view_slot"].as_u64().expect("slot") as usize;
     let light = mirror["light_index"].as_u64().expect("light") as usize;
     let stored = btf

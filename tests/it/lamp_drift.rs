@@ -68,7 +68,7 @@ fn mean_rms(run: &Path) -> f64 {
 /// as well; the drift is what no one scale takes out.
 fn relative_difference(run: &Path, reference: &Path) -> f64 {
     let textures = |run: &Path| -> Vec<f32> {
-        let store = rigd_process::btf::BtfStore::read(&rigd::store::processed::btf_dir(run))
+        let store = rigd_process::btf::CompressedBtf::read(&rigd::store::processed::btf_dir(run))
             .expect("the BTF");
         frontal_pairs()
             .iter()

@@ -191,7 +191,7 @@ fn a_capture_is_rectified_and_compressed() {
     assert_eq!(tex.status.code(), Some(2), "{err}");
     assert!(err.contains("rigd process mdf"), "{err}");
     assert!(!run.join("processed/mdf-texture").exists());
-    let store = rigd_process::btf::BtfStore::read(&run.join("processed/btf")).unwrap();
+    let store = rigd_process::btf::CompressedBtf::read(&run.join("processed/btf")).unwrap();
     let tex = store
         .reconstruct(
             rigd_process::directions::Direction::new(35.0, 10.0),

@@ -62,8 +62,8 @@ fn slurm_args<'a>(shared: &'a str, extra: &[&'a str]) -> Vec<&'a str> {
 
 /// Every (slot, light) texture of two compressed BTFs agrees within `tol`.
 fn assert_same_btf(a: &Path, b: &Path, tol: f32) -> f32 {
-    let a = rigd_process::btf::BtfStore::read(a).expect("local BTF");
-    let b = rigd_process::btf::BtfStore::read(b).expect("Slurm BTF");
+    let a = rigd_process::btf::CompressedBtf::read(a).expect("local BTF");
+    let b = rigd_process::btf::CompressedBtf::read(b).expect("Slurm BTF");
     assert_eq!(a.slots().len(), b.slots().len());
     assert_eq!(a.lights().directions(), b.lights().directions());
     let mut worst = 0.0f32;

@@ -669,7 +669,7 @@ pub struct SlotReport {
 
 /// A compressed BTF: one [`SlotPca`] per view direction.
 #[derive(Debug, Clone, PartialEq)]
-pub struct BtfStore {
+pub struct CompressedBtf {
     shape: TextureShape,
     components: usize,
     lights: DirectionTable,
@@ -677,7 +677,7 @@ pub struct BtfStore {
     slots: Vec<SlotPca>,
 }
 
-impl BtfStore {
+impl CompressedBtf {
     /// Assembles slots compressed with [`compress_slot`]; `slots[j]` belongs
     /// to view direction j and must cover every light of `lights`.
     pub fn new(
@@ -696,7 +696,7 @@ impl BtfStore {
         for (slot, pca) in slots.iter().enumerate() {
             check_slot(slot, pca, shape, lights.len(), components)?;
         }
-        Ok(BtfStore {
+        Ok(CompressedBtf {
             shape,
             components,
             lights,
@@ -724,7 +724,7 @@ impl BtfStore {
             .into_par_iter()
             .map(|slot| load_and_compress(slot, &load_slot, shape, light_count, components))
             .collect::<Result<Vec<_>, _>>()?;
-        BtfStore::new(shape, lights, views, slots)
+        CompressedBtf::new(shape, lights, views, slots)
     }
 
     /// Size of every texture in the store.
@@ -800,7 +800,7 @@ impl BtfStore {
         writer.finish()
     }
 
-    /// Reads a store written by [`BtfStore::write`] or [`BtfWriter`].
+    /// Reads a store written by [`CompressedBtf::write`] or [`BtfWriter`].
     pub fn read(dir: &Path) -> Result<Self, BtfError> {
         let header = BtfHeader::read(dir)?;
         let slots = (0..header.slots.len())
@@ -809,7 +809,7 @@ impl BtfStore {
         let shape = header.shape(&dir.join(HEADER_FILE))?;
         let lights = DirectionTable::new(header.light_directions)?;
         let views = DirectionTable::new(header.view_directions)?;
-        BtfStore::new(shape, lights, views, slots)
+        CompressedBtf::new(shape, lights, views, slots)
     }
 
     fn slot_checked(&self, slot: usize) -> Result<&SlotPca, BtfError> {

@@ -37,7 +37,7 @@
 
 use rayon::prelude::*;
 
-use crate::btf::{BtfError, BtfStore};
+use crate::btf::{BtfError, CompressedBtf};
 use crate::directions::{Direction, DirectionError, Interpolation};
 use crate::mesh::Mesh;
 use rigd_core::geometry::{cross, dot, scale, sub, unit};
@@ -256,7 +256,7 @@ fn sample_add(
 /// The BTF's value (RGB; grey repeated) at texture coordinate `st` for the
 /// given view-slot and light weights.
 fn btf_value(
-    store: &BtfStore,
+    store: &CompressedBtf,
     views: &Interpolation,
     lights: &Interpolation,
     st: [f64; 2],
@@ -404,7 +404,7 @@ impl Surface {
 
 /// Everything the shading of a fragment needs, checked once per image.
 pub(crate) struct Shader<'a> {
-    store: &'a BtfStore,
+    store: &'a CompressedBtf,
     mesh: &'a Mesh,
     settings: RelightSettings,
     pub(crate) camera: Camera,
@@ -417,7 +417,7 @@ impl<'a> Shader<'a> {
     /// Checks `settings` and prepares the camera, the light and eq. 6's
     /// per-vertex coordinates.
     pub(crate) fn new(
-        store: &'a BtfStore,
+        store: &'a CompressedBtf,
         mesh: &'a Mesh,
         settings: &RelightSettings,
     ) -> Result<Shader<'a>, RelightError> {
@@ -586,7 +586,7 @@ pub(crate) fn surface_of(mesh: &Mesh, frag: &Fragment, shadow_u: &[f64]) -> Surf
 
 /// Renders `store` on `mesh`; see the module documentation for each step.
 pub fn relight(
-    store: &BtfStore,
+    store: &CompressedBtf,
     mesh: &Mesh,
     settings: &RelightSettings,
 ) -> Result<RgbImage, RelightError> {
@@ -608,7 +608,7 @@ pub(crate) mod tests {
 
     /// A BTF whose value is the light's cosine (a Lambertian material) with
     /// a checker so texture mapping shows.
-    pub(crate) fn lambert_store(size: usize) -> BtfStore {
+    pub(crate) fn lambert_store(size: usize) -> CompressedBtf {
         let shape = TextureShape::new(size, size, 3).unwrap();
         let lights = DirectionTable::new(h1()).unwrap();
         let views = DirectionTable::new(h1()).unwrap();
@@ -637,7 +637,7 @@ pub(crate) mod tests {
                 compress_slot(&refs, shape, 4).unwrap()
             })
             .collect();
-        BtfStore::new(shape, lights, views, slots).unwrap()
+        CompressedBtf::new(shape, lights, views, slots).unwrap()
     }
 
     fn settings(light: Direction, view: Direction) -> RelightSettings {

@@ -83,7 +83,7 @@
 
 use rayon::prelude::*;
 
-use crate::btf::BtfStore;
+use crate::btf::CompressedBtf;
 use crate::directions::DirectionError;
 use crate::mdf::MdfTexture;
 use crate::mesh::Mesh;
@@ -318,7 +318,7 @@ impl ShadowMap {
 /// Renders `store` on `mesh` as [`crate::relight::relight`] does, with the
 /// MDF's silhouettes and shadows as `meso` asks (module doc).
 pub fn render(
-    store: &BtfStore,
+    store: &CompressedBtf,
     mesh: &Mesh,
     mdf: &MdfTexture,
     settings: &RelightSettings,

@@ -31,7 +31,7 @@
 
 use serde::Serialize;
 
-use crate::btf::{BtfStore, TextureShape};
+use crate::btf::{CompressedBtf, TextureShape};
 use crate::directions::{Direction, DirectionTable, RingLayout};
 use crate::mdf::{MdfTexture, NO_DEPTH};
 
@@ -207,7 +207,7 @@ pub fn btf_manifest(
 }
 
 /// Packs `store`, keeping at most `max_components` per slot.
-pub fn pack_btf(store: &BtfStore, max_components: usize) -> (BlobManifest, Vec<u8>) {
+pub fn pack_btf(store: &CompressedBtf, max_components: usize) -> (BlobManifest, Vec<u8>) {
     let manifest = btf_manifest(
         store.shape(),
         store.components(),
@@ -316,7 +316,7 @@ mod tests {
     use crate::btf::{compress_slot, TextureShape};
     use crate::directions::h1;
 
-    fn store() -> BtfStore {
+    fn store() -> CompressedBtf {
         let shape = TextureShape::new(4, 3, 3).unwrap();
         let lights = DirectionTable::new(h1()).unwrap();
         let views = DirectionTable::new(vec![Direction::new(0.0, 0.0), Direction::new(40.0, 90.0)])
@@ -341,7 +341,7 @@ mod tests {
                 compress_slot(&refs, shape, 5).unwrap()
             })
             .collect();
-        BtfStore::new(shape, lights, views, slots).unwrap()
+        CompressedBtf::new(shape, lights, views, slots).unwrap()
     }
 
     fn f16_at(data: &[u8], index: usize) -> f32 {

@@ -6,7 +6,7 @@
 
 use std::ops::Range;
 
-use super::resume::FirstPassStore;
+use super::resume::FirstPassCache;
 use super::run::{assign_slots, check_config, holder_layout};
 use super::steps::Rectifier;
 use super::RectifyConfig;
@@ -48,7 +48,7 @@ pub fn first_pass_range(
         lamp: None,
     }
     .with_lamp();
-    let store = FirstPassStore::new(&out_dir, cfg, &rectifier);
+    let store = FirstPassCache::new(&out_dir, cfg, &rectifier);
     let total = positions.len();
     let done = std::sync::atomic::AtomicUsize::new(0);
     let registered: usize = positions

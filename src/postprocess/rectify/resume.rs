@@ -34,25 +34,25 @@ struct Entry {
 }
 
 /// The kept first-pass results of one run of `rectify`.
-pub(super) struct FirstPassStore {
+pub(super) struct FirstPassCache {
     dir: PathBuf,
     out_dir: PathBuf,
     settings: String,
 }
 
-impl FirstPassStore {
+impl FirstPassCache {
     /// The store in `out_dir` (the normtextures folder) for `cfg`, and the
     /// colour calibration and lamp reference the textures are corrected by.
     pub(super) fn new(
         out_dir: &Path,
         cfg: &RectifyConfig,
         rectifier: &super::steps::Rectifier<'_>,
-    ) -> FirstPassStore {
+    ) -> FirstPassCache {
         let (colour, lamp) = (
             rectifier.colour.as_ref(),
             rectifier.lamp.as_ref().map(|(_, reference)| reference),
         );
-        FirstPassStore {
+        FirstPassCache {
             dir: out_dir.join(FIRST_PASS_DIR),
             out_dir: out_dir.to_path_buf(),
             settings: format!("{} {cfg:?} {colour:?} {lamp:?}", env!("CARGO_PKG_VERSION")),

@@ -2,7 +2,7 @@
 //! [`super::steps`], in the order that lets the fallbacks learn from the
 //! frames the markers registered.
 
-use super::resume::FirstPassStore;
+use super::resume::FirstPassCache;
 use super::steps::*;
 use super::*;
 
@@ -58,7 +58,7 @@ pub fn rectify_run(
 
     // 1. Markers, where they are found; frames an interrupted run of this
     // step had done come from its store.
-    let store = FirstPassStore::new(&out_dir, cfg, &rectifier);
+    let store = FirstPassCache::new(&out_dir, cfg, &rectifier);
     let resumed = std::sync::atomic::AtomicUsize::new(0);
     let mut first: Vec<FirstPass> = slots
         .par_iter()

@@ -18,7 +18,7 @@ use std::path::{Path, PathBuf};
 use rigd_core::holder::Holder;
 use rigd_process::rectify::MarkerLayout;
 
-use super::resume::FirstPassStore;
+use super::resume::FirstPassCache;
 use super::run::{assign_slots, check_config, encoding_of, holder_layout};
 use super::steps::Rectifier;
 use super::{slot_of, FrameRegistration, NormtextureIndex, RectifyConfig};
@@ -156,7 +156,7 @@ impl RectifyStream {
         }
         .with_lamp();
         self.channels = rectifier.channels();
-        let store = FirstPassStore::new(&out_dir, &self.cfg, &rectifier);
+        let store = FirstPassCache::new(&out_dir, &self.cfg, &rectifier);
         let done: Vec<(FrameRegistration, bool)> = (self.next..end)
             .into_par_iter()
             .map(|position| {

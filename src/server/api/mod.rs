@@ -61,7 +61,7 @@ names in a request are looked up, never used as paths (docs/api.md, \"Security\"
         crate::postprocess::holder_check::AreaReading,
         crate::server::wire::ProcessJob, crate::server::wire::StepStatus,
         crate::server::wire::JobState, crate::postprocess::pipeline::ProcessOptions,
-        crate::postprocess::pipeline::Step, crate::postprocess::pipeline::RectifyOptions,
+        crate::postprocess::pipeline::ProcessStep, crate::postprocess::pipeline::RectifyOptions,
         crate::postprocess::pipeline::BtfOptions, crate::postprocess::pipeline::FitOptions,
         crate::postprocess::pipeline::MdfOptions, crate::postprocess::pipeline::PsOptions,
         crate::server::peers::PeerList, crate::server::peers::PeerView,

@@ -155,7 +155,7 @@ pub async fn run_steps(
     let id2 = id.clone();
     let (schedule, done) = tokio::task::spawn_blocking(move || {
         let s = dd.run_schedule(&id2)?;
-        Ok::<_, ApiError>((s, crate::server::persist::journaled(&root)))
+        Ok::<_, ApiError>((s, crate::server::data_dir::journaled(&root)))
     })
     .await
     .map_err(|e| ApiError::internal(e.to_string()))??;

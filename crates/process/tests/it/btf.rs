@@ -4,8 +4,8 @@ use std::path::Path;
 
 use proptest::prelude::*;
 use rigd_process::btf::{
-    compress_slot, compress_slot_by, compress_to_dir, BtfError, BtfHeader, BtfStore, BtfWriter,
-    PcaRoute, SlotPca, TextureShape, HEADER_FILE, MAX_REPORTED_COMPONENTS,
+    compress_slot, compress_slot_by, compress_to_dir, BtfError, BtfHeader, BtfWriter,
+    CompressedBtf, PcaRoute, SlotPca, TextureShape, HEADER_FILE, MAX_REPORTED_COMPONENTS,
 };
 use rigd_process::directions::{
     h1, h2, ring_directions, Direction, DirectionError, DirectionTable, Interpolation,
@@ -573,7 +573,7 @@ fn the_viewer_reference_render_is_the_same_by_either_route() {
                 compress_slot_by(route, &refs(&images), shape, 8).unwrap()
             })
             .collect();
-        BtfStore::new(shape, lights.clone(), views.clone(), slots).unwrap()
+        CompressedBtf::new(shape, lights.clone(), views.clone(), slots).unwrap()
     };
     let (gram, svd) = (store_by(PcaRoute::Gram), store_by(PcaRoute::ThinSvd));
     for (kind, light, view) in [
@@ -679,11 +679,11 @@ fn bad_slot_input_is_a_typed_error() {
     ));
 }
 
-fn small_analytic_store(shape: TextureShape, components: usize) -> (BtfStore, DirectionTable) {
+fn small_analytic_store(shape: TextureShape, components: usize) -> (CompressedBtf, DirectionTable) {
     let lights = DirectionTable::new(h2()).unwrap();
     let views =
         DirectionTable::new(ring_directions(&[0.0, 20.0, 40.0, 60.0], &[1, 6, 8, 10])).unwrap();
-    let store = BtfStore::compress(shape, lights.clone(), views.clone(), components, |slot| {
+    let store = CompressedBtf::compress(shape, lights.clone(), views.clone(), components, |slot| {
         Ok(analytic_slot(shape, &lights, views.directions()[slot]))
     })
     .unwrap();
@@ -755,7 +755,7 @@ fn error_report_covers_every_slot_up_to_32_components() {
 
 // ---------------------------------------------------------------- storage
 
-fn assert_same_store(a: &BtfStore, b: &BtfStore) {
+fn assert_same_store(a: &CompressedBtf, b: &CompressedBtf) {
     assert_eq!(a.shape(), b.shape());
     assert_eq!(a.components(), b.components());
     for (x, y) in [(a.lights(), b.lights()), (a.views(), b.views())] {
@@ -800,7 +800,7 @@ fn store_round_trips_and_leaves_no_temporary_files() {
     assert_eq!(names.len(), store.slots().len() + 1);
     assert!(names.contains(&HEADER_FILE.to_string()));
     assert!(names.contains(&"slot_024.bin".to_string()));
-    let back = BtfStore::read(&target).unwrap();
+    let back = CompressedBtf::read(&target).unwrap();
     assert_same_store(&store, &back);
     // Byte size as documented: 4 · (values · (1 + C) + lights · C).
     let size = std::fs::metadata(target.join("slot_000.bin"))
@@ -822,7 +822,7 @@ fn streamed_compression_matches_the_in_memory_store() {
         ))
     })
     .unwrap();
-    assert_same_store(&store, &BtfStore::read(dir.path()).unwrap());
+    assert_same_store(&store, &CompressedBtf::read(dir.path()).unwrap());
 }
 
 #[test]
@@ -831,7 +831,7 @@ fn read_errors_name_the_file() {
     let (store, _) = small_analytic_store(shape, 2);
     let dir = tempfile::tempdir().unwrap();
 
-    match BtfStore::read(dir.path()) {
+    match CompressedBtf::read(dir.path()) {
         Err(BtfError::Io { path, .. }) => assert!(path.ends_with(HEADER_FILE)),
         other => panic!("missing header: {other:?}"),
     }
@@ -840,7 +840,7 @@ fn read_errors_name_the_file() {
     let slot_path = dir.path().join("slot_002.bin");
     let bytes = std::fs::read(&slot_path).unwrap();
     std::fs::write(&slot_path, &bytes[..bytes.len() - 4]).unwrap();
-    match BtfStore::read(dir.path()) {
+    match CompressedBtf::read(dir.path()) {
         Err(e @ BtfError::Format { .. }) => assert!(e.to_string().contains("slot_002.bin"), "{e}"),
         other => panic!("truncated slot: {other:?}"),
     }
@@ -848,24 +848,24 @@ fn read_errors_name_the_file() {
     nan[0..4].copy_from_slice(&f32::NAN.to_le_bytes());
     std::fs::write(&slot_path, &nan).unwrap();
     assert!(matches!(
-        BtfStore::read(dir.path()),
+        CompressedBtf::read(dir.path()),
         Err(BtfError::Format { .. })
     ));
     std::fs::write(&slot_path, &bytes).unwrap();
-    assert!(BtfStore::read(dir.path()).is_ok());
+    assert!(CompressedBtf::read(dir.path()).is_ok());
 
     let header_path = dir.path().join(HEADER_FILE);
     let mut header: BtfHeader =
         serde_json::from_str(&std::fs::read_to_string(&header_path).unwrap()).unwrap();
     header.slots[1].file = "../escape.bin".into();
     std::fs::write(&header_path, serde_json::to_string(&header).unwrap()).unwrap();
-    match BtfStore::read(dir.path()) {
+    match CompressedBtf::read(dir.path()) {
         Err(e @ BtfError::Format { .. }) => assert!(e.to_string().contains(HEADER_FILE), "{e}"),
         other => panic!("escaping file name: {other:?}"),
     }
     std::fs::write(&header_path, "{ not json").unwrap();
     assert!(matches!(
-        BtfStore::read(dir.path()),
+        CompressedBtf::read(dir.path()),
         Err(BtfError::Format { .. })
     ));
 }
@@ -885,13 +885,13 @@ proptest! {
         let shape = TextureShape::new(width, height, if rgb { 3 } else { 1 }).unwrap();
         let lights = DirectionTable::new(ring_directions(&[40.0], &[light_count])).unwrap();
         let views = DirectionTable::new(ring_directions(&[0.0, 50.0], &[1, view_count])).unwrap();
-        let store = BtfStore::compress(shape, lights.clone(), views.clone(), components, |slot| {
+        let store = CompressedBtf::compress(shape, lights.clone(), views.clone(), components, |slot| {
             let mut rng = Lcg(seed ^ (slot as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
             Ok((0..light_count).map(|_| rng.texture(shape.values())).collect())
         }).unwrap();
         let dir = tempfile::tempdir().unwrap();
         store.write(dir.path()).unwrap();
-        let back = BtfStore::read(dir.path()).unwrap();
+        let back = CompressedBtf::read(dir.path()).unwrap();
         assert_same_store(&store, &back);
         prop_assert_eq!(back.components(), components.min(light_count).min(shape.values()));
     }
@@ -918,7 +918,7 @@ fn mismatched_slots_and_unfinished_writers_are_errors() {
     let shape = TextureShape::new(2, 2, 1).unwrap();
     let lights = DirectionTable::new(h2()).unwrap();
     let views = DirectionTable::new(ring_directions(&[0.0, 30.0], &[1, 2])).unwrap();
-    let short = BtfStore::compress(shape, lights.clone(), views.clone(), 2, |_| {
+    let short = CompressedBtf::compress(shape, lights.clone(), views.clone(), 2, |_| {
         Ok(vec![vec![0.0; 4]; 80])
     });
     assert!(matches!(short, Err(BtfError::SlotMismatch { .. })));
