@@ -294,10 +294,10 @@ pub fn btf_truth_error(
 /// The scene a simulated run rendered, on the holder its profile
 /// describes.
 fn scene_of(meta: &crate::store::RunMeta) -> Result<Arc<Scene>, ProcessError> {
-    let name = meta
-        .sim_scene
-        .as_ref()
-        .map_or_else(|| meta.profile.sim.scene_name(), |s| s.name.as_str());
+    let name = meta.sim_scene.as_ref().map_or_else(
+        || crate::rig::sim::scene_name(&meta.profile.sim),
+        |s| s.name.as_str(),
+    );
     Scene::load_on(name, &meta.profile.holder)
         .map_err(|e| ProcessError::Invalid(format!("the run's simulated scene: {e}")))
 }

@@ -85,7 +85,7 @@ fn template(args: TemplateArgs) -> Result<ExitCode> {
             args.out.display()
         )));
     }
-    let profile = rigd::plan::load_profile(&profile_source(&args.profile))?;
+    let profile = rigd::rig::load_profile(&profile_source(&args.profile))?;
     let drawing =
         write_template(&profile.name, &profile.holder, &args.out).map_err(|e| match e {
             TemplateError::Holder(_) | TemplateError::Format(_) => bad_input(e.to_string()),
@@ -103,7 +103,7 @@ fn template(args: TemplateArgs) -> Result<ExitCode> {
 }
 
 fn check(args: CheckArgs) -> Result<ExitCode> {
-    let profile = rigd::plan::load_profile(&profile_source(&args.profile))?;
+    let profile = rigd::rig::load_profile(&profile_source(&args.profile))?;
     let frame = read_frame(&args.frame, &profile, args.camera.as_deref())
         .map_err(|e| bad_input(e.to_string()))?;
     let mut pose = frame.pose;

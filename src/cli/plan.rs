@@ -92,7 +92,7 @@ fn show(
     policy: Option<ExposurePolicy>,
     scene: Option<String>,
 ) -> Result<()> {
-    let profile = rigd::plan::load_profile(profile)?;
+    let profile = rigd::rig::load_profile(profile)?;
     if let Some(e) = exposure {
         profile
             .check_exposure_override(e)

@@ -20,7 +20,7 @@ pub enum ProfileCmd {
 pub fn run(cmd: ProfileCmd) -> Result<ExitCode> {
     match cmd {
         ProfileCmd::Check { profile } => {
-            let p = rigd::plan::load_profile(&profile)?;
+            let p = rigd::rig::load_profile(&profile)?;
             println!(
                 "{}: ok: profile `{}`, {} devices, default plan {}",
                 profile,
@@ -31,7 +31,7 @@ pub fn run(cmd: ProfileCmd) -> Result<ExitCode> {
         }
         ProfileCmd::List => {
             for (name, _) in rigd::model::profile::EMBEDDED {
-                let p = rigd::plan::load_profile(name)?;
+                let p = rigd::rig::load_profile(name)?;
                 println!("{name}\t{}", p.description);
             }
         }

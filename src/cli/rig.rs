@@ -48,7 +48,7 @@ fn check(args: CheckArgs) -> Result<ExitCode> {
         .profile
         .clone()
         .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
-    let profile = rigd::plan::load_profile(&source)?;
+    let profile = rigd::rig::load_profile(&source)?;
     // As for a run: the simulated rig in virtual time, hardware on the wall
     // clock.
     let runtime = tokio::runtime::Builder::new_current_thread()

@@ -180,7 +180,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     .clone()
                     .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
                 #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
-                let mut profile = rigd::plan::load_profile(&source)?;
+                let mut profile = rigd::rig::load_profile(&source)?;
                 #[cfg(feature = "sim")]
                 if let Some(scene) = &args.scene {
                     // The run records its profile, so a resume renders
@@ -206,11 +206,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     ))
                 });
                 let req = NewRun {
-                    profile_source: if std::path::Path::new(&source).exists() {
-                        source.clone()
-                    } else {
-                        format!("<embedded {source}>")
-                    },
+                    profile_source: rigd::model::profile::Profile::origin(&source),
                     profile,
                     plan,
                     sample: args.sample.clone(),

@@ -103,7 +103,7 @@ pub struct RenderArgs {
 }
 
 fn sim_render(args: RenderArgs) -> Result<()> {
-    let profile = rigd::plan::load_profile(&args.profile)?;
+    let profile = rigd::rig::load_profile(&args.profile)?;
     let effects = args
         .effects
         .parse()
@@ -171,7 +171,7 @@ fn sim_serve(
             "--speed {speed}: expected a positive factor"
         )));
     }
-    let profile = rigd::plan::load_profile(source)?;
+    let profile = rigd::rig::load_profile(source)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()

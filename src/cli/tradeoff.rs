@@ -72,7 +72,7 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
             .map_err(|e| bad_input(format!("{}: {e}", path.display())))?;
         let Some(goal) = goal else {
             let folder = path.parent().unwrap_or(std::path::Path::new("."));
-            let marked = rigd::plan::load_profile(&report.profile)
+            let marked = rigd::rig::load_profile(&report.profile)
                 .ok()
                 .map(|p| p.default_plan);
             rigd::tradeoff::redraw(folder, &report, marked.as_deref())?;
@@ -81,7 +81,7 @@ pub fn run(args: TradeoffArgs) -> Result<ExitCode> {
         };
         return answer(&report.rows, goal);
     }
-    let profile = rigd::plan::load_profile(&args.profile)?;
+    let profile = rigd::rig::load_profile(&args.profile)?;
     let cfg = rigd::tradeoff::TradeoffConfig {
         texture: args.texture,
         held_out: args.held_out,

@@ -225,21 +225,6 @@ fn default_zoom() -> f64 {
     1.0
 }
 
-#[cfg(feature = "sim")]
-impl SimSettings {
-    /// The profile's fault rules, parsed (validation guarantees they parse).
-    pub fn fault_rules(&self) -> Vec<rigd_sim::FaultRule> {
-        self.faults.iter().filter_map(|f| f.parse().ok()).collect()
-    }
-
-    /// The scene the simulated cameras render.
-    pub fn scene_name(&self) -> &str {
-        self.scene
-            .as_deref()
-            .unwrap_or(rigd_sim::scene::DEFAULT_SCENE)
-    }
-}
-
 /// The smallest simulated frame, measured on the Bonn rig's H2 views, at
 /// which `rigd process rectify` finds the holder's markers in every view:
 /// at 256×192 about a third of the 75° ring falls back to registration
@@ -274,8 +259,8 @@ impl Profile {
         if path.exists() {
             return Profile::from_file(path);
         }
-        if let Some((name, text)) = EMBEDDED.iter().find(|(n, _)| *n == spec) {
-            return Profile::parse(text, &format!("<embedded {name}>"));
+        if let Some((_, text)) = EMBEDDED.iter().find(|(n, _)| *n == spec) {
+            return Profile::parse(text, &Profile::origin(spec));
         }
         let names: Vec<&str> = EMBEDDED.iter().map(|(n, _)| *n).collect();
         Err(ProfileError {
@@ -286,6 +271,16 @@ impl Profile {
                 names.join(", ")
             ),
         })
+    }
+
+    /// How errors and a run's record name the profile that
+    /// [`Profile::load`] loads for `spec`: its path, or `<embedded NAME>`.
+    pub fn origin(spec: &str) -> String {
+        if Path::new(spec).exists() {
+            spec.to_string()
+        } else {
+            format!("<embedded {spec}>")
+        }
     }
 
     /// Reads, parses and validates the profile file at `path`; errors name
@@ -426,39 +421,6 @@ impl Profile {
         }
     }
 
-    /// Checks what serde cannot: references between keys, and values.
-    /// The `[sim]` section names a scene that exists and faults that parse
-    /// and name devices of this profile.
-    #[cfg(feature = "sim")]
-    fn validate_sim(&self) -> Result<(), (String, String)> {
-        if let Some(scene) = &self.sim.scene {
-            let builtin = rigd_sim::scene::Scene::builtin_names();
-            if !builtin.contains(&scene.as_str()) && !std::path::Path::new(scene).is_file() {
-                return Err((
-                    "sim.scene".into(),
-                    format!(
-                        "no built-in scene or scene file `{scene}` (built in: {})",
-                        builtin.join(", ")
-                    ),
-                ));
-            }
-        }
-        for (i, f) in self.sim.faults.iter().enumerate() {
-            let rule: rigd_sim::FaultRule =
-                f.parse().map_err(|e| (format!("sim.faults[{i}]"), e))?;
-            if !self.devices.contains_key(&rule.device) && !rule.device.starts_with("modbus-") {
-                return Err((
-                    format!("sim.faults[{i}]"),
-                    format!(
-                        "names device `{}`, but there is no [devices.{}]",
-                        rule.device, rule.device
-                    ),
-                ));
-            }
-        }
-        Ok(())
-    }
-
     fn validate(&self) -> Result<(), (String, String)> {
         crate::model::text::check_name(&self.name)
             .map_err(|why| ("name".to_string(), format!("the rig's name {why}")))?;
@@ -469,10 +431,8 @@ impl Profile {
             check_device_name(name)?;
             dev.validate(&format!("devices.{name}"))?;
         }
-        // Without the simulator the [sim] section is kept as written: it is
-        // checked where it can be used.
-        #[cfg(feature = "sim")]
-        self.validate_sim()?;
+        // The [sim] section's scene and faults are the simulator's to
+        // check (`rig::load_profile`); its values are checked here.
         let want = |key: &str, name: &str, kind: DeviceKind| -> Result<(), (String, String)> {
             match self.devices.get(name) {
                 None => Err((

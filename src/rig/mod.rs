@@ -52,7 +52,7 @@ use tokio::io::{AsyncRead, AsyncWrite};
 use tokio_modbus::client::Context;
 use tokio_modbus::Slave;
 
-use crate::model::profile::{Device, DeviceKind, Profile};
+use crate::model::profile::{Device, DeviceKind, Profile, ProfileError};
 use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::acl::{AclArm, AclConfig, AclJointConfig};
 use crate::rig::drivers::genicam::{GenicamCamera, GenicamConfig, GenicamOpener};
@@ -238,6 +238,21 @@ impl Identity {
             unusable: None,
         }
     }
+}
+
+/// Loads a profile as the command line and the daemon use it:
+/// [`crate::plan::load_profile`], then, with the simulator built in, its
+/// `[sim]` table's scene and faults checked by the simulator
+/// ([`sim::check_settings`]); without it the table is kept as written.
+pub fn load_profile(spec: &str) -> Result<Profile, ProfileError> {
+    let profile = crate::plan::load_profile(spec)?;
+    #[cfg(feature = "sim")]
+    sim::check_settings(&profile).map_err(|(key, message)| ProfileError {
+        file: Profile::origin(spec),
+        key,
+        message,
+    })?;
+    Ok(profile)
 }
 
 /// One line device or camera, connected.

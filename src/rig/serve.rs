@@ -80,7 +80,7 @@ pub async fn serve(
 ) -> Result<Served, DeviceError> {
     let solver = Solver::new(profile)
         .map_err(|e| DeviceError::new("rig", ErrorKind::NotReady, e.to_string()))?;
-    let mut all = profile.sim.fault_rules();
+    let mut all = super::sim::fault_rules(&profile.sim);
     all.extend(faults);
     let faults = Arc::new(rigd_sim::FaultInjector::new(all));
     let parts = firmware(profile, Arc::new(solver), None, clock, &faults)?;

@@ -160,7 +160,9 @@ pub struct MarkerPixel {
 /// name or a scene file's path.
 pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, RenderError> {
     let scene = Scene::load_on(
-        req.scene.as_deref().unwrap_or(profile.sim.scene_name()),
+        req.scene
+            .as_deref()
+            .unwrap_or(super::sim::scene_name(&profile.sim)),
         &profile.holder,
     )?;
     render_scene(profile, scene, req)
@@ -181,7 +183,7 @@ pub fn offered_scene(
     profile: &Profile,
     name: Option<&str>,
 ) -> Result<Arc<Scene>, rigd_sim::scene::SceneError> {
-    let configured = profile.sim.scene_name();
+    let configured = super::sim::scene_name(&profile.sim);
     let plate = profile
         .holder
         .holder()
@@ -199,7 +201,7 @@ pub fn offered_scene_names(profile: &Profile) -> Vec<String> {
         .into_iter()
         .map(String::from)
         .collect();
-    let configured = profile.sim.scene_name();
+    let configured = super::sim::scene_name(&profile.sim);
     if !Scene::is_builtin(configured) {
         names.push(configured.to_string());
     }

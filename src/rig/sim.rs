@@ -27,7 +27,7 @@ use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
 use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{Device, DeviceKind, Profile, SimGrblSettings, Transport};
+use crate::model::profile::{Device, DeviceKind, Profile, SimGrblSettings, SimSettings, Transport};
 use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
@@ -48,9 +48,59 @@ pub struct SimOptions {
     pub faults: Vec<FaultRule>,
 }
 
+/// The `[sim]` table's fault rules, parsed ([`check_settings`] refuses a
+/// profile with one that does not parse).
+pub fn fault_rules(settings: &SimSettings) -> Vec<FaultRule> {
+    settings
+        .faults
+        .iter()
+        .filter_map(|f| f.parse().ok())
+        .collect()
+}
+
+/// The scene the simulated cameras render: the `[sim]` table's, else the
+/// simulator's default.
+pub fn scene_name(settings: &SimSettings) -> &str {
+    settings
+        .scene
+        .as_deref()
+        .unwrap_or(rigd_sim::scene::DEFAULT_SCENE)
+}
+
+/// What only the simulator can check of a profile's `[sim]` table: its
+/// scene is a built-in one or a scene file, and each fault parses and
+/// names a device of the profile (or a Modbus module). `Err` names the key.
+pub fn check_settings(profile: &Profile) -> Result<(), (String, String)> {
+    if let Some(scene) = &profile.sim.scene {
+        let builtin = SceneModel::builtin_names();
+        if !builtin.contains(&scene.as_str()) && !std::path::Path::new(scene).is_file() {
+            return Err((
+                "sim.scene".into(),
+                format!(
+                    "no built-in scene or scene file `{scene}` (built in: {})",
+                    builtin.join(", ")
+                ),
+            ));
+        }
+    }
+    for (i, f) in profile.sim.faults.iter().enumerate() {
+        let rule: FaultRule = f.parse().map_err(|e| (format!("sim.faults[{i}]"), e))?;
+        if !profile.devices.contains_key(&rule.device) && !rule.device.starts_with("modbus-") {
+            return Err((
+                format!("sim.faults[{i}]"),
+                format!(
+                    "names device `{}`, but there is no [devices.{}]",
+                    rule.device, rule.device
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// The scene a profile's simulated cameras render, loaded once.
 pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
-    let name = profile.sim.scene_name();
+    let name = scene_name(&profile.sim);
     SceneModel::load_on(name, &profile.holder)
         .map_err(|e| DeviceError::new("sim.scene", ErrorKind::NotReady, e.to_string()))
 }
@@ -157,7 +207,7 @@ pub async fn check(
     solver: Arc<Solver>,
     clock: &Clock,
 ) -> Result<super::check::RigCheck, DeviceError> {
-    let faults = Arc::new(FaultInjector::new(profile.sim.fault_rules()));
+    let faults = Arc::new(FaultInjector::new(fault_rules(&profile.sim)));
     let parts = firmware(profile, solver, Some([1, 1]), clock, &faults)?;
     Ok(super::check::check_rig(profile, &parts.links, clock).await)
 }

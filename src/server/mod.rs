@@ -49,7 +49,7 @@ use api::{daemon, frames, manual, peers as peer_routes, plans, process, queue, r
 #[cfg(feature = "sim")]
 use api::{sim, tradeoff};
 
-use crate::model::profile::DEFAULT_PROFILE;
+use crate::model::profile::{Profile, DEFAULT_PROFILE};
 use crate::model::run_state::RunState;
 
 /// Largest request body accepted.
@@ -301,12 +301,8 @@ pub async fn start(config: ServerConfig) -> Result<(SocketAddr, ServerHandle), S
         .profile
         .clone()
         .unwrap_or_else(|| DEFAULT_PROFILE.to_string());
-    let profile = crate::plan::load_profile(&source)?;
-    let profile_source = if std::path::Path::new(&source).exists() {
-        source.clone()
-    } else {
-        format!("<embedded {source}>")
-    };
+    let profile = crate::rig::load_profile(&source)?;
+    let profile_source = Profile::origin(&source);
     std::fs::create_dir_all(&config.data_dir).map_err(|e| ServerError::DataDir {
         path: config.data_dir.clone(),
         why: e.to_string(),

@@ -236,6 +236,22 @@ fn broken_profiles_name_file_key_and_expectation() {
             "expected 0 ..= 1 second",
         ),
         (
+            // The simulator's own checks of `[sim]`, made wherever a profile
+            // is loaded.
+            "no-scene.toml",
+            "scene = \"corduroy\"",
+            "scene = \"velvet-9\"",
+            "sim.scene",
+            "no built-in scene or scene file `velvet-9`",
+        ),
+        (
+            "fault-of-nothing.toml",
+            "[sim]",
+            "[sim]\nfaults = [\"lens:expose:1:timeout\"]",
+            "sim.faults[0]",
+            "names device `lens`",
+        ),
+        (
             "holder-far-off.toml",
             "[sim]",
             "[sim]\nholder_offset_mm = [25.0, 0.0]",
