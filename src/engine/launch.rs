@@ -313,18 +313,8 @@ async fn create(
 /// The scene a simulated run renders and what its lit frames pay for.
 #[cfg(feature = "sim")]
 fn sim_scene(profile: &Profile) -> Result<SimScene, RunError> {
-    let scene = rig::sim::load_scene(profile).map_err(RunError::Simulator)?;
-    let lit = rigd_sim::scene::Shot::default();
-    Ok(SimScene {
-        name: scene.name.clone(),
-        effects: scene
-            .plan(&lit)
-            .live
-            .names()
-            .into_iter()
-            .map(String::from)
-            .collect(),
-    })
+    let (name, effects) = rig::sim::lit_effects(profile).map_err(RunError::Simulator)?;
+    Ok(SimScene { name, effects })
 }
 
 #[cfg(not(feature = "sim"))]

@@ -105,6 +105,20 @@ pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
         .map_err(|e| DeviceError::new("sim.scene", ErrorKind::NotReady, e.to_string()))
 }
 
+/// The scene a profile's simulated cameras render, by name, and the
+/// effects live in a frame it renders lit by a lamp (no laser).
+pub fn lit_effects(profile: &Profile) -> Result<(String, Vec<String>), DeviceError> {
+    let scene = load_scene(profile)?;
+    let effects = scene
+        .plan(&Shot::default())
+        .live
+        .names()
+        .into_iter()
+        .map(String::from)
+        .collect();
+    Ok((scene.name.clone(), effects))
+}
+
 /// Handles into a running simulated rig: its faults and its world.
 #[derive(Clone)]
 pub struct SimHandle {

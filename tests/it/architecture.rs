@@ -184,6 +184,7 @@ fn the_core_and_processing_never_import_the_simulator() {
         "src/kinematics",
         "src/schedule",
         "src/store",
+        "src/engine",
         "src/postprocess",
         "crates/process/src",
     ] {
