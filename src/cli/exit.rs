@@ -214,8 +214,8 @@ fn class_of(cause: &(dyn std::error::Error + 'static)) -> Option<u8> {
         || cause.is::<webgl::PackError>();
     #[cfg(feature = "sim")]
     let bad_input = bad_input
-        || cause.is::<rigd::rig::shot::RenderError>()
-        || cause.is::<rigd_sim::scene::SceneError>();
+        || cause.is::<rigd::rig::sim::shot::RenderError>()
+        || cause.is::<rigd::rig::sim::SceneError>();
     bad_input.then_some(EXIT_BAD_INPUT)
 }
 

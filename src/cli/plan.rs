@@ -243,7 +243,7 @@ fn expected_retakes(
     exposure: Option<f64>,
     scene: &str,
 ) -> Result<Vec<u32>> {
-    let loaded = rigd_sim::scene::Scene::load_on(scene, &profile.holder)
+    let loaded = rigd::rig::sim::Scene::load_on(scene, &profile.holder)
         .map_err(|e| super::exit::bad_input(format!("--scene {scene}: {e}")))?;
     let nominal = schedule.images.first().map_or(0.0, |img| {
         Timing::new(profile, None).exposure_s(&img.camera)

@@ -185,7 +185,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                 if let Some(scene) = &args.scene {
                     // The run records its profile, so a resume renders
                     // the same scene.
-                    rigd_sim::scene::Scene::load_on(scene, &profile.holder)?;
+                    rigd::rig::sim::Scene::load_on(scene, &profile.holder)?;
                     profile.sim.scene = Some(scene.clone());
                 }
                 let plan = args

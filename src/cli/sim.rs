@@ -111,10 +111,10 @@ fn sim_render(args: RenderArgs) -> Result<()> {
     let laser = args
         .laser
         .as_deref()
-        .map(rigd::rig::shot::parse_laser)
+        .map(rigd::rig::sim::shot::parse_laser)
         .transpose()
         .map_err(|e| bad_input(format!("--laser {e}")))?;
-    let req = rigd::rig::shot::RenderRequest {
+    let req = rigd::rig::sim::shot::RenderRequest {
         scene: args.scene,
         camera: args.camera,
         light: args.light,
@@ -127,7 +127,7 @@ fn sim_render(args: RenderArgs) -> Result<()> {
         lamp_off: args.lamp_off,
         zoom: args.zoom,
     };
-    let out = rigd::rig::shot::render(&profile, &req)?;
+    let out = rigd::rig::sim::shot::render(&profile, &req)?;
     let meta_path = out.write(&args.out)?;
     println!(
         "{}: scene {} from {} at light {:.1},{:.1} view {:.1},{:.1}, {}x{} {}-bit, effects {} ({:.1} ms); metadata in {}",
@@ -179,7 +179,7 @@ fn sim_serve(
         .context("cannot start the runtime")?;
     runtime.block_on(async move {
         let clock = Clock::scaled(speed);
-        let served = rigd::rig::serve::serve(&profile, faults, &clock)
+        let served = rigd::rig::sim::serve::serve(&profile, faults, &clock)
             .await
             .context("cannot serve the simulated rig")?;
         let toml = toml::to_string(&served.profile).context("cannot write the served profile")?;

@@ -14,18 +14,12 @@ pub mod drivers;
 pub mod hal;
 pub mod hardware;
 pub mod plate;
-#[cfg(feature = "sim")]
-pub mod ptpip_serve;
 mod relink;
-#[cfg(feature = "sim")]
-pub mod serve;
-#[cfg(feature = "sim")]
-pub mod shot;
 #[cfg(feature = "sim")]
 pub mod sim;
 
 #[cfg(feature = "sim")]
-pub use rigd_sim::FaultRule;
+pub use sim::FaultRule;
 #[cfg(feature = "sim")]
 pub use sim::SimHandle;
 

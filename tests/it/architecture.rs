@@ -212,6 +212,39 @@ fn the_core_and_processing_never_import_the_simulator() {
     );
 }
 
+/// The places that may name the simulator's crate: the simulated rig
+/// (`rig::sim`, which re-exports what the command line and the daemon
+/// name), the `rigd sim` commands, the trade-off report and the ground
+/// truth, which are the simulated scene's by what they are.
+const SIMULATOR_EDGE: &[&str] = &[
+    "src/rig/sim/",
+    "src/cli/sim.rs",
+    "src/tradeoff/",
+    "src/truth.rs",
+];
+
+/// Outside its edge no code of rigd imports `rigd_sim` (unit tests may).
+#[test]
+fn the_simulator_is_reached_only_through_its_edge() {
+    let mut files = Vec::new();
+    rust_files(&repo_file("src"), &mut files);
+    let root = repo_file("");
+    let offending: Vec<String> = files
+        .iter()
+        .filter_map(|f| {
+            let name = f.strip_prefix(&root).unwrap_or(f).display().to_string();
+            let inside = SIMULATOR_EDGE.iter().any(|edge| name.starts_with(edge));
+            let source = std::fs::read_to_string(f).expect("source");
+            (!inside && code_of(&source).contains("rigd_sim")).then_some(name)
+        })
+        .collect();
+    assert!(files.len() > 100, "the check reads rigd's sources");
+    assert!(
+        offending.is_empty(),
+        "these import the simulator outside rig::sim, cli/sim, tradeoff and truth: {offending:?}"
+    );
+}
+
 #[test]
 fn crates_depend_one_way() {
     for (dir, allowed) in CRATES {

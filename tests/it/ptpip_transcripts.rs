@@ -11,7 +11,7 @@ use std::time::Duration;
 use rigd::rig::drivers::ptp::{PtpCamera, PtpConfig};
 use rigd::rig::drivers::ptpip::PtpIpPipe;
 use rigd::rig::hal::ErrorKind;
-use rigd::rig::ptpip_serve::PtpIpResponder;
+use rigd::rig::sim::ptpip_serve::PtpIpResponder;
 use rigd_core::{Cfa, Clock};
 use rigd_proto::ptp::ip::{
     read_packet, write_packet, DataPhase, FailReason, Identity, IpError, Packet,

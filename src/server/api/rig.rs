@@ -150,7 +150,7 @@ pub async fn estop(State(d): State<AppState>) -> Json<EstopAnswer> {
 /// world; the hardware drivers report through the run, so nothing here.
 struct LiveState {
     #[cfg(feature = "sim")]
-    world: rigd_sim::World,
+    world: crate::rig::sim::World,
 }
 
 impl LiveState {

@@ -51,10 +51,11 @@ pub async fn sim_render(
 ) -> Result<Response, ApiError> {
     let req = render_request(&q).map_err(ApiError::bad_request)?;
     let profile = d.profile.clone();
-    let out = tokio::task::spawn_blocking(move || crate::rig::shot::render_offered(&profile, &req))
-        .await
-        .map_err(|e| ApiError::internal(e.to_string()))?
-        .map_err(render_error)?;
+    let out =
+        tokio::task::spawn_blocking(move || crate::rig::sim::shot::render_offered(&profile, &req))
+            .await
+            .map_err(|e| ApiError::internal(e.to_string()))?
+            .map_err(render_error)?;
     let png = out.png().map_err(ApiError::internal)?;
     let headers = [
         (axum::http::header::CONTENT_TYPE, "image/png".to_string()),
@@ -72,9 +73,9 @@ pub async fn sim_render(
 
 /// An unknown scene or camera is 404 (the detail names those there are),
 /// a value out of range 422.
-fn render_error(e: crate::rig::shot::RenderError) -> ApiError {
-    use crate::rig::shot::RenderError;
-    use rigd_sim::scene::SceneError;
+fn render_error(e: crate::rig::sim::shot::RenderError) -> ApiError {
+    use crate::rig::sim::shot::RenderError;
+    use crate::rig::sim::SceneError;
     match e {
         RenderError::Scene(SceneError::NotOffered { .. }) | RenderError::UnknownCamera { .. } => {
             ApiError::not_found(e.to_string())
@@ -83,9 +84,9 @@ fn render_error(e: crate::rig::shot::RenderError) -> ApiError {
     }
 }
 
-fn render_request(q: &RenderQuery) -> Result<crate::rig::shot::RenderRequest, String> {
+fn render_request(q: &RenderQuery) -> Result<crate::rig::sim::shot::RenderRequest, String> {
     use crate::model::text::{parse_direction, parse_frame_size};
-    use crate::rig::shot::{parse_laser, RenderRequest};
+    use crate::rig::sim::shot::{parse_laser, RenderRequest};
     let dir = |v: &Option<String>, what: &str| match v {
         Some(s) => parse_direction(s)
             .map(Some)
@@ -148,10 +149,10 @@ pub struct SceneView {
 pub async fn sim_scenes(State(d): State<AppState>) -> Result<Json<Vec<SceneView>>, ApiError> {
     let profile = d.profile.clone();
     let views = tokio::task::spawn_blocking(move || {
-        crate::rig::shot::offered_scene_names(&profile)
+        crate::rig::sim::shot::offered_scene_names(&profile)
             .into_iter()
             .map(|name| {
-                let s = crate::rig::shot::offered_scene(&profile, Some(&name))
+                let s = crate::rig::sim::shot::offered_scene(&profile, Some(&name))
                     .map_err(|e| ApiError::internal(e.to_string()))?;
                 Ok(SceneView {
                     name,

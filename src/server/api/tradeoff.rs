@@ -186,7 +186,7 @@ pub async fn start(
         .or_else(|| d.profile.sim.scene.clone())
         .unwrap_or_else(|| "corduroy".to_string());
     // A built-in or the configured scene only: a client's name is never a path.
-    crate::rig::shot::offered_scene(&d.profile, Some(&scene))
+    crate::rig::sim::shot::offered_scene(&d.profile, Some(&scene))
         .map_err(|e| ApiError::invalid(e.to_string()))?;
     let texture = req.texture.unwrap_or(8);
     let held_out = req.held_out.unwrap_or(24);

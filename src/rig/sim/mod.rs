@@ -8,6 +8,11 @@
 //! joints) and one [`FaultInjector`]; the cameras render what the world
 //! holds when they expose, by forward kinematics of where the devices
 //! physically are.
+//!
+//! This module is where the rest of rigd reaches the simulator: the
+//! simulated rig here, its firmware served on ptys and sockets (`serve`,
+//! `ptpip_serve`), one frame rendered on demand (`shot`), and the
+//! simulator's types the command line and the daemon name.
 
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -22,15 +27,22 @@ use rigd_sim::firmware::grbl::{self as grbl_fw, Eeprom, GrblParams};
 use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
 use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
-use rigd_sim::{FaultInjector, FaultRule, SharedWorld, World};
+use rigd_sim::{FaultInjector, SharedWorld};
 
-use super::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
+pub use rigd_sim::scene::{Scene, SceneError};
+pub use rigd_sim::{FaultRule, World};
+
+pub mod ptpip_serve;
+pub mod serve;
+pub mod shot;
+
 use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
 use crate::model::profile::{Device, DeviceKind, Profile, SimGrblSettings, SimSettings, Transport};
 use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
+use crate::rig::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
 
 /// Bytes an in-memory serial pipe buffers each way.
 const PIPE_BUFFER: usize = 64 * 1024;
@@ -220,10 +232,10 @@ pub async fn check(
     profile: &Profile,
     solver: Arc<Solver>,
     clock: &Clock,
-) -> Result<super::check::RigCheck, DeviceError> {
+) -> Result<crate::rig::check::RigCheck, DeviceError> {
     let faults = Arc::new(FaultInjector::new(fault_rules(&profile.sim)));
     let parts = firmware(profile, solver, Some([1, 1]), clock, &faults)?;
-    Ok(super::check::check_rig(profile, &parts.links, clock).await)
+    Ok(crate::rig::check::check_rig(profile, &parts.links, clock).await)
 }
 
 /// The simulated firmware of a profile, ready to be connected: a link per

@@ -162,7 +162,7 @@ pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, Re
     let scene = Scene::load_on(
         req.scene
             .as_deref()
-            .unwrap_or(super::sim::scene_name(&profile.sim)),
+            .unwrap_or(super::scene_name(&profile.sim)),
         &profile.holder,
     )?;
     render_scene(profile, scene, req)
@@ -183,7 +183,7 @@ pub fn offered_scene(
     profile: &Profile,
     name: Option<&str>,
 ) -> Result<Arc<Scene>, rigd_sim::scene::SceneError> {
-    let configured = super::sim::scene_name(&profile.sim);
+    let configured = super::scene_name(&profile.sim);
     let plate = profile
         .holder
         .holder()
@@ -201,7 +201,7 @@ pub fn offered_scene_names(profile: &Profile) -> Vec<String> {
         .into_iter()
         .map(String::from)
         .collect();
-    let configured = super::sim::scene_name(&profile.sim);
+    let configured = super::scene_name(&profile.sim);
     if !Scene::is_builtin(configured) {
         names.push(configured.to_string());
     }
@@ -415,7 +415,7 @@ mod tests {
     fn clients_get_built_in_and_configured_scenes_only() {
         let dir = tempfile::tempdir().unwrap();
         let file = dir.path().join("mine.toml");
-        let text = include_str!("../../crates/sim/scenes/corduroy.toml").replacen(
+        let text = include_str!("../../../crates/sim/scenes/corduroy.toml").replacen(
             "name = \"corduroy\"",
             "name = \"mine\"",
             1,

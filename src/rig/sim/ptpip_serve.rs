@@ -21,7 +21,7 @@ use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::net::TcpListener;
 use tokio::sync::oneshot;
 
-use super::sim::PtpOpener;
+use super::PtpOpener;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice};
 
 /// How long a connection may take to send its init packet, and a command

@@ -13,11 +13,11 @@ use rigd_sim::FaultRule;
 use tokio::net::TcpListener;
 use tokio_serial::{SerialPort, SerialStream};
 
-use super::sim::{bus_key, firmware};
-use super::{Framing, Link};
+use super::{bus_key, firmware};
 use crate::kinematics::Solver;
 use crate::model::profile::{CameraProtocol, Device, Profile, Transport};
 use crate::rig::hal::{DeviceError, ErrorKind};
+use crate::rig::{Framing, Link};
 
 /// Where one device of the served rig can be reached.
 #[derive(Debug, Clone, PartialEq)]
@@ -80,7 +80,7 @@ pub async fn serve(
 ) -> Result<Served, DeviceError> {
     let solver = Solver::new(profile)
         .map_err(|e| DeviceError::new("rig", ErrorKind::NotReady, e.to_string()))?;
-    let mut all = super::sim::fault_rules(&profile.sim);
+    let mut all = super::fault_rules(&profile.sim);
     all.extend(faults);
     let faults = Arc::new(rigd_sim::FaultInjector::new(all));
     let parts = firmware(profile, Arc::new(solver), None, clock, &faults)?;
