@@ -357,14 +357,34 @@ fn held_out_error(
         let tex = store
             .reconstruct(pdir(*l), pdir(*v))
             .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-        let (mut err, mut norm) = (0.0, 0.0);
-        for (a, b) in tex.iter().zip(truth) {
+        per_pair.push(squared_error(&tex, truth)?);
+    }
+    Ok(relative_rms_with_spread(&per_pair))
+}
+
+/// `(Σ (a − b)², Σ b²)` of a reconstructed texture against the true one.
+/// The truth is grey (the simulated scenes' BTF is one value per texel); an
+/// RGB texture (channels interleaved, a colour camera's) is compared
+/// channel by channel with it, as a calibrated camera sees a grey scene.
+fn squared_error(tex: &[f32], truth: &[f32]) -> Result<(f64, f64), ProcessError> {
+    let channels = match tex.len() {
+        n if n == truth.len() => 1,
+        n if n == 3 * truth.len() => 3,
+        n => {
+            return Err(ProcessError::Invalid(format!(
+                "a reconstructed texture of {n} values against a true one of {} texels",
+                truth.len()
+            )))
+        }
+    };
+    let (mut err, mut norm) = (0.0, 0.0);
+    for (texel, b) in tex.chunks_exact(channels).zip(truth) {
+        for a in texel {
             err += f64::from(a - b).powi(2);
             norm += f64::from(*b).powi(2);
         }
-        per_pair.push((err, norm));
     }
-    Ok(relative_rms_with_spread(&per_pair))
+    Ok((err, norm))
 }
 
 /// `sqrt(Σ err / Σ norm)` over the pairs, and its jackknife standard
@@ -1120,6 +1140,20 @@ pub fn redraw(out: &Path, report: &Report, marked: Option<&str>) -> Result<(), P
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A colour camera's RGB texture is compared texel by texel with the
+    /// grey truth, each channel with its texel's value: not its first third
+    /// of values with the whole truth.
+    #[test]
+    fn an_rgb_texture_is_compared_texel_by_texel_with_the_grey_truth() {
+        let truth = [1.0_f32, 2.0, 3.0];
+        assert_eq!(squared_error(&truth, &truth).ok(), Some((0.0, 14.0)));
+        let rgb = [1.0_f32, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
+        assert_eq!(squared_error(&rgb, &truth).ok(), Some((0.0, 42.0)));
+        let off = [1.0_f32, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 4.0];
+        assert_eq!(squared_error(&off, &truth).ok(), Some((1.0, 42.0)));
+        assert!(squared_error(&[1.0; 4], &truth).is_err());
+    }
 
     #[test]
     fn held_out_pairs_are_on_the_hemisphere_and_distinct() {
