@@ -363,9 +363,11 @@ fn held_out_error(
 }
 
 /// `(Σ (a − b)², Σ b²)` of a reconstructed texture against the true one.
-/// The truth is grey (the simulated scenes' BTF is one value per texel); an
-/// RGB texture (channels interleaved, a colour camera's) is compared
-/// channel by channel with it, as a calibrated camera sees a grey scene.
+/// The truth given is grey; an RGB texture (channels interleaved, a colour
+/// camera's) is compared channel by channel with its texel's grey value.
+/// That is exact only for a grey scene: a coloured scene's RGB texture
+/// differs from its grey truth by the scene's colour, which this error then
+/// counts.
 fn squared_error(tex: &[f32], truth: &[f32]) -> Result<(f64, f64), ProcessError> {
     let channels = match tex.len() {
         n if n == truth.len() => 1,
