@@ -43,7 +43,7 @@ use crate::plan::{self, Plan, H2_THETAS, HEMISPHERE_RING_COUNTS};
 use crate::postprocess::ProcessError;
 use crate::schedule::{self, Schedule};
 use crate::store::StoreError;
-use crate::truth::true_texture;
+use crate::truth::{true_texture, true_texture_channels};
 use rigd_core::geometry::Direction;
 
 /// Settings of a trade-off run.
@@ -362,29 +362,21 @@ fn held_out_error(
     Ok(relative_rms_with_spread(&per_pair))
 }
 
-/// `(Σ (a − b)², Σ b²)` of a reconstructed texture against the true one.
-/// The truth given is grey; an RGB texture (channels interleaved, a colour
-/// camera's) is compared channel by channel with its texel's grey value.
-/// That is exact only for a grey scene: a coloured scene's RGB texture
-/// differs from its grey truth by the scene's colour, which this error then
-/// counts.
+/// `(Σ (a − b)², Σ b²)` of a reconstructed texture against the true one,
+/// value by value: grey against grey, interleaved RGB against RGB. Any
+/// other pairing is an error, never a silent truncation.
 fn squared_error(tex: &[f32], truth: &[f32]) -> Result<(f64, f64), ProcessError> {
-    let channels = match tex.len() {
-        n if n == truth.len() => 1,
-        n if n == 3 * truth.len() => 3,
-        n => {
-            return Err(ProcessError::Invalid(format!(
-                "a reconstructed texture of {n} values against a true one of {} texels",
-                truth.len()
-            )))
-        }
-    };
+    if tex.len() != truth.len() {
+        return Err(ProcessError::Invalid(format!(
+            "a reconstructed texture of {} values against a true one of {}",
+            tex.len(),
+            truth.len()
+        )));
+    }
     let (mut err, mut norm) = (0.0, 0.0);
-    for (texel, b) in tex.chunks_exact(channels).zip(truth) {
-        for a in texel {
-            err += f64::from(a - b).powi(2);
-            norm += f64::from(*b).powi(2);
-        }
+    for (a, b) in tex.iter().zip(truth) {
+        err += f64::from(a - b).powi(2);
+        norm += f64::from(*b).powi(2);
     }
     Ok((err, norm))
 }
@@ -491,7 +483,7 @@ pub fn run(
 
     // The shortcut above, measured: one plan through the whole chain.
     progress("plan h2, 3 rings through camera and registration");
-    let mut chain = camera_chain(profile, scene_name, cfg, &truths, out)?;
+    let mut chain = camera_chain(profile, &scene, scene_name, cfg, &truths, out)?;
     // The same plan at the rig's real camera resolution.
     chain.bytes = rows
         .iter()
@@ -570,9 +562,12 @@ pub fn run(
 const CHAIN_FRAME: [u32; 2] = [512, 384];
 
 /// H2's three inner rings captured through the simulated camera, rectified
-/// and compressed: the plan family's texture-space shortcut, checked.
+/// and compressed: the plan family's texture-space shortcut, checked. A
+/// colour camera's textures are measured against the scene's RGB truth at
+/// the held-out pairs of the grey `truths`.
 fn camera_chain(
     profile: &Profile,
+    scene: &Scene,
     scene_name: &str,
     cfg: &TradeoffConfig,
     truths: &[(Direction, Direction, Vec<f32>)],
@@ -612,7 +607,15 @@ fn camera_chain(
     let compute_s = started.elapsed().as_secs_f64();
     let store = CompressedBtf::read(&crate::store::processed::btf_dir(&dir))
         .map_err(|e| ProcessError::Invalid(e.to_string()))?;
-    let measured = held_out_error(&store, truths)?;
+    let measured = if store.shape().channels() == 3 {
+        let rgb: Vec<_> = truths
+            .iter()
+            .map(|&(l, v, _)| (l, v, true_texture_channels(scene, cfg.texture, l, v, 3)))
+            .collect();
+        held_out_error(&store, &rgb)?
+    } else {
+        held_out_error(&store, truths)?
+    };
     let _ = std::fs::remove_dir_all(&dir);
     Ok(Row {
         family: "plans".into(),
@@ -1143,17 +1146,17 @@ pub fn redraw(out: &Path, report: &Report, marked: Option<&str>) -> Result<(), P
 mod tests {
     use super::*;
 
-    /// A colour camera's RGB texture is compared texel by texel with the
-    /// grey truth, each channel with its texel's value: not its first third
-    /// of values with the whole truth.
+    /// A texture is compared value by value with a truth of its own size;
+    /// an RGB texture against a grey truth (three times the values) is an
+    /// error, not its first third compared with the whole truth.
     #[test]
-    fn an_rgb_texture_is_compared_texel_by_texel_with_the_grey_truth() {
+    fn a_texture_is_compared_only_with_a_truth_of_its_own_channels() {
         let truth = [1.0_f32, 2.0, 3.0];
         assert_eq!(squared_error(&truth, &truth).ok(), Some((0.0, 14.0)));
-        let rgb = [1.0_f32, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
-        assert_eq!(squared_error(&rgb, &truth).ok(), Some((0.0, 42.0)));
-        let off = [1.0_f32, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 4.0];
-        assert_eq!(squared_error(&off, &truth).ok(), Some((1.0, 42.0)));
+        let rgb = [1.0_f32, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 4.0];
+        let rgb_truth = [1.0_f32, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0, 3.0, 3.0];
+        assert_eq!(squared_error(&rgb, &rgb_truth).ok(), Some((1.0, 42.0)));
+        assert!(squared_error(&rgb, &truth).is_err());
         assert!(squared_error(&[1.0; 4], &truth).is_err());
     }
 
