@@ -14,9 +14,10 @@ use rigd::model::profile::DEFAULT_PROFILE;
 use rigd::model::run_state::RunState;
 use rigd::model::text::sanitize;
 use rigd::plan::Order;
+use rigd::postprocess::executor::ProcessingConfig;
+use rigd::postprocess::job::{self, JobControl, JobEnd, JobState, OwnJob, ProcessJob};
 use rigd::postprocess::pipeline::{
-    background_pool, check_frame_size, run_step, stream_during_capture, CaptureProgress,
-    ProcessOptions, ProcessStep, RunFacts,
+    background_pool, check_frame_size, CaptureProgress, ProcessOptions, ProcessStep, RunFacts,
 };
 use rigd::postprocess::ProcessError;
 use rigd::rig::FaultRule;
@@ -109,6 +110,11 @@ pub struct RunArgs {
     #[cfg(feature = "sim")]
     #[arg(long = "sim-fault", value_name = "SPEC")]
     pub sim_faults: Vec<FaultRule>,
+    /// Simulated physical seconds per wall second: virtual time paced to
+    /// the wall, for a demo or to watch a capture as it goes [default: as
+    /// fast as the host renders].
+    #[arg(long, value_name = "SPEED", allow_negative_numbers = true)]
+    pub sim_speed: Option<f64>,
     /// Progress display: a bar on a terminal, log lines otherwise.
     #[arg(long, value_enum, default_value = "auto")]
     pub progress: Progress,
@@ -146,14 +152,23 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
     if !simulated && !args.faults().is_empty() {
         return Err(bad_input("--sim-fault needs the simulated rig (--sim)"));
     }
+    if !simulated && args.sim_speed.is_some() {
+        return Err(bad_input("--sim-speed needs the simulated rig (--sim)"));
+    }
     // The simulated rig runs in virtual time: a paused runtime whose clock
-    // jumps whenever every task waits. Hardware runs on the wall clock.
+    // jumps whenever every task waits, held back to the wall by a paced
+    // one. Hardware runs on the wall clock.
+    let paced = args
+        .sim_speed
+        .map(rigd_core::pace::PacedRuntime::start)
+        .transpose()
+        .map_err(|e| bad_input(format!("--sim-speed: {e}")))?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
-        .start_paused(simulated)
+        .start_paused(simulated && paced.is_none())
         .build()
         .context("cannot start the runtime")?;
-    runtime.block_on(async move {
+    let capture = async move {
         let clock = if simulated {
             Clock::virtual_time()
         } else {
@@ -241,10 +256,12 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
             }
         };
         let root = prepared.root.clone();
+        let job = process_job(&root, process, args.resume.is_some())?
+            .map(|job| std::sync::Arc::new(OwnJob::new(job, JobLines::drawer())));
         let capturing = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
-        let stream = process
+        let stream = job
             .clone()
-            .map(|options| spawn_capture_stream(&root, options, capturing.clone()));
+            .map(|job| spawn_capture_stream(&root, job, capturing.clone()));
         let code = drive(prepared, args.progress).await;
         capturing.store(false, std::sync::atomic::Ordering::SeqCst);
         if let Some(Some(thread)) = stream {
@@ -259,11 +276,106 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                 Err(_) => eprintln!("rectify during the capture stopped (a panic)"),
             }
         }
-        match (process, code?) {
-            (Some(options), ExitCode::SUCCESS) => process_run(&root, &options),
+        match (job, code?) {
+            (Some(job), ExitCode::SUCCESS) => process_run(&root, &*job),
             (_, code) => Ok(code),
         }
-    })
+    };
+    match &paced {
+        // Everything the capture spawns lives on the paced runtime, where
+        // its clock is.
+        Some(paced) => runtime
+            .block_on(paced.handle().spawn(capture))
+            .context("the capture's task failed")?,
+        None => runtime.block_on(capture),
+    }
+}
+
+/// The run's process job, written to its `job.json`: the one `--process`
+/// asks for (the kept one when it asked the same, its done steps kept),
+/// or on a resume without `--process` the one asked for with the capture
+/// and not yet run to its end.
+fn process_job(
+    root: &std::path::Path,
+    asked: Option<ProcessOptions>,
+    resuming: bool,
+) -> Result<Option<ProcessJob>> {
+    let kept = if resuming { job::read_job(root) } else { None };
+    let job = match (asked, kept) {
+        (Some(options), Some(kept)) if kept.options == options => Some(kept),
+        (Some(options), _) => {
+            let run = root
+                .file_name()
+                .map_or_else(|| "run".into(), |n| n.to_string_lossy().into_owned());
+            let mut job = ProcessJob::new(&run, options);
+            job.after_capture = true;
+            Some(job)
+        }
+        (None, Some(kept))
+            if kept.after_capture && matches!(kept.state, JobState::Queued | JobState::Running) =>
+        {
+            let steps: Vec<&str> = kept.steps.iter().map(|s| s.step.name()).collect();
+            eprintln!(
+                "its processing, asked with the capture, follows: {}",
+                steps.join(", ")
+            );
+            Some(kept)
+        }
+        (None, _) => None,
+    };
+    let Some(mut job) = job else {
+        return Ok(None);
+    };
+    if job.state == JobState::Running {
+        job.resumed += 1;
+    }
+    job.requeue();
+    job::write_job(root, &job).map_err(|e| anyhow::anyhow!("the run's process job: {e}"))?;
+    Ok(Some(job))
+}
+
+/// A process job's steps on stderr, as `rigd process` shows its own: each
+/// running step's progress line and each step's summary once done.
+#[derive(Default)]
+struct JobLines {
+    lines: std::collections::BTreeMap<usize, StepLine>,
+    reported: std::collections::BTreeSet<usize>,
+}
+
+/// One step's progress line.
+type StepLine = Box<dyn Fn(usize, usize) + Send + Sync>;
+
+impl JobLines {
+    /// Draws a job's changes once its steps run (not while the capture
+    /// streams): a closure for [`OwnJob`].
+    fn drawer() -> impl Fn(&ProcessJob) + Send + Sync {
+        let lines = std::sync::Mutex::new(JobLines::default());
+        move |job: &ProcessJob| {
+            if matches!(job.state, JobState::Running | JobState::Done) {
+                rigd_core::sync::lock(&lines).show(job);
+            }
+        }
+    }
+
+    fn show(&mut self, job: &ProcessJob) {
+        for (k, s) in job.steps.iter().enumerate() {
+            match s.state {
+                JobState::Running if s.total > 0 => self
+                    .lines
+                    .entry(k)
+                    .or_insert_with(|| Box::new(super::progress::progress_line(s.step.name())))(
+                    s.done, s.total,
+                ),
+                JobState::Done if self.reported.insert(k) => eprintln!(
+                    "{}: {} ({:.1} s)",
+                    s.step.name(),
+                    s.summary.as_deref().unwrap_or(""),
+                    s.elapsed_s
+                ),
+                _ => {}
+            }
+        }
+    }
 }
 
 /// The options of `--process` for a run of `plan` with frames of `size`
@@ -288,12 +400,13 @@ fn processing_options(
     Ok(options)
 }
 
-/// Processes the run during its capture ([`stream_during_capture`]) on a
-/// background pool until `capturing` turns false; None when the pool
-/// cannot be made (then the steps do it all after the capture).
-fn spawn_capture_stream(
+/// Registers the run's frames during its capture
+/// ([`job::stream_during_capture`]) on a background pool until `capturing`
+/// turns false; None when the pool cannot be made (then the steps do it
+/// all after the capture).
+fn spawn_capture_stream<C: JobControl + Send + 'static>(
     root: &std::path::Path,
-    options: ProcessOptions,
+    job: std::sync::Arc<C>,
     capturing: std::sync::Arc<std::sync::atomic::AtomicBool>,
 ) -> Option<std::thread::JoinHandle<Result<Option<CaptureProgress>, ProcessError>>> {
     let root = root.to_path_buf();
@@ -306,29 +419,23 @@ fn spawn_capture_stream(
     };
     std::thread::Builder::new()
         .name("rigd-stream".into())
-        .spawn(move || stream_during_capture(&root, &options, &pool, &capturing))
+        .spawn(move || job::stream_during_capture(&*job, &root, &pool, &capturing))
         .ok()
 }
 
-/// Runs the steps of `--process` on the completed run at `root`.
-fn process_run(root: &std::path::Path, options: &ProcessOptions) -> Result<ExitCode> {
-    for &step in &options.steps {
-        let started = Instant::now();
-        let progress = super::progress::progress_line(step.name());
-        let summary = run_step(root, step, options, &progress).with_context(|| {
-            format!(
-                "the capture completed in {}, but processing it failed at `{}`",
-                root.display(),
-                step.name()
-            )
-        })?;
-        eprintln!(
-            "{}: {summary} ({:.1} s)",
-            step.name(),
-            started.elapsed().as_secs_f64()
-        );
+/// Runs the process job's steps on the completed run at `root`.
+fn process_run(root: &std::path::Path, job: &impl JobControl) -> Result<ExitCode> {
+    match job::run_job(job, root, &ProcessingConfig::default()) {
+        JobEnd::Done => Ok(ExitCode::SUCCESS),
+        JobEnd::Failed(e) => Err(anyhow::anyhow!(
+            "the capture completed in {}, but processing it failed at {e}",
+            root.display()
+        )),
+        JobEnd::Stopped => Err(anyhow::anyhow!(
+            "the capture completed in {}, but its processing stopped",
+            root.display()
+        )),
     }
-    Ok(ExitCode::SUCCESS)
 }
 
 fn plan_stem(plan: &str) -> String {

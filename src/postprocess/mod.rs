@@ -12,6 +12,7 @@ pub mod fit;
 pub mod frames;
 pub mod holder_check;
 pub mod holder_template;
+pub mod job;
 pub mod mdf;
 pub mod mdf_texture;
 pub mod parts;

@@ -508,35 +508,6 @@ impl CaptureStream {
     }
 }
 
-/// Runs a [`CaptureStream`] for the run at `root` on `pool` until
-/// `capturing` turns false (`rigd run --process`; the daemon interleaves
-/// the same batches with its job queue). Returns the last progress; None
-/// when there is nothing to stream (no `rectify` step).
-pub fn stream_during_capture(
-    root: &Path,
-    opts: &ProcessOptions,
-    pool: &rayon::ThreadPool,
-    capturing: &std::sync::atomic::AtomicBool,
-) -> Result<Option<CaptureProgress>, ProcessError> {
-    use std::sync::atomic::Ordering;
-    let Some(mut stream) = CaptureStream::new(root, opts)? else {
-        return Ok(None);
-    };
-    let mut last: Option<CaptureProgress> = None;
-    while capturing.load(Ordering::SeqCst) {
-        let before = last.map_or(0, |l| l.frames.done);
-        let p = pool.install(|| stream.advance())?;
-        last = Some(p);
-        if p.frames.done == before {
-            let idle = std::time::Instant::now();
-            while capturing.load(Ordering::SeqCst) && idle.elapsed() < STREAM_POLL {
-                std::thread::sleep(std::time::Duration::from_millis(50));
-            }
-        }
-    }
-    Ok(last)
-}
-
 /// Progress of a step: `(done, total)` in the step's own units (frames,
 /// view slots, sweeps, rows).
 pub type StepProgress<'a> = &'a (dyn Fn(usize, usize) + Sync);

@@ -4,13 +4,9 @@
 //! - One job runs at a time, in the order they were asked for, on a worker
 //!   thread of its own beside the capture. Its threads run at a lower
 //!   priority (nice 10), so a capture's device calls are scheduled first.
-//! - Each job is kept in `RUN/processed/job.json`, rewritten atomically at
-//!   every step's start and end. A daemon that stops or dies mid-job finds
-//!   the job at its next start and resumes it: the steps done are kept, the
-//!   step that was running runs again (each step writes its index last, so
-//!   a cut step leaves nothing a reader would take for a result; `rectify`
-//!   keeps each frame's first pass and registers only the frames it had
-//!   not done).
+//! - Each job is kept in `RUN/processed/job.json` and run by
+//!   [`job::run_job`], as `rigd run --process` runs its own: a daemon that
+//!   stops or dies mid-job finds the job at its next start and resumes it.
 //! - Asking again for what is queued, running or done with the same
 //!   options returns that job and does no work twice; a failed job asked
 //!   again resumes from the step that failed.
@@ -30,120 +26,22 @@ use std::time::{Duration, Instant};
 
 use super::error::SupervisorError;
 use super::events::EventHub;
-use super::wire::{JobState, ProcessJob, RunView, StepStatus};
+use super::wire::RunView;
 use crate::model::run_state::RunState;
 use crate::postprocess::executor::ProcessingConfig;
 use crate::postprocess::frames::RunFrames;
+use crate::postprocess::job::{
+    self, read_job, write_job, JobControl, JobState, ProcessJob, CANCELLED,
+};
 use crate::postprocess::pipeline::{self, ProcessOptions, ProcessStep, RunFacts};
-use crate::postprocess::slurm::SlurmError;
 use crate::store::StoreError;
 use rigd_core::sync::lock;
 
-/// The job's file in `RUN/processed/`.
-pub const JOB_FILE: &str = "job.json";
-/// Least wall time between two progress events of a step.
-const EVENT_INTERVAL: Duration = Duration::from_millis(500);
 /// How often an idle worker looks at the queue without being woken, and
 /// at a capturing run's journal for frames to register.
 const IDLE_RECHECK: Duration = pipeline::STREAM_POLL;
 /// How long a stream that failed waits before it tries again.
 const STREAM_RETRY: Duration = Duration::from_secs(30);
-
-impl ProcessJob {
-    fn new(run: &str, options: ProcessOptions) -> ProcessJob {
-        let now = crate::store::now_rfc3339();
-        ProcessJob {
-            run: run.to_string(),
-            steps: options
-                .steps
-                .iter()
-                .map(|&step| StepStatus {
-                    step,
-                    state: JobState::Queued,
-                    done: 0,
-                    total: 0,
-                    elapsed_s: 0.0,
-                    eta_s: None,
-                    summary: None,
-                    detail: None,
-                })
-                .collect(),
-            options,
-            state: JobState::Queued,
-            error: None,
-            created_at: now.clone(),
-            updated_at: now,
-            resumed: 0,
-            after_capture: false,
-            streamed: 0,
-            slots_ahead: 0,
-            cancelling: false,
-        }
-    }
-
-    /// Queued again: the steps not done start over, the done ones stay.
-    fn requeue(&mut self) {
-        self.state = JobState::Queued;
-        self.error = None;
-        self.cancelling = false;
-        self.updated_at = crate::store::now_rfc3339();
-        for s in &mut self.steps {
-            if s.state != JobState::Done {
-                s.state = JobState::Queued;
-                s.done = 0;
-                s.eta_s = None;
-            }
-        }
-    }
-
-    fn event(&self) -> serde_json::Value {
-        let current = self
-            .steps
-            .iter()
-            .find(|s| s.state == JobState::Running || s.state == JobState::Failed);
-        serde_json::json!({
-            "state": self.state,
-            "step": current.map(|s| s.step.name()),
-            "done": current.map(|s| s.done),
-            "total": current.map(|s| s.total),
-            "eta_s": current.and_then(|s| s.eta_s),
-            "detail": current.and_then(|s| s.detail.clone()),
-            "steps_done": self.steps.iter().filter(|s| s.state == JobState::Done).count(),
-            "steps_total": self.steps.len(),
-            "error": self.error,
-            "cancelling": self.cancelling,
-            "streamed": self.streamed,
-            "slots_ahead": self.slots_ahead,
-        })
-    }
-}
-
-fn job_path(root: &Path) -> PathBuf {
-    crate::store::processed::processed_dir(root).join(JOB_FILE)
-}
-
-/// Reads a run's job file; None when there is none or it cannot be read
-/// (then it is logged, and the run can be processed afresh).
-fn read_job(root: &Path) -> Option<ProcessJob> {
-    let path = job_path(root);
-    let bytes = std::fs::read(&path).ok()?;
-    match serde_json::from_slice(&bytes) {
-        Ok(job) => Some(job),
-        Err(e) => {
-            tracing::warn!("{}: {e}; ignored", path.display());
-            None
-        }
-    }
-}
-
-fn write_job(root: &Path, job: &ProcessJob) -> Result<(), String> {
-    let path = job_path(root);
-    let dir = crate::store::processed::processed_dir(root);
-    std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
-    let mut json = serde_json::to_vec_pretty(job).map_err(|e| e.to_string())?;
-    json.push(b'\n');
-    crate::store::write_atomic(&path, &json).map_err(|e| format!("{}: {e}", path.display()))
-}
 
 /// The daemon's process jobs, by run id, and the worker that runs them.
 #[derive(Default)]
@@ -374,9 +272,6 @@ pub enum Cancelled {
     Stopping(ProcessJob),
 }
 
-/// The error of a job the operator cancelled.
-pub const CANCELLED: &str = "cancelled by the operator";
-
 /// Cancels run `id`'s process job: a queued one is dropped, a running one
 /// stops (on Slurm its arrays are cancelled with `scancel`).
 pub fn cancel(host: &dyn JobHost, id: &str) -> Result<Cancelled, SupervisorError> {
@@ -492,8 +387,9 @@ impl Streams {
         let Some(stream) = self.runs.get_mut(id) else {
             return;
         };
+        let ctl = DaemonJob { d, id };
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pool.install(|| stream.advance())
+            pool.install(|| job::stream_batch(&ctl, stream))
         }));
         match result {
             Ok(Ok(p)) => {
@@ -502,18 +398,36 @@ impl Streams {
                         .insert(id.to_string(), Instant::now() + pipeline::STREAM_POLL);
                 } else {
                     self.not_before.remove(id);
-                    if let Some(event) = d.jobs().with_job(id, |j| {
-                        j.streamed = p.frames.done;
-                        j.slots_ahead = p.slots_ahead;
-                        j.event()
-                    }) {
-                        d.hub().publish(Some(id), "process", event);
-                    }
                 }
             }
             Ok(Err(e)) => retry_later(self, e.to_string()),
             Err(_) => retry_later(self, "internal error (a panic; see the log)".into()),
         }
+    }
+}
+
+/// A daemon's job as [`job::run_job`] sees it: kept in the jobs' table,
+/// its changes published as `process` events.
+struct DaemonJob<'a> {
+    d: &'a dyn JobHost,
+    id: &'a str,
+}
+
+impl JobControl for DaemonJob<'_> {
+    fn with_job<T>(&self, f: impl FnOnce(&mut ProcessJob) -> T) -> Option<T> {
+        self.d.jobs().with_job(self.id, f)
+    }
+
+    fn publish(&self, job: &ProcessJob) {
+        self.d.hub().publish(Some(self.id), "process", job.event());
+    }
+
+    fn stopping(&self) -> bool {
+        self.d.jobs().stop.load(Ordering::SeqCst)
+    }
+
+    fn cancelled(&self) -> bool {
+        self.d.jobs().cancel.load(Ordering::SeqCst)
     }
 }
 
@@ -525,144 +439,7 @@ fn run_job(d: &dyn JobHost, pool: &rayon::ThreadPool, id: &str) {
         });
         return;
     };
-    let persist = |job: &ProcessJob| {
-        if let Err(e) = write_job(&root, job) {
-            tracing::warn!("process job of {id}: {e}");
-        }
-        d.hub().publish(Some(id), "process", job.event());
-    };
     d.jobs().cancel.store(false, Ordering::SeqCst);
-    let Some(job) = d.jobs().update(id, |j| {
-        j.state = JobState::Running;
-        j.cancelling = false;
-        j.updated_at = crate::store::now_rfc3339();
-    }) else {
-        return;
-    };
-    persist(&job);
-    for (k, status) in job.steps.iter().enumerate() {
-        if status.state == JobState::Done {
-            continue;
-        }
-        if d.jobs().stop.load(Ordering::SeqCst) {
-            // Left running on disk: the next start resumes here.
-            return;
-        }
-        if d.jobs().cancel.load(Ordering::SeqCst) {
-            if let Some(j) = d.jobs().update(id, |j| {
-                j.state = JobState::Failed;
-                j.error = Some(CANCELLED.into());
-                j.cancelling = false;
-                j.updated_at = crate::store::now_rfc3339();
-            }) {
-                persist(&j);
-            }
-            return;
-        }
-        let step = status.step;
-        if let Some(j) = d.jobs().update(id, |j| {
-            j.steps[k].state = JobState::Running;
-            j.updated_at = crate::store::now_rfc3339();
-        }) {
-            persist(&j);
-        }
-        let started = Instant::now();
-        let last_event = Mutex::new(Instant::now() - EVENT_INTERVAL);
-        let progress = |done: usize, total: usize| {
-            let elapsed = started.elapsed().as_secs_f64();
-            let eta =
-                (done > 0 && total >= done).then(|| elapsed / done as f64 * (total - done) as f64);
-            let due = {
-                let mut last = lock(&last_event);
-                let due = done == total || last.elapsed() >= EVENT_INTERVAL;
-                if due {
-                    *last = Instant::now();
-                }
-                due
-            };
-            // Called per frame: the job is only copied into an event when
-            // one is due.
-            let event = d.jobs().with_job(id, |j| {
-                let s = &mut j.steps[k];
-                s.done = done;
-                s.total = total;
-                s.elapsed_s = elapsed;
-                s.eta_s = eta;
-                due.then(|| j.event())
-            });
-            if let Some(event) = event.flatten() {
-                d.hub().publish(Some(id), "process", event);
-            }
-        };
-        let notes = |note: &str| {
-            tracing::info!("processing {id}: {note}");
-            if let Some(event) = d.jobs().with_job(id, |j| {
-                j.steps[k].detail = Some(note.to_string());
-                j.event()
-            }) {
-                d.hub().publish(Some(id), "process", event);
-            }
-        };
-        let options = job.options.clone();
-        let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            pool.install(|| {
-                d.executor()
-                    .run_step(&root, step, &options, &progress, &notes, &|| {
-                        d.jobs().stop.load(Ordering::SeqCst)
-                            || d.jobs().cancel.load(Ordering::SeqCst)
-                    })
-            })
-        }));
-        let outcome = match result {
-            Ok(Ok(summary)) => Ok(summary),
-            Ok(Err(SlurmError::Cancelled { .. })) if d.jobs().stop.load(Ordering::SeqCst) => {
-                // The daemon is stopping: the job stays running on disk and
-                // the next start submits what is not done again.
-                return;
-            }
-            Ok(Err(e @ SlurmError::Cancelled { .. })) => {
-                Err(format!("{}: {CANCELLED}: {e}", step.name()))
-            }
-            Ok(Err(e)) => Err(format!("{}: {e}", step.name())),
-            Err(_) => Err(format!(
-                "{}: internal error (a panic; see the log)",
-                step.name()
-            )),
-        };
-        let elapsed = started.elapsed().as_secs_f64();
-        let failed = outcome.is_err();
-        if let Some(j) = d.jobs().update(id, |j| {
-            let s = &mut j.steps[k];
-            s.elapsed_s = elapsed;
-            s.eta_s = None;
-            match outcome {
-                Ok(summary) => {
-                    s.state = JobState::Done;
-                    s.done = s.total;
-                    s.summary = Some(summary);
-                }
-                Err(e) => {
-                    tracing::warn!("processing {id}: {e}");
-                    s.state = JobState::Failed;
-                    j.state = JobState::Failed;
-                    j.error = Some(e);
-                    j.cancelling = false;
-                }
-            }
-            j.updated_at = crate::store::now_rfc3339();
-        }) {
-            persist(&j);
-        }
-        if failed {
-            return;
-        }
-    }
-    if let Some(j) = d.jobs().update(id, |j| {
-        j.state = JobState::Done;
-        // A cancel that came during the last local step came too late.
-        j.cancelling = false;
-        j.updated_at = crate::store::now_rfc3339();
-    }) {
-        persist(&j);
-    }
+    let ctl = DaemonJob { d, id };
+    pool.install(|| job::run_job(&ctl, &root, d.executor()));
 }

@@ -6,7 +6,7 @@ use utoipa::ToSchema;
 use rigd_core::geometry::Direction;
 
 use crate::model::run_state::RunState;
-use crate::postprocess::pipeline::{ProcessOptions, ProcessStep};
+pub use crate::postprocess::job::{JobState, ProcessJob, StepStatus};
 
 /// A direction in the sample frame, degrees.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, ToSchema)]
@@ -550,81 +550,4 @@ mod tests {
             }
         }
     }
-}
-
-/// Where a job or one of its steps is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum JobState {
-    /// Waiting for its turn (a step: not started).
-    Queued,
-    /// Running now.
-    Running,
-    /// Finished.
-    Done,
-    /// Stopped by an error (`error` says which).
-    Failed,
-}
-
-/// One step of a job.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
-pub struct StepStatus {
-    /// The step.
-    pub step: ProcessStep,
-    /// Where it is.
-    pub state: JobState,
-    /// Units done: frames (rectify), view slots (btf, fit), sweeps (mdf),
-    /// rows (photometric-stereo).
-    pub done: usize,
-    /// Units in all; 0 until the step reports.
-    pub total: usize,
-    /// Wall seconds the step has run (this attempt).
-    pub elapsed_s: f64,
-    /// Estimated wall seconds left in this step, while it runs.
-    pub eta_s: Option<f64>,
-    /// What the step wrote, when done.
-    pub summary: Option<String>,
-    /// The executor's latest word while the step runs on Slurm: the job
-    /// and its array, a task submitted again. `done` and `total` count
-    /// the array's tasks until they are all done, then the join's units.
-    #[serde(default)]
-    pub detail: Option<String>,
-}
-
-/// A run's process job, as `RUN/processed/job.json` keeps it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
-pub struct ProcessJob {
-    /// The run.
-    pub run: String,
-    /// The steps and options, defaults filled in.
-    pub options: ProcessOptions,
-    /// Where the job is.
-    pub state: JobState,
-    /// Its steps, in running order.
-    pub steps: Vec<StepStatus>,
-    /// Why it failed.
-    pub error: Option<String>,
-    /// When it was asked for, RFC 3339 UTC.
-    pub created_at: String,
-    /// When it last changed state, RFC 3339 UTC.
-    pub updated_at: String,
-    /// How often a daemon start took it up again after it was cut short.
-    pub resumed: u32,
-    /// Asked for with the run (`process` in `POST /runs`): it waits for
-    /// the capture to complete or be aborted.
-    #[serde(default)]
-    pub after_capture: bool,
-    /// Frames from the start of the capture whose registration (the
-    /// `rectify` step's first pass) was done while the capture ran; the
-    /// step takes them as they are.
-    #[serde(default)]
-    pub streamed: usize,
-    /// View slots compressed while the capture ran (the `btf` step's work
-    /// for each slot whose lights were all in); the step takes them.
-    #[serde(default)]
-    pub slots_ahead: usize,
-    /// The operator asked to cancel it while it ran: a step on Slurm stops
-    /// at once (`scancel`), a local step at its end.
-    #[serde(default)]
-    pub cancelling: bool,
 }

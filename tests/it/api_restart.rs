@@ -1,6 +1,8 @@
 //! The daemon as a process: killed (-9) or stopped (SIGTERM) in the middle
 //! of a run, restarted, and the run resumed over the API: the dataset
-//! completes with every frame exactly once and valid checksums.
+//! completes with every frame exactly once and valid checksums. The
+//! capture-and-process case also through `rigd run --process`, which runs
+//! the same process job.
 
 use crate::common;
 
@@ -318,20 +320,19 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
     );
     assert_eq!(v["processed"], "btf", "{v}");
 
-    assert_same_btf_as_cli(&run, &reference);
+    assert_same_btf_as_cli(&run, &reference, DAEMON_RECTIFY, "8");
 }
 
 /// Processes the copy `reference` of a run from the command line in one go
-/// (`rectify --size 512 --final 64 --blend 16`, the daemon's default blend of
-/// a quarter of the final size; `btf --components 8`) and checks that the
-/// daemon's BTF of `run` is byte for byte the same.
-fn assert_same_btf_as_cli(run: &Path, reference: &Path) {
-    for args in [
-        vec![
-            "process", "rectify", "--size", "512", "--final", "64", "--blend", "16",
-        ],
-        vec!["process", "btf", "--components", "8"],
-    ] {
+/// (`rectify` with `rectify_args`, `btf --components components`) and
+/// checks that the BTF of `run` is byte for byte the same.
+fn assert_same_btf_as_cli(run: &Path, reference: &Path, rectify_args: &[&str], components: &str) {
+    let rectify: Vec<&str> = ["process", "rectify"]
+        .iter()
+        .chain(rectify_args)
+        .copied()
+        .collect();
+    for args in [rectify, vec!["process", "btf", "--components", components]] {
         let o = common::rigd()
             .args(&args)
             .arg(reference)
@@ -357,6 +358,10 @@ fn assert_same_btf_as_cli(run: &Path, reference: &Path) {
         assert!(got[name] == *bytes, "processed/btf/{name} differs");
     }
 }
+
+/// `rectify` as the daemon's jobs in these tests ask for it (`size 512,
+/// final 64`), with the default blend of a quarter of the final size.
+const DAEMON_RECTIFY: &[&str] = &["--size", "512", "--final", "64", "--blend", "16"];
 
 /// The number at the start of a step summary's second clause: the frames
 /// `rectify` took from first passes done before it ran, or the view slots
@@ -447,5 +452,116 @@ async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
     let reference = reference.path().join(&id);
     copy_tree(&run, &reference);
     std::fs::remove_dir_all(reference.join("processed")).expect("a fresh copy");
-    assert_same_btf_as_cli(&run, &reference);
+    assert_same_btf_as_cli(&run, &reference, DAEMON_RECTIFY, "8");
+}
+
+/// `rigd run --process` runs the same process job: killed (-9) while it
+/// captures and registers, then resumed with `rigd run --resume` and no
+/// `--process` (the job kept in the run follows), it completes both; the
+/// frames registered before the kill are not registered again, view slots
+/// are compressed during the capture, and the BTF is byte for byte the one
+/// the command line makes from the same frames in one go.
+#[test]
+fn kill_9_mid_streaming_on_the_command_line_resumes_to_the_same_btf() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // Monochrome: see the daemon's case above.
+    let monochrome = common::bonn_monochrome(dir.path());
+    let plan = dir.path().join("plan.json");
+    std::fs::write(&plan, small_plan(8).to_string()).expect("plan");
+    let run = dir.path().join("run");
+    let first_passes = run.join("processed/normtextures/first-pass");
+    // Paced to 25× the wall (about 0.2 s per frame), so frames are
+    // registered while the capture runs, even on a loaded machine.
+    let mut child = common::rigd()
+        .args(["run", "--sim", "--profile"])
+        .arg(&monochrome)
+        .args([
+            "--scene",
+            "corduroy",
+            "--frame-size",
+            "320x240",
+            "--order",
+            "slots",
+        ])
+        .args([
+            "--sim-speed",
+            "25",
+            "--progress",
+            "log",
+            "--process",
+            "rectify,btf",
+        ])
+        .arg("--plan")
+        .arg(&plan)
+        .arg("--out")
+        .arg(&run)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("rigd run");
+    let started = std::time::Instant::now();
+    let count = |d: &Path| std::fs::read_dir(d).map_or(0, |r| r.count());
+    while count(&first_passes) < 8 {
+        assert!(
+            child.try_wait().expect("wait").is_none(),
+            "the capture ended before 8 frames were registered"
+        );
+        assert!(
+            started.elapsed() < Duration::from_secs(120),
+            "no frame registered"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().expect("kill -9");
+    let _ = child.wait();
+    let kept = count(&first_passes);
+    let journaled = std::fs::read_to_string(run.join(rigd::store::JOURNAL_FILE))
+        .expect("journal")
+        .lines()
+        .count();
+    assert!(
+        journaled < IMAGES,
+        "killed while capturing: {journaled} frames"
+    );
+    let job: Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/job.json")).expect("job.json"))
+            .expect("job.json is JSON");
+    assert_eq!(job["state"], "queued", "{job}");
+    assert_eq!(job["after_capture"], true, "{job}");
+
+    let out = common::rigd()
+        .args(["run", "--progress", "log", "--sim-speed", "200", "--resume"])
+        .arg(&run)
+        .output()
+        .expect("rigd run --resume");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{err}");
+    assert!(
+        err.contains("its processing, asked with the capture, follows: rectify, btf"),
+        "{err}"
+    );
+    assert_complete_run(&run, IMAGES);
+    let job: Value =
+        serde_json::from_slice(&std::fs::read(run.join("processed/job.json")).expect("job.json"))
+            .expect("job.json is JSON");
+    assert_eq!(job["state"], "done", "{job}");
+    let before = done_before(job["steps"][0]["summary"].as_str().unwrap_or(""));
+    assert!(
+        before >= kept && before <= IMAGES,
+        "{kept} kept at the kill, {before} taken by the step: {job}"
+    );
+    assert!(
+        done_before(job["steps"][1]["summary"].as_str().unwrap_or("")) >= 1,
+        "{job}"
+    );
+    assert!(!first_passes.exists());
+    assert!(!run.join("processed/btf-ahead").exists());
+
+    let reference = dir.path().join("reference");
+    copy_tree(&run, &reference);
+    std::fs::remove_dir_all(reference.join("processed")).expect("a fresh copy");
+    // `--process` takes the daemon's defaults: final 128, a quarter of it
+    // blended, C = 16.
+    let defaults = ["--size", "512", "--final", "128", "--blend", "32"];
+    assert_same_btf_as_cli(&run, &reference, &defaults, "16");
 }

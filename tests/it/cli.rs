@@ -482,6 +482,36 @@ fn other_bad_arguments_are_refused() {
         "/nonexistent/never",
     ]);
     assert!(e.contains("DEVICE:OP:N:KIND"), "{e}");
+    for speed in ["0", "-3", "NaN"] {
+        let e = fails_with(
+            2,
+            &[
+                "run",
+                "--sim",
+                "--sim-speed",
+                speed,
+                "--out",
+                "/nonexistent/never",
+            ],
+        );
+        assert!(
+            e.contains("--sim-speed") && e.contains("positive"),
+            "{speed}: {e}"
+        );
+    }
+    let e = fails_with(
+        2,
+        &[
+            "run",
+            "--profile",
+            "rig-profiles/msra-btf-mdf.toml",
+            "--sim-speed",
+            "10",
+            "--out",
+            "/nonexistent/never",
+        ],
+    );
+    assert!(e.contains("--sim-speed needs the simulated rig"), "{e}");
 }
 
 #[test]
