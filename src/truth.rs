@@ -294,11 +294,12 @@ pub fn btf_truth_error(
 /// The scene a simulated run rendered, on the holder its profile
 /// describes.
 fn scene_of(meta: &crate::store::RunMeta) -> Result<Arc<Scene>, ProcessError> {
-    let name = meta.sim_scene.as_ref().map_or_else(
-        || crate::rig::sim::scene_name(&meta.profile.sim),
-        |s| s.name.as_str(),
-    );
-    Scene::load_on(name, &meta.profile.holder)
+    let name = match &meta.sim_scene {
+        Some(s) => s.name.clone(),
+        None => crate::rig::sim::profile_scene(&meta.profile)
+            .map_err(|e| ProcessError::Invalid(format!("the run's profile: {e}")))?,
+    };
+    Scene::load_on(&name, &meta.profile.holder)
         .map_err(|e| ProcessError::Invalid(format!("the run's simulated scene: {e}")))
 }
 

@@ -201,7 +201,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     // The run records its profile, so a resume renders
                     // the same scene.
                     rigd::rig::sim::Scene::load_on(scene, &profile.holder)?;
-                    profile.sim.scene = Some(scene.clone());
+                    rigd::rig::sim::set_scene(&mut profile, scene);
                 }
                 let plan = args
                     .plan

@@ -295,7 +295,10 @@ async fn create(
     if meta.simulated {
         // The profile's own faults arm when a run starts (a resumed run gets
         // only those of its command line: the profile's have had their turn).
-        faults.splice(0..0, rig::sim::fault_rules(&meta.profile.sim));
+        faults.splice(
+            0..0,
+            rig::sim::fault_rules(&meta.profile).map_err(RunError::Simulator)?,
+        );
     }
     let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
     let dir = RunDir::create(&req.out, &meta)?;

@@ -74,7 +74,7 @@ pub struct Profile {
     pub exposure_policy: ExposurePolicy,
     /// Settings of the simulated rig.
     #[serde(default)]
-    pub sim: SimSettings,
+    pub sim: SimTable,
 }
 
 /// The arrangement of a rig, by kind. The world frame has its origin at the
@@ -149,76 +149,25 @@ fn default_lamp_tolerance() -> f64 {
     0.5
 }
 
-/// Settings of the simulated rig.
+/// The profile's `[sim]` table: the simulated cameras' frames, which
+/// processing models, and the simulator's own keys, which the simulator's
+/// settings type reads and checks (`crate::rig::sim::settings`).
 #[derive(Debug, Clone, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SimSettings {
+pub struct SimTable {
     /// Frame size the simulated cameras render, `[width, height]`; by
     /// default 320×240, small so a full capture is quick (the real sensors
     /// are far larger) and large enough that the holder's markers register
     /// in every view of an H2 ([`MIN_REGISTRABLE_FRAME`]).
     #[serde(default = "default_sim_frame")]
     pub frame_size: [u32; 2],
-    /// Faults the simulated firmware inject, in `--sim-fault` syntax
-    /// (`DEVICE:OP:N:KIND[:sticky]`), on top of those given on the command
-    /// line.
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub faults: Vec<String>,
-    /// What the simulated cameras look at: a built-in scene's name or a
-    /// path to a scene file (`crates/sim/scenes/*.toml`); `flat-calibration` if
-    /// absent.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub scene: Option<String>,
     /// The simulated cameras' focal length relative to the profile's
     /// intrinsics: a longer lens, so a small simulated frame still
     /// resolves the sample (laser scans need it).
     #[serde(default = "default_zoom")]
     pub zoom: f64,
-    /// Whether the simulated GRBL boards reset when their port opens and
-    /// greet with the banner (an Arduino, through DTR), or keep running and
-    /// stay silent until asked (a board without that reset). Default `true`.
-    #[serde(default = "default_true")]
-    pub grbl_reset_on_open: bool,
-    /// The simulated GRBL boards' settings at power-up: `configured` (set
-    /// up for their axes: rates, travel and `$22` from the profile) or
-    /// `factory` (as GRBL ships: `$22=0`, `$110=500`, `$120=10`).
-    #[serde(default)]
-    pub grbl_settings: SimGrblSettings,
-    /// Seconds every answer of a simulated GRBL board waits before it goes
-    /// out: a slow controller (one was observed answering each line in
-    /// about 150 ms). Default 0.
-    #[serde(default)]
-    pub grbl_answer_delay_s: f64,
-    /// Where the holder really sits in the plate plane, millimetres from
-    /// the sample centre the kinematics assume: the placement error a real
-    /// rig has. The markers see it; registration from the rig's pose must
-    /// calibrate it away. Default `[0, 0]`.
-    #[serde(default, skip_serializing_if = "is_zero_offset")]
-    pub holder_offset_mm: [f64; 2],
-    /// How the simulated lamps' output drifts over the capture's physical
-    /// time (`{ amplitude = 0.05, period_s = 14400 }`), as an HMI lamp's
-    /// does; none if absent.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub lamp_drift: Option<rigd_core::lamp_drift::LampDrift>,
-}
-
-fn is_zero_offset(o: &[f64; 2]) -> bool {
-    o == &[0.0, 0.0]
-}
-
-/// What the simulated GRBL boards have in their EEPROM at power-up.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum SimGrblSettings {
-    /// Set up for their axes, from the profile.
-    #[default]
-    Configured,
-    /// GRBL's factory defaults.
-    Factory,
-}
-
-fn default_true() -> bool {
-    true
+    /// The table's other keys, as written: the simulator's.
+    #[serde(flatten)]
+    pub simulator: BTreeMap<String, serde_value::Value>,
 }
 
 fn default_zoom() -> f64 {
@@ -235,18 +184,12 @@ fn default_sim_frame() -> [u32; 2] {
     [320, 240]
 }
 
-impl Default for SimSettings {
+impl Default for SimTable {
     fn default() -> Self {
-        SimSettings {
+        SimTable {
             frame_size: default_sim_frame(),
-            faults: Vec::new(),
-            scene: None,
-            grbl_reset_on_open: true,
-            grbl_settings: SimGrblSettings::Configured,
-            grbl_answer_delay_s: 0.0,
             zoom: default_zoom(),
-            holder_offset_mm: [0.0, 0.0],
-            lamp_drift: None,
+            simulator: BTreeMap::new(),
         }
     }
 }
@@ -552,30 +495,6 @@ impl Profile {
             return Err((
                 "sim.frame_size".into(),
                 format!("expected [width, height] between 1 and 8192, got [{w}, {h}]"),
-            ));
-        }
-        if !self
-            .sim
-            .holder_offset_mm
-            .iter()
-            .all(|v| v.is_finite() && v.abs() <= 10.0)
-        {
-            return Err((
-                "sim.holder_offset_mm".into(),
-                format!(
-                    "expected [x, y] within ±10 mm (a holder that far off leaves the camera's field), got {:?}",
-                    self.sim.holder_offset_mm
-                ),
-            ));
-        }
-        if let Some(drift) = &self.sim.lamp_drift {
-            drift.check()?;
-        }
-        let delay = self.sim.grbl_answer_delay_s;
-        if !(delay.is_finite() && (0.0..=1.0).contains(&delay)) {
-            return Err((
-                "sim.grbl_answer_delay_s".into(),
-                format!("expected 0 ..= 1 second (the driver allows 2 s per line), got {delay}"),
             ));
         }
         let zoom = self.sim.zoom;

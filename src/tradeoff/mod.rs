@@ -585,7 +585,7 @@ fn camera_chain(
     std::fs::write(&plan_file, body.to_string())
         .map_err(|e| ProcessError::Invalid(format!("{}: {e}", plan_file.display())))?;
     let mut p = profile.clone();
-    p.sim.scene = Some(scene_name.to_string());
+    crate::rig::sim::set_scene(&mut p, scene_name);
     p.sim.frame_size = CHAIN_FRAME;
     let dir = out.join(".tradeoff-chain");
     let plan_spec = plan_file.to_string_lossy().into_owned();
@@ -690,7 +690,7 @@ fn laser_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> 
     }
     profile.sim.frame_size = [160, 120];
     profile.sim.zoom = 2.4;
-    profile.sim.scene = Some(scene_name.to_string());
+    crate::rig::sim::set_scene(&mut profile, scene_name);
     let plan = |n: usize| format!("laser:sources={n},turns=1,step=1.5");
     let dir = out.join(".tradeoff-laser");
     capture(profile.clone(), &plan(26), &dir)?;
@@ -825,7 +825,7 @@ fn ps_family(scene_name: &str, out: &Path) -> Result<Vec<Row>, ProcessError> {
         if !lamps.is_empty() {
             with_lamps(&mut profile, &lamps)?;
         }
-        profile.sim.scene = Some(scene_name.to_string());
+        crate::rig::sim::set_scene(&mut profile, scene_name);
         let dir = out.join(".tradeoff-ps");
         let physical = capture(profile, "lamps", &dir)?;
         let run = crate::postprocess::frames::RunFrames::open(&dir)?;

@@ -259,6 +259,20 @@ fn broken_profiles_name_file_key_and_expectation() {
             "within ±10 mm",
         ),
         (
+            "sim-typo.toml",
+            "[sim]",
+            "[sim]\nscnee = \"felt\"",
+            "sim.scnee",
+            "unknown field `scnee`, expected one of `frame_size`, `zoom`, `faults`, `scene`",
+        ),
+        (
+            "sim-zoom-nan.toml",
+            "[sim]",
+            "[sim]\nzoom = nan",
+            "sim.zoom",
+            "expected 0.1 ..= 100",
+        ),
+        (
             "twin-joints.toml",
             "name = \"pitch\"",
             "name = \"roll\"",

@@ -12,6 +12,7 @@ pub mod devices;
 pub mod faults;
 pub mod firmware;
 pub mod scene;
+pub mod settings;
 pub mod world;
 
 pub use faults::{FaultInjector, FaultKind, FaultRule};

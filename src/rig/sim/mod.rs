@@ -30,6 +30,7 @@ use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
 use rigd_sim::{FaultInjector, SharedWorld};
 
 pub use rigd_sim::scene::{Scene, SceneError};
+pub use rigd_sim::settings::{SimGrblSettings, SimSettings};
 pub use rigd_sim::{FaultRule, World};
 
 pub mod ptpip_serve;
@@ -38,7 +39,7 @@ pub mod shot;
 
 use crate::kinematics::camera::{camera_geometry, lamp_distances, CameraGeometry};
 use crate::kinematics::{Setpoints, Solver};
-use crate::model::profile::{Device, DeviceKind, Profile, SimGrblSettings, SimSettings, Transport};
+use crate::model::profile::{Device, DeviceKind, Profile, SimTable, Transport};
 use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
@@ -60,14 +61,53 @@ pub struct SimOptions {
     pub faults: Vec<FaultRule>,
 }
 
+/// The simulator's keys of a `[sim]` table, read and checked; `Err` names
+/// the key (`sim.…`) and what was expected.
+pub fn settings(table: &SimTable) -> Result<SimSettings, (String, String)> {
+    use serde_value::{DeserializerError, Value, ValueDeserializer};
+    let keys = Value::Map(
+        table
+            .simulator
+            .iter()
+            .map(|(k, v)| (Value::String(k.clone()), v.clone()))
+            .collect(),
+    );
+    let settings: SimSettings =
+        serde_path_to_error::deserialize(ValueDeserializer::<DeserializerError>::new(keys))
+            .map_err(|e| {
+                let path = e.path().to_string();
+                let key = if path == "." {
+                    "sim".to_string()
+                } else {
+                    format!("sim.{path}")
+                };
+                let message = match e.into_inner() {
+                    DeserializerError::UnknownField(field, keys) => format!(
+                        "unknown field `{field}`, expected one of `frame_size`, `zoom`, `{}`",
+                        keys.join("`, `")
+                    ),
+                    e => e.to_string(),
+                };
+                (key, message)
+            })?;
+    settings.check()?;
+    Ok(settings)
+}
+
+/// [`settings`] for a device's start: an error is the profile's.
+fn settings_for_rig(profile: &Profile) -> Result<SimSettings, DeviceError> {
+    settings(&profile.sim)
+        .map_err(|(key, message)| DeviceError::new(&key, ErrorKind::NotReady, message))
+}
+
 /// The `[sim]` table's fault rules, parsed ([`check_settings`] refuses a
 /// profile with one that does not parse).
-pub fn fault_rules(settings: &SimSettings) -> Vec<FaultRule> {
-    settings
+pub fn fault_rules(profile: &Profile) -> Result<Vec<FaultRule>, DeviceError> {
+    Ok(settings_for_rig(profile)?
         .faults
         .iter()
         .filter_map(|f| f.parse().ok())
-        .collect()
+        .collect())
 }
 
 /// The scene the simulated cameras render: the `[sim]` table's, else the
@@ -79,11 +119,28 @@ pub fn scene_name(settings: &SimSettings) -> &str {
         .unwrap_or(rigd_sim::scene::DEFAULT_SCENE)
 }
 
+/// [`scene_name`] of a profile's `[sim]` table; `Err` when the table does
+/// not read.
+pub fn profile_scene(profile: &Profile) -> Result<String, DeviceError> {
+    settings_for_rig(profile).map(|s| scene_name(&s).to_string())
+}
+
+/// Sets the scene a profile's simulated cameras render (recorded with the
+/// run's profile, so a resume renders the same).
+pub fn set_scene(profile: &mut Profile, scene: &str) {
+    profile.sim.simulator.insert(
+        "scene".into(),
+        serde_value::Value::String(scene.to_string()),
+    );
+}
+
 /// What only the simulator can check of a profile's `[sim]` table: its
-/// scene is a built-in one or a scene file, and each fault parses and
-/// names a device of the profile (or a Modbus module). `Err` names the key.
+/// keys and their values, its scene is a built-in one or a scene file, and
+/// each fault parses and names a device of the profile (or a Modbus
+/// module). `Err` names the key.
 pub fn check_settings(profile: &Profile) -> Result<(), (String, String)> {
-    if let Some(scene) = &profile.sim.scene {
+    let settings = settings(&profile.sim)?;
+    if let Some(scene) = &settings.scene {
         let builtin = SceneModel::builtin_names();
         if !builtin.contains(&scene.as_str()) && !std::path::Path::new(scene).is_file() {
             return Err((
@@ -95,7 +152,7 @@ pub fn check_settings(profile: &Profile) -> Result<(), (String, String)> {
             ));
         }
     }
-    for (i, f) in profile.sim.faults.iter().enumerate() {
+    for (i, f) in settings.faults.iter().enumerate() {
         let rule: FaultRule = f.parse().map_err(|e| (format!("sim.faults[{i}]"), e))?;
         if !profile.devices.contains_key(&rule.device) && !rule.device.starts_with("modbus-") {
             return Err((
@@ -112,8 +169,7 @@ pub fn check_settings(profile: &Profile) -> Result<(), (String, String)> {
 
 /// The scene a profile's simulated cameras render, loaded once.
 pub fn load_scene(profile: &Profile) -> Result<Arc<SceneModel>, DeviceError> {
-    let name = scene_name(&profile.sim);
-    SceneModel::load_on(name, &profile.holder)
+    SceneModel::load_on(&profile_scene(profile)?, &profile.holder)
         .map_err(|e| DeviceError::new("sim.scene", ErrorKind::NotReady, e.to_string()))
 }
 
@@ -233,7 +289,7 @@ pub async fn check(
     solver: Arc<Solver>,
     clock: &Clock,
 ) -> Result<crate::rig::check::RigCheck, DeviceError> {
-    let faults = Arc::new(FaultInjector::new(fault_rules(&profile.sim)));
+    let faults = Arc::new(FaultInjector::new(fault_rules(profile)?));
     let parts = firmware(profile, solver, Some([1, 1]), clock, &faults)?;
     Ok(crate::rig::check::check_rig(profile, &parts.links, clock).await)
 }
@@ -354,6 +410,7 @@ pub(crate) fn firmware(
         arm_home_deg,
     };
     let size = frame_size.unwrap_or(profile.sim.frame_size);
+    let sim = settings_for_rig(profile)?;
     let scene = load_scene(profile)?;
     tracing::info!("{}", scene.describe_effects());
 
@@ -362,7 +419,7 @@ pub(crate) fn firmware(
             Device::Axis(axis) => {
                 let home = axis.home_deg.unwrap_or(0.0);
                 let motion = Trapezoid::from(axis.motion);
-                let settings = match profile.sim.grbl_settings {
+                let settings = match sim.grbl_settings {
                     SimGrblSettings::Factory => Eeprom::factory(),
                     SimGrblSettings::Configured => {
                         let travel = axis.limits.max - axis.limits.min;
@@ -383,9 +440,9 @@ pub(crate) fn firmware(
                         physical_start: home,
                         start_homed: false,
                         settings,
-                        reset_on_open: profile.sim.grbl_reset_on_open,
+                        reset_on_open: sim.grbl_reset_on_open,
                         world: Some(shared.clone()),
-                        answer_delay_s: profile.sim.grbl_answer_delay_s,
+                        answer_delay_s: sim.grbl_answer_delay_s,
                     },
                     clock: clock.clone(),
                     faults: faults.clone(),
@@ -469,9 +526,9 @@ pub(crate) fn firmware(
                         geometry,
                         lamp_distance_m: lamp_distances(profile),
                         laser: crate::plan::laser::LaserRig::of(profile),
-                        holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
+                        holder_offset_m: sim.holder_offset_mm.map(|v| v * 1e-3),
                         cfa: camera.intrinsics.cfa,
-                        lamp_drift: profile.sim.lamp_drift,
+                        lamp_drift: sim.lamp_drift,
                         clock: clock.clone(),
                     },
                     scene: scene.clone(),

@@ -80,7 +80,7 @@ pub async fn serve(
 ) -> Result<Served, DeviceError> {
     let solver = Solver::new(profile)
         .map_err(|e| DeviceError::new("rig", ErrorKind::NotReady, e.to_string()))?;
-    let mut all = super::fault_rules(&profile.sim);
+    let mut all = super::fault_rules(profile)?;
     all.extend(faults);
     let faults = Arc::new(rigd_sim::FaultInjector::new(all));
     let parts = firmware(profile, Arc::new(solver), None, clock, &faults)?;
@@ -200,7 +200,7 @@ pub async fn serve(
         }
     }
     // The faults are the served firmware's business, not the client's.
-    served.sim.faults.clear();
+    served.sim.simulator.remove("faults");
     served.name = format!("{}-sim-served", profile.name);
     served.description = format!(
         "{} (simulated firmware served by `rigd sim serve`)",

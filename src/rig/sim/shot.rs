@@ -159,12 +159,8 @@ pub struct MarkerPixel {
 /// Renders one frame for the operator: `req.scene` is a built-in scene's
 /// name or a scene file's path.
 pub fn render(profile: &Profile, req: &RenderRequest) -> Result<RenderOutput, RenderError> {
-    let scene = Scene::load_on(
-        req.scene
-            .as_deref()
-            .unwrap_or(super::scene_name(&profile.sim)),
-        &profile.holder,
-    )?;
+    let configured = super::profile_scene(profile).map_err(scene_error)?;
+    let scene = Scene::load_on(req.scene.as_deref().unwrap_or(&configured), &profile.holder)?;
     render_scene(profile, scene, req)
 }
 
@@ -183,7 +179,8 @@ pub fn offered_scene(
     profile: &Profile,
     name: Option<&str>,
 ) -> Result<Arc<Scene>, rigd_sim::scene::SceneError> {
-    let configured = super::scene_name(&profile.sim);
+    let configured = super::profile_scene(profile).map_err(scene_error)?;
+    let configured = configured.as_str();
     let plate = profile
         .holder
         .holder()
@@ -194,6 +191,14 @@ pub fn offered_scene(
     Scene::offered(name.unwrap_or(configured), &[configured])?.on_holder(plate)
 }
 
+/// A profile's `[sim]` table that does not read, as a scene error.
+fn scene_error(e: crate::rig::DeviceError) -> rigd_sim::scene::SceneError {
+    rigd_sim::scene::SceneError::Invalid {
+        origin: "the profile".into(),
+        message: e.to_string(),
+    }
+}
+
 /// The scene names [`offered_scene`] takes: the built-in ones, then the
 /// profile's configured scene when it is not one of them.
 pub fn offered_scene_names(profile: &Profile) -> Vec<String> {
@@ -201,9 +206,11 @@ pub fn offered_scene_names(profile: &Profile) -> Vec<String> {
         .into_iter()
         .map(String::from)
         .collect();
-    let configured = super::scene_name(&profile.sim);
-    if !Scene::is_builtin(configured) {
-        names.push(configured.to_string());
+    // A profile whose `[sim]` table does not read offers the built-in ones.
+    if let Ok(configured) = super::profile_scene(profile) {
+        if !Scene::is_builtin(&configured) {
+            names.push(configured);
+        }
     }
     names
 }
@@ -213,6 +220,9 @@ fn render_scene(
     scene: Arc<Scene>,
     req: &RenderRequest,
 ) -> Result<RenderOutput, RenderError> {
+    let holder_offset_mm = super::settings(&profile.sim)
+        .map_err(|(key, message)| RenderError::Invalid(format!("{key}: {message}")))?
+        .holder_offset_mm;
     let cameras = profile.camera_names();
     let camera = match &req.camera {
         Some(c) if cameras.contains(c) => c.clone(),
@@ -296,7 +306,7 @@ fn render_scene(
         laser,
         seed: req.seed,
         effects: req.effects,
-        holder_offset_m: profile.sim.holder_offset_mm.map(|v| v * 1e-3),
+        holder_offset_m: holder_offset_mm.map(|v| v * 1e-3),
         ..Shot::default()
     };
     let started = Instant::now();
@@ -423,7 +433,7 @@ mod tests {
         std::fs::write(&file, text).unwrap();
         let mut profile = crate::plan::load_profile("bonn-gonioreflectometer").unwrap();
         let configured = file.display().to_string();
-        profile.sim.scene = Some(configured.clone());
+        crate::rig::sim::set_scene(&mut profile, &configured);
         assert_eq!(offered_scene(&profile, None).unwrap().name, "mine");
         assert_eq!(
             offered_scene(&profile, Some(&configured)).unwrap().name,

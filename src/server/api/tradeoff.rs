@@ -183,7 +183,11 @@ pub async fn start(
     let scene = req
         .scene
         .clone()
-        .or_else(|| d.profile.sim.scene.clone())
+        .or_else(|| {
+            crate::rig::sim::settings(&d.profile.sim)
+                .ok()
+                .and_then(|s| s.scene)
+        })
         .unwrap_or_else(|| "corduroy".to_string());
     // A built-in or the configured scene only: a client's name is never a path.
     crate::rig::sim::shot::offered_scene(&d.profile, Some(&scene))
