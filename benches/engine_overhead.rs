@@ -19,6 +19,7 @@ use rigd::engine::launch::{prepare_new, NewRun};
 use rigd::engine::PausePolicy;
 use rigd::model::profile::Profile;
 use rigd::model::run_state::RunState;
+use rigd::rig::sim::SimulatedRig;
 use rigd_core::Clock;
 
 fn scratch_root() -> PathBuf {
@@ -52,9 +53,14 @@ fn one_run(plan: &str) -> Duration {
             simulated: true,
             order: None,
         };
-        let p = prepare_new(req, vec![], Clock::virtual_time(), PausePolicy::Return)
-            .await
-            .expect("prepare");
+        let p = prepare_new(
+            req,
+            Some(&SimulatedRig::new(vec![])),
+            Clock::virtual_time(),
+            PausePolicy::Return,
+        )
+        .await
+        .expect("prepare");
         let start = Instant::now();
         let outcome = p.engine.run().await.expect("run");
         let took = start.elapsed();
@@ -98,9 +104,14 @@ fn one_stop(frames: usize) -> (Duration, f64, usize) {
             simulated: true,
             order: None,
         };
-        let p = prepare_new(req, vec![], Clock::virtual_time(), PausePolicy::Wait)
-            .await
-            .expect("prepare");
+        let p = prepare_new(
+            req,
+            Some(&SimulatedRig::new(vec![])),
+            Clock::virtual_time(),
+            PausePolicy::Wait,
+        )
+        .await
+        .expect("prepare");
         let mut events = p.handle.events.subscribe();
         let handle = p.handle.clone();
         let engine = tokio::spawn(p.engine.run());

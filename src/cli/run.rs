@@ -169,6 +169,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
         .build()
         .context("cannot start the runtime")?;
     let capture = async move {
+        let sim = rigd::rig::simulated_rig(args.faults());
         let clock = if simulated {
             Clock::virtual_time()
         } else {
@@ -185,7 +186,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                         .or(meta.simulated.then_some(meta.profile.sim.frame_size));
                     process = Some(processing_options(&args.process, &meta.plan, size)?);
                 }
-                launch::prepare_resume(dir, args.faults(), clock, PausePolicy::Return)
+                launch::prepare_resume(dir, sim.as_deref(), clock, PausePolicy::Return)
                     .await
                     .with_context(|| format!("cannot resume {}", dir.display()))?
             }
@@ -251,7 +252,7 @@ pub fn run(args: RunArgs) -> Result<ExitCode> {
                     }
                     process = Some(options);
                 }
-                launch::prepare_new_solved(req, solved, args.faults(), clock, PausePolicy::Return)
+                launch::prepare_new_solved(req, solved, sim.as_deref(), clock, PausePolicy::Return)
                     .await?
             }
         };

@@ -3,7 +3,6 @@
 //! both start runs through here.
 
 use std::path::{Path, PathBuf};
-#[cfg(feature = "sim")]
 use std::sync::Arc;
 
 use rigd_core::Clock;
@@ -15,7 +14,7 @@ use crate::model::profile::{Profile, ProfileError};
 use crate::plan::Order;
 use crate::plan::{self, Plan, PlanError};
 use crate::rig::hal::{DeviceError, Rig};
-use crate::rig::{self, FaultRule, SimHandle};
+use crate::rig::{self, SimHandle, Simulator};
 use crate::schedule::timing::Timing;
 use crate::schedule::{self, Schedule};
 use crate::store::{now_rfc3339, Recovery, RunDir, RunMeta, SimScene, StoreError, RUN_FORMAT};
@@ -42,9 +41,9 @@ pub enum RunError {
     /// A device of the profile's hardware could not be connected.
     #[error("connecting the rig's hardware: {0} (add --sim to use the simulated rig)")]
     Hardware(DeviceError),
-    /// The request cannot be used: a bad exposure, a blank sample name, faults
-    /// asked of real hardware, a journal naming images the plan lacks, or a
-    /// simulated run in a build without the simulator.
+    /// The request cannot be used: a bad exposure, a blank sample name, a
+    /// journal naming images the plan lacks, or a simulated run without a
+    /// simulated rig (a build without the simulator).
     #[error("{0}")]
     Invalid(String),
 }
@@ -152,16 +151,18 @@ fn check_request(req: &NewRun) -> Result<(), RunError> {
     Ok(())
 }
 
-/// Connects the rig and creates the run directory and an engine.
+/// Connects the rig and creates the run directory and an engine. A
+/// simulated run (`req.simulated`) runs on `sim`, the simulated rig the
+/// caller wires in.
 pub async fn prepare_new(
     req: NewRun,
-    faults: Vec<FaultRule>,
+    sim: Option<&dyn Simulator>,
     clock: Clock,
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
     check_request(&req)?;
     let (solver, plan, schedule) = solve_plan(&req.profile, &req.plan, req.order)?;
-    create(req, solver, plan, schedule, faults, clock, policy).await
+    create(req, solver, plan, schedule, sim, clock, policy).await
 }
 
 /// Most the `slots` order may add to the optimised order's physical time
@@ -246,13 +247,13 @@ pub fn solve_given_plan(
 pub async fn prepare_new_solved(
     req: NewRun,
     solved: (Solver, Plan, Schedule),
-    faults: Vec<FaultRule>,
+    sim: Option<&dyn Simulator>,
     clock: Clock,
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
     check_request(&req)?;
     let (solver, plan, schedule) = solved;
-    create(req, solver, plan, schedule, faults, clock, policy).await
+    create(req, solver, plan, schedule, sim, clock, policy).await
 }
 
 async fn create(
@@ -260,10 +261,18 @@ async fn create(
     solver: Solver,
     plan: Plan,
     schedule: Schedule,
-    faults: Vec<FaultRule>,
+    sim: Option<&dyn Simulator>,
     clock: Clock,
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
+    let sim_scene = match (req.simulated, sim) {
+        (true, Some(sim)) => {
+            let (name, effects) = sim.scene(&req.profile).map_err(RunError::Simulator)?;
+            Some(SimScene { name, effects })
+        }
+        (true, None) => return Err(no_simulator()),
+        (false, _) => None,
+    };
     let meta = RunMeta {
         format: RUN_FORMAT.into(),
         software_version: env!("CARGO_PKG_VERSION").into(),
@@ -281,26 +290,11 @@ async fn create(
             .simulated
             .then(|| req.frame_size.unwrap_or(req.profile.sim.frame_size)),
         simulated: req.simulated,
-        sim_scene: if req.simulated {
-            Some(sim_scene(&req.profile)?)
-        } else {
-            None
-        },
+        sim_scene,
         started_at: now_rfc3339(),
     };
     // The rig first: a rig that does not answer leaves no run directory.
-    #[cfg_attr(not(feature = "sim"), allow(unused_mut))]
-    let mut faults = faults;
-    #[cfg(feature = "sim")]
-    if meta.simulated {
-        // The profile's own faults arm when a run starts (a resumed run gets
-        // only those of its command line: the profile's have had their turn).
-        faults.splice(
-            0..0,
-            rig::sim::fault_rules(&meta.profile).map_err(RunError::Simulator)?,
-        );
-    }
-    let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
+    let (rig, sim) = connect_rig(&meta, &solver, sim, true, &clock).await?;
     let dir = RunDir::create(&req.out, &meta)?;
     Ok(assemble(
         meta,
@@ -313,58 +307,37 @@ async fn create(
     ))
 }
 
-/// The scene a simulated run renders and what its lit frames pay for.
-#[cfg(feature = "sim")]
-fn sim_scene(profile: &Profile) -> Result<SimScene, RunError> {
-    let (name, effects) = rig::sim::lit_effects(profile).map_err(RunError::Simulator)?;
-    Ok(SimScene { name, effects })
-}
-
-#[cfg(not(feature = "sim"))]
-fn sim_scene(_: &Profile) -> Result<SimScene, RunError> {
-    Err(no_simulator())
-}
-
-/// Why a simulated run cannot start in a build without the simulator.
-#[cfg(not(feature = "sim"))]
+/// Why a simulated run cannot start: no simulated rig was wired in.
 fn no_simulator() -> RunError {
     RunError::Invalid(
-        "this rigd was built without the simulator (cargo feature `sim`): it drives hardware only"
+        "no simulated rig to run on: this rigd drives hardware only (built without the cargo feature `sim`)"
             .into(),
     )
 }
 
-/// Connects the simulated rig or the profile's hardware, as the run says.
+/// Connects the simulated rig or the profile's hardware, as the run says;
+/// a run that `starts` arms the simulated rig's profile faults too.
 async fn connect_rig(
     meta: &RunMeta,
     solver: &Solver,
-    faults: Vec<FaultRule>,
+    sim: Option<&dyn Simulator>,
+    starts: bool,
     clock: &Clock,
 ) -> Result<(Rig, Option<SimHandle>), RunError> {
     if meta.simulated {
-        #[cfg(feature = "sim")]
-        {
-            let opts = rig::sim::SimOptions {
-                frame_size: meta.frame_size,
-                faults,
-            };
-            let (rig, sim) =
-                rig::sim::connect(&meta.profile, Arc::new(solver.clone()), opts, clock)
-                    .await
-                    .map_err(RunError::Simulator)?;
-            Ok((rig, Some(sim)))
-        }
-        #[cfg(not(feature = "sim"))]
-        {
-            let _ = solver;
-            Err(no_simulator())
-        }
+        let sim = sim.ok_or_else(no_simulator)?;
+        let (rig, handle) = sim
+            .connect(
+                &meta.profile,
+                Arc::new(solver.clone()),
+                meta.frame_size,
+                starts,
+                clock,
+            )
+            .await
+            .map_err(RunError::Simulator)?;
+        Ok((rig, Some(handle)))
     } else {
-        if !faults.is_empty() {
-            return Err(RunError::Invalid(
-                "faults can only be injected into the simulated rig".into(),
-            ));
-        }
         let rig = rig::hardware::connect(&meta.profile, clock)
             .await
             .map_err(RunError::Hardware)?;
@@ -376,7 +349,7 @@ async fn connect_rig(
 /// what is left.
 pub async fn prepare_resume(
     root: &Path,
-    faults: Vec<FaultRule>,
+    sim: Option<&dyn Simulator>,
     clock: Clock,
     policy: PausePolicy,
 ) -> Result<Prepared, RunError> {
@@ -406,7 +379,7 @@ pub async fn prepare_resume(
     if !recovery.retake.is_empty() {
         tracing::warn!(frames = ?recovery.retake, "frames missing or damaged on disk; they will be retaken");
     }
-    let (rig, sim) = connect_rig(&meta, &solver, faults, &clock).await?;
+    let (rig, sim) = connect_rig(&meta, &solver, sim, false, &clock).await?;
     Ok(assemble(
         meta,
         schedule,

@@ -151,7 +151,7 @@ fn default_lamp_tolerance() -> f64 {
 
 /// The profile's `[sim]` table: the simulated cameras' frames, which
 /// processing models, and the simulator's own keys, which the simulator's
-/// settings type reads and checks (`crate::rig::sim::settings`).
+/// settings type reads and checks where the simulator is wired in.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 pub struct SimTable {
     /// Frame size the simulated cameras render, `[width, height]`; by

@@ -34,6 +34,40 @@ pub enum FaultRule {}
 #[derive(Debug, Clone)]
 pub enum SimHandle {}
 
+/// The simulated rig with `faults` armed, for the command line and the
+/// daemon to wire into their runs; None in a build without the simulator
+/// (a simulated run is then refused).
+pub fn simulated_rig(faults: Vec<FaultRule>) -> Option<Box<dyn Simulator>> {
+    #[cfg(feature = "sim")]
+    return Some(Box::new(sim::SimulatedRig::new(faults)));
+    #[cfg(not(feature = "sim"))]
+    {
+        let _ = faults;
+        None
+    }
+}
+
+/// The simulated rig as the command line, the daemon and the tests wire it
+/// into a run (`sim::SimulatedRig`): the engine connects a simulated run
+/// through it and builds no simulator itself.
+#[async_trait::async_trait]
+pub trait Simulator: Send + Sync {
+    /// The scene the simulated cameras render for `profile`, and the
+    /// effects its lit frames show, as a new run records them.
+    fn scene(&self, profile: &Profile) -> Result<(String, Vec<String>), DeviceError>;
+    /// Connects the simulated rig of `profile`, its cameras rendering
+    /// frames of `frame_size` (None: the profile's). A run that `starts`
+    /// arms the profile's own faults too; a resumed one only the caller's.
+    async fn connect(
+        &self,
+        profile: &Profile,
+        solver: Arc<crate::kinematics::Solver>,
+        frame_size: Option<[u32; 2]>,
+        starts: bool,
+        clock: &Clock,
+    ) -> Result<(Rig, SimHandle), DeviceError>;
+}
+
 use std::collections::BTreeMap;
 use std::fmt;
 use std::sync::atomic::{AtomicBool, Ordering};

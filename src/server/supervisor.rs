@@ -491,7 +491,17 @@ impl Daemon {
         let home = self.engine_home()?;
         let prepared = home
             .run(move |clock| {
-                launch::prepare_new_solved(new, solved, faults, clock, PausePolicy::Wait)
+                let sim = crate::rig::simulated_rig(faults);
+                async move {
+                    launch::prepare_new_solved(
+                        new,
+                        solved,
+                        sim.as_deref(),
+                        clock,
+                        PausePolicy::Wait,
+                    )
+                    .await
+                }
             })
             .await
             .map_err(|e| SupervisorError::internal(format!("preparing the run failed: {e}")))?
@@ -974,7 +984,8 @@ impl Daemon {
         // engine's runtime.
         let prepared = home
             .run(move |clock| async move {
-                launch::prepare_resume(&root, Vec::new(), clock, PausePolicy::Wait).await
+                let sim = crate::rig::simulated_rig(Vec::new());
+                launch::prepare_resume(&root, sim.as_deref(), clock, PausePolicy::Wait).await
             })
             .await
             .map_err(|e| SupervisorError::internal(format!("resuming failed: {e}")))?

@@ -661,9 +661,10 @@ fn capture(profile: Profile, plan: &str, out: &Path) -> Result<f64, ProcessError
             simulated: true,
             order: None,
         };
+        let sim = crate::rig::sim::SimulatedRig::default();
         let p = crate::engine::launch::prepare_new(
             req,
-            vec![],
+            Some(&sim),
             rigd_core::Clock::virtual_time(),
             PausePolicy::Return,
         )

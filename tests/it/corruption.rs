@@ -751,6 +751,7 @@ async fn a_run_completes_only_with_every_image_in_its_journal() {
     use rigd::engine::launch::{prepare_new, NewRun};
     use rigd::engine::PausePolicy;
     use rigd::model::run_state::RunState;
+    use rigd::rig::sim::SimulatedRig;
     let tmp = tempfile::tempdir().expect("tempdir");
     let out = tmp.path().join("run");
     let plan = crate::common::tiny_plan(tmp.path());
@@ -770,7 +771,7 @@ async fn a_run_completes_only_with_every_image_in_its_journal() {
             simulated: true,
             order: None,
         },
-        vec![],
+        Some(&SimulatedRig::new(vec![])),
         rigd_core::Clock::virtual_time(),
         PausePolicy::Wait,
     )

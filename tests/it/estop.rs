@@ -11,6 +11,7 @@ use rigd::engine::launch::{prepare_new, NewRun};
 use rigd::engine::{EventKind, PausePolicy, RunEvent, ESTOP_REASON};
 use rigd::model::profile::Profile;
 use rigd::model::run_state::RunState;
+use rigd::rig::sim::SimulatedRig;
 use rigd_core::Clock;
 use tokio::sync::broadcast::error::RecvError;
 use tokio::sync::broadcast::Receiver;
@@ -43,9 +44,14 @@ async fn emergency_stop_mid_run_pauses_and_resume_rehomes_and_completes() {
         simulated: true,
         order: None,
     };
-    let p = prepare_new(req, vec![], Clock::virtual_time(), PausePolicy::Wait)
-        .await
-        .expect("prepare");
+    let p = prepare_new(
+        req,
+        Some(&SimulatedRig::new(vec![])),
+        Clock::virtual_time(),
+        PausePolicy::Wait,
+    )
+    .await
+    .expect("prepare");
     let sim = p.sim.clone().expect("simulated rig");
     let mut events = p.handle.events.subscribe();
     let handle = p.handle.clone();

@@ -12,6 +12,7 @@ use rigd::engine::launch::{prepare_new, NewRun};
 use rigd::engine::{EventKind, PausePolicy};
 use rigd::model::profile::Profile;
 use rigd::model::run_state::RunState;
+use rigd::rig::sim::SimulatedRig;
 use rigd_core::Clock;
 use rigd_sim::FaultRule;
 use tokio::sync::broadcast::error::RecvError;
@@ -36,9 +37,14 @@ async fn run_with_fault(rule: &str) -> Vec<String> {
     };
     let rule: FaultRule = rule.parse().expect("fault rule");
     let device = rule.device.clone();
-    let p = prepare_new(req, vec![rule], Clock::virtual_time(), PausePolicy::Wait)
-        .await
-        .expect("prepare");
+    let p = prepare_new(
+        req,
+        Some(&SimulatedRig::new(vec![rule])),
+        Clock::virtual_time(),
+        PausePolicy::Wait,
+    )
+    .await
+    .expect("prepare");
     let faults = p.sim.as_ref().expect("simulated rig").faults.clone();
     let mut events = p.handle.events.subscribe();
     let commands = p.handle.commands.clone();

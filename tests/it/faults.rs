@@ -12,6 +12,7 @@ use rigd::engine::launch::{prepare_new, NewRun};
 use rigd::engine::{EventKind, PausePolicy, RunEvent};
 use rigd::model::profile::Profile;
 use rigd::model::run_state::RunState;
+use rigd::rig::sim::SimulatedRig;
 use rigd_core::Clock;
 use rigd_sim::FaultRule;
 use tokio::sync::broadcast::error::RecvError;
@@ -84,7 +85,9 @@ async fn alarm_pauses_with_reason_and_resume_completes_after_clearing() {
     let out = tmp.path().join("run");
     let p = prepare_new(
         new_run(&out, "h1"),
-        vec![rule("rail:move:300:alarm=ALARM 1 hard limit:sticky")],
+        Some(&SimulatedRig::new(vec![rule(
+            "rail:move:300:alarm=ALARM 1 hard limit:sticky",
+        )])),
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
@@ -142,10 +145,10 @@ async fn one_timeout_and_one_bad_frame_are_retried_without_a_pause() {
     let out = tmp.path().join("run");
     let p = prepare_new(
         new_run(&out, "h1"),
-        vec![
+        Some(&SimulatedRig::new(vec![
             rule("arm:move:40:timeout"),
             rule("camera:transfer:70:bad-frame"),
-        ],
+        ])),
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
@@ -186,7 +189,7 @@ async fn operator_pause_and_resume_lose_nothing() {
     let out = tmp.path().join("run");
     let p = prepare_new(
         new_run(&out, "h2"),
-        vec![],
+        Some(&SimulatedRig::new(vec![])),
         Clock::virtual_time(),
         PausePolicy::Wait,
     )
@@ -223,7 +226,7 @@ async fn abort_ends_the_run_with_a_manifest_of_what_was_taken() {
     let out = tmp.path().join("run");
     let p = prepare_new(
         new_run(&out, "h1"),
-        vec![],
+        Some(&SimulatedRig::new(vec![])),
         Clock::virtual_time(),
         PausePolicy::Wait,
     )

@@ -164,6 +164,7 @@ async fn msra_grid_capture(
     use rigd::engine::launch::{prepare_new, NewRun};
     use rigd::engine::PausePolicy;
     use rigd::model::run_state::RunState;
+    use rigd::rig::sim::SimulatedRig;
 
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().join("grid");
@@ -182,7 +183,7 @@ async fn msra_grid_capture(
             simulated: true,
             order: None,
         },
-        vec![],
+        Some(&SimulatedRig::new(vec![])),
         rigd_core::Clock::virtual_time(),
         PausePolicy::Return,
     )

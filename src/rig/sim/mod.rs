@@ -100,6 +100,45 @@ fn settings_for_rig(profile: &Profile) -> Result<SimSettings, DeviceError> {
         .map_err(|(key, message)| DeviceError::new(&key, ErrorKind::NotReady, message))
 }
 
+/// The simulated rig wired into a run ([`crate::rig::Simulator`]), with the
+/// faults its caller arms from the start (`--sim-fault`, the daemon's).
+#[derive(Debug, Clone, Default)]
+pub struct SimulatedRig {
+    /// Faults armed from the start, after the profile's own.
+    pub faults: Vec<FaultRule>,
+}
+
+impl SimulatedRig {
+    /// The simulated rig with `faults` armed.
+    pub fn new(faults: Vec<FaultRule>) -> SimulatedRig {
+        SimulatedRig { faults }
+    }
+}
+
+#[async_trait]
+impl crate::rig::Simulator for SimulatedRig {
+    fn scene(&self, profile: &Profile) -> Result<(String, Vec<String>), DeviceError> {
+        lit_effects(profile)
+    }
+
+    async fn connect(
+        &self,
+        profile: &Profile,
+        solver: Arc<Solver>,
+        frame_size: Option<[u32; 2]>,
+        starts: bool,
+        clock: &Clock,
+    ) -> Result<(Rig, SimHandle), DeviceError> {
+        let mut faults = if starts {
+            fault_rules(profile)?
+        } else {
+            Vec::new()
+        };
+        faults.extend(self.faults.iter().cloned());
+        connect(profile, solver, SimOptions { frame_size, faults }, clock).await
+    }
+}
+
 /// The `[sim]` table's fault rules, parsed ([`check_settings`] refuses a
 /// profile with one that does not parse).
 pub fn fault_rules(profile: &Profile) -> Result<Vec<FaultRule>, DeviceError> {
