@@ -189,10 +189,19 @@ fn job_path(root: &Path) -> PathBuf {
 }
 
 /// Reads a run's job file; None when there is none or it cannot be read
-/// (then it is logged, and the run can be processed afresh).
+/// (then it is logged, and the run can be processed afresh). A file that
+/// is not a regular one (a FIFO) or is implausibly large is never waited
+/// on or read whole.
 pub fn read_job(root: &Path) -> Option<ProcessJob> {
     let path = job_path(root);
-    let bytes = std::fs::read(&path).ok()?;
+    let bytes = match rigd_core::read::read_bounded(&path, rigd_core::read::TEXT_LIMIT) {
+        Ok(bytes) => bytes,
+        Err(e) if e.io_kind() == Some(std::io::ErrorKind::NotFound) => return None,
+        Err(e) => {
+            tracing::warn!("{e}; ignored");
+            return None;
+        }
+    };
     match serde_json::from_slice(&bytes) {
         Ok(job) => Some(job),
         Err(e) => {
@@ -507,6 +516,23 @@ mod tests {
         let kept = read_job(dir.path()).expect("job.json");
         assert_eq!(kept.state, JobState::Done);
         assert_eq!(kept.steps[0].summary.as_deref(), Some("before"));
+    }
+
+    /// A job file that is garbage or a FIFO with no writer is no job: the
+    /// read neither fails loudly nor blocks.
+    #[test]
+    fn a_broken_job_file_reads_as_none_without_blocking() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        assert!(read_job(dir.path()).is_none());
+        let path = job_path(dir.path());
+        std::fs::create_dir_all(path.parent().expect("processed/")).expect("processed/");
+        std::fs::write(&path, b"{\"run\": 3").expect("write");
+        assert!(read_job(dir.path()).is_none());
+        std::fs::remove_file(&path).expect("remove");
+        let c_path = std::ffi::CString::new(path.to_str().expect("utf-8")).expect("path");
+        // SAFETY: mkfifo on a NUL-terminated path of our own temporary folder.
+        assert_eq!(unsafe { libc::mkfifo(c_path.as_ptr(), 0o600) }, 0);
+        assert!(read_job(dir.path()).is_none());
     }
 
     /// A requeued job keeps its done steps and starts the others over.
