@@ -237,7 +237,8 @@ fn store_class(e: &StoreError) -> u8 {
         | StoreError::NotEmpty(_)
         | StoreError::NoRun(_)
         | StoreError::Corrupt { .. }
-        | StoreError::Finished(..) => EXIT_BAD_INPUT,
+        | StoreError::Finished(..)
+        | StoreError::Busy(_) => EXIT_BAD_INPUT,
     }
 }
 

@@ -133,7 +133,8 @@ struct ManifestHead {
 
 /// Reads one run directory into a view (not active). With `mark_stale`
 /// (the scan at start-up), a run that was preparing or running, whose
-/// driver therefore died, is marked `interrupted` in its `state.json`;
+/// driver therefore died (no writer holds it), is marked `interrupted` in
+/// its `state.json`;
 /// without it (a run the daemon itself is starting or has just ended) the
 /// record is read as it is.
 pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, RunMeta), StoreError> {
@@ -158,7 +159,9 @@ pub fn load_run(root: &Path, id: &str, mark_stale: bool) -> Result<(RunView, Run
     let stale = state
         .as_ref()
         .is_none_or(|s| s.state.is_active() || s.state == RunState::Idle);
-    if stale && mark_stale {
+    // A run another process is writing (a `rigd run` into this folder) is
+    // not stale: its writer alone may change its record.
+    if stale && mark_stale && !crate::store::WriterLock::is_held(root) {
         let reason = INTERRUPTED_REASON.replace("{id}", id);
         state = Some(mark_interrupted(root, state.as_ref(), &reason)?);
     }
@@ -331,7 +334,13 @@ mod tests {
         };
         let dir = tempfile::tempdir().expect("tempdir");
         let root = dir.path().join("run");
-        crate::store::RunDir::create(&root, &meta).expect("create");
+        let writer = crate::store::RunDir::create(&root, &meta).expect("create");
+        // While its writer (another process, as far as the scan can tell)
+        // holds it, the run is not stale and its record is left alone.
+        let (view, _) = load_run(&root, "run", true).expect("load");
+        assert_ne!(view.state, RunState::Interrupted, "its writer holds it");
+        assert!(!root.join(crate::store::STATE_FILE).exists());
+        drop(writer);
         let (view, _) = load_run(&root, "run", true).expect("load");
         assert!(!schedule.images.is_empty());
         assert_eq!(view.steps_total, schedule.images.len());

@@ -990,9 +990,9 @@ impl Daemon {
             .await
             .map_err(|e| SupervisorError::internal(format!("resuming failed: {e}")))?
             .map_err(|e| match e {
-                RunError::Store(crate::store::StoreError::Finished(..)) => {
-                    SupervisorError::conflict(e.to_string())
-                }
+                RunError::Store(
+                    crate::store::StoreError::Finished(..) | crate::store::StoreError::Busy(_),
+                ) => SupervisorError::conflict(e.to_string()),
                 other => run_error(other),
             })?;
         let view = self

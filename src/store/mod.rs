@@ -33,6 +33,9 @@
 //!   ([`check_manifest`]) and refuses a run where they disagree.
 
 pub mod processed;
+mod writer_lock;
+
+pub use writer_lock::WriterLock;
 
 use std::collections::BTreeMap;
 use std::fs::{self, File, OpenOptions};
@@ -110,6 +113,10 @@ pub enum StoreError {
     /// and its state.
     #[error("{0}: the run is already {1}; nothing to resume")]
     Finished(String, RunState),
+    /// Another writer holds the run (a capture or a resume, in this
+    /// process or another): its folder.
+    #[error("{0}: another rigd is writing this run (capturing or resuming it); wait for it to end or stop it, then resume")]
+    Busy(String),
     /// The state table refuses the state change asked of the run.
     #[error("{path}: {error}")]
     Transition {
@@ -357,6 +364,8 @@ pub struct Recovery {
 #[derive(Debug)]
 pub struct RunDir {
     root: PathBuf,
+    /// Held while the run is written: one writer per run.
+    _lock: WriterLock,
     journal: File,
     /// Bytes of complete lines in the journal; an append that fails
     /// partway is cut back to it, so the next line starts on a line.
@@ -427,6 +436,11 @@ impl RunDir {
             }
         }
         fs::create_dir_all(root.join(FRAMES_DIR)).map_err(io(root, "create directory"))?;
+        let lock = WriterLock::acquire(root)?;
+        // Another writer may have made the run between the check and the lock.
+        if root.join(RUN_FILE).exists() {
+            return Err(StoreError::Busy(shown));
+        }
         let json = serde_json::to_vec_pretty(meta).map_err(|e| StoreError::Corrupt {
             path: root.join(RUN_FILE),
             why: e.to_string(),
@@ -436,6 +450,7 @@ impl RunDir {
         make_reserve(root);
         Ok(RunDir {
             root: root.to_path_buf(),
+            _lock: lock,
             journal,
             journal_len,
         })
@@ -449,6 +464,8 @@ impl RunDir {
     pub fn open(root: &Path) -> Result<(RunDir, RunMeta, Recovery), StoreError> {
         let shown = root.display().to_string();
         let meta = read_meta(root)?;
+        // Before anything is repaired: recovery belongs to the one writer.
+        let lock = WriterLock::acquire(root)?;
         let state = read_state(root)?;
         let start = match &state {
             Some(s) if s.state.is_terminal() => {
@@ -499,6 +516,7 @@ impl RunDir {
         Ok((
             RunDir {
                 root: root.to_path_buf(),
+                _lock: lock,
                 journal,
                 journal_len,
             },

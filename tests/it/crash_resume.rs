@@ -286,3 +286,60 @@ fn a_bracketed_run_faulted_between_exposures_and_killed_resumes_whole() {
         assert_eq!(f.exposures_s(), [0.25, 0.0625], "image {}", f.index);
     }
 }
+
+/// A run has one writer. While one rigd captures into a folder, a second
+/// `rigd run --resume` of it is refused at once (exit 2) and changes
+/// nothing; once the first is killed, a resume takes the run over and
+/// completes it.
+#[test]
+fn a_second_writer_is_refused_while_the_first_captures() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let dir = tmp.path().join("run");
+    let plan = common::tiny_plan(tmp.path());
+    // Paced at twice the wall: the capture lasts well beyond the check.
+    let mut child = rigd()
+        .args(["run", "--sim", "--sim-speed", "2", "--progress", "none"])
+        .args(["--frame-size", "32x24", "--plan"])
+        .arg(&plan)
+        .arg("--out")
+        .arg(&dir)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn rigd");
+    let start = Instant::now();
+    while !dir.join(rigd::store::RUN_FILE).exists() {
+        assert!(
+            child.try_wait().expect("wait").is_none(),
+            "the capture ended early"
+        );
+        assert!(start.elapsed() < Duration::from_secs(60), "no run created");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let out = rigd()
+        .args(["run", "--resume"])
+        .arg(&dir)
+        .output()
+        .expect("rigd run --resume");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(err.contains("another rigd is writing this run"), "{err}");
+    assert!(child.try_wait().expect("wait").is_none(), "{err}");
+    // The refused resume did not recover the run under its writer: only a
+    // resume marks a run `interrupted`.
+    let state = std::fs::read_to_string(dir.join(rigd::store::STATE_FILE)).unwrap_or_default();
+    assert!(!state.contains("interrupted"), "{state}");
+    let _ = child.kill();
+    let _ = child.wait();
+    let out = rigd()
+        .args(["run", "--progress", "none", "--resume"])
+        .arg(&dir)
+        .output()
+        .expect("rigd run --resume");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_complete_run(&dir, 4);
+}
