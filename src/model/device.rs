@@ -368,13 +368,11 @@ impl<'de> Deserialize<'de> for Device {
                 .map(|(k, v)| (Value::String(k), v))
                 .collect(),
         );
-        fn typed<T: serde::de::DeserializeOwned, E: serde::de::Error>(
+        fn typed<T: serde::de::DeserializeOwned + Serialize, E: serde::de::Error>(
             kind: DeviceKind,
             fields: Value,
         ) -> Result<T, E> {
-            serde_path_to_error::deserialize(ValueDeserializer::<E>::new(fields)).map_err(|e| {
-                let path = e.path().to_string();
-                let message = e.into_inner();
+            super::whole_value::typed(fields).map_err(|(path, message): (String, E)| {
                 if path == "." {
                     E::custom(format_args!("{}: {message}", kind.with_article()))
                 } else {

@@ -7,3 +7,4 @@ pub mod exposure;
 pub mod profile;
 pub mod run_state;
 pub mod text;
+pub mod whole_value;

@@ -294,6 +294,27 @@ fn broken_profiles_name_file_key_and_expectation() {
             "100000×100000",
         ),
         (
+            "three-sided-sensor.toml",
+            "resolution = [3032, 2008]",
+            "resolution = [3032, 2008, 3]",
+            "devices.camera.intrinsics.resolution",
+            "invalid length 3",
+        ),
+        (
+            "sim-frame-extra.toml",
+            "frame_size = [640, 480]",
+            "frame_size = [640, 480, 3]",
+            "sim.frame_size",
+            "invalid length 3",
+        ),
+        (
+            "sim-offset-extra.toml",
+            "[sim]",
+            "[sim]\nholder_offset_mm = [0.5, 0.5, 0.5]",
+            "sim.holder_offset_mm",
+            "length 3",
+        ),
+        (
             "nul-name.toml",
             "name = \"bonn-gonioreflectometer\"",
             "name = \"bonn\\u0000rig\"",

@@ -102,15 +102,27 @@ pub fn parse<T: DeserializeOwned>(
     };
     match format {
         Format::Toml => {
-            serde_path_to_error::deserialize(toml::Deserializer::new(text)).map_err(|e| {
+            let value =
+                serde_path_to_error::deserialize(toml::Deserializer::new(text)).map_err(|e| {
+                    let key = e.path().to_string();
+                    let inner = e.into_inner();
+                    let line = inner
+                        .span()
+                        .map(|s| format!(" (line {})", line_of(text, s.start)))
+                        .unwrap_or_default();
+                    error(key, format!("{}{line}", inner.message().trim()))
+                })?;
+            // toml's deserializer fills a fixed-size array (`[u32; 2]`)
+            // from the first elements of a longer one and drops the rest;
+            // read again from its value tree, which refuses them, naming
+            // the key (without a line: the tree has no spans).
+            let table: toml::Table =
+                toml::from_str(text).map_err(|e| error(String::new(), e.message().to_string()))?;
+            serde_path_to_error::deserialize::<_, T>(table).map_err(|e| {
                 let key = e.path().to_string();
-                let inner = e.into_inner();
-                let line = inner
-                    .span()
-                    .map(|s| format!(" (line {})", line_of(text, s.start)))
-                    .unwrap_or_default();
-                error(key, format!("{}{line}", inner.message().trim()))
-            })
+                error(key, e.into_inner().to_string())
+            })?;
+            Ok(value)
         }
         Format::Json => {
             let mut de = serde_json::Deserializer::from_str(text);
@@ -179,6 +191,43 @@ mod tests {
     #[serde(deny_unknown_fields)]
     struct Axis {
         steps: u32,
+    }
+
+    #[derive(Debug, serde::Deserialize, PartialEq)]
+    struct Frame {
+        size: [u32; 2],
+        #[serde(default)]
+        inner: Option<Frame2>,
+    }
+
+    #[derive(Debug, serde::Deserialize, PartialEq)]
+    struct Frame2 {
+        at: [f64; 2],
+    }
+
+    /// A fixed-size array takes exactly its length, in TOML as in JSON:
+    /// toml's own deserializer would drop the extra elements.
+    #[test]
+    fn a_fixed_size_array_takes_exactly_its_length() {
+        let ok = parse::<Frame>("size = [640, 480]\n", "f.toml", Format::Toml).expect("two");
+        assert_eq!(ok.size, [640, 480]);
+        for (text, format, key) in [
+            ("size = [640, 480, 3]\n", Format::Toml, "size"),
+            ("size = [640]\n", Format::Toml, "size"),
+            (
+                "size = [1, 2]\n[inner]\nat = [1.0, 2.0, 3.0]\n",
+                Format::Toml,
+                "inner.at",
+            ),
+            ("{\"size\": [640, 480, 3]}", Format::Json, "size"),
+        ] {
+            let e = parse::<Frame>(text, "f", format).expect_err(text);
+            assert_eq!(e.key, key, "{text}: {e}");
+            assert!(
+                e.message.contains("length") || e.message.contains("trailing"),
+                "{e}"
+            );
+        }
     }
 
     #[test]

@@ -64,7 +64,7 @@ pub struct SimOptions {
 /// The simulator's keys of a `[sim]` table, read and checked; `Err` names
 /// the key (`sim.…`) and what was expected.
 pub fn settings(table: &SimTable) -> Result<SimSettings, (String, String)> {
-    use serde_value::{DeserializerError, Value, ValueDeserializer};
+    use serde_value::{DeserializerError, Value};
     let keys = Value::Map(
         table
             .simulator
@@ -72,24 +72,23 @@ pub fn settings(table: &SimTable) -> Result<SimSettings, (String, String)> {
             .map(|(k, v)| (Value::String(k.clone()), v.clone()))
             .collect(),
     );
-    let settings: SimSettings =
-        serde_path_to_error::deserialize(ValueDeserializer::<DeserializerError>::new(keys))
-            .map_err(|e| {
-                let path = e.path().to_string();
-                let key = if path == "." {
-                    "sim".to_string()
-                } else {
-                    format!("sim.{path}")
-                };
-                let message = match e.into_inner() {
-                    DeserializerError::UnknownField(field, keys) => format!(
-                        "unknown field `{field}`, expected one of `frame_size`, `zoom`, `{}`",
-                        keys.join("`, `")
-                    ),
-                    e => e.to_string(),
-                };
-                (key, message)
-            })?;
+    let settings: SimSettings = crate::model::whole_value::typed(keys).map_err(
+        |(path, e): (String, DeserializerError)| {
+            let key = if path == "." {
+                "sim".to_string()
+            } else {
+                format!("sim.{path}")
+            };
+            let message = match e {
+                DeserializerError::UnknownField(field, keys) => format!(
+                    "unknown field `{field}`, expected one of `frame_size`, `zoom`, `{}`",
+                    keys.join("`, `")
+                ),
+                e => e.to_string(),
+            };
+            (key, message)
+        },
+    )?;
     settings.check()?;
     Ok(settings)
 }
