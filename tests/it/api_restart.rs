@@ -383,9 +383,10 @@ fn done_before(summary: &str) -> usize {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
     let dir = tempfile::tempdir().expect("tempdir");
-    // A monochrome camera: a colour run calibrated on its own patches is
-    // registered only after the capture, once its most frontal frames are
-    // known (`docs/processing.md`, "During the capture").
+    // A monochrome camera, so frames are registered from the first one: a
+    // colour run calibrated on its own patches waits for its most frontal
+    // frames (`docs/processing.md`, "During the capture"), which this plan
+    // takes late.
     let monochrome = common::bonn_monochrome(dir.path());
     // Slow enough (about 0.2 s per frame) that frames are registered
     // while the capture runs, even on a loaded machine.

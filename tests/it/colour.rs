@@ -703,3 +703,114 @@ fn demosaic_methods_against_the_full_rgb_truth() {
     }
     assert!(worse.is_empty(), "{worse:#?}");
 }
+
+/// A colour run calibrated on its own patches is registered while it
+/// captures, once its most frontal frames are in: before that its frames
+/// wait (a frame registered uncorrected would be registered again), then
+/// the stream measures the calibration `rigd process colour` measures on
+/// the whole run, and `rectify` takes every frame the stream registered.
+#[test]
+fn a_colour_run_streams_once_its_most_frontal_frames_are_in() {
+    use rigd::postprocess::colour::colour_file;
+    use rigd::postprocess::rectify::RectifyStream;
+    use rigd::store::{JOURNAL_FILE, MANIFEST_FILE, STATE_FILE};
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The embedded Bonn rig: a Bayer camera, the plate's patches, 640×480.
+    let profile = repo_file("rig-profiles/bonn-gonioreflectometer.toml");
+    // The oblique view first, in the plan's own order: the 8 most frontal
+    // frames (light θ 30°, view θ 0°) are the last 8 of 16.
+    let plan = dir.path().join("plan.json");
+    let lights: Vec<String> = (0..8)
+        .map(|k| format!(r#"{{"theta_deg": 30, "phi_deg": {}}}"#, 45 * k))
+        .collect();
+    std::fs::write(
+        &plan,
+        format!(
+            r#"{{"lights": [{}], "views": [{{"theta_deg": 40, "phi_deg": 90}}, {{"theta_deg": 0, "phi_deg": 0}}]}}"#,
+            lights.join(", ")
+        ),
+    )
+    .expect("plan");
+    let whole = dir.path().join("whole");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--profile",
+        profile.to_str().expect("utf8"),
+        "--order",
+        "naive",
+        "--plan",
+        plan.to_str().expect("utf8"),
+        "--progress",
+        "none",
+        "--out",
+        whole.to_str().expect("utf8"),
+    ]);
+
+    // The same run while it captures: its journal so far, no manifest, no
+    // final state.
+    let capturing = dir.path().join("capturing");
+    crate::common::copy_dir(&whole, &capturing);
+    for file in [MANIFEST_FILE, STATE_FILE] {
+        std::fs::remove_file(capturing.join(file)).expect(file);
+    }
+    let journal = std::fs::read_to_string(whole.join(JOURNAL_FILE)).expect("journal");
+    let lines: Vec<&str> = journal.lines().collect();
+    assert_eq!(lines.len(), 16);
+    let journal_to = |n: usize| {
+        let prefix: String = lines[..n].iter().map(|l| format!("{l}\n")).collect();
+        std::fs::write(capturing.join(JOURNAL_FILE), prefix).expect("journal");
+    };
+    // As `rigd process rectify --size 256 --final 64` below (no blend).
+    let options = rigd::postprocess::pipeline::RectifyOptions {
+        size: 256,
+        final_size: 64,
+        blend: Some(0),
+        ..Default::default()
+    };
+    let mut stream =
+        RectifyStream::new(&capturing, options.config().expect("options")).expect("a stream");
+    // The oblique view, then half the frontal frames: the calibration's
+    // frames are still to come (the other half ties with these).
+    for n in [8, 12] {
+        journal_to(n);
+        let p = stream.catch_up(64).expect("catch up");
+        assert_eq!((p.journaled, p.registered), (n, 0), "{n} frames in: {p:?}");
+        assert!(!colour_file(&capturing).exists(), "{n} frames in");
+    }
+    journal_to(16);
+    let p = stream.catch_up(64).expect("catch up");
+    assert_eq!((p.done, p.registered), (16, 16), "{p:?}");
+    for file in [MANIFEST_FILE, STATE_FILE] {
+        std::fs::copy(whole.join(file), capturing.join(file)).expect(file);
+    }
+
+    // The calibration is the whole run's, byte for byte.
+    run_ok(&["process", "colour", whole.to_str().expect("utf8")]);
+    let read = |run: &Path| std::fs::read(colour_file(run)).expect("colour.json");
+    assert!(
+        read(&capturing) == read(&whole),
+        "the stream's colour.json differs"
+    );
+    // And `rectify` keeps every frame the stream registered.
+    let out = run_ok(&[
+        "process",
+        "rectify",
+        "--size",
+        "256",
+        "--final",
+        "64",
+        capturing.to_str().expect("utf8"),
+    ]);
+    let printed = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        printed.contains("16 frames taken from an interrupted run of this step"),
+        "{printed}"
+    );
+    let index: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(capturing.join("processed/normtextures/index.json")).expect("index"),
+    )
+    .expect("index.json");
+    assert_eq!(index["channels"], 3, "RGB textures");
+}

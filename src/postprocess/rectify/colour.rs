@@ -197,6 +197,65 @@ pub fn texture_colour(
     run: &RunFrames,
     calibrate: bool,
 ) -> Result<Option<ColourCalibration>, ProcessError> {
+    let measure = if calibrate {
+        Measure::Now
+    } else {
+        Measure::Never
+    };
+    // Measured now, nothing is waited for: every frame there will be is here.
+    Ok(texture_colour_by(run, measure)?.flatten())
+}
+
+/// The colour calibration of a run still capturing, the same one
+/// [`texture_colour`] finds when the capture has ended, so that the frames
+/// registered during the capture are the ones `rigd process rectify` keeps.
+/// A run calibrated on its own patches is measured on its most frontal
+/// frames: until no frame still to come can be among them, there is none
+/// yet, and the frames wait.
+#[derive(Debug, Default)]
+pub struct ColourWhileCapturing {
+    /// The patches read so far, by image index.
+    readings: PatchReadings,
+    /// The calibration once it is known (`Some(None)`: grey textures).
+    known: Option<Option<ColourCalibration>>,
+}
+
+impl ColourWhileCapturing {
+    /// The textures' calibration for `run` (the journal so far): `None`
+    /// while it cannot be known yet, `Some(None)` for grey textures.
+    pub fn texture_colour(
+        &mut self,
+        run: &RunFrames,
+    ) -> Result<Option<Option<ColourCalibration>>, ProcessError> {
+        if self.known.is_none() {
+            self.known = texture_colour_by(run, Measure::WhileCapturing(&mut self.readings))?;
+        }
+        Ok(self.known)
+    }
+}
+
+/// Patches read in a run's frames, by image index: the readings, or why
+/// the frame does not show them usably.
+type PatchReadings = std::collections::BTreeMap<usize, Result<Vec<PatchReading>, String>>;
+
+/// Whether [`texture_colour_by`] measures a calibration on the run's
+/// patches where it has none.
+enum Measure<'a> {
+    /// No: grey textures until `rigd process colour` has run.
+    Never,
+    /// Yes, on the frames the journal has.
+    Now,
+    /// Yes, once the frames still to come cannot change it; the readings
+    /// are kept between calls.
+    WhileCapturing(&'a mut PatchReadings),
+}
+
+/// [`texture_colour`], and `None` while the run's calibration waits for
+/// frames still to come ([`Measure::WhileCapturing`]).
+fn texture_colour_by(
+    run: &RunFrames,
+    measure: Measure,
+) -> Result<Option<Option<ColourCalibration>>, ProcessError> {
     let report = if colour_file(&run.root).exists() {
         ColourReport::read(&run.root)?
     } else if camera_colour_file(&run.root).exists() {
@@ -206,16 +265,24 @@ pub fn texture_colour(
             message: e.to_string(),
         })?;
         one_camera(run, &path)?;
-        return camera_texture_calibration(&file).map(Some);
+        return camera_texture_calibration(&file).map(|c| Some(Some(c)));
     } else {
         let Some(first) = run.entries.first() else {
-            return Ok(None);
+            let waits = matches!(measure, Measure::WhileCapturing(_));
+            return Ok(if waits { None } else { Some(None) });
         };
-        if !calibrate || run.colour_planes(first)?.is_none() {
-            return Ok(None);
+        let mut fresh = PatchReadings::new();
+        let (first_pending, readings) = match measure {
+            Measure::Never => return Ok(Some(None)),
+            Measure::Now => (None, &mut fresh),
+            Measure::WhileCapturing(kept) => (first_pending_tilt(run), kept),
+        };
+        if run.colour_planes(first)?.is_none() {
+            return Ok(Some(None));
         }
-        match calibrate_run(run) {
-            Ok(report) => report,
+        match calibrate_on(run, first_pending, readings) {
+            Ok(Some(report)) => report,
+            Ok(None) => return Ok(None),
             Err(e) => {
                 tracing::warn!(
                     "{}: camera `{}` records colour, but no colour calibration: {e}; its \
@@ -223,7 +290,7 @@ pub fn texture_colour(
                     run.root.display(),
                     first.camera
                 );
-                return Ok(None);
+                return Ok(Some(None));
             }
         }
     };
@@ -237,7 +304,7 @@ pub fn texture_colour(
             other.camera
         )));
     }
-    Ok(Some(report.texture_calibration))
+    Ok(Some(Some(report.texture_calibration)))
 }
 
 /// Where a run's colour calibration is kept.
@@ -341,6 +408,50 @@ fn remove_if_present(path: &Path) -> Result<(), ProcessError> {
 /// [`FRAMES_AVERAGED`]), calibrates on their mean and writes
 /// `RUN/processed/colour.json`.
 pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
+    calibrate_on(run, None, &mut PatchReadings::new())?.ok_or_else(|| {
+        ProcessError::Invalid("the run's most frontal frames are still to come".to_string())
+    })
+}
+
+/// How frontal a frame is, for choosing the frames a calibration is
+/// measured on: by the directions commanded, which the plan knows for the
+/// frames still to come too.
+fn tilt(light: &Direction, view: &Direction) -> f64 {
+    light.theta_deg + view.theta_deg
+}
+
+/// The lowest [`tilt`] among the plan's images the journal does not have
+/// yet; None when it has them all. A journaled image's commanded
+/// directions are its plan pair's, value for value.
+fn first_pending_tilt(run: &RunFrames) -> Option<f64> {
+    let mut planned: Vec<f64> = (run.meta.plan.pairs.iter())
+        .map(|p| tilt(&p.light, &p.view))
+        .collect();
+    let mut taken: Vec<f64> = (run.entries.iter())
+        .map(|e| tilt(&e.light, &e.view))
+        .collect();
+    planned.sort_by(f64::total_cmp);
+    taken.sort_by(f64::total_cmp);
+    let mut taken = taken.into_iter().peekable();
+    for t in planned {
+        // Journaled images below `t` that match no planned one are skipped.
+        while taken.next_if(|&x| x < t).is_some() {}
+        if taken.next_if(|&x| x == t).is_none() {
+            return Some(t);
+        }
+    }
+    None
+}
+
+/// [`calibrate_run`] on the frames journaled so far: None while a frame
+/// still to come (none below `first_pending` in [`tilt`]) may be among
+/// those it is measured on, as frames tie or come before them. Patches
+/// read before are taken from `readings`, and new readings kept there.
+fn calibrate_on(
+    run: &RunFrames,
+    first_pending: Option<f64>,
+    readings: &mut PatchReadings,
+) -> Result<Option<ColourReport>, ProcessError> {
     let (holder, _) = super::holder_of(&run.meta)?;
     if holder.patches.is_empty() {
         return Err(ProcessError::Invalid(format!(
@@ -352,27 +463,44 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     }
     let mut order: Vec<&crate::store::FrameEntry> = run.entries.iter().collect();
     order.sort_by(|a, b| {
-        let tilt =
-            |e: &crate::store::FrameEntry| e.achieved_light.theta_deg + e.achieved_view.theta_deg;
-        tilt(a).total_cmp(&tilt(b))
+        (tilt(&a.light, &a.view).total_cmp(&tilt(&b.light, &b.view))).then(a.index.cmp(&b.index))
     });
+    let comes_first = |entry: &crate::store::FrameEntry| {
+        first_pending.is_some_and(|t| t <= tilt(&entry.light, &entry.view))
+    };
     let mut refused = Vec::new();
     let mut used: Vec<(&crate::store::FrameEntry, Vec<PatchReading>)> = Vec::new();
+    let mut tried = 0;
     for entry in order.into_iter().take(MAX_CANDIDATES) {
         if used.len() == FRAMES_AVERAGED {
             break;
         }
-        let Some(planes) = run.colour_planes(entry)? else {
-            return Err(ProcessError::Invalid(format!(
-                "camera `{}` is monochrome (its profile gives no `intrinsics.cfa` and its \
-                 frames carry no colour): there is no colour to calibrate",
-                entry.camera
-            )));
+        if comes_first(entry) {
+            return Ok(None);
+        }
+        tried += 1;
+        let read = match readings.get(&entry.index) {
+            Some(read) => read.clone(),
+            None => {
+                let Some(planes) = run.colour_planes(entry)? else {
+                    return Err(ProcessError::Invalid(format!(
+                        "camera `{}` is monochrome (its profile gives no `intrinsics.cfa` and \
+                         its frames carry no colour): there is no colour to calibrate",
+                        entry.camera
+                    )));
+                };
+                let read = read_patches(run, entry, &planes, &holder.patches);
+                readings.insert(entry.index, read.clone());
+                read
+            }
         };
-        match read_patches(run, entry, &planes, &holder.patches) {
-            Ok(readings) => used.push((entry, readings)),
+        match read {
+            Ok(r) => used.push((entry, r)),
             Err(why) => refused.push(format!("frame {}: {why}", entry.index)),
         }
+    }
+    if used.len() < FRAMES_AVERAGED && tried < MAX_CANDIDATES && first_pending.is_some() {
+        return Ok(None);
     }
     let Some((first, _)) = used.first() else {
         return Err(ProcessError::Invalid(format!(
@@ -421,7 +549,7 @@ pub fn calibrate_run(run: &RunFrames) -> Result<ColourReport, ProcessError> {
     }
     remove_if_present(&camera_colour_file(&run.root))?;
     crate::store::write_atomic(&path, &json)?;
-    Ok(report)
+    Ok(Some(report))
 }
 
 /// A chart's fitted `correction` as the textures' calibration: scaled so

@@ -12,12 +12,19 @@
 //! on: a frame whose predecessors are not all journaled yet waits. Were a
 //! frame's slot to change all the same (a frame that never comes), its
 //! kept result no longer matches its key and `rectify` registers it again.
+//!
+//! A colour run calibrated on its own patches is corrected by what its most
+//! frontal frames measure (`colour::calibrate_run`). Its frames wait until
+//! no frame still to come can be among those, then the calibration is
+//! measured once, kept in `colour.json` as `rectify` would keep it, and
+//! every frame is registered in colour.
 
 use std::path::{Path, PathBuf};
 
 use rigd_core::holder::Holder;
 use rigd_process::rectify::MarkerLayout;
 
+use super::colour::ColourWhileCapturing;
 use super::resume::FirstPassCache;
 use super::run::{assign_slots, check_config, encoding_of, holder_layout};
 use super::steps::Rectifier;
@@ -57,6 +64,8 @@ pub struct RectifyStream {
     bit_depth: u8,
     /// Values per texel of the textures so far.
     channels: usize,
+    /// The colour the textures are corrected by, once it is known.
+    colour: ColourWhileCapturing,
 }
 
 impl RectifyStream {
@@ -83,6 +92,7 @@ impl RectifyStream {
             views: Vec::new(),
             bit_depth: 8,
             channels: 1,
+            colour: ColourWhileCapturing::default(),
         })
     }
 
@@ -142,6 +152,11 @@ impl RectifyStream {
         if end <= self.next {
             return Ok(progress);
         }
+        // A run calibrated on its own patches waits for its most frontal
+        // frames: registered before, its textures would not be `rectify`'s.
+        let Some(colour) = self.colour.texture_colour(&run)? else {
+            return Ok(progress);
+        };
         let (lights, views, slots) = assign_slots(&run.entries[..end]);
         let out_dir = crate::store::processed::normtextures_dir(&self.root);
         crate::postprocess::create_dir(&out_dir)?;
@@ -151,7 +166,7 @@ impl RectifyStream {
             holder: self.holder.clone(),
             layout: self.layout.clone(),
             out_dir: out_dir.clone(),
-            colour: super::colour::texture_colour(&run, false)?,
+            colour,
             lamp: None,
         }
         .with_lamp();
