@@ -3,8 +3,9 @@
 //! started and stopped by the test. A simulated H2 is rectified and
 //! compressed once here and once as Slurm job arrays, with one array task
 //! cancelled mid-way (`scancel`) and redone; the BTFs must agree. Then the
-//! daemon's process job runs on the cluster, and the configuration errors
-//! are checked before anything is submitted.
+//! daemon's process job runs on the cluster, a colour run calibrated on its
+//! own patches inside the array's tasks, and the configuration errors are
+//! checked before anything is submitted.
 
 use std::path::Path;
 use std::process::Stdio;
@@ -13,8 +14,12 @@ use std::time::{Duration, Instant};
 use crate::common::slurm::SlurmCluster;
 use crate::common::{rigd, run_ok};
 
-/// The H2's frames: the smallest whose holder markers are found at the 75°
-/// ring (`MIN_REGISTRABLE_FRAME`).
+/// The H2's frames: the smallest whose holder markers a monochrome camera
+/// finds at the 75° ring (`MIN_REGISTRABLE_FRAME`), so that every frame is
+/// registered by its markers, here and on Slurm alike. (A Bayer camera
+/// needs about twice the pixels for its markers, and its demosaicing took
+/// two thirds of this H2's processing: colour on Slurm is the daemon's
+/// job's part below.)
 const FRAME: &str = "288x216";
 /// The rectification of the test: small textures keep it quick.
 const RECTIFY: [&str; 4] = ["--size", "64", "--final", "16"];
@@ -22,9 +27,13 @@ const COMPONENTS: &str = "8";
 
 fn capture_h2(out: &Path) {
     let started = Instant::now();
+    let dir = out.parent().expect("the run's folder");
+    let monochrome = crate::common::bonn_monochrome(dir);
     run_ok(&[
         "run",
         "--sim",
+        "--profile",
+        monochrome.to_str().expect("utf8"),
         "--plan",
         "h2",
         "--frame-size",
@@ -150,6 +159,10 @@ fn an_h2_processed_on_slurm_gives_the_local_btf_with_a_killed_task_redone() {
     };
     let (li, si) = (index(&local), index(&processed));
     assert_eq!(li["frames"].as_array().map(Vec::len), Some(6561));
+    let by_markers = (li["frames"].as_array().into_iter().flatten())
+        .filter(|f| f["method"] == "markers")
+        .count();
+    assert_eq!(by_markers, 6561, "every frame registered by its markers");
     assert_eq!(li["frames"], si["frames"], "registrations differ");
     let worst = assert_same_btf(&local.join("btf"), &processed.join("btf"), 1e-4);
     let names = |dir: &Path| -> Vec<String> {
@@ -448,6 +461,17 @@ async fn daemon_processes_on_slurm(cluster: &SlurmCluster, work: &Path) {
     }
     let root = data.join("runs").join(&id);
     assert!(root.join("processed/btf/btf.json").is_file());
+    // The embedded profile's Bayer camera, calibrated on the plate's
+    // patches by the array's tasks: RGB textures.
+    let index: Value = serde_json::from_slice(
+        &std::fs::read(root.join("processed/normtextures/index.json")).expect("index.json"),
+    )
+    .expect("index.json is JSON");
+    assert_eq!(index["channels"], 3, "RGB textures");
+    assert!(
+        root.join("processed/colour.json").is_file(),
+        "the run's colour"
+    );
 
     // Cancelled by the operator while its array waits (the partition is
     // down, so no task starts): the daemon cancels it with scancel.
