@@ -238,7 +238,8 @@ fn store_class(e: &StoreError) -> u8 {
         | StoreError::NoRun(_)
         | StoreError::Corrupt { .. }
         | StoreError::Finished(..)
-        | StoreError::Busy(_) => EXIT_BAD_INPUT,
+        | StoreError::Busy(_)
+        | StoreError::ProcessingBusy(_) => EXIT_BAD_INPUT,
     }
 }
 

@@ -476,6 +476,12 @@ fn photometric_stereo(args: PsArgs) -> Result<()> {
     .check()
     .map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
+    // Into the run: no other processor writes its files while this one
+    // does. Into another folder, the run is only read.
+    let _processing = (args.run.as_deref())
+        .filter(|_| args.out.is_none())
+        .map(rigd::store::ProcessingLock::acquire)
+        .transpose()?;
     if args.exec.is_slurm() {
         let (Some(run), None) = (&args.run, &args.out) else {
             return Err(bad_input(
@@ -590,6 +596,8 @@ fn rectify(args: RectifyArgs) -> Result<()> {
     // The daemon's check of the same options, so both refuse alike.
     let cfg = options.config().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
+    // No other processor writes the run's files while this one does.
+    let _processing = rigd::store::ProcessingLock::acquire(&args.run)?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
             steps: vec![ProcessStep::Rectify],
@@ -642,6 +650,8 @@ fn btf(args: BtfArgs) -> Result<()> {
         ));
     }
     args.exec.config()?;
+    // No other processor writes the run's files while this one does.
+    let _processing = rigd::store::ProcessingLock::acquire(&args.run)?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
             steps: vec![ProcessStep::Btf],
@@ -738,6 +748,8 @@ fn fit(args: FitArgs) -> Result<()> {
     let options = FitOptions { lobes: args.lobes };
     options.check().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
+    // No other processor writes the run's files while this one does.
+    let _processing = rigd::store::ProcessingLock::acquire(&args.run)?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
             steps: vec![ProcessStep::Fit],
@@ -775,6 +787,8 @@ fn mdf(args: MdfArgs) -> Result<()> {
     };
     options.check().map_err(|e| bad_input(format!("--{e}")))?;
     args.exec.config()?;
+    // No other processor writes the run's files while this one does.
+    let _processing = rigd::store::ProcessingLock::acquire(&args.run)?;
     if args.exec.is_slurm() {
         let opts = ProcessOptions {
             steps: vec![ProcessStep::Mdf],
@@ -928,6 +942,8 @@ fn relight(args: RelightArgs) -> Result<()> {
 fn colour(args: ColourArgs) -> Result<()> {
     use rigd::postprocess::{colour, ProcessError};
     let run = rigd::postprocess::frames::RunFrames::open(&args.run)?;
+    // No other processor writes the run's files while this one does.
+    let _processing = rigd::store::ProcessingLock::acquire(&args.run)?;
     if let Some(file) = &args.calibration {
         let (calibration, _) = match colour::import_calibration(&run, file) {
             Ok(taken) => taken,
@@ -959,6 +975,8 @@ fn colour(args: ColourArgs) -> Result<()> {
 }
 
 fn mdf_texture(args: MdfTextureArgs) -> Result<()> {
+    // No other processor writes the run's files while this one does.
+    let _processing = rigd::store::ProcessingLock::acquire(&args.run)?;
     let cfg = rigd::postprocess::mdf_texture::MdfTextureConfig {
         size: args.size,
         tile_mm: args.tile_mm,

@@ -270,6 +270,24 @@ pub fn run_job<C: JobControl>(ctl: &C, root: &Path, executor: &ProcessingConfig)
         persist(&job);
         Some(job)
     };
+    // Held to the job's end: no other processor writes the run's files
+    // meanwhile. Refused, the job fails in memory only: its file belongs
+    // to whoever holds the run.
+    let _processing = match crate::store::ProcessingLock::acquire(root) {
+        Ok(lock) => lock,
+        Err(e) => {
+            let error = e.to_string();
+            if let Some(job) = ctl.with_job(|j| {
+                j.state = JobState::Failed;
+                j.error = Some(error.clone());
+                j.cancelling = false;
+                j.clone()
+            }) {
+                ctl.publish(&job);
+            }
+            return JobEnd::Failed(error);
+        }
+    };
     let Some(job) = update(&mut |j| {
         j.state = JobState::Running;
         j.cancelling = false;
@@ -393,6 +411,8 @@ pub fn stream_batch<C: JobControl>(
     ctl: &C,
     stream: &mut CaptureStream,
 ) -> Result<CaptureProgress, ProcessError> {
+    // Per batch, so that nothing stays locked between them.
+    let _processing = crate::store::ProcessingLock::acquire(stream.root())?;
     let p = stream.advance()?;
     let moved = ctl.with_job(|j| {
         let moved = (j.streamed, j.slots_ahead) != (p.frames.done, p.slots_ahead);
@@ -426,9 +446,13 @@ pub fn stream_during_capture<C: JobControl>(
     let mut last: Option<CaptureProgress> = None;
     while capturing.load(Ordering::SeqCst) {
         let before = last.map_or(0, |l| l.frames.done);
-        let p = pool.install(|| stream_batch(ctl, &mut stream))?;
-        last = Some(p);
-        if p.frames.done == before {
+        match pool.install(|| stream_batch(ctl, &mut stream)) {
+            Ok(p) => last = Some(p),
+            // Another processor has the run for now: look again later.
+            Err(ProcessError::Store(crate::store::StoreError::ProcessingBusy(_))) => {}
+            Err(e) => return Err(e),
+        }
+        if last.map_or(0, |l| l.frames.done) == before {
             let idle = Instant::now();
             while capturing.load(Ordering::SeqCst) && idle.elapsed() < STREAM_POLL {
                 std::thread::sleep(Duration::from_millis(50));
@@ -478,12 +502,20 @@ mod tests {
         ProcessJob::new("run", options)
     }
 
+    /// A folder with a `run.json` that holds nothing usable: a run to
+    /// lock, with no frames to process.
+    fn empty_run() -> tempfile::TempDir {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::write(dir.path().join(crate::store::RUN_FILE), "{}").expect("run.json");
+        dir
+    }
+
     /// A job on a run that has no frames fails at its first step, says
     /// which in the job file, and publishes the failure; run again, it
     /// starts that step over and keeps the error's step.
     #[test]
     fn a_failing_step_fails_the_job_and_the_file_says_which() {
-        let dir = tempfile::tempdir().expect("tempdir");
+        let dir = empty_run();
         let seen = Mutex::new(Vec::new());
         let ctl = OwnJob::new(job_of(&[ProcessStep::Rectify, ProcessStep::Btf]), |j| {
             lock(&seen).push(j.state)
@@ -504,7 +536,7 @@ mod tests {
     /// ends done at once, without touching the (empty) run.
     #[test]
     fn steps_done_before_are_kept() {
-        let dir = tempfile::tempdir().expect("tempdir");
+        let dir = empty_run();
         let mut job = job_of(&[ProcessStep::Rectify]);
         job.steps[0].state = JobState::Done;
         job.steps[0].summary = Some("before".into());
@@ -516,6 +548,35 @@ mod tests {
         let kept = read_job(dir.path()).expect("job.json");
         assert_eq!(kept.state, JobState::Done);
         assert_eq!(kept.steps[0].summary.as_deref(), Some("before"));
+    }
+
+    /// A run another processor holds: the job fails naming it, in memory
+    /// only, and writes nothing into the run.
+    #[test]
+    fn a_job_on_a_run_another_processor_holds_fails_and_writes_nothing() {
+        let dir = empty_run();
+        let held = crate::store::ProcessingLock::acquire(dir.path()).expect("the lock");
+        let seen = Mutex::new(Vec::new());
+        let ctl = OwnJob::new(job_of(&[ProcessStep::Rectify]), |j| {
+            lock(&seen).push(j.state)
+        });
+        let end = run_job(&ctl, dir.path(), &ProcessingConfig::default());
+        let JobEnd::Failed(error) = end else {
+            panic!("{end:?}");
+        };
+        assert!(
+            error.contains("another rigd is processing this run"),
+            "{error}"
+        );
+        assert_eq!(lock(&seen).as_slice(), [JobState::Failed]);
+        assert!(read_job(dir.path()).is_none(), "no job file written");
+        // Let go, the job gets to its step (which fails on the empty run).
+        drop(held);
+        let end = run_job(&ctl, dir.path(), &ProcessingConfig::default());
+        assert!(
+            matches!(&end, JobEnd::Failed(e) if e.starts_with("rectify: ")),
+            "{end:?}"
+        );
     }
 
     /// A job file that is garbage or a FIFO with no writer is no job: the

@@ -472,6 +472,11 @@ impl CaptureStream {
         }))
     }
 
+    /// The run's directory.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
     /// Registers up to [`STREAM_BATCH`] newly journaled frames, then
     /// compresses the view slots they completed, on the current rayon
     /// pool.

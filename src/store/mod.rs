@@ -35,7 +35,7 @@
 pub mod processed;
 mod writer_lock;
 
-pub use writer_lock::WriterLock;
+pub use writer_lock::{ProcessingLock, WriterLock};
 
 use std::collections::BTreeMap;
 use std::fs::{self, File, OpenOptions};
@@ -117,6 +117,11 @@ pub enum StoreError {
     /// process or another): its folder.
     #[error("{0}: another rigd is writing this run (capturing or resuming it); wait for it to end or stop it, then resume")]
     Busy(String),
+    /// Another processor holds the run's `processed/` folder (a `rigd
+    /// process` command, a process job, the registration during a
+    /// capture): the run's folder.
+    #[error("{0}: another rigd is processing this run (a `rigd process` command, or a process job); wait for it to end or cancel it, then process again")]
+    ProcessingBusy(String),
     /// The state table refuses the state change asked of the run.
     #[error("{path}: {error}")]
     Transition {

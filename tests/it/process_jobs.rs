@@ -63,6 +63,30 @@ async fn a_finished_run_is_processed_by_the_daemon_once() {
     let (status, v) = s.send("POST", &process, Some(json!({})), None).await;
     assert_eq!(status, 401, "{v}");
 
+    // Another processor has the run (a `rigd process` command; here this
+    // test holds its lock): the job fails saying so and writes nothing.
+    let root = dir.path().join("runs").join(&id);
+    let held = rigd::store::ProcessingLock::acquire(&root).expect("the processing lock");
+    let (status, job) = s.post(&process, Some(options.clone())).await;
+    assert_eq!(status, 202, "{job}");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        let Some((_, ev)) = sse.next(left).await else {
+            panic!("the job never failed while the run was held");
+        };
+        if ev["kind"] == "process" && ev["run"] == id.as_str() && ev["event"]["state"] == "failed" {
+            let error = ev["event"]["error"].as_str().unwrap_or("");
+            assert!(
+                error.contains("another rigd is processing this run"),
+                "{ev}"
+            );
+            break;
+        }
+    }
+    assert!(!root.join("processed/normtextures").exists());
+    drop(held);
+
     // The job: queued, then done; asking again returns it.
     let (status, job) = s.post(&process, Some(options.clone())).await;
     assert!(status == 202 || status == 200, "{status} {job}");

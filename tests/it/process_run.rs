@@ -55,6 +55,21 @@ fn capture(dir: &Path, size: &str) -> PathBuf {
 fn a_capture_is_rectified_and_compressed() {
     let dir = tempfile::tempdir().unwrap();
     let run = capture(dir.path(), "512x384");
+    // While another processor has the run (this test holds its lock),
+    // each step is refused as bad input and writes nothing.
+    let held = rigd::store::ProcessingLock::acquire(&run).expect("the processing lock");
+    for step in [&["rectify"][..], &["btf"], &["colour"]] {
+        let out = rigd().arg("process").args(step).arg(&run).output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{step:?}: {stderr}");
+        assert!(
+            stderr.contains("another rigd is processing this run"),
+            "{step:?}: {stderr}"
+        );
+    }
+    let written: Vec<_> = std::fs::read_dir(run.join("processed")).unwrap().collect();
+    assert!(written.is_empty(), "{written:?}");
+    drop(held);
     let out = rigd()
         .args(["process", "rectify", "--size", "256", "--final", "64"])
         .arg(&run)
