@@ -95,24 +95,10 @@ use crate::rig::hal::{
 use relink::{lost_link, Line, Linked, OnLine, PtpOnUsb};
 use rigd_core::Clock;
 
-/// A byte stream a line or Modbus driver can run on.
-pub trait ByteLink: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static {}
-impl<T: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static> ByteLink for T {}
-
-/// A boxed byte stream: a serial port, a TCP socket, an in-memory pipe.
-pub type ByteStream = Box<dyn ByteLink>;
+pub use rigd_hal::{ByteLink, ByteStream, Opener};
 
 /// A boxed USB pipe: a real camera or the simulated one.
 pub type BoxPipe = Box<dyn PtpPipe>;
-
-/// Opens (and re-opens) the byte stream of one device or bus.
-#[async_trait]
-pub trait Opener: Send + Sync {
-    /// Where the link goes, for error messages.
-    fn describe(&self) -> String;
-    /// Opens a fresh stream; called again after the link is lost.
-    async fn open(&self) -> std::io::Result<ByteStream>;
-}
 
 /// Opens (and re-opens) the USB pipe of one camera.
 #[async_trait]

@@ -29,7 +29,7 @@ const CRATES: &[(&str, &[&str])] = &[
     ("crates/core", &[]),
     ("crates/hal", &[]),
     ("crates/proto", &[]),
-    ("crates/sim", &["rigd-core", "rigd-proto"]),
+    ("crates/sim", &["rigd-core", "rigd-hal", "rigd-proto"]),
     ("crates/process", &["rigd-core"]),
     (
         ".",

@@ -6,7 +6,9 @@
 //! without knowing the driver (the embedded-hal pattern).
 //!
 //! A crate of its own, so that a driver, the engine and anything that
-//! stands in for a device depend on these traits and not on each other.
+//! stands in for a device depend on these traits and not on each other:
+//! the simulator's firmware is reached through the same [`Opener`] a
+//! serial port is.
 #![warn(missing_docs)]
 
 use std::collections::BTreeMap;
@@ -15,6 +17,25 @@ use std::sync::Arc;
 
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
+use tokio::io::{AsyncRead, AsyncWrite};
+
+/// A byte stream a line or Modbus driver can run on.
+pub trait ByteLink: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static {}
+impl<T: AsyncRead + AsyncWrite + Send + Unpin + fmt::Debug + 'static> ByteLink for T {}
+
+/// A boxed byte stream: a serial port, a TCP socket, an in-memory pipe to
+/// simulated firmware.
+pub type ByteStream = Box<dyn ByteLink>;
+
+/// Opens (and re-opens) the byte stream of one device or bus: what a
+/// serial or Modbus driver runs on, whatever is at the other end.
+#[async_trait]
+pub trait Opener: Send + Sync {
+    /// Where the link goes, for error messages.
+    fn describe(&self) -> String;
+    /// Opens a fresh stream; called again after the link is lost.
+    async fn open(&self) -> std::io::Result<ByteStream>;
+}
 
 /// What went wrong, as far as the run engine cares.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]

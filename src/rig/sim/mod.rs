@@ -15,17 +15,17 @@
 //! simulator's types the command line and the daemon name.
 
 use std::collections::BTreeMap;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
 use async_trait::async_trait;
 use rigd_core::Clock;
 use rigd_core::Trapezoid;
 use rigd_sim::devices::{CameraTimes, SimContext};
-use rigd_sim::firmware::acl::{self as acl_fw, AclJoint, AclParams};
-use rigd_sim::firmware::grbl::{self as grbl_fw, Eeprom, GrblParams};
+use rigd_sim::firmware::acl::{AclJoint, AclParams};
+use rigd_sim::firmware::grbl::{Eeprom, GrblParams};
 use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
+use rigd_sim::links::{AclOpener, GrblOpener, ModbusOpener};
 use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
 use rigd_sim::{FaultInjector, SharedWorld};
 
@@ -43,10 +43,8 @@ use crate::model::profile::{Device, DeviceKind, Profile, SimTable, Transport};
 use crate::rig::camera_file::DecodeIn;
 use crate::rig::drivers::usb::{memory_pair, MemoryDevice, UsbError};
 use crate::rig::hal::{DeviceError, ErrorKind, Fixture, Rig};
-use crate::rig::{build_rig, BoxPipe, ByteStream, Framing, Link, Opener, PipeOpener};
+use crate::rig::{build_rig, BoxPipe, Framing, Link, PipeOpener};
 
-/// Bytes an in-memory serial pipe buffers each way.
-const PIPE_BUFFER: usize = 64 * 1024;
 /// Width (FWHM) and peak of the simulated laser strip.
 const SIM_LASER_WIDTH_M: f64 = 1.0e-3;
 const SIM_LASER_POWER: f64 = 12.0;
@@ -470,23 +468,19 @@ pub(crate) fn firmware(
                         e
                     }
                 };
-                Link::Line(Arc::new(GrblOpener {
-                    params: GrblParams {
-                        name: name.clone(),
-                        motion,
-                        home_position: home,
-                        physical_start: home,
-                        start_homed: false,
-                        settings,
-                        reset_on_open: sim.grbl_reset_on_open,
-                        world: Some(shared.clone()),
-                        answer_delay_s: sim.grbl_answer_delay_s,
-                    },
-                    clock: clock.clone(),
-                    faults: faults.clone(),
-                    world: shared.clone(),
-                    opened: AtomicBool::new(false),
-                }))
+                let params = GrblParams {
+                    name: name.clone(),
+                    motion,
+                    home_position: home,
+                    physical_start: home,
+                    start_homed: false,
+                    settings,
+                    reset_on_open: sim.grbl_reset_on_open,
+                    world: Some(shared.clone()),
+                    answer_delay_s: sim.grbl_answer_delay_s,
+                };
+                let (clock, faults, world) = (clock.clone(), faults.clone(), shared.clone());
+                Link::Line(Arc::new(GrblOpener::new(params, clock, faults, world)))
             }
             Device::Arm(arm) => {
                 let joints: Vec<AclJoint> = arm
@@ -500,20 +494,16 @@ pub(crate) fn firmware(
                     })
                     .collect();
                 let n = joints.len();
-                Link::Line(Arc::new(AclOpener {
-                    params: AclParams {
-                        name: name.clone(),
-                        joints,
-                        home_s: dev.homing_time_s(),
-                        power_up_counts: vec![0; n],
-                        start_homed: false,
-                        world: Some(shared.clone()),
-                    },
-                    clock: clock.clone(),
-                    faults: faults.clone(),
-                    world: shared.clone(),
-                    opened: AtomicBool::new(false),
-                }))
+                let params = AclParams {
+                    name: name.clone(),
+                    joints,
+                    home_s: dev.homing_time_s(),
+                    power_up_counts: vec![0; n],
+                    start_homed: false,
+                    world: Some(shared.clone()),
+                };
+                let (clock, faults, world) = (clock.clone(), faults.clone(), shared.clone());
+                Link::Line(Arc::new(AclOpener::new(params, clock, faults, world)))
             }
             Device::Lamp(_) | Device::Laser(_) => {
                 let key = bus_key(dev.transport());
@@ -522,11 +512,7 @@ pub(crate) fn firmware(
                 };
                 Link::Modbus {
                     bus: key.clone(),
-                    opener: Arc::new(ModbusOpener {
-                        module: m.module.clone(),
-                        framing: m.framing,
-                        key: key.clone(),
-                    }),
+                    opener: Arc::new(ModbusOpener::new(m.module.clone(), m.framing, key.clone())),
                     framing: m.framing,
                     unit: m.unit,
                     status_registers: dev.transport().status_registers(),
@@ -583,106 +569,6 @@ pub(crate) fn firmware(
         modules,
         cameras,
     })
-}
-
-/// Starts a GRBL controller per open. A re-opened link meets a controller
-/// that reset (as GRBL does when the port opens): it lost its homing but
-/// the axis physically stays where it was.
-struct GrblOpener {
-    params: GrblParams,
-    clock: Clock,
-    faults: Arc<FaultInjector>,
-    world: SharedWorld,
-    opened: AtomicBool,
-}
-
-#[async_trait]
-impl Opener for GrblOpener {
-    fn describe(&self) -> String {
-        format!("simulated GRBL controller `{}`", self.params.name)
-    }
-
-    async fn open(&self) -> std::io::Result<ByteStream> {
-        let mut params = self.params.clone();
-        if self.opened.swap(true, Ordering::SeqCst) {
-            if let Some(&p) = self.world.snapshot().axes.get(&params.name) {
-                params.physical_start = p;
-            }
-        }
-        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
-        let (clock, faults) = (self.clock.clone(), self.faults.clone());
-        tokio::spawn(async move {
-            if let Err(e) = grbl_fw::serve(dev, params, clock, faults).await {
-                tracing::debug!("simulated GRBL link closed: {e}");
-            }
-        });
-        Ok(Box::new(host))
-    }
-}
-
-/// Starts an ACL controller per open. The controller keeps its encoder
-/// counts and homing across a re-opened serial link.
-struct AclOpener {
-    params: AclParams,
-    clock: Clock,
-    faults: Arc<FaultInjector>,
-    world: SharedWorld,
-    opened: AtomicBool,
-}
-
-#[async_trait]
-impl Opener for AclOpener {
-    fn describe(&self) -> String {
-        format!("simulated ACL controller `{}`", self.params.name)
-    }
-
-    async fn open(&self) -> std::io::Result<ByteStream> {
-        let mut params = self.params.clone();
-        if self.opened.swap(true, Ordering::SeqCst) {
-            if let Some(q) = self.world.snapshot().arm {
-                params.power_up_counts = q
-                    .iter()
-                    .zip(&params.joints)
-                    .map(|(deg, j)| (deg * j.counts_per_deg).round() as i64)
-                    .collect();
-                params.start_homed = true;
-            }
-        }
-        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
-        let (clock, faults) = (self.clock.clone(), self.faults.clone());
-        tokio::spawn(async move {
-            if let Err(e) = acl_fw::serve(dev, params, clock, faults).await {
-                tracing::debug!("simulated ACL link closed: {e}");
-            }
-        });
-        Ok(Box::new(host))
-    }
-}
-
-/// Connects to the (one, persistent) simulated Modbus module.
-struct ModbusOpener {
-    module: ModbusModule,
-    framing: Framing,
-    key: String,
-}
-
-#[async_trait]
-impl Opener for ModbusOpener {
-    fn describe(&self) -> String {
-        format!("simulated Modbus module `{}`", self.key)
-    }
-
-    async fn open(&self) -> std::io::Result<ByteStream> {
-        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
-        let module = self.module.clone();
-        let framing = self.framing;
-        tokio::spawn(async move {
-            if let Err(e) = module.serve_stream(dev, framing).await {
-                tracing::debug!("simulated Modbus link closed: {e}");
-            }
-        });
-        Ok(Box::new(host))
-    }
 }
 
 /// What a simulated camera sees: where it is and what the lamps do.
@@ -843,6 +729,7 @@ impl Fixture for SimPlate {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::rig::{ByteStream, Opener};
     use std::time::Duration;
 
     /// A link that takes `delay` to open, like a board that resets when its
