@@ -4,6 +4,7 @@
 //! byte stream. The drivers on the other end are the real ones; only the
 //! wire is simulated.
 
+use std::future::Future;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -11,36 +12,110 @@ use async_trait::async_trait;
 use rigd_core::Clock;
 use rigd_hal::{ByteStream, Opener};
 use rigd_proto::modbus::Framing;
+use tokio::io::DuplexStream;
 
 use crate::firmware::acl::{self as acl_fw, AclParams};
 use crate::firmware::grbl::{self as grbl_fw, GrblParams};
 use crate::firmware::modbus::ModbusModule;
-use crate::{FaultInjector, SharedWorld};
+use crate::{FaultInjector, SharedWorld, World};
 
 /// Bytes an in-memory serial pipe buffers each way.
 const PIPE_BUFFER: usize = 64 * 1024;
 
-/// Starts a GRBL controller per open. A re-opened link meets a controller
-/// that reset (as GRBL does when the port opens): it lost its homing but
-/// the axis physically stays where it was.
-pub struct GrblOpener {
-    params: GrblParams,
+/// A serial controller's firmware, as a [`LineOpener`] starts it on each
+/// open.
+pub trait LineController: Clone + Send + Sync + 'static {
+    /// What the controller is, for messages (`GRBL`, `ACL`).
+    const KIND: &'static str;
+    /// The controller's device, as the profile names it.
+    fn name(&self) -> &str;
+    /// The controller a re-opened link meets, given where `world` says
+    /// its device physically stands.
+    fn reopened(&mut self, world: &World);
+    /// Serves `link` until it closes.
+    fn serve(
+        self,
+        link: DuplexStream,
+        clock: Clock,
+        faults: Arc<FaultInjector>,
+    ) -> impl Future<Output = std::io::Result<()>> + Send + 'static;
+}
+
+/// A GRBL board resets when its port opens: a re-opened link meets one
+/// that lost its homing, its axis physically where it was.
+impl LineController for GrblParams {
+    const KIND: &'static str = "GRBL";
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn reopened(&mut self, world: &World) {
+        if let Some(&p) = world.axes.get(&self.name) {
+            self.physical_start = p;
+        }
+    }
+
+    fn serve(
+        self,
+        link: DuplexStream,
+        clock: Clock,
+        faults: Arc<FaultInjector>,
+    ) -> impl Future<Output = std::io::Result<()>> + Send + 'static {
+        grbl_fw::serve(link, self, clock, faults)
+    }
+}
+
+/// An ACL controller keeps its encoder counts and homing across a
+/// re-opened serial link.
+impl LineController for AclParams {
+    const KIND: &'static str = "ACL";
+
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn reopened(&mut self, world: &World) {
+        if let Some(q) = &world.arm {
+            self.power_up_counts = q
+                .iter()
+                .zip(&self.joints)
+                .map(|(deg, j)| (deg * j.counts_per_deg).round() as i64)
+                .collect();
+            self.start_homed = true;
+        }
+    }
+
+    fn serve(
+        self,
+        link: DuplexStream,
+        clock: Clock,
+        faults: Arc<FaultInjector>,
+    ) -> impl Future<Output = std::io::Result<()>> + Send + 'static {
+        acl_fw::serve(link, self, clock, faults)
+    }
+}
+
+/// Starts a serial controller's firmware per open: the first as its
+/// parameters say, every later one as [`LineController::reopened`] says.
+pub struct LineOpener<C> {
+    controller: C,
     clock: Clock,
     faults: Arc<FaultInjector>,
     world: SharedWorld,
     opened: AtomicBool,
 }
 
-impl GrblOpener {
-    /// The controller of `params`, its axis moving in `world`.
+impl<C: LineController> LineOpener<C> {
+    /// The controller `controller`, its device moving in `world`.
     pub fn new(
-        params: GrblParams,
+        controller: C,
         clock: Clock,
         faults: Arc<FaultInjector>,
         world: SharedWorld,
-    ) -> GrblOpener {
-        GrblOpener {
-            params,
+    ) -> LineOpener<C> {
+        LineOpener {
+            controller,
             clock,
             faults,
             world,
@@ -50,76 +125,23 @@ impl GrblOpener {
 }
 
 #[async_trait]
-impl Opener for GrblOpener {
+impl<C: LineController> Opener for LineOpener<C> {
     fn describe(&self) -> String {
-        format!("simulated GRBL controller `{}`", self.params.name)
+        format!(
+            "simulated {} controller `{}`",
+            C::KIND,
+            self.controller.name()
+        )
     }
 
     async fn open(&self) -> std::io::Result<ByteStream> {
-        let mut params = self.params.clone();
+        let mut controller = self.controller.clone();
         if self.opened.swap(true, Ordering::SeqCst) {
-            if let Some(&p) = self.world.snapshot().axes.get(&params.name) {
-                params.physical_start = p;
-            }
+            controller.reopened(&self.world.snapshot());
         }
         let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
-        let (clock, faults) = (self.clock.clone(), self.faults.clone());
         // A closed link ends the firmware; the driver says what it lost.
-        tokio::spawn(async move { grbl_fw::serve(dev, params, clock, faults).await });
-        Ok(Box::new(host))
-    }
-}
-
-/// Starts an ACL controller per open. The controller keeps its encoder
-/// counts and homing across a re-opened serial link.
-pub struct AclOpener {
-    params: AclParams,
-    clock: Clock,
-    faults: Arc<FaultInjector>,
-    world: SharedWorld,
-    opened: AtomicBool,
-}
-
-impl AclOpener {
-    /// The controller of `params`, its arm moving in `world`.
-    pub fn new(
-        params: AclParams,
-        clock: Clock,
-        faults: Arc<FaultInjector>,
-        world: SharedWorld,
-    ) -> AclOpener {
-        AclOpener {
-            params,
-            clock,
-            faults,
-            world,
-            opened: AtomicBool::new(false),
-        }
-    }
-}
-
-#[async_trait]
-impl Opener for AclOpener {
-    fn describe(&self) -> String {
-        format!("simulated ACL controller `{}`", self.params.name)
-    }
-
-    async fn open(&self) -> std::io::Result<ByteStream> {
-        let mut params = self.params.clone();
-        if self.opened.swap(true, Ordering::SeqCst) {
-            if let Some(q) = self.world.snapshot().arm {
-                params.power_up_counts = q
-                    .iter()
-                    .zip(&params.joints)
-                    .map(|(deg, j)| (deg * j.counts_per_deg).round() as i64)
-                    .collect();
-                params.start_homed = true;
-            }
-        }
-        let (host, dev) = tokio::io::duplex(PIPE_BUFFER);
-        let (clock, faults) = (self.clock.clone(), self.faults.clone());
-        // A closed link ends the firmware; the driver says what it lost.
-        tokio::spawn(async move { acl_fw::serve(dev, params, clock, faults).await });
+        tokio::spawn(controller.serve(dev, self.clock.clone(), self.faults.clone()));
         Ok(Box::new(host))
     }
 }

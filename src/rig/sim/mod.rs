@@ -25,7 +25,7 @@ use rigd_sim::firmware::acl::{AclJoint, AclParams};
 use rigd_sim::firmware::grbl::{Eeprom, GrblParams};
 use rigd_sim::firmware::modbus::{LampSpec, ModbusModule, ModuleConfig};
 use rigd_sim::firmware::ptp::{PtpCameraSpec, PtpFirmware};
-use rigd_sim::links::{AclOpener, GrblOpener, ModbusOpener};
+use rigd_sim::links::{LineOpener, ModbusOpener};
 use rigd_sim::scene::{LaserSheet, Scene as SceneModel, Shot};
 use rigd_sim::{FaultInjector, SharedWorld};
 
@@ -480,7 +480,7 @@ pub(crate) fn firmware(
                     answer_delay_s: sim.grbl_answer_delay_s,
                 };
                 let (clock, faults, world) = (clock.clone(), faults.clone(), shared.clone());
-                Link::Line(Arc::new(GrblOpener::new(params, clock, faults, world)))
+                Link::Line(Arc::new(LineOpener::new(params, clock, faults, world)))
             }
             Device::Arm(arm) => {
                 let joints: Vec<AclJoint> = arm
@@ -503,7 +503,7 @@ pub(crate) fn firmware(
                     world: Some(shared.clone()),
                 };
                 let (clock, faults, world) = (clock.clone(), faults.clone(), shared.clone());
-                Link::Line(Arc::new(AclOpener::new(params, clock, faults, world)))
+                Link::Line(Arc::new(LineOpener::new(params, clock, faults, world)))
             }
             Device::Lamp(_) | Device::Laser(_) => {
                 let key = bus_key(dev.transport());
