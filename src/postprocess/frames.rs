@@ -111,6 +111,22 @@ impl RunFrames {
         linear.planes().map_err(|e| self.frame_error(entry, e))
     }
 
+    /// One frame's colour planes, as [`Self::colour_planes`] reads them,
+    /// with the grey [`Self::image`] reads, which its markers are found in
+    /// ([`CorrectedFrame::grey`] says why). `None` for a monochrome
+    /// camera's frame.
+    pub fn colour_planes_and_grey(
+        &self,
+        entry: &FrameEntry,
+    ) -> Result<Option<(ColourPlanes, Image)>, ProcessError> {
+        let (linear, _) = self.linear(entry)?;
+        let error = |e| self.frame_error(entry, e);
+        let Some(grey) = linear.colour_grey().map_err(error)? else {
+            return Ok(None);
+        };
+        Ok(linear.planes().map_err(error)?.map(|planes| (planes, grey)))
+    }
+
     /// One frame white-balanced and colour-corrected by `calibration`:
     /// three interleaved channels of linear sRGB. `None` for a monochrome
     /// camera's frame.
@@ -120,20 +136,24 @@ impl RunFrames {
         calibration: &rigd_process::colour::ColourCalibration,
     ) -> Result<Option<Image>, ProcessError> {
         Ok(self
-            .corrected_and_clipped(entry, calibration)?
-            .map(|(image, _)| image))
+            .corrected_frame(entry, calibration)?
+            .map(|frame| frame.rgb))
     }
 
-    /// One frame as [`Self::corrected`] reads it, with the pixels the
-    /// sensor clipped ([`Clipped`]).
-    pub fn corrected_and_clipped(
+    /// One frame as [`Self::corrected`] reads it, with its grey and the
+    /// pixels the sensor clipped ([`CorrectedFrame`]).
+    pub fn corrected_frame(
         &self,
         entry: &FrameEntry,
         calibration: &rigd_process::colour::ColourCalibration,
-    ) -> Result<Option<(Image, Option<Clipped>)>, ProcessError> {
+    ) -> Result<Option<CorrectedFrame>, ProcessError> {
         let (linear, level) = self.linear(entry)?;
         let clipped = linear.clipped(level);
-        let Some(planes) = linear.planes().map_err(|e| self.frame_error(entry, e))? else {
+        let error = |e| self.frame_error(entry, e);
+        let Some(grey) = linear.colour_grey().map_err(error)? else {
+            return Ok(None);
+        };
+        let Some(planes) = linear.planes().map_err(error)? else {
             return Ok(None);
         };
         let mut out = Image::new(planes.width, planes.height, 3);
@@ -144,7 +164,11 @@ impl RunFrames {
                 *d = v as f32;
             }
         }
-        Ok(Some((out, clipped)))
+        Ok(Some(CorrectedFrame {
+            rgb: out,
+            grey,
+            clipped,
+        }))
     }
 
     fn frame_error(&self, entry: &FrameEntry, e: impl std::fmt::Display) -> ProcessError {
@@ -312,6 +336,23 @@ impl CheckedReads {
         }
         Ok(bytes)
     }
+}
+
+/// A colour frame as rectification reads it ([`RunFrames::corrected_frame`]).
+pub struct CorrectedFrame {
+    /// White-balanced and colour-corrected: three interleaved channels of
+    /// linear sRGB.
+    pub rgb: Image,
+    /// The frame's grey as [`RunFrames::image`] reads it, in fractions of
+    /// the sensor's full scale: its markers are found, and whether it is
+    /// black is judged, in this, as in an uncalibrated frame. The colour
+    /// steps' demosaic smooths the holder's markers at grazing views,
+    /// foreshortened to slivers a pixel or two thin, below what the marker
+    /// detector finds, where the bilinear demosaic keeps each photosite's
+    /// own value (`docs/processing.md`, "Registration").
+    pub grey: Image,
+    /// The pixels the sensor clipped.
+    pub clipped: Option<Clipped>,
 }
 
 /// A colour frame as red, green and blue planes, linear in [0, 1].
@@ -482,24 +523,21 @@ impl Linear {
     /// Grey: a mosaic demosaiced and weighted (R + 2G + B) / 4 as
     /// [`demosaic::luminance`] does, RGB weighted alike.
     fn grey(self) -> Result<Image, demosaic::TooSmall> {
-        Ok(match self {
-            Linear::Grey(img) => img,
-            Linear::Mosaic(img, cfa) => Image {
-                data: demosaic::luminance(&demosaic::bilinear(
-                    &img.data, img.width, img.height, cfa,
-                )?),
-                ..img
-            },
-            Linear::Rgb(img) => {
-                let mut out = Image::new(img.width, img.height, 1);
-                out.data = img
-                    .data
-                    .chunks_exact(3)
-                    .map(|c| 0.25 * c[0] + 0.5 * c[1] + 0.25 * c[2])
-                    .collect();
-                out
-            }
-        })
+        match self {
+            Linear::Grey(img) => Ok(img),
+            Linear::Mosaic(img, cfa) => mosaic_grey(&img, cfa),
+            Linear::Rgb(img) => Ok(rgb_grey(&img)),
+        }
+    }
+
+    /// A colour frame's grey as [`Self::grey`] makes it; `None` for a
+    /// monochrome frame.
+    fn colour_grey(&self) -> Result<Option<Image>, demosaic::TooSmall> {
+        match self {
+            Linear::Grey(_) => Ok(None),
+            Linear::Mosaic(img, cfa) => mosaic_grey(img, *cfa).map(Some),
+            Linear::Rgb(img) => Ok(Some(rgb_grey(img))),
+        }
     }
 
     /// Red, green and blue planes with the width and height; `None` for
@@ -528,6 +566,24 @@ impl Linear {
             }
         })
     }
+}
+
+/// A mosaic's grey: demosaiced bilinearly and weighted (R + 2G + B) / 4.
+fn mosaic_grey(img: &Image, cfa: Cfa) -> Result<Image, demosaic::TooSmall> {
+    let mut out = Image::new(img.width, img.height, 1);
+    out.data = demosaic::luminance(&demosaic::bilinear(&img.data, img.width, img.height, cfa)?);
+    Ok(out)
+}
+
+/// Three interleaved channels' grey, weighted as [`mosaic_grey`] weighs them.
+fn rgb_grey(img: &Image) -> Image {
+    let mut out = Image::new(img.width, img.height, 1);
+    out.data = img
+        .data
+        .chunks_exact(3)
+        .map(|c| 0.25 * c[0] + 0.5 * c[1] + 0.25 * c[2])
+        .collect();
+    out
 }
 
 /// A camera file's samples, linear in [0, 1].

@@ -814,3 +814,101 @@ fn a_colour_run_streams_once_its_most_frontal_frames_are_in() {
     .expect("index.json");
     assert_eq!(index["channels"], 3, "RGB textures");
 }
+
+/// A colour run's markers are found in the sensor's grey, exactly as the
+/// same frames' are without a calibration: the colour correction and its
+/// demosaic change what a texture holds, never where the markers are
+/// found. At 85° views the markers are slivers a pixel or two thin, and the
+/// colour steps' demosaic smoothed them below what the detector finds: the
+/// embedded Bonn run's 85° ring then came out by the pose, where grey it
+/// registers by its markers.
+#[test]
+fn a_colour_run_finds_the_markers_the_same_frames_show_in_grey() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The embedded Bonn rig (Bayer, 640×480) on a plate without patches,
+    // so that the run is grey until a camera calibration is given.
+    let profile = dir.path().join("bonn-plain.toml");
+    edit(
+        &repo_file("rig-profiles/bonn-gonioreflectometer.toml"),
+        &profile,
+        |t| {
+            t.remove("holder");
+        },
+    );
+    let views: Vec<String> = std::iter::once(r#"{"theta_deg": 0, "phi_deg": 0}"#.to_string())
+        .chain((0..6).map(|k| format!(r#"{{"theta_deg": 85, "phi_deg": {}}}"#, 30 + 60 * k)))
+        .collect();
+    let plan = dir.path().join("plan.json");
+    std::fs::write(
+        &plan,
+        format!(
+            r#"{{"lights": [{{"theta_deg": 0, "phi_deg": 0}}, {{"theta_deg": 34, "phi_deg": 180}}], "views": [{}]}}"#,
+            views.join(", ")
+        ),
+    )
+    .expect("plan");
+    let grey = dir.path().join("grey");
+    run_ok(&[
+        "run",
+        "--sim",
+        "--profile",
+        profile.to_str().expect("utf8"),
+        "--plan",
+        plan.to_str().expect("utf8"),
+        "--progress",
+        "none",
+        "--out",
+        grey.to_str().expect("utf8"),
+    ]);
+    let colour = dir.path().join("colour");
+    crate::common::copy_dir(&grey, &colour);
+    let saved = dir.path().join("camera.json");
+    simulated_camera_calibration(&saved);
+    run_ok(&[
+        "process",
+        "colour",
+        colour.to_str().expect("utf8"),
+        "--calibration",
+        saved.to_str().expect("utf8"),
+    ]);
+    let rectified = |run: &Path| -> serde_json::Value {
+        let arg = run.to_str().expect("utf8");
+        run_ok(&["process", "rectify", "--size", "256", "--final", "64", arg]);
+        let index = run.join("processed/normtextures/index.json");
+        serde_json::from_slice(&std::fs::read(index).expect("index")).expect("index.json")
+    };
+    let (grey, colour) = (rectified(&grey), rectified(&colour));
+    assert_eq!(
+        (grey["channels"].as_u64(), colour["channels"].as_u64()),
+        (Some(1), Some(3))
+    );
+    let registration = |index: &serde_json::Value| -> Vec<String> {
+        let frames = index["frames"].as_array().expect("frames");
+        frames
+            .iter()
+            .map(|f| {
+                let view = &index["views"][f["view_slot"].as_u64().expect("slot") as usize];
+                // Frames without a marker fit may differ in whether the
+                // texture alignment refines their pose: it correlates the
+                // textures' own luminance.
+                format!(
+                    "frame {} (view θ {}): by markers {}, {} markers of {}, {} px RMS",
+                    f["index"],
+                    view["theta_deg"],
+                    f["method"] == "markers",
+                    f["markers_used"],
+                    f["markers_found"],
+                    f["rms_px"]
+                )
+            })
+            .collect()
+    };
+    assert_eq!(registration(&colour), registration(&grey));
+    // Not only the frontal view: frames of the 85° ring register by their
+    // markers, in colour as in grey.
+    let grazing_by_markers = registration(&colour)
+        .iter()
+        .filter(|r| r.contains("θ 85.0") && r.contains("by markers true"))
+        .count();
+    assert!(grazing_by_markers > 0, "{:#?}", registration(&colour));
+}

@@ -482,14 +482,14 @@ fn calibrate_on(
         let read = match readings.get(&entry.index) {
             Some(read) => read.clone(),
             None => {
-                let Some(planes) = run.colour_planes(entry)? else {
+                let Some((planes, grey)) = run.colour_planes_and_grey(entry)? else {
                     return Err(ProcessError::Invalid(format!(
                         "camera `{}` is monochrome (its profile gives no `intrinsics.cfa` and \
                          its frames carry no colour): there is no colour to calibrate",
                         entry.camera
                     )));
                 };
-                let read = read_patches(run, entry, &planes, &holder.patches);
+                let read = read_patches(run, entry, &planes, &grey, &holder.patches);
                 readings.insert(entry.index, read.clone());
                 read
             }
@@ -612,12 +612,10 @@ fn read_patches(
     run: &RunFrames,
     entry: &crate::store::FrameEntry,
     planes: &ColourPlanes,
+    grey: &rigd_process::image_io::Image,
     patches: &[PlacedPatch],
 ) -> Result<Vec<PatchReading>, String> {
-    // The grey `RunFrames::image` reads, from the planes already decoded.
-    let mut grey = rigd_process::image_io::Image::new(planes.width, planes.height, 1);
-    grey.data = rigd_process::demosaic::luminance(&planes.rgb);
-    let h = super::register_by_markers(run, entry, &grey)?;
+    let h = super::register_by_markers(run, entry, grey)?;
     let n = POINTS_PER_SIDE;
     // Points evenly over [-1, 1] (`n` of them), scaled by the caller.
     let spread = |k: usize| 2.0 * (k as f64 + 0.5) / n as f64 - 1.0;

@@ -255,7 +255,7 @@ pub fn rectify_run(
         .filter_map(|&i| {
             let f = &first[i];
             let images = rectifier.frame_images(&run.entries[i]).ok()?;
-            let (h, method) = refine(i, images.grey());
+            let (h, method) = refine(i, images.texture_grey());
             (method == RegistrationMethod::PoseTexture)
                 .then(|| rect::disagreement_px(&h, f.markers.as_ref()?, region))
                 .flatten()
@@ -288,7 +288,7 @@ pub fn rectify_run(
             match rectifier.frame_images(entry) {
                 Err(e) => rec.problem = Some(format!("lost: {e}")),
                 Ok(images) => {
-                    let (h, method) = refine(i, images.grey());
+                    let (h, method) = refine(i, images.texture_grey());
                     match rectifier.write_texture(&mut rec, &images, &h, entry.bit_depth) {
                         Ok(()) => {
                             rec.method = Some(method);

@@ -92,8 +92,12 @@ pub(super) struct Rectifier<'a> {
 pub(super) struct FrameImages {
     /// Colour-corrected RGB with a colour calibration, else grey.
     pub(super) texture: Image,
-    /// Its grey (luminance), when `texture` is RGB.
-    rgb_grey: Option<Image>,
+    /// When `texture` is RGB, the greys it is registered by: the sensor's,
+    /// as an uncalibrated frame's, for the markers
+    /// ([`crate::postprocess::frames::CorrectedFrame::grey`]), and the
+    /// texture's own luminance, for the texture alignment (the colour
+    /// demosaic aliases a textile's weave less than the bilinear one).
+    rgb_greys: Option<RgbGreys>,
     /// The lamp's output relative to the run's reference frame, which
     /// both images have been divided by; `None`: not measured.
     pub(super) lamp_level: Option<f64>,
@@ -104,10 +108,24 @@ pub(super) struct FrameImages {
     full_scale: f32,
 }
 
+/// The greys of an RGB texture's frame ([`FrameImages::rgb_greys`]).
+struct RgbGreys {
+    sensor: Image,
+    texture: Image,
+}
+
 impl FrameImages {
-    /// The grey image registration and the texture alignment work on.
+    /// The grey its markers are found in, its lamp measured in and its
+    /// blackness judged by.
     pub(super) fn grey(&self) -> &Image {
-        self.rgb_grey.as_ref().unwrap_or(&self.texture)
+        self.rgb_greys.as_ref().map_or(&self.texture, |g| &g.sensor)
+    }
+
+    /// The grey its texture is aligned by.
+    pub(super) fn texture_grey(&self) -> &Image {
+        self.rgb_greys
+            .as_ref()
+            .map_or(&self.texture, |g| &g.texture)
     }
 }
 
@@ -164,8 +182,10 @@ impl Rectifier<'_> {
                 let level = output / reference;
                 let scale = (1.0 / level) as f32;
                 images.texture.data.iter_mut().for_each(|v| *v *= scale);
-                if let Some(g) = images.rgb_grey.as_mut() {
-                    g.data.iter_mut().for_each(|v| *v *= scale);
+                if let Some(g) = images.rgb_greys.as_mut() {
+                    for grey in [&mut g.sensor, &mut g.texture] {
+                        grey.data.iter_mut().for_each(|v| *v *= scale);
+                    }
                 }
                 images.lamp_level = Some(level);
             }
@@ -183,27 +203,34 @@ impl Rectifier<'_> {
             let (texture, clipped) = self.run.image_and_clipped(entry)?;
             return Ok(FrameImages {
                 texture,
-                rgb_grey: None,
+                rgb_greys: None,
                 lamp_level: None,
                 clipped,
                 full_scale: crate::postprocess::frames::clipped_level(entry),
             });
         };
-        let Some((rgb, clipped)) = self.run.corrected_and_clipped(entry, colour)? else {
+        let Some(frame) = self.run.corrected_frame(entry, colour)? else {
             return Err(crate::postprocess::ProcessError::Invalid(format!(
                 "frame {} is monochrome, and the run has a colour calibration",
                 entry.index
             )));
         };
-        let mut grey = Image::new(rgb.width, rgb.height, 1);
-        for (g, c) in grey.data.iter_mut().zip(rgb.data.chunks_exact(3)) {
+        let mut texture_grey = Image::new(frame.rgb.width, frame.rgb.height, 1);
+        for (g, c) in texture_grey
+            .data
+            .iter_mut()
+            .zip(frame.rgb.data.chunks_exact(3))
+        {
             *g = rigd_core::holder::luminance([c[0], c[1], c[2]].map(f64::from)) as f32;
         }
         Ok(FrameImages {
-            texture: rgb,
-            rgb_grey: Some(grey),
+            texture: frame.rgb,
+            rgb_greys: Some(RgbGreys {
+                sensor: frame.grey,
+                texture: texture_grey,
+            }),
             lamp_level: None,
-            clipped,
+            clipped: frame.clipped,
             full_scale: crate::postprocess::frames::clipped_level(entry),
         })
     }
@@ -449,7 +476,7 @@ impl Rectifier<'_> {
         let images = self.frame_images(entry).ok()?;
         let side = CORRELATION_SIZE.min(self.cfg.size);
         Some(
-            self.sample_texture(images.grey(), first.markers.as_ref()?, side)
+            self.sample_texture(images.texture_grey(), first.markers.as_ref()?, side)
                 .ok()?
                 .texture,
         )
