@@ -219,41 +219,6 @@ fn serve_help_and_bad_options() {
     }
 }
 
-fn copy_tree(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).expect("create copy");
-    for entry in std::fs::read_dir(from).expect("read dir") {
-        let entry = entry.expect("entry");
-        let target = to.join(entry.file_name());
-        if entry.file_type().expect("file type").is_dir() {
-            copy_tree(&entry.path(), &target);
-        } else {
-            std::fs::copy(entry.path(), &target).expect("copy");
-        }
-    }
-}
-
-/// Every file under `dir`, relative, with its bytes.
-fn tree_bytes(dir: &Path) -> std::collections::BTreeMap<String, Vec<u8>> {
-    let mut out = std::collections::BTreeMap::new();
-    let mut stack = vec![dir.to_path_buf()];
-    while let Some(d) = stack.pop() {
-        for entry in std::fs::read_dir(&d).expect("read dir") {
-            let p = entry.expect("entry").path();
-            if p.is_dir() {
-                stack.push(p);
-            } else {
-                let rel = p
-                    .strip_prefix(dir)
-                    .expect("under dir")
-                    .display()
-                    .to_string();
-                out.insert(rel, std::fs::read(&p).expect("read"));
-            }
-        }
-    }
-    out
-}
-
 /// A daemon killed (-9) while it processes a run takes the job up again at
 /// its next start, and the BTF it ends with is byte for byte the one the
 /// command line makes from the same frames without interruption.
@@ -271,7 +236,7 @@ async fn kill_9_mid_processing_resumes_to_the_same_btf() {
     let run = dir.path().join("runs").join(&id);
     let reference = tempfile::tempdir().expect("tempdir");
     let reference = reference.path().join(&id);
-    copy_tree(&run, &reference);
+    crate::common::copy_dir(&run, &reference);
 
     let options =
         serde_json::json!({"rectify": {"size": 512, "final": 64}, "btf": {"components": 8}});
@@ -344,8 +309,8 @@ fn assert_same_btf_as_cli(run: &Path, reference: &Path, rectify_args: &[&str], c
             String::from_utf8_lossy(&o.stderr)
         );
     }
-    let got = tree_bytes(&run.join("processed/btf"));
-    let want = tree_bytes(&reference.join("processed/btf"));
+    let got = crate::common::tree_bytes(&run.join("processed/btf"));
+    let want = crate::common::tree_bytes(&reference.join("processed/btf"));
     assert_eq!(
         got.keys().collect::<Vec<_>>(),
         want.keys().collect::<Vec<_>>()
@@ -451,7 +416,7 @@ async fn kill_9_mid_streaming_resumes_capture_and_processing_to_the_same_btf() {
 
     let reference = tempfile::tempdir().expect("tempdir");
     let reference = reference.path().join(&id);
-    copy_tree(&run, &reference);
+    crate::common::copy_dir(&run, &reference);
     std::fs::remove_dir_all(reference.join("processed")).expect("a fresh copy");
     assert_same_btf_as_cli(&run, &reference, DAEMON_RECTIFY, "8");
 }
@@ -559,7 +524,7 @@ fn kill_9_mid_streaming_on_the_command_line_resumes_to_the_same_btf() {
     assert!(!run.join("processed/btf-ahead").exists());
 
     let reference = dir.path().join("reference");
-    copy_tree(&run, &reference);
+    crate::common::copy_dir(&run, &reference);
     std::fs::remove_dir_all(reference.join("processed")).expect("a fresh copy");
     // `--process` takes the daemon's defaults: final 128, a quarter of it
     // blended, C = 16.

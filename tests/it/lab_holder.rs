@@ -78,44 +78,13 @@ fn process(run: &Path) -> serde_json::Value {
     json(&run.join("processed/normtextures/index.json"))
 }
 
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).expect("mkdir");
-    for e in std::fs::read_dir(from).expect("read_dir").flatten() {
-        let (src, dst) = (e.path(), to.join(e.file_name()));
-        if src.is_dir() {
-            copy_dir(&src, &dst);
-        } else {
-            std::fs::copy(&src, &dst).expect("copy");
-        }
-    }
-}
-
-/// Every file under `dir`, relative, with its bytes.
-fn files(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut walk = vec![dir.to_path_buf()];
-    while let Some(d) = walk.pop() {
-        for e in std::fs::read_dir(&d).expect("read_dir").flatten() {
-            let p = e.path();
-            if p.is_dir() {
-                walk.push(p);
-            } else {
-                let rel = p.strip_prefix(dir).expect("under").to_path_buf();
-                out.push((rel, std::fs::read(&p).expect("read")));
-            }
-        }
-    }
-    out.sort();
-    out
-}
-
 #[test]
 fn a_lab_s_own_holder_registers_calibrates_colour_and_processes_as_hardware_alike() {
     let dir = tempfile::tempdir().expect("tempdir");
     let run = capture(dir.path());
     // The same frames, marked as a hardware run's, before any processing.
     let hardware = dir.path().join("hardware");
-    copy_dir(&run, &hardware);
+    crate::common::copy_dir(&run, &hardware);
     let meta_path = hardware.join("run.json");
     let mut meta = json(&meta_path);
     meta["simulated"] = false.into();
@@ -183,12 +152,12 @@ fn a_lab_s_own_holder_registers_calibrates_colour_and_processes_as_hardware_alik
     };
     assert_eq!(methods(&index), methods(&hardware_index));
     let (sim_btf, hw_btf) = (
-        files(&rigd::store::processed::btf_dir(&run)),
-        files(&rigd::store::processed::btf_dir(&hardware)),
+        crate::common::tree_bytes(&rigd::store::processed::btf_dir(&run)),
+        crate::common::tree_bytes(&rigd::store::processed::btf_dir(&hardware)),
     );
     assert!(!sim_btf.is_empty());
     // The report also says how long the compression took.
-    let untimed = |(path, bytes): &(PathBuf, Vec<u8>)| -> Vec<u8> {
+    let untimed = |(path, bytes): (&String, &Vec<u8>)| -> Vec<u8> {
         if !path.ends_with("report.json") {
             return bytes.clone();
         }
@@ -199,8 +168,8 @@ fn a_lab_s_own_holder_registers_calibrates_colour_and_processes_as_hardware_alik
     let differing: Vec<String> = sim_btf
         .iter()
         .zip(&hw_btf)
-        .filter(|(a, b)| a.0 != b.0 || untimed(a) != untimed(b))
-        .map(|(a, _)| a.0.display().to_string())
+        .filter(|(a, b)| a.0 != b.0 || untimed(*a) != untimed(*b))
+        .map(|(a, _)| a.0.clone())
         .collect();
     assert_eq!(sim_btf.len(), hw_btf.len());
     assert!(differing.is_empty(), "the BTFs differ in {differing:?}");
