@@ -326,6 +326,7 @@ pub fn start_worker(host: Arc<dyn JobHost>) -> Result<(), String> {
             let mut streams = Streams::default();
             let ready = |job: &ProcessJob| d.ready_to_process(&job.run, job.after_capture);
             loop {
+                streams.forget_ended(d.jobs());
                 let streamable = |job: &ProcessJob| {
                     job.after_capture
                         && job
@@ -358,6 +359,18 @@ struct Streams {
 }
 
 impl Streams {
+    /// Forgets the runs whose job no longer waits for its capture
+    /// (cancelled, or gone), so a daemon that runs for months holds the
+    /// streams of the captures it still registers and no others.
+    fn forget_ended(&mut self, jobs: &Jobs) {
+        let waits = |id: &String| {
+            jobs.get(id)
+                .is_some_and(|j| j.state == JobState::Queued && j.after_capture)
+        };
+        self.runs.retain(|id, _| waits(id));
+        self.not_before.retain(|id, _| waits(id));
+    }
+
     fn due(&self, id: &str) -> bool {
         self.not_before.get(id).is_none_or(|t| Instant::now() >= *t)
     }
@@ -442,4 +455,37 @@ fn run_job(d: &dyn JobHost, pool: &rayon::ThreadPool, id: &str) {
     d.jobs().cancel.store(false, Ordering::SeqCst);
     let ctl = DaemonJob { d, id };
     pool.install(|| job::run_job(&ctl, &root, d.executor()));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_worker_forgets_the_streams_of_jobs_that_no_longer_wait_for_their_capture() {
+        let jobs = Jobs::default();
+        let job = |state: JobState, after_capture: bool| {
+            let mut job = ProcessJob::new("run", ProcessOptions::default());
+            job.state = state;
+            job.after_capture = after_capture;
+            job
+        };
+        for (id, j) in [
+            ("waits", job(JobState::Queued, true)),
+            ("cancelled", job(JobState::Failed, true)),
+            ("running", job(JobState::Running, true)),
+            ("asked-after", job(JobState::Queued, false)),
+        ] {
+            lock(&jobs.jobs).insert(id.to_string(), j);
+        }
+        let mut streams = Streams::default();
+        let later = Instant::now() + STREAM_RETRY;
+        for id in ["waits", "cancelled", "running", "asked-after", "gone"] {
+            streams.not_before.insert(id.to_string(), later);
+        }
+        streams.forget_ended(&jobs);
+        let kept: Vec<&String> = streams.not_before.keys().collect();
+        assert_eq!(kept, ["waits"]);
+        assert!(!streams.due("waits"));
+    }
 }
