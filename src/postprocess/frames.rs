@@ -344,12 +344,11 @@ pub struct CorrectedFrame {
     /// linear sRGB.
     pub rgb: Image,
     /// The frame's grey as [`RunFrames::image`] reads it, in fractions of
-    /// the sensor's full scale: its markers are found, and whether it is
-    /// black is judged, in this, as in an uncalibrated frame. The colour
-    /// steps' demosaic smooths the holder's markers at grazing views,
-    /// foreshortened to slivers a pixel or two thin, below what the marker
-    /// detector finds, where the bilinear demosaic keeps each photosite's
-    /// own value (`docs/processing.md`, "Registration").
+    /// the sensor's full scale: its markers are found, its lamp measured
+    /// and whether it is black judged in this, as in an uncalibrated
+    /// frame, so that calibrating a run later moves none of its textures
+    /// and the black thresholds keep their meaning (`docs/processing.md`,
+    /// "Frames as processing reads them").
     pub grey: Image,
     /// The pixels the sensor clipped.
     pub clipped: Option<Clipped>,
