@@ -240,12 +240,6 @@ pub fn check_frame(
             m.position_mm[1]
         );
         match (m.found_px, m.predicted_px) {
-            (None, Some(_)) if search.too_thin(m.index) => problems.push(format!(
-                "{what}: {:.2} px across at this view, thinner than the {} px the detector \
-                 needs: not looked for (a larger frame, or a view nearer the normal)",
-                search.width_px[m.index].unwrap_or(f64::NAN),
-                super::rectify::MIN_MARKER_WIDTH_PX
-            )),
             (None, Some(p)) => problems.push(format!(
                 "{what}: not found near its predicted pixel ({:.1}, {:.1})",
                 p[0], p[1]

@@ -597,73 +597,13 @@ pub(crate) fn pose_camera(
     ))
 }
 
-/// The narrowest a marker's image may be, across its shortest axis, for
-/// the detector to locate it: a disc foreshortened below a pixel is a
-/// sliver no blob analysis can centre. Measured on the Bonn rig's 85°
-/// views (`docs/processing.md`, "When the markers are not enough"): at
-/// 0.76 px across, fits of all eight markers left 1.1 px RMS and landed up
-/// to 2.5 px from the pose, with the BTF worse than the pose's; at 1.5 px
-/// they left 0.05 px.
-pub const MIN_MARKER_WIDTH_PX: f64 = 1.0;
-
 /// Where a frame's holder markers are predicted and found.
 pub(crate) struct MarkerSearch {
     /// Per marker, where the camera model puts it, pixels; None behind
     /// the camera.
     pub(crate) predicted: Vec<Option<[f64; 2]>>,
-    /// Per marker, how wide the camera model makes it across its shortest
-    /// axis, pixels; None behind the camera.
-    pub(crate) width_px: Vec<Option<f64>>,
-    /// Per marker, the blob found around the prediction, if any. A marker
-    /// narrower than [`MIN_MARKER_WIDTH_PX`] is not looked for.
+    /// Per marker, the blob found around the prediction, if any.
     pub(crate) detections: Vec<Option<rigd_process::rectify::Detection>>,
-}
-
-impl MarkerSearch {
-    /// Whether marker `i` was too thin at this view to be looked for.
-    pub(crate) fn too_thin(&self, i: usize) -> bool {
-        self.width_px
-            .get(i)
-            .copied()
-            .flatten()
-            .is_some_and(|w| w < MIN_MARKER_WIDTH_PX)
-    }
-
-    /// Why the markers could not register the frame, `error` saying what
-    /// the fit found: with the markers that were too thin to look for named
-    /// first.
-    pub(crate) fn explain(&self, error: impl std::fmt::Display) -> String {
-        let thin: Vec<f64> = (0..self.predicted.len())
-            .filter(|&i| self.too_thin(i))
-            .filter_map(|i| self.width_px[i])
-            .collect();
-        if thin.is_empty() {
-            return error.to_string();
-        }
-        let widest = thin.iter().copied().fold(0.0, f64::max);
-        format!(
-            "{} of the {} markers are at most {widest:.2} px across at this view, thinner than \
-             the {MIN_MARKER_WIDTH_PX} px the detector needs, and were not looked for; {error}",
-            thin.len(),
-            self.predicted.len()
-        )
-    }
-}
-
-/// How wide a disc of radius `r` (metres) at plate point `p` looks through
-/// `camera` across its shortest axis, pixels: twice the smaller singular
-/// value of the projection's local linear map, scaled by `r`.
-fn projected_width_px(camera: &rigd_core::camera::Camera, p: [f64; 2], r: f64) -> Option<f64> {
-    let c = camera.project([p[0], p[1], 0.0])?;
-    let a = camera.project([p[0] + r, p[1], 0.0])?;
-    let b = camera.project([p[0], p[1] + r, 0.0])?;
-    let (da, db) = ([a[0] - c[0], a[1] - c[1]], [b[0] - c[0], b[1] - c[1]]);
-    let frobenius = da[0] * da[0] + da[1] * da[1] + db[0] * db[0] + db[1] * db[1];
-    let det = (da[0] * db[1] - da[1] * db[0]).abs();
-    // The singular values s1 ≥ s2 of [da db]: s1² + s2² = |J|², s1 s2 = |det J|.
-    let largest =
-        ((frobenius + (frobenius * frobenius - 4.0 * det * det).max(0.0).sqrt()) / 2.0).sqrt();
-    (largest > 0.0).then(|| 2.0 * det / largest)
 }
 
 /// Looks for each of `holder`'s point markers (light or dark) around where
@@ -711,20 +651,9 @@ pub(crate) fn find_markers(
         .iter()
         .map(|p| p.polarity == rigd_core::holder::Polarity::Dark)
         .collect();
-    let width_px: Vec<Option<f64>> = holder
-        .points
-        .iter()
-        .map(|p| projected_width_px(camera, p.position, p.radius))
-        .collect();
-    let searched: Vec<Option<[f64; 2]>> = predicted
-        .iter()
-        .zip(&width_px)
-        .map(|(p, w)| p.filter(|_| w.is_none_or(|w| w >= MIN_MARKER_WIDTH_PX)))
-        .collect();
-    let detections = rect::detect_markers_of_polarity(image, &searched, &dark, radius, &opts)?;
+    let detections = rect::detect_markers_of_polarity(image, &predicted, &dark, radius, &opts)?;
     Ok(MarkerSearch {
         predicted,
-        width_px,
         detections,
     })
 }
@@ -743,38 +672,3 @@ pub use steps::{
     SATURATED_FRACTION,
 };
 pub use stream::{RectifyStream, StreamProgress};
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-    use rigd_core::camera::Camera;
-
-    /// A 6 mm disc on the Bonn rig at 640×480 (focal 2322 px, 1.6 m): 8.7 px
-    /// across seen from the normal, its shortest axis shrinking as cos θ,
-    /// along whichever image axis the view tilts, and at 85° below a pixel.
-    #[test]
-    fn a_marker_s_width_is_its_disc_foreshortened_by_the_view() {
-        let width = |theta_deg: f64, phi_deg: f64| {
-            let view = rigd_core::geometry::Direction::new(theta_deg, phi_deg).to_vector();
-            let camera = Camera::new(view, [640, 480], Some(2322.0), Some(1.6), 0.12);
-            projected_width_px(&camera, [0.0, 0.0], 0.003).expect("in front of the camera")
-        };
-        let frontal = width(0.0, 0.0);
-        assert!(
-            (frontal - 2.0 * 0.003 * 2322.0 / 1.6).abs() < 0.01,
-            "{frontal}"
-        );
-        for phi in [0.0, 45.0, 90.0, 300.0] {
-            for theta in [30.0, 60.0, 75.0, 85.0] {
-                let ratio = width(theta, phi) / frontal;
-                let expected = f64::cos(f64::to_radians(theta));
-                assert!(
-                    (ratio - expected).abs() < 0.01,
-                    "θ {theta} φ {phi}: {ratio}"
-                );
-            }
-        }
-        assert!(width(85.0, 150.0) < MIN_MARKER_WIDTH_PX);
-        assert!(width(75.0, 150.0) > 2.0 * MIN_MARKER_WIDTH_PX);
-    }
-}

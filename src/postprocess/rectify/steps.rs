@@ -257,7 +257,7 @@ impl Rectifier<'_> {
         let search = super::find_markers(&self.holder, &self.layout, image, camera)
             .map_err(|e| e.to_string())?;
         rigd_process::rectify::register(&self.layout, &search.detections, &Default::default())
-            .map_err(|e| search.explain(e))
+            .map_err(|e| e.to_string())
     }
 
     /// The sample square of `image` through `h` at `side` texels.
