@@ -818,10 +818,10 @@ fn a_colour_run_streams_once_its_most_frontal_frames_are_in() {
 /// A colour run's markers are found in the sensor's grey, exactly as the
 /// same frames' are without a calibration: the colour correction and its
 /// demosaic change what a texture holds, never where the markers are
-/// found. At 85° views the markers are slivers a pixel or two thin, and the
+/// found. At 85° views the markers are slivers under a pixel thin, and the
 /// colour steps' demosaic smoothed them below what the detector finds: the
 /// embedded Bonn run's 85° ring then came out by the pose, where grey it
-/// registers by its markers.
+/// registers by its markers (unreliably there: `docs/processing.md`).
 #[test]
 fn a_colour_run_finds_the_markers_the_same_frames_show_in_grey() {
     let dir = tempfile::tempdir().expect("tempdir");
