@@ -417,6 +417,17 @@ impl Daemon {
 
     /// Starts a new run now; 409 if one is active.
     pub async fn start_run(self: &Arc<Self>, req: RunRequest) -> Result<RunView, SupervisorError> {
+        let gate = self.start_gate.lock().await;
+        self.start_run_gated(req, &gate).await
+    }
+
+    /// [`Self::start_run`] for a caller that holds the start gate, so that
+    /// what it decided before (which queued item goes next) still holds.
+    async fn start_run_gated(
+        self: &Arc<Self>,
+        req: RunRequest,
+        _gate: &tokio::sync::MutexGuard<'_, ()>,
+    ) -> Result<RunView, SupervisorError> {
         let plan = self.validate(&req)?;
         // Processing during the capture compresses view slots as they
         // complete, which an order left to the default can favour.
@@ -428,7 +439,6 @@ impl Daemon {
                     .contains(&crate::postprocess::pipeline::ProcessStep::Btf),
                 None => false,
             };
-        let _gate = self.start_gate.lock().await;
         self.settle_ending_run().await;
         {
             let inner = self.inner();
@@ -771,11 +781,21 @@ impl Daemon {
     pub fn pump_queue(self: &Arc<Self>) {
         let daemon = self.clone();
         tokio::spawn(async move {
-            let _ = daemon.start_next_queued().await;
+            let gate = daemon.start_gate.lock().await;
+            let _ = daemon.start_next_queued(&gate).await;
         });
     }
 
-    async fn start_next_queued(self: &Arc<Self>) -> Option<RunView> {
+    /// Starts the queue's head if the rig is free: the item and the run it
+    /// became. Under the start gate, so the head cannot change between
+    /// being taken and being started, and only one caller starts it.
+    async fn start_next_queued(
+        self: &Arc<Self>,
+        gate: &tokio::sync::MutexGuard<'_, ()>,
+    ) -> Option<(QueueItem, RunView)> {
+        // A run whose final state is in but whose engine still holds the
+        // rig is as good as ended.
+        self.settle_ending_run().await;
         loop {
             let item = {
                 let mut inner = self.inner();
@@ -787,14 +807,14 @@ impl Daemon {
                 item
             };
             self.publish_queue();
-            match self.start_run(item.request.clone()).await {
+            match self.start_run_gated(item.request.clone(), gate).await {
                 Ok(v) => {
                     tracing::info!(item = %item.id, run = %v.id, "queued run started");
-                    return Some(v);
+                    return Some((item, v));
                 }
                 Err(SupervisorError::Conflict(_) | SupervisorError::Unavailable(_)) => {
-                    // Someone else took the rig meanwhile, or the daemon is
-                    // stopping: put it back.
+                    // The rig is held (by a run nobody queued), or the
+                    // daemon is stopping: put it back.
                     let mut inner = self.inner();
                     inner.queue.insert(0, item);
                     self.save_queue_locked(&inner);
@@ -830,6 +850,10 @@ impl Daemon {
         req: RunRequest,
     ) -> Result<(QueueItem, Option<RunView>), SupervisorError> {
         self.validate(&req)?;
+        // Held from adding the item to starting it, so no other start (a
+        // pump after a run ended) can take it in between and leave this
+        // caller unable to say which run it became.
+        let gate = self.start_gate.lock().await;
         let item = {
             let mut inner = self.inner();
             if inner.shutting_down {
@@ -854,8 +878,10 @@ impl Daemon {
             item
         };
         self.publish_queue();
-        let started = self.start_next_queued().await;
-        let started = started.filter(|_| !self.inner().queue.iter().any(|q| q.id == item.id));
+        let started = self
+            .start_next_queued(&gate)
+            .await
+            .and_then(|(started, run)| (started.id == item.id).then_some(run));
         Ok((item, started))
     }
 

@@ -747,16 +747,48 @@ async fn the_queue_runs_in_order_and_persists() {
     }
     let (_, q) = s.get("/api/v1/queue").await;
     assert_eq!(q["items"].as_array().map(Vec::len), Some(0));
-    // A queued item on an idle rig starts at once.
-    let (status, v) = s
-        .post("/api/v1/queue", Some(run_body("now", small_plan(2))))
-        .await;
-    assert_eq!(status, 201);
-    let started = v["started_run"]["id"]
-        .as_str()
-        .expect("started at once")
-        .to_string();
-    s.wait_state(&started, "completed").await;
+    // A queued item on an idle rig starts at once, and the answer says
+    // which run it became; items queued together wait their turn.
+    let (a, b, c) = tokio::join!(
+        s.post("/api/v1/queue", Some(run_body("now-a", small_plan(2)))),
+        s.post("/api/v1/queue", Some(run_body("now-b", small_plan(2)))),
+        s.post("/api/v1/queue", Some(run_body("now-c", small_plan(2)))),
+    );
+    let answers = [a, b, c];
+    let mut started = Vec::new();
+    for (status, v) in &answers {
+        assert_eq!(*status, 201, "{v}");
+        if !v["started_run"].is_null() {
+            assert_eq!(
+                v["started_run"]["sample"], v["item"]["request"]["sample"],
+                "an answer names another item's run: {v}"
+            );
+            started.push(v["started_run"]["id"].as_str().unwrap_or("").to_string());
+        }
+    }
+    assert!(!started.is_empty(), "none started at once: {answers:?}");
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    loop {
+        let (_, list) = s.get("/api/v1/runs").await;
+        let runs = list["runs"].as_array().cloned().unwrap_or_default();
+        let now: Vec<&Value> = runs
+            .iter()
+            .filter(|r| r["sample"].as_str().is_some_and(|x| x.starts_with("now-")))
+            .collect();
+        if now.len() == 3 && now.iter().all(|r| r["state"] == "completed") {
+            for id in &started {
+                assert!(now.iter().any(|r| r["id"] == id.as_str()), "{list}");
+            }
+            break;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the items queued together did not all run once: {list}"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let (_, q) = s.get("/api/v1/queue").await;
+    assert_eq!(q["items"].as_array().map(Vec::len), Some(0));
     s.shutdown().await;
 
     // Queue persists across restarts: add while a run is active, stop, start again.
