@@ -703,9 +703,11 @@ fn a_view_slot_without_a_usable_frame_is_named() {
     );
 }
 
-/// At 85° views five nearly collinear markers can fit a homography tens of
-/// pixels off at the sample with a small residual (the demo H1 showed it):
-/// such a fit is checked against the calibrated pose and replaced by it.
+/// At 85° views a fit of four or five markers, too few to reveal an
+/// outlier, can land pixels off at the sample with no residual to show it
+/// (four fit exactly): on a lab's plate at 640×480 the four found at
+/// φ 15° and 195° land 2.7–3.5 px from a pose right to 0.2 px. Such a fit
+/// is checked against the calibrated pose and replaced by it.
 #[test]
 fn grazing_marker_fits_that_contradict_the_pose_are_replaced() {
     let dir = tempfile::tempdir().unwrap();
@@ -714,19 +716,17 @@ fn grazing_marker_fits_that_contradict_the_pose_are_replaced() {
         &plan,
         r#"{"lights": [{"theta_deg": 34, "phi_deg": 330}, {"theta_deg": 51, "phi_deg": 80}],
             "views": [{"theta_deg": 0, "phi_deg": 0}, {"theta_deg": 45, "phi_deg": 90},
-                      {"theta_deg": 85, "phi_deg": 30}, {"theta_deg": 85, "phi_deg": 60},
-                      {"theta_deg": 85, "phi_deg": 240}]}"#,
+                      {"theta_deg": 85, "phi_deg": 15}, {"theta_deg": 85, "phi_deg": 195}]}"#,
     )
     .unwrap();
     let run = dir.path().join("grazing");
-    let profile = common::bonn_monochrome(dir.path());
     common::run_ok(&[
         "run",
         "--sim",
         "--profile",
-        profile.to_str().unwrap(),
-        "--frame-size",
-        "320x240",
+        common::repo_file("rig-profiles/bonn-colorchecker.toml")
+            .to_str()
+            .unwrap(),
         "--sample",
         "g",
         "--progress",

@@ -651,7 +651,11 @@ pub(crate) fn find_markers(
         .iter()
         .map(|p| p.polarity == rigd_core::holder::Polarity::Dark)
         .collect();
-    let detections = rect::detect_markers_of_polarity(image, &predicted, &dark, radius, &opts)?;
+    let parts = holder_image::HolderImage::new(holder, camera);
+    let detections =
+        rect::detect_markers_where(image, &predicted, &dark, radius, &opts, |i, c| {
+            parts.belongs_to_marker(i, c)
+        })?;
     Ok(MarkerSearch {
         predicted,
         detections,
@@ -659,6 +663,7 @@ pub(crate) fn find_markers(
 }
 
 pub mod colour;
+mod holder_image;
 mod lamp;
 mod part;
 mod resume;

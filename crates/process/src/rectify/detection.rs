@@ -73,6 +73,23 @@ pub fn detect_markers_of_polarity(
     search_radius_px: f64,
     opts: &DetectOptions,
 ) -> Result<Vec<Option<Detection>>, RectifyError> {
+    detect_markers_where(image, predicted_px, dark, search_radius_px, opts, |_, _| {
+        true
+    })
+}
+
+/// [`detect_markers_of_polarity`] taking, for marker `i`, the nearest
+/// acceptable blob for which `belongs(i, centre_px)` holds: the caller
+/// knows what else the image shows near the marker (a border line, the
+/// next marker) and can refuse a blob that lies nearer to that.
+pub fn detect_markers_where(
+    image: &Image,
+    predicted_px: &[Option<[f64; 2]>],
+    dark: &[bool],
+    search_radius_px: f64,
+    opts: &DetectOptions,
+    belongs: impl Fn(usize, [f64; 2]) -> bool + Sync,
+) -> Result<Vec<Option<Detection>>, RectifyError> {
     check_image(image)?;
     if !(search_radius_px.is_finite() && search_radius_px > 0.0) {
         return Err(RectifyError::InvalidInput(format!(
@@ -108,12 +125,12 @@ pub fn detect_markers_of_polarity(
             };
             detect_one(
                 &grey,
-                image.width,
-                image.height,
+                [image.width, image.height],
                 p,
                 search_radius_px,
                 opts,
                 polarity,
+                &|c| belongs(i, c),
             )
         })
         .collect())
@@ -176,12 +193,12 @@ pub(super) enum Polarity {
 
 pub(super) fn detect_one(
     grey: &[f32],
-    width: usize,
-    height: usize,
+    [width, height]: [usize; 2],
     pred: [f64; 2],
     radius: f64,
     opts: &DetectOptions,
     polarity: Polarity,
+    belongs: &dyn Fn([f64; 2]) -> bool,
 ) -> Option<Detection> {
     let margin = (opts.max_area_px * opts.max_elongation / std::f64::consts::PI).sqrt() + 3.0;
     let half = radius + margin;
@@ -257,7 +274,10 @@ pub(super) fn detect_one(
                     d.centre_px[1] - win.y0 as f64,
                 ];
                 let dist = (c[0] - pred_local[0]).hypot(c[1] - pred_local[1]);
-                if dist <= radius && best.as_ref().is_none_or(|(b, _)| dist < *b) {
+                if dist <= radius
+                    && best.as_ref().is_none_or(|(b, _)| dist < *b)
+                    && belongs(d.centre_px)
+                {
                     best = Some((dist, d));
                 }
             }
