@@ -114,7 +114,7 @@ fn contains(q: &[[f64; 2]; 4], p: [f64; 2]) -> bool {
         let (a, b) = (q[k], q[(k + 1) % 4]);
         (b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0])
     };
-    let s: Vec<f64> = (0..4).map(side).collect();
+    let s = [side(0), side(1), side(2), side(3)];
     s.iter().all(|&v| v >= 0.0) || s.iter().all(|&v| v <= 0.0)
 }
 
