@@ -821,7 +821,8 @@ fn a_colour_run_streams_once_its_most_frontal_frames_are_in() {
 /// found. At 85° views the markers are slivers under a pixel thin, and the
 /// colour steps' demosaic smoothed them below what the detector finds: the
 /// embedded Bonn run's 85° ring then came out by the pose, where grey it
-/// registers by its markers (unreliably there: `docs/processing.md`).
+/// registers by its markers where they can be told from the border line
+/// (`docs/processing.md`, "Whether the 85° ring is feasible").
 #[test]
 fn a_colour_run_finds_the_markers_the_same_frames_show_in_grey() {
     let dir = tempfile::tempdir().expect("tempdir");

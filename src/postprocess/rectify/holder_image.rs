@@ -96,8 +96,8 @@ fn distance(a: [f64; 2], b: [f64; 2]) -> f64 {
     (a[0] - b[0]).hypot(a[1] - b[1])
 }
 
-/// Distance from `p` to the segment from `a` to `b`.
-fn segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+/// The point of the segment from `a` to `b` nearest to `p`.
+fn nearest_on_segment(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> [f64; 2] {
     let ab = [b[0] - a[0], b[1] - a[1]];
     let len2 = ab[0] * ab[0] + ab[1] * ab[1];
     let t = if len2 > 0.0 {
@@ -105,7 +105,12 @@ fn segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
     } else {
         0.0
     };
-    distance(p, [a[0] + t * ab[0], a[1] + t * ab[1]])
+    [a[0] + t * ab[0], a[1] + t * ab[1]]
+}
+
+/// Distance from `p` to the segment from `a` to `b`.
+fn segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+    distance(p, nearest_on_segment(p, a, b))
 }
 
 /// Whether `p` lies inside the convex quadrilateral `q` (either winding).
@@ -157,21 +162,12 @@ mod tests {
                 "marker {i} at its own centre"
             );
             // The point of the nearest border line closest to the marker.
-            let nearest = image
+            let on_line = image
                 .lines
                 .iter()
-                .map(|&[a, b]| {
-                    let d = segment_distance(m, a, b);
-                    (d, a, b)
-                })
-                .min_by(|x, y| x.0.total_cmp(&y.0))
+                .map(|&[a, b]| nearest_on_segment(m, a, b))
+                .min_by(|x, y| distance(*x, m).total_cmp(&distance(*y, m)))
                 .expect("lines");
-            let (_, a, b) = nearest;
-            let ab = [b[0] - a[0], b[1] - a[1]];
-            let t = (((m[0] - a[0]) * ab[0] + (m[1] - a[1]) * ab[1])
-                / (ab[0] * ab[0] + ab[1] * ab[1]))
-                .clamp(0.0, 1.0);
-            let on_line = [a[0] + t * ab[0], a[1] + t * ab[1]];
             if distance(on_line, m) < 19.0 {
                 assert!(
                     !image.belongs_to_marker(i, on_line),
